@@ -1,0 +1,36 @@
+"""lgnn: a MuJoCo-validated benchmark suite for learned dynamics of articulated rigid bodies.
+
+The public interface, by lifecycle stage:
+- scenes: `Scene`, `State`, `get_scene`, `BUILTIN_SCENES`, `scene_from_dict`,
+  `load_scene_file`, `sample_initial_states`;
+- physics: `lgnn.physics` (Lagrangians, constraints, the constrained Euler-Lagrange
+  solve as a function transformer);
+- integration: `lgnn.integrate` (RK4, velocity Verlet, rollouts);
+- the ground-truth engine: `SimulationConfig`, `simulate`, `Trajectory`.
+"""
+
+from lgnn.errors import ConfigError, LgnnError, SceneError, SimulationError
+from lgnn.scene import Scene, State, load_scene_file, scene_from_dict, scene_to_dict, scene_to_json
+from lgnn.scenes import BUILTIN_SCENES, get_scene, sample_initial_states
+from lgnn.simulate import SimulationConfig, Trajectory, simulate
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BUILTIN_SCENES",
+    "ConfigError",
+    "LgnnError",
+    "Scene",
+    "SceneError",
+    "SimulationConfig",
+    "SimulationError",
+    "State",
+    "Trajectory",
+    "get_scene",
+    "load_scene_file",
+    "sample_initial_states",
+    "scene_from_dict",
+    "scene_to_dict",
+    "scene_to_json",
+    "simulate",
+]

@@ -1,0 +1,46 @@
+"""Atomic file output: write to a temporary file beside the target, then rename.
+
+A crash or a kill never leaves a half-written result: readers see the old file or
+the new one, nothing in between.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+from lgnn.errors import ConfigError
+
+
+def check_writable(path: str | os.PathLike) -> Path:
+    """Fail early, with one line, if `path` cannot be written (before any long work)."""
+    path = Path(path)
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise ConfigError(f"output directory does not exist: {parent}")
+    if not os.access(parent, os.W_OK):
+        raise ConfigError(f"output directory is not writable: {parent}")
+    if path.is_dir():
+        raise ConfigError(f"output path is a directory: {path}")
+    return path
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike):
+    """Yield a temporary path in the target's directory; rename it over `path` on success."""
+    path = check_writable(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)

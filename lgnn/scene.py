@@ -1,0 +1,378 @@
+"""The scene: one immutable description of a planar articulated structure.
+
+A scene is a graph. Nodes are joints with Cartesian positions; links (edges) are
+uniform rigid rods between two nodes with a rest length, a mass, a physical moment
+of inertia about the rod's centre, and a type label. Some nodes are pinned (fixed in
+space at their initial position). Gravity acts along -y; an optional linear drag
+acts on each link's centre velocity.
+
+`Scene` is a frozen dataclass registered as a JAX pytree:
+- static (meta) fields fix the topology and the model structure and are hashable:
+  `name`, `edges`, `pinned`, `link_types`, `drag` (whether a drag term exists at all
+  changes the equations, so it is static);
+- numeric fields are the leaves: `nodes` (N, D) and `velocities` (N, D), the initial
+  state; `lengths`, `masses`, `inertias` (E,); `gravity` ().
+Leaves are stored as NumPy float64 so a scene is exact whatever JAX's x64 setting;
+computations convert them.
+
+Scene files are JSON with exactly this schema (other tools depend on it):
+
+    {"name": str, "gravity": float (magnitude along -y, default 10),
+     "drag": float (default 0), "nodes": [[x, y], ...],
+     "velocities": [[vx, vy], ...] (optional, default rest),
+     "pinned": [node, ...],
+     "links": [{"nodes": [i, j], "mass": float, "inertia": float,
+                "length": float (optional, default the initial distance),
+                "type": str (optional, default "link")}, ...]}
+
+`scene_from_dict` validates everything and raises `SceneError` with one line naming
+the field and the problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from lgnn.errors import SceneError
+
+# Positions must satisfy the link lengths to this relative accuracy at load, and
+# initial velocities must not stretch links faster than this (relative to the scene's
+# speed scale). Tight enough to catch typos, loose enough for 15-digit JSON.
+LENGTH_TOLERANCE = 1e-8
+# Links shorter than this fraction of the longest link are rejected: the rod's
+# rotational inertia divides by its squared length and the constraint row by its length.
+MIN_RELATIVE_LENGTH = 1e-6
+# Scene files above this size are refused before reading (a scene of a million nodes
+# is ~100 MB of JSON; anything larger is almost certainly not a scene).
+MAX_SCENE_FILE_BYTES = 256 * 1024 * 1024
+DEFAULT_LINK_TYPE = "link"
+
+
+class State(NamedTuple):
+    """Node positions `q` and velocities `qd`, each (..., N, D)."""
+
+    q: Any
+    qd: Any
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scene:
+    """Immutable description of an articulated structure; see the module docstring."""
+
+    name: str
+    edges: tuple[tuple[int, int], ...]
+    pinned: tuple[int, ...]
+    link_types: tuple[str, ...]
+    drag: float
+    nodes: np.ndarray
+    velocities: np.ndarray
+    lengths: np.ndarray
+    masses: np.ndarray
+    inertias: np.ndarray
+    gravity: np.ndarray
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_links(self) -> int:
+        return len(self.edges)
+
+    @property
+    def dim(self) -> int:
+        return self.nodes.shape[-1]
+
+    @property
+    def edge_index(self) -> np.ndarray:
+        """(E, 2) int array of link end nodes."""
+        return np.asarray(self.edges, dtype=np.int64).reshape(-1, 2)
+
+    @property
+    def free_nodes(self) -> tuple[int, ...]:
+        pinned = set(self.pinned)
+        return tuple(k for k in range(self.n_nodes) if k not in pinned)
+
+    @property
+    def pin_positions(self) -> np.ndarray:
+        """(P, D) fixed positions of the pinned nodes (their initial positions)."""
+        return self.nodes[list(self.pinned)]
+
+    @property
+    def initial_state(self) -> State:
+        return State(self.nodes, self.velocities)
+
+    def replace(self, **changes) -> "Scene":
+        return dataclasses.replace(self, **changes)
+
+    def with_state(self, state: State) -> "Scene":
+        """The same structure with another initial state (not re-validated)."""
+        return self.replace(nodes=np.asarray(state.q, np.float64), velocities=np.asarray(state.qd, np.float64))
+
+    def __repr__(self) -> str:
+        return (
+            f"Scene({self.name!r}, nodes={self.n_nodes}, links={self.n_links}, "
+            f"pinned={len(self.pinned)}, gravity={float(self.gravity):g}, drag={self.drag:g})"
+        )
+
+
+jax.tree_util.register_dataclass(
+    Scene,
+    data_fields=["nodes", "velocities", "lengths", "masses", "inertias", "gravity"],
+    meta_fields=["name", "edges", "pinned", "link_types", "drag"],
+)
+
+
+# ---------------------------------------------------------------------------------
+# Construction and validation
+# ---------------------------------------------------------------------------------
+
+_TOP_KEYS = {"name", "gravity", "drag", "nodes", "velocities", "pinned", "links"}
+_REQUIRED_TOP = {"name", "nodes", "pinned", "links"}
+_LINK_KEYS = {"nodes", "mass", "inertia", "length", "type"}
+_REQUIRED_LINK = {"nodes", "mass", "inertia"}
+
+
+def _fail(field: str, problem: str) -> SceneError:
+    return SceneError(f"{field}: {problem}")
+
+
+def _number(value, field: str) -> float:
+    # bool is an int subclass in Python; `true` is never a valid number in a scene.
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _fail(field, f"expected a number, got {type(value).__name__} {_short(value)}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise _fail(field, f"must be finite, got {value}")
+    return value
+
+
+def _index(value, field: str, n_nodes: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise _fail(field, f"expected a node index (integer), got {_short(value)}")
+    if not 0 <= value < n_nodes:
+        raise _fail(field, f"node index {value} out of range 0..{n_nodes - 1}")
+    return value
+
+
+def _short(value) -> str:
+    text = json.dumps(value) if not isinstance(value, float) else repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _points(value, field: str, dim: int | None) -> np.ndarray:
+    if not isinstance(value, list):
+        raise _fail(field, f"expected a list of [x, y] points, got {type(value).__name__}")
+    rows = []
+    for k, point in enumerate(value):
+        if not isinstance(point, list):
+            raise _fail(f"{field}[{k}]", f"expected [x, y], got {_short(point)}")
+        rows.append([_number(c, f"{field}[{k}]") for c in point])
+    dims = {len(r) for r in rows}
+    if dim is None:
+        dim = 2
+    if dims - {dim}:
+        bad = next(k for k, r in enumerate(rows) if len(r) != dim)
+        raise _fail(f"{field}[{bad}]", f"expected {dim} coordinates, got {len(rows[bad])}")
+    return np.asarray(rows, dtype=np.float64).reshape(len(rows), dim)
+
+
+def scene_from_dict(data: Any) -> Scene:
+    """Validate a scene dictionary (the JSON schema above) and build the `Scene`.
+
+    Raises `SceneError` naming the first offending field.
+    """
+    if not isinstance(data, dict):
+        raise _fail("scene", f"expected a JSON object, got {type(data).__name__}")
+    unknown = sorted(set(data) - _TOP_KEYS)
+    if unknown:
+        raise _fail(unknown[0], f"unknown key (allowed: {', '.join(sorted(_TOP_KEYS))})")
+    missing = sorted(_REQUIRED_TOP - set(data))
+    if missing:
+        raise _fail(missing[0], "missing required key")
+
+    name = data["name"]
+    if not isinstance(name, str) or not name.strip():
+        raise _fail("name", f"expected a non-empty string, got {_short(name)}")
+    gravity = _number(data.get("gravity", 10.0), "gravity")
+    drag = _number(data.get("drag", 0.0), "drag")
+    if drag < 0:
+        raise _fail("drag", f"must be >= 0, got {drag}")
+
+    nodes = _points(data["nodes"], "nodes", None)
+    n_nodes = len(nodes)
+    if n_nodes < 2:
+        raise _fail("nodes", f"need at least 2 nodes, got {n_nodes}")
+    if "velocities" in data:
+        velocities = _points(data["velocities"], "velocities", nodes.shape[1])
+        if len(velocities) != n_nodes:
+            raise _fail("velocities", f"expected {n_nodes} entries (one per node), got {len(velocities)}")
+    else:
+        velocities = np.zeros_like(nodes)
+
+    pinned_raw = data["pinned"]
+    if not isinstance(pinned_raw, list):
+        raise _fail("pinned", f"expected a list of node indices, got {_short(pinned_raw)}")
+    pinned = tuple(_index(p, f"pinned[{k}]", n_nodes) for k, p in enumerate(pinned_raw))
+    if len(set(pinned)) != len(pinned):
+        dup = next(p for p in pinned if pinned.count(p) > 1)
+        raise _fail("pinned", f"node {dup} listed twice")
+
+    links_raw = data["links"]
+    if not isinstance(links_raw, list) or not links_raw:
+        raise _fail("links", "expected a non-empty list of links")
+    edges, masses, inertias, lengths, types = [], [], [], [], []
+    seen: dict[frozenset, int] = {}
+    for k, link in enumerate(links_raw):
+        where = f"links[{k}]"
+        if not isinstance(link, dict):
+            raise _fail(where, f"expected an object, got {_short(link)}")
+        unknown = sorted(set(link) - _LINK_KEYS)
+        if unknown:
+            raise _fail(f"{where}.{unknown[0]}", f"unknown key (allowed: {', '.join(sorted(_LINK_KEYS))})")
+        missing = sorted(_REQUIRED_LINK - set(link))
+        if missing:
+            raise _fail(f"{where}.{missing[0]}", "missing required key")
+        pair = link["nodes"]
+        if not isinstance(pair, list) or len(pair) != 2:
+            raise _fail(f"{where}.nodes", f"expected [i, j], got {_short(pair)}")
+        i, j = (_index(v, f"{where}.nodes", n_nodes) for v in pair)
+        if i == j:
+            raise _fail(f"{where}.nodes", f"self link: both ends are node {i}")
+        key = frozenset((i, j))
+        if key in seen:
+            raise _fail(f"{where}.nodes", f"duplicate link: nodes {i}-{j} already joined by links[{seen[key]}]")
+        seen[key] = k
+        mass = _number(link["mass"], f"{where}.mass")
+        if mass <= 0:
+            raise _fail(f"{where}.mass", f"must be > 0, got {mass}")
+        inertia = _number(link["inertia"], f"{where}.inertia")
+        if inertia < 0:
+            raise _fail(f"{where}.inertia", f"must be >= 0, got {inertia}")
+        distance = float(np.linalg.norm(nodes[i] - nodes[j]))
+        length = _number(link["length"], f"{where}.length") if "length" in link else distance
+        if length <= 0:
+            raise _fail(f"{where}.length", f"must be > 0, got {length}")
+        link_type = link.get("type", DEFAULT_LINK_TYPE)
+        if not isinstance(link_type, str) or not link_type:
+            raise _fail(f"{where}.type", f"expected a non-empty string, got {_short(link_type)}")
+        edges.append((i, j))
+        masses.append(mass)
+        inertias.append(inertia)
+        lengths.append(length)
+        types.append(link_type)
+
+    scene = Scene(
+        name=name,
+        edges=tuple(edges),
+        pinned=pinned,
+        link_types=tuple(types),
+        drag=drag,
+        nodes=nodes,
+        velocities=velocities,
+        lengths=np.asarray(lengths, np.float64),
+        masses=np.asarray(masses, np.float64),
+        inertias=np.asarray(inertias, np.float64),
+        gravity=np.asarray(gravity, np.float64),
+    )
+    check_scene(scene)
+    return scene
+
+
+def check_scene(scene: Scene) -> None:
+    """Physical consistency of a scene's arrays; raises `SceneError` on the first problem."""
+    lengths = scene.lengths
+    longest = float(lengths.max())
+    for k, length in enumerate(lengths):
+        if length < MIN_RELATIVE_LENGTH * longest:
+            raise _fail(f"links[{k}].length", f"{length:g} is (nearly) zero: below {MIN_RELATIVE_LENGTH:g} of the longest link")
+    linked = {n for edge in scene.edges for n in edge}
+    for node in scene.free_nodes:
+        if node not in linked:
+            raise _fail("nodes", f"free node {node} belongs to no link (it would have no mass)")
+    i, j = scene.edge_index.T
+    dq = scene.nodes[i] - scene.nodes[j]
+    distance = np.linalg.norm(dq, axis=-1)
+    stretch = np.abs(distance - lengths) / lengths
+    k = int(np.argmax(stretch))
+    if stretch[k] > LENGTH_TOLERANCE:
+        raise _fail(
+            f"links[{k}]",
+            f"initial positions violate the link length: nodes {i[k]}-{j[k]} are {distance[k]!r} apart, length is {lengths[k]!r}",
+        )
+    pinned = list(scene.pinned)
+    if pinned and np.any(scene.velocities[pinned] != 0):
+        bad = next(p for p in pinned if np.any(scene.velocities[p] != 0))
+        raise _fail(f"velocities[{bad}]", "a pinned node must have zero velocity")
+    dqd = scene.velocities[i] - scene.velocities[j]
+    speed = max(float(np.abs(scene.velocities).max()), 1.0)
+    rate = np.abs(np.sum(dq * dqd, axis=-1)) / lengths / speed
+    k = int(np.argmax(rate))
+    if rate[k] > LENGTH_TOLERANCE:
+        raise _fail(
+            f"velocities",
+            f"initial velocities stretch links[{k}] (nodes {i[k]}-{j[k]}): rate of length change {rate[k] * speed:.3g}",
+        )
+
+
+def scene_to_dict(scene: Scene) -> dict:
+    """The JSON schema form of a scene; `scene_from_dict(scene_to_dict(s))` reproduces `s` exactly."""
+    return {
+        "name": scene.name,
+        "gravity": float(scene.gravity),
+        "drag": float(scene.drag),
+        "nodes": scene.nodes.tolist(),
+        "velocities": scene.velocities.tolist(),
+        "pinned": list(scene.pinned),
+        "links": [
+            {"nodes": list(edge), "mass": float(m), "inertia": float(inertia), "length": float(length), "type": t}
+            for edge, m, inertia, length, t in zip(
+                scene.edges, scene.masses, scene.inertias, scene.lengths, scene.link_types, strict=True
+            )
+        ],
+    }
+
+
+def scene_to_json(scene: Scene) -> str:
+    return json.dumps(scene_to_dict(scene), indent=1) + "\n"
+
+
+def load_scene_file(path: str | os.PathLike) -> Scene:
+    """Read and validate a scene JSON file; every failure is one `SceneError` line."""
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(f"{path}: no such scene file")
+    if not path.is_file():
+        raise SceneError(f"{path}: not a regular file")
+    size = path.stat().st_size
+    if size > MAX_SCENE_FILE_BYTES:
+        raise SceneError(f"{path}: file is {size / 2**20:.0f} MiB, larger than the {MAX_SCENE_FILE_BYTES // 2**20} MiB limit for a scene")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise SceneError(f"{path}: not a text (UTF-8) file") from None
+    except OSError as err:
+        raise SceneError(f"{path}: cannot read: {err.strerror}") from None
+    try:
+        data = json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as err:
+        raise SceneError(f"{path}: not valid JSON: {err.msg} at line {err.lineno} column {err.colno}") from None
+    except ValueError as err:
+        raise SceneError(f"{path}: {err}") from None
+    try:
+        return scene_from_dict(data)
+    except SceneError as err:
+        raise SceneError(f"{path}: {err}") from None
+
+
+def _reject_constant(name: str):
+    # JSON has no NaN/Infinity; Python's json accepts them unless told otherwise.
+    raise ValueError(f"not valid JSON: {name} is not a JSON number (scene values must be finite)")
