@@ -1,0 +1,11 @@
+"""Shared test setup: float64 everywhere (accuracy is the point of these tests)."""
+
+import jax
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(scope="session")
+def x64():
+    assert jax.config.jax_enable_x64
