@@ -25,15 +25,26 @@ How the difficult cases are handled (no pseudo-inverse anywhere):
   `A` has full row rank and `M` is positive definite on the null space of `A` (the
   motions that keep link lengths), which holds for any rod of positive mass: the length
   constraints remove exactly the directions in which `M` is singular.
-- Redundant constraints (a link between two pinned nodes, over-braced trusses, T3's
-  many pins): rows are selected once per scene, at its initial configuration, by a
-  rank-revealing (column-pivoted) QR of the constraint Jacobian; links between two
-  pinned nodes are dropped (their length is fixed by the pins). The kept rows span the
-  same constraint manifold, so accelerations are unique and exact; only the multipliers
-  of the redundant rows (which are not unique) are not computed. The redundancy of a
-  structure is generic (it does not change along the motion); a configuration that
-  loses rank along the way (a chain pulled exactly taut) makes the KKT matrix singular
-  and shows as non-finite accelerations, which callers detect.
+- Redundant constraints (a link between two pinned nodes, an over-braced truss): rows
+  are selected once per scene by a rank-revealing (column-pivoted) QR of the constraint
+  Jacobian at a random *generic* configuration, so exactly the structurally redundant
+  rows are dropped (links between two pinned nodes always are). The kept rows span the
+  same constraint manifold, so accelerations are unique and exact; only the
+  multipliers of the dropped rows (which are not unique) are not computed.
+- Singular configurations: a structure can also lose rank at particular configurations
+  (a self-stressed tensegrity such as T2 or T3 at rest, a rope pulled exactly taut).
+  There the KKT matrix is singular, the multipliers are not unique and the
+  acceleration-level equations no longer encode the constraints fully (to first order
+  a taut rope may move sideways). We solve the regularised system
+  `[[M, A^T], [A, -eps I]]` by LU and refine the solution iteratively against the
+  exact system: away from singular configurations the refinement converges to the
+  exact solution (to round-off, tested against the unregularised solve); at them it
+  gives the acceleration with minimum-norm multipliers, and the position projection
+  of the integrators (which enforces the exact constraints, second-order terms
+  included) keeps the structure on the constraint set. T2 is prestress-stable (rigid
+  with inextensible links), so its exact motion is rest; this engine keeps it within
+  ~2e-6 of rest. `Constraints.self_stresses` counts the self-stresses at the scene's
+  initial configuration so callers can report such scenes.
 - Constraint rows are scaled by 1/l (`Phi_e = (|dq|^2 - l^2) / 2l`, Jacobian rows are
   unit vectors) so links of very different lengths are equally well conditioned.
 """
@@ -57,6 +68,13 @@ AccelerationFn = Callable[[Array, Array], Array]
 # Relative size of a pivot of the constraint Jacobian's QR below which its row is
 # redundant (the Jacobian rows are unit vectors, so this is an absolute angle scale).
 RANK_TOLERANCE = 1e-9
+# Regularisation of the KKT solve relative to the mass scale, and refinement steps.
+# With 1e-9, three refinement steps reach round-off on every built-in scene (the
+# contraction per step is ~eps / sigma_min(A M^-1 A^T)); at singular configurations
+# it bounds the multipliers like a very stiff rod (measured on T2: smaller eps
+# makes no difference to the motion, larger lets the structure sag visibly).
+KKT_REGULARISATION = 1e-9
+KKT_REFINEMENT_STEPS = 3
 
 
 # ---------------------------------------------------------------------------------
@@ -190,16 +208,26 @@ class Constraints:
         self.redundant = np.setdiff1d(np.arange(scene.n_links), self.links)
 
     def _independent_rows(self, candidate: np.ndarray) -> np.ndarray:
+        """Rows independent at a random generic configuration (structural rank)."""
         if len(candidate) == 0:
             return candidate
-        jac = np.asarray(self._jacobian_np(candidate))
+        generic = np.random.default_rng(0).normal(size=self.pin_positions.shape)
+        jac = self._jacobian_np(candidate, generic)
         _, r, pivots = scipy.linalg.qr(jac.T, mode="economic", pivoting=True)
         diag = np.abs(np.diag(r))
         rank = int(np.sum(diag > RANK_TOLERANCE * max(diag[0], 1.0)))
         return np.sort(candidate[pivots[:rank]])
 
-    def _jacobian_np(self, links: np.ndarray) -> np.ndarray:
-        q = self.pin_positions
+    @property
+    def self_stresses(self) -> int:
+        """Dependencies among the kept rows at the scene's initial configuration: 0 for a
+        regular configuration, > 0 for a self-stressed (singular) one such as T2 at rest."""
+        if self.n_rows == 0:
+            return 0
+        singular_values = np.linalg.svd(self._jacobian_np(self.links, self.pin_positions), compute_uv=False)
+        return int(np.sum(singular_values < RANK_TOLERANCE * singular_values[0]))
+
+    def _jacobian_np(self, links: np.ndarray, q: np.ndarray) -> np.ndarray:
         i, j = self.edge_index[links].T
         rows = np.zeros((len(links), *self.shape))
         unit = (q[i] - q[j]) / self.lengths_all[links, None]
@@ -246,7 +274,7 @@ def constraint_violation(scene: Scene, q: Array) -> Array:
     stretch = jnp.abs(jnp.linalg.norm(q[i] - q[j], axis=-1) - jnp.asarray(scene.lengths))
     worst = jnp.max(stretch)
     if scene.pinned:
-        pins = list(scene.pinned)
+        pins = np.asarray(scene.pinned)
         worst = jnp.maximum(worst, jnp.max(jnp.abs(q[pins] - jnp.asarray(scene.nodes[pins]))))
     return worst
 
@@ -258,7 +286,7 @@ def velocity_constraint_violation(scene: Scene, q: Array, qd: Array) -> Array:
     rate = jnp.abs(jnp.sum(dq * (qd[i] - qd[j]), -1)) / jnp.linalg.norm(dq, axis=-1)
     worst = jnp.max(rate)
     if scene.pinned:
-        worst = jnp.maximum(worst, jnp.max(jnp.abs(qd[list(scene.pinned)])))
+        worst = jnp.maximum(worst, jnp.max(jnp.abs(qd[np.asarray(scene.pinned)])))
     return worst
 
 
@@ -294,12 +322,20 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
 
 
 def _solve_kkt(mass: Array, jac: Array, force: Array, accel_rhs: Array) -> Array:
-    """Solve `[[M, A^T], [A, 0]] [a; lam] = [force; accel_rhs]` for `a`."""
+    """Solve `[[M, A^T], [A, 0]] [a; lam] = [force; accel_rhs]` for `a`: LU of the
+    regularised matrix (`-eps I` in the lower block), refined against the exact one."""
     n, k = mass.shape[0], jac.shape[0]
     if k == 0:
         return jnp.linalg.solve(mass, force)
-    kkt = jnp.block([[mass, jac.T], [jac, jnp.zeros((k, k), mass.dtype)]])
-    return jnp.linalg.solve(kkt, jnp.concatenate([force, accel_rhs]))[:n]
+    eps = KKT_REGULARISATION * jnp.trace(mass) / n
+    zeros = jnp.zeros((k, k), mass.dtype)
+    kkt = jnp.block([[mass, jac.T], [jac, zeros]])
+    factor = jax.scipy.linalg.lu_factor(kkt.at[n:, n:].set(-eps * jnp.eye(k, dtype=mass.dtype)))
+    rhs = jnp.concatenate([force, accel_rhs])
+    solution = jax.scipy.linalg.lu_solve(factor, rhs)
+    for _ in range(KKT_REFINEMENT_STEPS):
+        solution = solution + jax.scipy.linalg.lu_solve(factor, rhs - kkt @ solution)
+    return solution[:n]
 
 
 def mass_matrix_fn(lagrangian: LagrangianFn) -> Callable[[Array, Array], Array]:
@@ -323,13 +359,16 @@ def projection_fn(scene: Scene, iterations: int = 3) -> Callable[[Array, Array],
     Positions: Gauss-Newton steps `x <- x - A^T (A A^T)^-1 Phi(x)` (the minimum-norm
     correction; quadratic convergence, so a fixed few steps reach round-off from the
     small drift of one integration step). Velocities: the orthogonal projection onto
-    `A v = 0` at the corrected positions. `A A^T` is SPD because the kept rows are
-    independent. Pins are exact by construction.
+    `A v = 0` at the corrected positions. `A A^T` is SPD at regular configurations
+    (the kept rows are independent); a tiny Levenberg-Marquardt shift keeps the
+    Cholesky factorisation defined at singular (self-stressed) ones. Pins are exact by
+    construction.
     """
     constraints = Constraints(scene)
 
     def minimum_norm_correction(jac, residual):
         gram = jac @ jac.T
+        gram = gram + KKT_REGULARISATION * jnp.eye(gram.shape[0], dtype=gram.dtype)
         return jac.T @ jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(gram), residual)
 
     def project(q, qd):
@@ -339,7 +378,8 @@ def projection_fn(scene: Scene, iterations: int = 3) -> Callable[[Array, Array],
         for _ in range(iterations):
             x = x - minimum_norm_correction(constraints.jacobian(x), constraints.residual(x))
         jac = constraints.jacobian(x)
-        v = v - minimum_norm_correction(jac, jac @ v)
+        for _ in range(2):  # the second pass removes the Levenberg-Marquardt shift's residual
+            v = v - minimum_norm_correction(jac, jac @ v)
         return constraints.embed(x), constraints.embed_velocity(v)
 
     return project

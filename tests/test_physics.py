@@ -1,0 +1,253 @@
+"""Physics of the constrained Lagrangian: energies, mass matrices, invariances, the solve."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lgnn import physics
+from lgnn.scene import scene_from_dict
+from lgnn.scenes import get_scene, sample_initial_states
+from tests.scenes_for_tests import double_pinned_chain, free_triangle, pendulum, pinned_triangle
+
+
+def random_state(scene, seed=0, speed=1.0):
+    """A state on the constraint manifold: the scene's positions with random admissible velocities."""
+    rng = np.random.default_rng(seed)
+    q = jnp.asarray(scene.nodes)
+    qd = jnp.asarray(speed * rng.normal(size=q.shape))
+    _, qd = jax.jit(physics.projection_fn(scene))(q, qd)
+    return q, qd
+
+
+@pytest.mark.parametrize("name", ["chain4", "chain4-varied", "T1"])
+def test_mass_matrix_symmetric_positive_semidefinite(name):
+    scene = get_scene(name)
+    q, qd = random_state(scene)
+    mass = jax.jit(physics.mass_matrix_fn(physics.lagrangian_fn(scene)))(q, qd)
+    np.testing.assert_allclose(mass, mass.T, atol=1e-12)
+    eigenvalues = np.linalg.eigvalsh(np.asarray(mass))
+    assert eigenvalues.min() > -1e-10 * eigenvalues.max()
+
+
+def test_kinetic_energy_is_quadratic_form_of_mass_matrix():
+    scene = get_scene("chain4-varied")
+    q, qd = random_state(scene, seed=3)
+    mass = jax.jit(physics.mass_matrix_fn(physics.lagrangian_fn(scene)))(q, qd)
+    kinetic = jnp.sum(physics.kinetic_energy_per_link(scene, q, qd))
+    np.testing.assert_allclose(0.5 * qd.ravel() @ mass @ qd.ravel(), kinetic, rtol=1e-12)
+
+
+def test_pendulum_energy_is_physical_pendulum_energy():
+    """A rod about its end: T = 1/2 (m l^2 / 3) theta_dot^2, V = -m g (l/2) cos(theta)."""
+    length, mass, gravity, angle, rate = 1.7, 2.3, 9.81, 0.4, -1.1
+    scene = pendulum(angle, length, mass, gravity)
+    q = jnp.asarray(scene.nodes)
+    qd = jnp.asarray([[0.0, 0.0], [length * rate * np.cos(angle), length * rate * np.sin(angle)]])
+    expected = 0.5 * mass * length**2 / 3 * rate**2 - mass * gravity * length / 2 * np.cos(angle)
+    np.testing.assert_allclose(physics.energy_fn(scene)(q, qd), expected, rtol=1e-14)
+    # and the Hamiltonian built generically from the Lagrangian agrees
+    np.testing.assert_allclose(physics.hamiltonian_fn(physics.lagrangian_fn(scene))(q, qd), expected, rtol=1e-14)
+
+
+def test_pendulum_acceleration_is_physical_pendulum():
+    """theta_ddot = -(3 g / 2 l) sin(theta) for a uniform rod about its end."""
+    length, gravity, angle = 1.3, 10.0, 0.7
+    scene = pendulum(angle, length, 1.0, gravity)
+    qdd = jax.jit(physics.true_acceleration_fn(scene))(jnp.asarray(scene.nodes), jnp.zeros((2, 2)))
+    theta_ddot = -1.5 * gravity / length * np.sin(angle)
+    expected_tip = length * theta_ddot * np.array([np.cos(angle), np.sin(angle)])
+    np.testing.assert_allclose(qdd[1], expected_tip, rtol=1e-12)
+    np.testing.assert_array_equal(qdd[0], 0.0)
+
+
+@pytest.mark.parametrize("name", ["chain4", "T2"])
+def test_lagrangian_invariant_under_translation_and_rotation(name):
+    scene = get_scene(name)
+    q, qd = random_state(scene, seed=1)
+    lagrangian = physics.lagrangian_fn(scene)
+    flat = physics.lagrangian_fn(scene.replace(gravity=np.asarray(0.0)))
+    shift = jnp.asarray([0.3, -2.0])
+    # translation: T unchanged, V shifts by the constant total m g dy
+    total_mass = float(np.sum(scene.masses))
+    np.testing.assert_allclose(
+        lagrangian(q + shift, qd), lagrangian(q, qd) - total_mass * float(scene.gravity) * float(shift[1]), rtol=1e-12
+    )
+    angle = 0.83
+    rotation = jnp.asarray([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    np.testing.assert_allclose(flat(q @ rotation.T, qd @ rotation.T), flat(q, qd), rtol=1e-12)
+
+
+@pytest.mark.parametrize("scene_fn", [lambda: get_scene("chain4"), lambda: get_scene("chain4-varied"), lambda: get_scene("T1"), double_pinned_chain])
+def test_constant_mass_lagrangian_gives_same_accelerations(scene_fn):
+    """The singular rod mass matrix and its regular on-manifold equivalent give the same
+    constrained accelerations: the KKT solve is insensitive to M's null directions.
+    (Regular configurations only: at T2/T3's self-stressed rest state the acceleration-
+    level equations are not unique, see physics.py.)"""
+    scene = scene_fn()
+    q, qd = random_state(scene, seed=2)
+    exact = jax.jit(physics.acceleration_fn(scene, physics.lagrangian_fn(scene)))(q, qd)
+    regular = jax.jit(physics.acceleration_fn(scene, physics.constant_mass_lagrangian_fn(scene)))(q, qd)
+    np.testing.assert_allclose(exact, regular, atol=1e-10 * (1 + np.abs(regular).max()))
+
+
+def test_kkt_solve_matches_papers_formula_when_mass_matrix_is_invertible():
+    """With an invertible M, Eq. (acc) of the paper (M^-1 and (A M^-1 A^T)^-1) gives the same."""
+    scene = get_scene("chain4-drag")
+    q, qd = random_state(scene, seed=4)
+    lagrangian = physics.constant_mass_lagrangian_fn(scene)
+    ours = jax.jit(physics.acceleration_fn(scene, lagrangian, physics.drag_force_fn(scene)))(q, qd)
+
+    constraints = physics.Constraints(scene)
+    reduced = lambda x, v: lagrangian(constraints.embed(x), constraints.embed_velocity(v))  # noqa: E731
+
+    @jax.jit
+    def papers_equation(x, v):
+        mass = jax.hessian(reduced, argnums=1)(x, v)
+        coriolis = jax.jacfwd(jax.grad(reduced, argnums=1), argnums=0)(x, v)
+        pi = jax.grad(reduced, argnums=0)(x, v)
+        drag = constraints.restrict(physics.drag_force_fn(scene)(constraints.embed(x), constraints.embed_velocity(v)))
+        jac, jdot_v = constraints.jacobian(x), constraints.jacobian_dot_v(x, v)
+        m_inv = jnp.linalg.inv(mass)
+        force = pi - coriolis @ v + drag
+        lam = jnp.linalg.solve(jac @ m_inv @ jac.T, jac @ m_inv @ force + jdot_v)
+        return m_inv @ (force - jac.T @ lam)
+
+    paper = papers_equation(constraints.restrict(q), constraints.restrict(qd))
+    np.testing.assert_allclose(constraints.restrict(ours), paper, rtol=1e-9, atol=1e-11)
+
+
+def test_accelerations_keep_link_lengths_to_second_order():
+    """A qdd + Adot qd = 0: the acceleration keeps every link length stationary."""
+    scene = get_scene("T1")
+    q, qd = random_state(scene, seed=5)
+    qdd = jax.jit(physics.true_acceleration_fn(scene))(q, qd)
+    i, j = scene.edge_index.T
+    dq, dqd, dqdd = q[i] - q[j], qd[i] - qd[j], qdd[i] - qdd[j]
+    second_derivative_of_length_squared = 2 * (jnp.sum(dqd * dqd, -1) + jnp.sum(dq * dqdd, -1))
+    np.testing.assert_allclose(second_derivative_of_length_squared, 0.0, atol=1e-9)
+    np.testing.assert_array_equal(qdd[np.asarray(scene.pinned)], 0.0)
+
+
+def test_collinear_chain_has_finite_exact_accelerations():
+    """A straight chain makes the rod mass matrix exactly singular (every link's stretch
+    direction lines up); the KKT solve still gives finite accelerations equal to those
+    of the regular on-manifold Lagrangian."""
+    scene = get_scene("chain4")
+    angle = 0.5
+    q = jnp.asarray([[k * np.sin(angle), -k * np.cos(angle)] for k in range(5)])
+    qd = jnp.zeros_like(q)
+    mass = jax.jit(physics.mass_matrix_fn(physics.lagrangian_fn(scene)))(q, qd)
+    eigenvalues = np.linalg.eigvalsh(np.asarray(mass))
+    assert abs(eigenvalues[0]) < 1e-12 * eigenvalues[-1]  # singular: M^-1 of Eq. (acc) would fail
+    exact = jax.jit(physics.acceleration_fn(scene, physics.lagrangian_fn(scene)))(q, qd)
+    regular = jax.jit(physics.acceleration_fn(scene, physics.constant_mass_lagrangian_fn(scene)))(q, qd)
+    assert np.all(np.isfinite(exact))
+    np.testing.assert_allclose(exact, regular, atol=1e-10)
+
+
+def test_redundant_constraints_rigid_triangle_stays_at_rest():
+    """A rigid triangle pinned at two corners cannot move: the acceleration is exactly
+    zero although the constraints are redundant (3 links, 2 pins, 3 nodes)."""
+    scene = pinned_triangle()
+    constraints = physics.Constraints(scene)
+    assert constraints.n_rows == 2 and list(constraints.redundant) == [0]
+    qdd = jax.jit(physics.true_acceleration_fn(scene))(jnp.asarray(scene.nodes), jnp.zeros((3, 2)))
+    np.testing.assert_allclose(qdd, 0.0, atol=1e-14)
+
+
+def test_structural_redundancy_is_dropped_but_singular_configurations_are_not():
+    """An over-braced square (K4: 6 links on 4 nodes) has one structurally redundant row,
+    at every configuration. T2 and T3 are only singular at rest (self-stressed taut
+    ropes): no row may be dropped there, or the dropped link would stretch."""
+    braced = scene_from_dict(
+        {
+            "name": "braced-square",
+            "nodes": [[0.0, 0.0], [1.0, 0.0], [1.0, -1.0], [0.0, -1.0]],
+            "pinned": [],
+            "links": [{"nodes": pair, "mass": 1.0, "inertia": 0.1} for pair in ([0, 1], [1, 2], [2, 3], [3, 0], [0, 2], [1, 3])],
+        }
+    )
+    assert len(physics.Constraints(braced).redundant) == 1
+    for name, self_stresses in (("T1", 0), ("T2", 1), ("T3", 4)):
+        constraints = physics.Constraints(get_scene(name))
+        assert len(constraints.redundant) == 0, name
+        assert constraints.self_stresses == self_stresses, name
+
+
+def test_free_body_falls_with_gravity_and_keeps_spinning():
+    """No pins: the centre of mass accelerates at exactly -g and no pin rows exist."""
+    scene = free_triangle()
+    q, qd = jnp.asarray(scene.nodes), jnp.asarray(scene.velocities)
+    qdd = jax.jit(physics.true_acceleration_fn(scene))(q, qd)
+    masses = jnp.asarray(scene.masses)
+    i, j = scene.edge_index.T
+    com_acc = jnp.sum(masses[:, None] * 0.5 * (qdd[i] + qdd[j]), 0) / masses.sum()
+    np.testing.assert_allclose(com_acc, [0.0, -float(scene.gravity)], atol=1e-12)
+
+
+def test_drag_dissipates_energy_at_the_expected_rate():
+    """dH/dt = qd . F_drag (constraint forces do no work)."""
+    scene = get_scene("chain4-drag")
+    q, qd = random_state(scene, seed=6)
+    accel = physics.true_acceleration_fn(scene)
+    qdd = accel(q, qd)
+    energy = physics.energy_fn(scene)
+    _, power = jax.jvp(energy, (q, qd), (qd, qdd))
+    expected = jnp.sum(qd * physics.drag_force_fn(scene)(q, qd))
+    assert expected < 0
+    np.testing.assert_allclose(power, expected, rtol=1e-9)
+    assert physics.drag_force_fn(get_scene("chain4")) is None  # no drag term when there is no drag
+
+
+def test_conservative_power_is_zero():
+    for scene in (get_scene("T1"), double_pinned_chain(6)):  # regular configurations (not T2/T3 at rest)
+        q, qd = random_state(scene, seed=7)
+        qdd = jax.jit(physics.true_acceleration_fn(scene))(q, qd)
+        _, power = jax.jvp(physics.energy_fn(scene), (q, qd), (qd, qdd))
+        # scale: the power of gravity alone, which the kinetic-energy change must cancel
+        gravity_power = jnp.sum(jnp.abs(qd * jax.grad(physics.energy_fn(scene))(q, qd)))
+        assert abs(float(power)) < 1e-12 * float(gravity_power)
+
+
+def test_jit_equals_eager():
+    scene = get_scene("chain4-drag")
+    q, qd = random_state(scene, seed=8)
+    accel = physics.true_acceleration_fn(scene)
+    np.testing.assert_allclose(jax.jit(accel)(q, qd), accel(q, qd), rtol=1e-13, atol=1e-14)
+
+
+def test_vmap_equals_map():
+    scene = get_scene("chain8")
+    states = sample_initial_states(scene, jax.random.PRNGKey(0), 5)
+    qd = jax.random.normal(jax.random.PRNGKey(1), states.q.shape)
+    project = physics.projection_fn(scene)
+    q, qd = jax.vmap(project)(states.q, qd)
+    accel = physics.true_acceleration_fn(scene)
+    batched = jax.jit(jax.vmap(accel))(q, qd)
+    single_fn = jax.jit(accel)
+    single = np.stack([single_fn(q[k], qd[k]) for k in range(5)])
+    np.testing.assert_allclose(batched, single, rtol=1e-12, atol=1e-13)
+
+
+def test_projection_restores_constraints():
+    scene = get_scene("T1")
+    rng = np.random.default_rng(9)
+    q = jnp.asarray(scene.nodes + 1e-4 * rng.normal(size=scene.nodes.shape))
+    qd = jnp.asarray(rng.normal(size=scene.nodes.shape))
+    q, qd = jax.jit(physics.projection_fn(scene))(q, qd)
+    assert physics.constraint_violation(scene, q) < 1e-12
+    assert physics.velocity_constraint_violation(scene, q, qd) < 1e-12
+
+
+def test_gradient_of_acceleration_matches_finite_differences():
+    """The solve is differentiable (learned models train through it)."""
+    scene = get_scene("chain4")
+    q, qd = random_state(scene, seed=10)
+    accel = physics.true_acceleration_fn(scene)
+    loss = lambda qd: jnp.sum(jnp.sin(accel(q, qd)))  # noqa: E731
+    direction = jnp.asarray(np.random.default_rng(11).normal(size=qd.shape))
+    eps = 1e-6
+    numeric = (loss(qd + eps * direction) - loss(qd - eps * direction)) / (2 * eps)
+    analytic = jnp.vdot(jax.grad(loss)(qd), direction)
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-6)
