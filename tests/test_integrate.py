@@ -41,7 +41,7 @@ def test_verlet_energy_error_is_bounded_and_second_order():
 
 @pytest.mark.parametrize("project", [True, False])
 def test_constraint_drift_with_and_without_projection(project, record_property):
-    scene = get_scene("T2")
+    scene = get_scene("T1")
     trajectory = simulate(scene, SimulationConfig("rk4", dt=1e-3, frame_dt=1e-2, duration=1.0, project=project))
     violation = max(float(physics.constraint_violation(scene, q)) for q in trajectory.q)
     record_property("max_constraint_violation", violation)
@@ -88,8 +88,13 @@ def test_every_builtin_scene_runs(name):
     trajectory = simulate(scene, SimulationConfig("rk4", dt=1e-4, frame_dt=1e-2, duration=0.1))
     assert np.all(np.isfinite(trajectory.q)) and np.all(np.isfinite(trajectory.energy))
     assert float(physics.constraint_violation(scene, trajectory.q[-1])) < 1e-10
-    # the scene falls from rest: it must actually move
-    assert np.max(np.abs(trajectory.q[-1] - trajectory.q[0])) > 1e-3
+    displacement = np.max(np.abs(trajectory.q[-1] - trajectory.q[0]))
+    if name == "T2":
+        # T2 is prestress-stable (its taut ropes and rod lock it, tests/test_physics.py):
+        # with inextensible links its exact motion is rest.
+        assert displacement < 1e-5
+    else:
+        assert displacement > 1e-3  # falls from rest
 
 
 @pytest.mark.parametrize("scene_fn", [lambda: get_scene("chain4"), lambda: get_scene("T1"), double_pinned_chain])
