@@ -246,7 +246,8 @@ def constraint_violation(scene: Scene, q: Array) -> Array:
     stretch = jnp.abs(jnp.linalg.norm(q[i] - q[j], axis=-1) - jnp.asarray(scene.lengths))
     worst = jnp.max(stretch)
     if scene.pinned:
-        pins = list(scene.pinned)
+        # An index array, not a list: JAX refuses list indexing of traced arrays.
+        pins = np.asarray(scene.pinned)
         worst = jnp.maximum(worst, jnp.max(jnp.abs(q[pins] - jnp.asarray(scene.nodes[pins]))))
     return worst
 
@@ -258,7 +259,7 @@ def velocity_constraint_violation(scene: Scene, q: Array, qd: Array) -> Array:
     rate = jnp.abs(jnp.sum(dq * (qd[i] - qd[j]), -1)) / jnp.linalg.norm(dq, axis=-1)
     worst = jnp.max(rate)
     if scene.pinned:
-        worst = jnp.maximum(worst, jnp.max(jnp.abs(qd[list(scene.pinned)])))
+        worst = jnp.maximum(worst, jnp.max(jnp.abs(qd[np.asarray(scene.pinned)])))
     return worst
 
 
