@@ -355,7 +355,7 @@ def mass_matrix(compiled: Compiled, qpos: np.ndarray) -> np.ndarray:
     data.qpos[:] = qpos
     mujoco.mj_forward(model, data)
     full = np.zeros((model.nv, model.nv))
-    mujoco.mj_fullM(model, full, data.qM)
+    mujoco.mj_fullM(model, data, full)
     return full
 
 
