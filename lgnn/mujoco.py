@@ -391,9 +391,14 @@ def _check_config(scene: Scene, config) -> None:
         raise ConfigError(f"the MuJoCo engines integrate with RK4 only, got integrator {config.integrator!r}")
 
 
+@functools.lru_cache(maxsize=64)
+def _to_mj_fn(compiled: Compiled):
+    # Cached: a fresh jit per call would recompile on every rollout.
+    return jax.jit(jax.vmap(lambda q, qd: state_to_qpos_qvel(compiled, q, qd)))
+
+
 def _initial_mj_states(compiled: Compiled, states: State) -> tuple[np.ndarray, np.ndarray]:
-    to_mj = jax.jit(jax.vmap(lambda q, qd: state_to_qpos_qvel(compiled, q, qd)))
-    qpos, qvel = to_mj(jnp.asarray(states.q, jnp.float64), jnp.asarray(states.qd, jnp.float64))
+    qpos, qvel = _to_mj_fn(compiled)(jnp.asarray(states.q, jnp.float64), jnp.asarray(states.qd, jnp.float64))
     return np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
 
 
