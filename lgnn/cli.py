@@ -73,15 +73,85 @@ def _cmd_simulate(args) -> None:
     config = _simulation_config(args)
     check_writable(args.out)
     scene = get_scene(args.scene)
-    if args.engine != "lagrangian":
-        raise ConfigError(f"engine {args.engine!r} is not available yet (choose from: lagrangian)")
-    trajectory = simulate(scene, config, progress=not args.quiet)
+    if args.engine == "lagrangian":
+        trajectory = simulate(scene, config, progress=not args.quiet)
+    elif args.engine in ("mujoco", "mjx"):
+        from lgnn import mujoco as lm
+
+        trajectory = lm.simulate(scene, config, engine=args.engine, dtype=args.dtype)
+    else:
+        raise ConfigError(f"unknown engine {args.engine!r} (choose from: lagrangian, mujoco, mjx)")
     trajectory.save(args.out)
     drift = abs(trajectory.energy[-1] - trajectory.energy[0]) / max(abs(trajectory.energy[0]), 1e-300)
     print(
         f"{scene.name}: {len(trajectory.t)} frames over {config.duration:g} s "
         f"({config.integrator}, dt {config.dt:g}); relative energy drift {drift:.2e}; wrote {args.out}"
     )
+
+
+def _cmd_mjcf(args) -> None:
+    from pathlib import Path
+
+    from lgnn._io import write_text_atomic
+    from lgnn.mujoco import scene_to_mjcf
+    from lgnn.scenes import BUILTIN_SCENES
+
+    out = Path(args.dir)
+    if not out.is_dir():
+        raise ConfigError(f"MJCF directory does not exist: {out}")
+    stale = []
+    for name, entry in BUILTIN_SCENES.items():
+        path, text = out / f"{name}.xml", scene_to_mjcf(entry.build())
+        if args.check:
+            if not path.exists() or path.read_text() != text:
+                stale.append(str(path))
+        else:
+            write_text_atomic(path, text)
+    if stale:
+        raise ConfigError(f"MJCF files differ from what the code renders: {', '.join(stale)} (run: lgnn mjcf)")
+    print(f"{'checked' if args.check else 'wrote'} {len(BUILTIN_SCENES)} MJCF files in {out}")
+
+
+def _cmd_crosscheck(args) -> None:
+    from lgnn import crosscheck as cc
+    from lgnn.scenes import get_scene
+
+    command = "lgnn " + " ".join(sys.argv[1:]) if sys.argv[0].endswith(("lgnn", "cli.py", "__main__.py")) else "lgnn crosscheck"
+    engines = tuple(args.engines.split(","))
+    if set(engines) - set(cc.ENGINES) or not engines:
+        raise ConfigError(f"--engines: choose from {', '.join(cc.ENGINES)}, got {args.engines!r}")
+    if args.speed:
+        rows = cc.speed_error(args.scenes or ["chain4", "chain16", "chain100", "T1"], engines, mjx_max_depth=args.mjx_max_depth)
+        columns = ["scene", "engine", "batch", "dt", "steps_per_s", "compile_s", "max_node_error", "note"]
+        notes = ["speed: steps/s = batch x steps / run time (compile apart), RK4, horizon 0.1 s, float64",
+                 "error: max node error after 0.1 s (single state) vs MuJoCo C RK4 at dt 1e-6"]
+        stem, title = "engines_speed_error", "Engines: speed against error"
+    else:
+        config = _simulation_config(args)
+        rows = []
+        for name in args.scenes or ["chain4", "chain8", "chain16", "T1", "T2", "T3"]:
+            rows += cc.crosscheck(get_scene(name), config, engines, args.mjx_max_depth)
+            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == name))
+        columns = ["scene", "engine", "metric", "value", "note"]
+        notes = [f"RK4, dt {config.dt:g}, {config.duration:g} s, float64; MuJoCo loops: connect, solref 2 dt, solimp 0.9999"]
+        stem, title = "crosscheck", "Cross-check of the ground-truth engines"
+    cc.write_table(rows, f"{args.out_dir}/{stem}.csv", f"{args.out_dir}/{stem}.md", command, columns, title, notes)
+    print(f"wrote {args.out_dir}/{stem}.csv and .md")
+
+
+def _add_mujoco_commands(commands) -> None:
+    mjcf = commands.add_parser("mjcf", help="render the built-in scenes' MJCF into mjcf/")
+    mjcf.add_argument("--dir", default="mjcf", help="output directory (default: mjcf)")
+    mjcf.add_argument("--check", action="store_true", help="fail if a file differs from the rendered text")
+    mjcf.set_defaults(run=_cmd_mjcf)
+    check = commands.add_parser("crosscheck", help="run every engine on the same scenes and compare them")
+    check.add_argument("scenes", nargs="*", help="built-in names or scene files (default: chain4 chain8 chain16 T1 T2 T3)")
+    check.add_argument("--engines", default="lagrangian,mujoco,mjx", help="comma-separated engines")
+    check.add_argument("--mjx-max-depth", type=int, default=8, help="skip MJX on deeper trees (compile time)")
+    check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")
+    check.add_argument("--out-dir", default="results", help="output directory (default: results)")
+    _add_simulation_options(check)
+    check.set_defaults(run=_cmd_crosscheck)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -100,11 +170,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     simulate = commands.add_parser("simulate", help="simulate a scene with a ground-truth engine")
     simulate.add_argument("scene", help="built-in scene name or scene JSON file")
-    simulate.add_argument("--engine", default="lagrangian", help="ground-truth engine (default: lagrangian)")
+    simulate.add_argument("--engine", default="lagrangian", help="ground-truth engine: lagrangian (default), mujoco, mjx")
+    simulate.add_argument("--dtype", choices=["float64", "float32"], default="float64", help="MJX precision (default float64)")
     _add_simulation_options(simulate)
     simulate.add_argument("--out", required=True, help="output .npz file")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar")
     simulate.set_defaults(run=_cmd_simulate)
+    _add_mujoco_commands(commands)
     return parser
 
 

@@ -1,0 +1,199 @@
+"""Cross-check of the ground-truth engines (Lagrangian, MuJoCo C, MJX) and their speed.
+
+`crosscheck(scene, config, engines)` runs every engine from the scene's initial state
+and returns tidy rows `scene, engine, metric, value, note`: per engine the relative
+energy drift (max |E - E0| / |E0|), the constraint violation (max over frames of
+`physics.constraint_violation`, which includes loop closure) and the wall time; per
+pair `a~b` the max node error over the run. MJX is skipped, with an explicit row,
+on scenes whose tree is deeper than `MJX_MAX_DEPTH` (its compile time on CPU grows
+steeply with depth: 35 s for chain4, minutes beyond 16 links).
+
+`speed_error(...)` measures steps per second (compile excluded) and accuracy against
+a converged reference: the speed-against-error table. Both write CSV + markdown
+atomically with the command, machine and versions in the header.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn import physics
+from lgnn._io import write_text_atomic
+from lgnn.scene import Scene, State
+from lgnn.simulate import SimulationConfig
+
+ENGINES = ("lagrangian", "mujoco", "mjx")
+# Deepest spanning tree MJX is compiled for by default (chain4 compiles in ~35 s on a
+# 2-core CPU; chain16 20-60 s; 100 links kinematics alone 459 s).
+MJX_MAX_DEPTH = 8
+SKIP_MJX = "skipped: MJX compile too slow on CPU (tree depth {depth} > {limit})"
+
+
+def _run_engine(scene: Scene, config: SimulationConfig, engine: str, dtype: str = "float64"):
+    from lgnn import mujoco as lm
+    from lgnn.simulate import simulate
+
+    start = time.perf_counter()
+    if engine == "lagrangian":
+        traj = simulate(scene, config)
+    else:
+        traj = lm.simulate(scene, config, engine=engine, dtype=dtype)
+    return traj, time.perf_counter() - start
+
+
+def crosscheck(scene: Scene, config: SimulationConfig, engines=ENGINES, mjx_max_depth: int = MJX_MAX_DEPTH) -> list[dict]:
+    """Tidy rows (module docstring). Wall time of MJX includes its compile (once per process)."""
+    from lgnn import mujoco as lm
+
+    rows, trajectories = [], {}
+    violation = jax.jit(jax.vmap(lambda q: physics.constraint_violation(scene, q)))
+    for engine in engines:
+        depth = lm.scene_layout(scene).depth
+        if engine == "mjx" and depth > mjx_max_depth:
+            rows.append(dict(scene=scene.name, engine=engine, metric="skipped", value=float("nan"),
+                             note=SKIP_MJX.format(depth=depth, limit=mjx_max_depth)))
+            continue
+        traj, wall = _run_engine(scene, config, engine)
+        trajectories[engine] = traj
+        e0 = abs(traj.energy[0]) if traj.energy[0] != 0 else 1.0
+        rows += [
+            dict(scene=scene.name, engine=engine, metric="energy_drift", value=float(np.max(np.abs(traj.energy - traj.energy[0])) / e0), note="max |E-E0|/|E0|"),
+            dict(scene=scene.name, engine=engine, metric="constraint_violation", value=float(np.max(violation(traj.q))), note="max link-length/pin/loop error"),
+            dict(scene=scene.name, engine=engine, metric="wall_s", value=wall, note="incl. compile" if engine != "mujoco" else ""),
+        ]
+    for a, b in itertools.combinations(trajectories, 2):
+        err = float(np.max(np.abs(trajectories[a].q - trajectories[b].q)))
+        rows.append(dict(scene=scene.name, engine=f"{a}~{b}", metric="max_node_error", value=err, note=f"over {config.duration:g} s"))
+    return rows
+
+
+def header(command: str) -> list[str]:
+    """Provenance lines: command, machine, versions."""
+    import mujoco
+
+    return [
+        f"command: {command}",
+        f"machine: {platform.node()} {platform.machine()} {platform.processor() or ''} ({jax.device_count()} {jax.default_backend()} device)".strip(),
+        f"versions: python {platform.python_version()}, jax {jax.__version__}, mujoco {mujoco.__version__}, numpy {np.__version__}",
+    ]
+
+
+def write_table(rows: list[dict], csv_path: str, md_path: str, command: str, columns: list[str], title: str, notes: list[str] = ()) -> None:
+    """Tidy CSV (comment header) and a markdown table of the same rows, atomically."""
+    import csv
+    import io
+
+    buffer = io.StringIO()
+    for line in header(command):
+        buffer.write(f"# {line}\n")
+    writer = csv.DictWriter(buffer, fieldnames=columns, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: (f"{row[k]:.3e}" if isinstance(row[k], float) else row[k]) for k in columns})
+    write_text_atomic(csv_path, buffer.getvalue())
+    md = [f"# {title}", ""] + [f"- {line}" for line in header(command)] + [f"- {n}" for n in notes] + ["",
+          "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for row in rows:
+        md.append("| " + " | ".join(f"{row[k]:.3g}" if isinstance(row[k], float) else str(row[k]) for k in columns) + " |")
+    write_text_atomic(md_path, "\n".join(md) + "\n")
+
+
+# ---------------------------------------------------------------------------------
+# Speed against error
+# ---------------------------------------------------------------------------------
+
+
+def _lagrangian_batch_runner(scene: Scene, config: SimulationConfig):
+    """jit(vmap) of the Lagrangian RK4 rollout (final state only) for timing batches."""
+    from lgnn.integrate import advance
+
+    integrator = config.integrator_for(physics.true_acceleration_fn(scene), physics.projection_fn(scene))
+
+    def one(q, qd):
+        carry, frames = advance(integrator, integrator.init_fn(State(q, qd)), config.n_frames, config.steps_per_frame)
+        return frames.q
+
+    return jax.jit(jax.vmap(one))
+
+
+def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, dtype="float64"):
+    """(compile_s, run_s, q (B, F+1, N, 2)) of one engine on a batch of initial states."""
+    from lgnn import mujoco as lm
+
+    if engine == "mujoco":
+        # Warm-up: compiles the model and the jitted node-state map, kept apart.
+        start = time.perf_counter()
+        lm.rollout(scene, dataclasses.replace(config, frame_dt=config.dt, duration=config.dt), states, threads=2)
+        compile_s = time.perf_counter() - start
+        start = time.perf_counter()
+        out = lm.rollout(scene, config, states, threads=2)
+        return compile_s, time.perf_counter() - start, out.q
+    if engine == "mjx":
+        run = lm.mjx_runner(scene, config, dtype)
+        args = (jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
+    else:
+        run = _lagrangian_batch_runner(scene, config)
+        args = (jnp.asarray(states.q), jnp.asarray(states.qd))
+    start = time.perf_counter()
+    compiled = run.lower(*args).compile()
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    out = jax.block_until_ready(compiled(*args))
+    run_s = time.perf_counter() - start
+    q = out[0] if isinstance(out, tuple) else jnp.concatenate([args[0][:, None], out], axis=1)
+    return compile_s, run_s, np.asarray(q, np.float64)
+
+
+def speed_error(scenes, engines=ENGINES, dts=(1e-3, 1e-4, 1e-5), batch: int = 100, horizon: float = 0.1,
+                mjx_max_depth: int = MJX_MAX_DEPTH, max_steps: int = 25_000, log=print) -> list[dict]:
+    """Rows `scene, engine, batch, dt, steps_per_s, compile_s, max_node_error, note`.
+
+    Speed: steps per second of simulated trajectories (batch x steps / run time),
+    compile excluded, at dt 1e-4 over `horizon` s, for a single state and a batch.
+    Accuracy: max node error over `horizon` s at each dt (single state) against the
+    MuJoCo C RK4 solution at dt / 10 of the smallest dt (RK4 is converged to
+    round-off there). Runs whose step count (batch x steps) exceeds `max_steps` for
+    the Lagrangian engine, or MJX beyond `mjx_max_depth`, get a row saying so.
+    """
+    from lgnn import mujoco as lm
+    from lgnn.scenes import get_scene, sample_initial_states
+
+    rows = []
+    for name in scenes:
+        scene = get_scene(name)
+        depth = lm.scene_layout(scene).depth
+        batch_states = sample_initial_states(scene, jax.random.key(0), batch)
+        batch_states = State(np.asarray(batch_states.q), np.asarray(batch_states.qd))
+        single = State(scene.nodes[None], scene.velocities[None])
+        ref_config = SimulationConfig(dt=min(dts) / 10, frame_dt=horizon, duration=horizon)
+        reference = lm.rollout(scene, ref_config, single).q[0, -1]
+        for engine in engines:
+            if engine == "mjx" and depth > mjx_max_depth:
+                rows.append(dict(scene=name, engine=engine, batch=0, dt=float("nan"), steps_per_s=float("nan"), compile_s=float("nan"),
+                                 max_node_error=float("nan"), note=SKIP_MJX.format(depth=depth, limit=mjx_max_depth)))
+                continue
+            for dt in dts:
+                for states in ((single, batch_states) if dt == 1e-4 else (single,)):
+                    b = len(states.q)
+                    steps = round(horizon / dt)
+                    config = SimulationConfig(dt=dt, frame_dt=horizon, duration=horizon)
+                    row = dict(scene=name, engine=engine, batch=b, dt=dt, steps_per_s=float("nan"), compile_s=float("nan"),
+                               max_node_error=float("nan"), note="")
+                    if engine != "mujoco" and b * steps * scene.n_links > max_steps * 16:
+                        row["note"] = "not run: too slow on this CPU"
+                        rows.append(row)
+                        continue
+                    compile_s, run_s, q = _timed(engine, scene, config, states)
+                    row.update(steps_per_s=b * steps / run_s, compile_s=compile_s)
+                    if b == 1:
+                        row["max_node_error"] = float(np.max(np.abs(q[0, -1] - reference)))
+                    rows.append(row)
+                    log(f"{name} {engine} batch {b} dt {dt:g}: {row['steps_per_s']:.3g} steps/s, compile {compile_s:.1f} s, error {row['max_node_error']:.2e}")
+    return rows
