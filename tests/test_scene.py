@@ -1,0 +1,190 @@
+"""Scenes: the JSON schema, its validation (one clear line per problem), the built-ins."""
+
+import json
+
+import numpy as np
+import pytest
+
+from lgnn.errors import SceneError
+from lgnn.scene import Scene, load_scene_file, scene_from_dict, scene_to_dict, scene_to_json
+from lgnn.scenes import BUILTIN_SCENES, get_scene
+
+
+def valid():
+    return {
+        "name": "two-links",
+        "gravity": 9.81,
+        "drag": 0.0,
+        "nodes": [[0.0, 0.0], [0.6, -0.8], [1.6, -0.8]],
+        "velocities": [[0.0, 0.0], [0.8, 0.6], [0.8, 1.6]],
+        "pinned": [0],
+        "links": [
+            {"nodes": [0, 1], "mass": 1.0, "inertia": 0.1, "length": 1.0, "type": "rod"},
+            {"nodes": [1, 2], "mass": 2.0, "inertia": 0.2},
+        ],
+    }
+
+
+def test_valid_scene_loads_with_defaults():
+    data = valid()
+    del data["velocities"], data["gravity"], data["drag"]
+    scene = scene_from_dict(data)
+    assert isinstance(scene, Scene)
+    assert scene.n_nodes == 3 and scene.n_links == 2 and scene.pinned == (0,)
+    assert float(scene.gravity) == 10.0 and scene.drag == 0.0
+    np.testing.assert_array_equal(scene.velocities, 0.0)
+    assert scene.link_types == ("rod", "link")
+    np.testing.assert_allclose(scene.lengths, [1.0, 1.0])
+
+
+@pytest.mark.parametrize("name", list(BUILTIN_SCENES))
+def test_json_round_trip_is_exact(name, tmp_path):
+    scene = get_scene(name)
+    path = tmp_path / f"{name}.json"
+    path.write_text(scene_to_json(scene))
+    again = load_scene_file(path)
+    assert scene_to_dict(again) == scene_to_dict(scene)
+    for field in ("nodes", "velocities", "lengths", "masses", "inertias", "gravity"):
+        np.testing.assert_array_equal(getattr(again, field), getattr(scene, field))
+    assert (again.edges, again.pinned, again.link_types, again.drag) == (scene.edges, scene.pinned, scene.link_types, scene.drag)
+
+
+def mutate(path, value):
+    """A copy of the valid scene with the entry at `path` (keys/indices) set, or deleted if value is DELETE."""
+    data = json.loads(json.dumps(valid()))
+    target = data
+    for key in path[:-1]:
+        target = target[key]
+    if value is DELETE:
+        del target[path[-1]]
+    else:
+        target[path[-1]] = value
+    return data
+
+
+DELETE = object()
+
+# (what is changed, new value, words the one-line error must contain)
+BAD_SCENES = [
+    (("nodes",), DELETE, ["nodes", "missing"]),
+    (("links",), DELETE, ["links", "missing"]),
+    (("colour",), "red", ["colour", "unknown key"]),
+    (("links", 0, "colour"), "red", ["links[0].colour", "unknown key"]),
+    (("links", 1, "mass"), DELETE, ["links[1].mass", "missing"]),
+    (("name",), 3, ["name", "string"]),
+    (("gravity",), "ten", ["gravity", "number"]),
+    (("drag",), -0.1, ["drag", ">= 0"]),
+    (("nodes",), [[0.0, 0.0, 0.0], [0.6, -0.8], [1.6, -0.8]], ["nodes[0]", "expected 2 coordinates, got 3"]),
+    (("nodes", 1), [0.6], ["nodes[1]"]),
+    (("nodes",), "here", ["nodes", "list"]),
+    (("nodes", 2, 0), float("nan"), ["nodes[2]", "finite"]),
+    (("velocities", 1, 1), float("inf"), ["velocities[1]", "finite"]),
+    (("velocities",), [[0.0, 0.0]], ["velocities", "3 entries"]),
+    (("links", 0, "nodes"), [0, 7], ["links[0].nodes", "out of range"]),
+    (("links", 0, "nodes"), [1, 1], ["links[0].nodes", "self link"]),
+    (("links", 1, "nodes"), [1, 0], ["links[1].nodes", "duplicate link"]),
+    (("links", 0, "nodes"), [0, 1, 2], ["links[0].nodes", "[i, j]"]),
+    (("links", 0, "nodes"), [0, 1.5], ["links[0].nodes", "integer"]),
+    (("links", 0, "mass"), 0.0, ["links[0].mass", "> 0"]),
+    (("links", 0, "mass"), True, ["links[0].mass", "number"]),
+    (("links", 0, "inertia"), -1.0, ["links[0].inertia", ">= 0"]),
+    (("links", 0, "length"), -1.0, ["links[0].length", "> 0"]),
+    (("links", 0, "length"), 1.2, ["links[0]", "violate the link length"]),
+    (("links", 0, "type"), "", ["links[0].type"]),
+    (("links",), [], ["links", "non-empty"]),
+    (("pinned",), [5], ["pinned[0]", "out of range"]),
+    (("pinned",), [0, 0], ["pinned", "twice"]),
+    (("pinned",), 0, ["pinned", "list"]),
+    (("velocities", 0), [1.0, 0.0], ["velocities[0]", "pinned node"]),
+    (("velocities", 2), [0.0, 0.0], ["velocities", "stretch links[1]"]),
+]
+
+
+@pytest.mark.parametrize(("path", "value", "words"), BAD_SCENES, ids=[f"{'.'.join(map(str, p))}" for p, _, _ in BAD_SCENES])
+def test_every_schema_violation_is_one_clear_line(path, value, words):
+    with pytest.raises(SceneError) as info:
+        scene_from_dict(mutate(path, value))
+    message = str(info.value)
+    assert "\n" not in message
+    for word in words:
+        assert word in message, message
+
+
+def test_not_an_object():
+    with pytest.raises(SceneError, match="JSON object"):
+        scene_from_dict([1, 2])
+
+
+def test_zero_and_nearly_zero_length_links_are_rejected():
+    data = valid()
+    data["nodes"][2] = [0.6, -0.8 - 1e-9]
+    with pytest.raises(SceneError, match=r"links\[1\].length.*nearly\) zero"):
+        scene_from_dict(data)
+    data["nodes"][2] = [0.6, -0.8]
+    with pytest.raises(SceneError, match=r"links\[1\].length"):
+        scene_from_dict(data)
+
+
+def test_free_node_without_links_is_rejected():
+    data = valid()
+    data["nodes"].append([5.0, 5.0])
+    data["velocities"].append([0.0, 0.0])
+    with pytest.raises(SceneError, match="free node 3 belongs to no link"):
+        scene_from_dict(data)
+
+
+@pytest.mark.parametrize(
+    ("content", "words"),
+    [
+        ('{"name": "x", ', "not valid JSON"),
+        ("not json at all", "not valid JSON"),
+        ('{"name": "x", "nodes": [[0, NaN]], "pinned": [], "links": []}', "NaN is not a JSON number"),
+        (b"\xff\xfe\x00binary", "not a text"),
+    ],
+)
+def test_bad_files(tmp_path, content, words):
+    path = tmp_path / "scene.json"
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content)
+    with pytest.raises(SceneError, match=words) as info:
+        load_scene_file(path)
+    assert str(path) in str(info.value)
+
+
+def test_missing_and_huge_files(tmp_path, monkeypatch):
+    with pytest.raises(SceneError, match="no such scene file"):
+        load_scene_file(tmp_path / "absent.json")
+    with pytest.raises(SceneError, match="not a regular file"):
+        load_scene_file(tmp_path)
+    import lgnn.scene
+
+    big = tmp_path / "big.json"
+    big.write_text(" " * 2048)
+    monkeypatch.setattr(lgnn.scene, "MAX_SCENE_FILE_BYTES", 1024)  # stands in for a 2 GB file
+    with pytest.raises(SceneError, match="larger than"):
+        load_scene_file(big)
+
+
+def test_unknown_scene_name():
+    with pytest.raises(SceneError, match="unknown scene 'chain5'"):
+        get_scene("chain5")
+
+
+def test_paper_scene_conventions():
+    """SPEC: unit-link chains have I = 1/12; T1-T3 links m = 1, I = l^4/12; varied chain I_k l_k^4."""
+    chain = get_scene("chain8")
+    np.testing.assert_allclose(chain.inertias, 1 / 12)
+    np.testing.assert_allclose(chain.lengths, 1.0)
+    assert chain.pinned == (0,)
+    np.testing.assert_array_equal(chain.nodes[0], 0.0)
+    t1 = get_scene("T1")
+    np.testing.assert_allclose(t1.inertias, t1.lengths**4 / 12)
+    np.testing.assert_allclose(t1.masses, 1.0)
+    assert t1.link_types.count("rod") == 6
+    varied = get_scene("chain4-varied")
+    np.testing.assert_allclose(varied.inertias, np.array([1.21233911, 1.18340451, 1.52475643, 1.29122914]) * varied.lengths**4)
+    assert get_scene("chain4-drag").drag == 0.01
+    # built-ins are deterministic
+    np.testing.assert_array_equal(get_scene("chain16").nodes, get_scene("chain16").nodes)
