@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from lgnn import mujoco as lm
-from lgnn.crosscheck import _lagrangian_batch_runner
 from lgnn.scene import State
 from lgnn.scenes import get_scene, sample_initial_states
 from lgnn.simulate import SimulationConfig
@@ -40,16 +39,6 @@ def test_mujoco_c(benchmark, name, batch):
     scene, states = _states(name, batch)
     lm.compile_scene(scene, CONFIG.dt)
     benchmark.pedantic(lm.rollout, args=(scene, CONFIG, states), kwargs={"threads": 2}, rounds=3, warmup_rounds=1)
-    _record(benchmark, batch)
-
-
-@pytest.mark.parametrize("batch", [1, 100])
-@pytest.mark.parametrize("name", ["chain4", "chain16"])
-def test_lagrangian(benchmark, name, batch):
-    scene, states = _states(name, batch)
-    run = _lagrangian_batch_runner(scene, CONFIG)
-    args = (jnp.asarray(states.q), jnp.asarray(states.qd))
-    benchmark.pedantic(lambda: jax.block_until_ready(run(*args)), rounds=3, warmup_rounds=1)
     _record(benchmark, batch)
 
 

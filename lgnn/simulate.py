@@ -23,7 +23,7 @@ import numpy as np
 from lgnn import physics
 from lgnn._io import atomic_path
 from lgnn.errors import ConfigError, SceneError, SimulationError
-from lgnn.integrate import INTEGRATORS, Integrator, advance
+from lgnn.integrate import INTEGRATORS, Integrator, advance, rollout
 from lgnn.scene import Scene, State, scene_to_dict
 
 NPZ_KEYS = ("t", "q", "qd", "energy")
@@ -105,6 +105,22 @@ def check_state(scene: Scene, state: State) -> State:
         if not np.all(np.isfinite(value)):
             raise SceneError(f"initial state {name}: contains non-finite values")
     return State(q, qd)
+
+
+def rollout_fn(
+    scene: Scene,
+    config: SimulationConfig,
+    accel_factory: Callable[[Scene], physics.AccelerationFn] = physics.true_acceleration_fn,
+) -> Callable[[jax.Array, jax.Array], State]:
+    """`run(q, qd) -> State` of the `config.n_frames + 1` frames from one initial state:
+    the pure function behind `simulate`, for callers to `jit` and `vmap` over initial
+    conditions (benchmarks, data generation)."""
+    integrator = config.integrator_for(accel_factory(scene), physics.projection_fn(scene))
+
+    def run(q, qd):
+        return rollout(integrator, State(q, qd), config.n_frames, config.steps_per_frame)
+
+    return run
 
 
 @functools.lru_cache(maxsize=32)
