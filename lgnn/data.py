@@ -21,6 +21,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import zipfile
 import sys
 from pathlib import Path
 from typing import NamedTuple
@@ -159,7 +160,7 @@ def load(config: DataConfig, path: str | os.PathLike) -> Dataset:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: np.asarray(data[key]) for key in ARRAY_KEYS}
             key, checksum = str(data["key"]), str(data["checksum"])
-    except (OSError, ValueError, KeyError, EOFError) as err:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
         raise ConfigError(f"{path}: unreadable data cache ({type(err).__name__}: {err})") from None
     if json.loads(key) != json.loads(json.dumps(config.key(get_scene(config.scene)), sort_keys=True)):
         raise ConfigError(f"{path}: stale data cache (generated with other settings)")

@@ -311,3 +311,20 @@ def mass_matrix_fn(config: ModelConfig, params: dict, scene: Scene):
     if config.name not in LAGRANGIAN_MODELS:
         raise ConfigError(f"model {config.name} predicts accelerations directly and has no mass matrix")
     return physics.mass_matrix_fn(lagrangian_fn(config, params, scene))
+
+
+def rollout(config: ModelConfig, params: dict, scene: Scene, simulation=None, state=None, *, progress: bool = False):
+    """The model's predicted `Trajectory` of `scene` from `state` (default: the scene's
+    own), through the ground truth's integrators (`simulate.simulate`); its `energy` is
+    the scene's true Hamiltonian of the predicted states."""
+    from lgnn.simulate import SimulationConfig, simulate
+
+    check_compatible(config, scene)
+    trajectory = simulate(
+        scene,
+        simulation or SimulationConfig(),
+        state,
+        accel_factory=lambda s: acceleration_fn(config, params, s),
+        progress=progress,
+    )
+    return dataclasses.replace(trajectory, metadata={**trajectory.metadata, "model": config.to_dict()})

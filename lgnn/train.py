@@ -22,9 +22,11 @@ unreadable, corrupt or of another shape.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
+import zipfile
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -94,8 +96,12 @@ def loss_fn(model: models.ModelConfig, scene: Scene):
     return loss
 
 
-def _epoch_fn(model, scene, config: TrainConfig, opt):
+@functools.lru_cache(maxsize=16)
+def _epoch_fn(model, scene, config: TrainConfig):
+    """The jitted epoch, cached per (model, scene object, optimisation settings) so that
+    resuming or re-running in one process does not recompile."""
     loss = loss_fn(model, scene)
+    opt = optimizer(config)
 
     def step(carry, batch):
         params, opt_state = carry
@@ -114,6 +120,7 @@ def _epoch_fn(model, scene, config: TrainConfig, opt):
     return epoch
 
 
+@functools.lru_cache(maxsize=16)
 def evaluate_fn(model: models.ModelConfig, scene: Scene, chunk: int = 500):
     """`evaluate(params, q, qd, qdd) -> float` mean squared error over all states, in
     jitted chunks (the caller's arrays may be large)."""
@@ -154,8 +161,7 @@ def train(
             raise CheckpointError(f"{out}: cannot resume: it was written with other model or training settings")
     else:
         state = initial_state(model, config)
-    opt = optimizer(config)
-    epoch_fn = _epoch_fn(model, scene, config, opt)
+    epoch_fn = _epoch_fn(model, scene, dataclasses.replace(config, epochs=0, minutes=None, patience=1, checkpoint_every=1))
     evaluate = evaluate_fn(model, scene, config.val_chunk)
     train_arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
     val_arrays = tuple(jnp.asarray(a[dataset.val]) for a in (dataset.q, dataset.qd, dataset.qdd))
@@ -244,7 +250,7 @@ def _read(path) -> tuple[dict, dict]:
             arrays = {k: np.asarray(data[k]) for k in data.files if k not in ("meta", "checksum")}
             meta_text, checksum = str(data["meta"]), str(data["checksum"])
         meta = json.loads(meta_text)
-    except (OSError, ValueError, KeyError, EOFError) as err:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
         raise CheckpointError(f"{path}: not a readable lgnn checkpoint ({type(err).__name__})") from None
     if _arrays_checksum(arrays, meta_text) != checksum:
         raise CheckpointError(f"{path}: corrupt checkpoint (checksum mismatch)")
