@@ -18,6 +18,7 @@ never used.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -33,7 +34,7 @@ from lgnn import physics
 from lgnn._io import atomic_path
 from lgnn.errors import ConfigError
 from lgnn.integrate import rollout
-from lgnn.scene import Scene, State, scene_to_dict
+from lgnn.scene import Scene, State, scene_from_dict, scene_to_dict, scene_to_json
 from lgnn.scenes import get_scene, sample_initial_states
 from lgnn.simulate import SimulationConfig
 
@@ -103,11 +104,7 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
     from tqdm.auto import tqdm
 
     scene = get_scene(config.scene)
-    sim = config.simulation
-    accel = physics.true_acceleration_fn(scene)
-    integrator = sim.integrator_for(accel, physics.projection_fn(scene))
-    run = jax.jit(jax.vmap(lambda q, qd: rollout(integrator, State(q, qd), sim.n_frames, sim.steps_per_frame)))
-    targets = jax.jit(jax.vmap(accel))
+    run, targets = _compiled(scene_to_json(scene), config.simulation)
     initial = sample_initial_states(scene, jax.random.PRNGKey(config.seed), config.n_trajectories)
     qs, qds, qdds = [], [], []
     with tqdm(total=config.n_trajectories, desc=f"data {scene.name}", unit="traj", disable=not progress, leave=False) as bar:
@@ -128,6 +125,17 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
     n_train = round(config.train_fraction * count)
     trajectory = np.repeat(np.arange(config.n_trajectories), config.states_per_trajectory)
     return Dataset(q, qd, qdd, trajectory, np.sort(order[:n_train]), np.sort(order[n_train:]))
+
+
+@functools.lru_cache(maxsize=8)
+def _compiled(scene_json: str, sim: SimulationConfig):
+    """Jitted, vmapped trajectory and target functions, cached per scene content and
+    settings (regenerating a cache in the same process does not recompile)."""
+    scene = scene_from_dict(json.loads(scene_json))
+    accel = physics.true_acceleration_fn(scene)
+    integrator = sim.integrator_for(accel, physics.projection_fn(scene))
+    run = jax.jit(jax.vmap(lambda q, qd: rollout(integrator, State(q, qd), sim.n_frames, sim.steps_per_frame)))
+    return run, jax.jit(jax.vmap(accel))
 
 
 def _checksum(arrays: dict) -> str:

@@ -69,7 +69,7 @@ def test_lgnn_machinery_with_true_edge_energies_is_the_ground_truth(name):
     state = _moving_state(scene)
     assert abs(lagrangian(*state) - physics.lagrangian_fn(scene)(*state)) < 1e-12
     factory = lambda s: physics.acceleration_fn(s, lagrangian, physics.drag_force_fn(s))  # noqa: E731
-    config = SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.1)
+    config = SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.05)
     truth = simulate(scene, config)
     predicted = simulate(scene, config, accel_factory=factory)
     assert np.max(np.abs(predicted.q - truth.q)) < 1e-10
@@ -103,7 +103,7 @@ def test_loss_gradient_matches_finite_differences(name):
     scene = get_scene("chain4")
     config = models.ModelConfig.for_scene(name, scene)
     params = models.init(jax.random.PRNGKey(2), config)
-    states = [_moving_state(scene, seed) for seed in range(3)]
+    states = [_moving_state(scene, seed) for seed in range(2)]
     q, qd = (jnp.stack(a) for a in zip(*states))
     qdd = jax.vmap(physics.true_acceleration_fn(scene))(q, qd)
     loss = jax.jit(train.loss_fn(config, scene))
@@ -176,8 +176,8 @@ def test_models_invariant_to_node_relabelling(name):
     q2, qd2 = (jnp.zeros_like(a).at[perm].set(a) for a in (q, qd))
     config = models.ModelConfig.for_scene(name, scene)
     params = models.init(jax.random.PRNGKey(5), config)
-    qdd = models.acceleration_fn(config, params, scene)(q, qd)
-    qdd2 = models.acceleration_fn(config, params, other)(q2, qd2)
+    qdd = jax.jit(models.acceleration_fn(config, params, scene))(q, qd)
+    qdd2 = jax.jit(models.acceleration_fn(config, params, other))(q2, qd2)
     np.testing.assert_allclose(qdd2[perm], qdd, rtol=1e-9, atol=1e-9)
     if name != "gns":
         lagrangian = models.lagrangian_fn(config, params, scene)
@@ -200,7 +200,7 @@ def test_dataset_layout_and_exact_targets(tiny_dataset):
 
 
 def test_corrupt_or_stale_cache_is_regenerated(tmp_path, capsys):
-    config = data.DataConfig(n_trajectories=2, duration=0.05, sample_dt=0.01, dt=1e-3)
+    config = TINY_DATA  # same settings as the fixture: compiled once
     first = data.load_or_generate(config, tmp_path)
     path = data.cache_path(config, tmp_path)
     with np.load(path) as stored:
@@ -287,8 +287,11 @@ def test_corrupt_or_mismatched_checkpoint_is_one_clear_error(tmp_path):
 # ---------------------------------------------------------------------------------
 
 
-def test_cli_train_and_zero_shot_rollout(tmp_path, capsys):
+def test_cli_train_and_zero_shot_rollout(tmp_path, capsys, tiny_dataset):
     ckpt, clnn = tmp_path / "lgnn.npz", tmp_path / "clnn.npz"
+    # Seed the cache the CLI reads (its default 1 s trajectories take minutes to make).
+    cli_data = data.DataConfig("chain4", n_trajectories=2)
+    data.save(tiny_dataset, cli_data, data.cache_path(cli_data, tmp_path))
     common = ["--scene", "chain4", "--trajectories", "2", "--epochs", "1", "--cache-dir", str(tmp_path), "--quiet"]
     assert main(["train", "--model", "lgnn", *common, "--out", str(ckpt)]) == 0
     assert main(["train", "--model", "clnn", *common, "--out", str(clnn)]) == 0
