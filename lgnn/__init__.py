@@ -7,6 +7,8 @@ The public interface, by lifecycle stage:
   solve as a function transformer);
 - integration: `lgnn.integrate` (RK4, velocity Verlet, rollouts);
 - the ground-truth engine: `SimulationConfig`, `simulate`, `Trajectory`.
+- learned models: `lgnn.graphs` (graph features), `lgnn.models` (LGNN, GNS, LGN, CLNN),
+  `lgnn.data` (cached training data), `lgnn.train` (training, checkpoints).
 """
 
 import os as _os

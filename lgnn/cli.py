@@ -154,6 +154,68 @@ def _add_mujoco_commands(commands) -> None:
     check.set_defaults(run=_cmd_crosscheck)
 
 
+def _cmd_train(args) -> None:
+    from lgnn import data, models, train
+    from lgnn._io import check_writable
+    from lgnn.scenes import get_scene
+
+    check_writable(args.out)
+    data_config = data.DataConfig(args.scene, n_trajectories=args.trajectories, seed=args.seed)
+    scene = get_scene(args.scene)
+    model = models.ModelConfig.for_scene(args.model, scene, message_passing=args.message_passing)
+    config = train.TrainConfig(args.lr, args.batch_size, args.epochs, args.minutes, args.patience, args.seed)
+    dataset = data.load_or_generate(data_config, args.cache_dir, progress=not args.quiet)
+    state = train.train(model, config, dataset, scene, out=args.out, data_config=data_config, resume=args.resume, progress=not args.quiet)
+    print(f"{args.model} on {scene.name}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out}")
+
+
+def _cmd_rollout(args) -> None:
+    from lgnn import models
+    from lgnn._io import check_writable
+    from lgnn.scenes import get_scene
+    from lgnn.train import load_model
+
+    config = _simulation_config(args)
+    check_writable(args.out)
+    model, params = load_model(args.model)
+    scene = get_scene(args.scene)
+    trajectory = models.rollout(model, params, scene, config, progress=not args.quiet)
+    trajectory.save(args.out)
+    drift = abs(trajectory.energy[-1] - trajectory.energy[0]) / max(abs(trajectory.energy[0]), 1e-300)
+    print(f"{model.name} on {scene.name}: {len(trajectory.t)} frames over {config.duration:g} s; true energy drift {drift:.2e}; wrote {args.out}")
+
+
+def _add_train_parser(commands) -> None:
+    from lgnn.models import MODEL_NAMES
+    from lgnn.train import TrainConfig
+
+    default = TrainConfig()
+    parser = commands.add_parser("train", help="train a learned model on ground-truth data")
+    parser.add_argument("--model", required=True, choices=MODEL_NAMES)
+    parser.add_argument("--scene", default="chain4", help="training scene (built-in name or JSON file)")
+    parser.add_argument("--epochs", type=int, default=default.epochs, help="epoch budget (paper: 10000)")
+    parser.add_argument("--minutes", type=_positive_float, default=None, help="wall-clock budget (checked after each epoch)")
+    parser.add_argument("--patience", type=int, default=default.patience, help="early stopping: epochs without improvement")
+    parser.add_argument("--lr", type=_positive_float, default=default.learning_rate)
+    parser.add_argument("--batch-size", type=int, default=default.batch_size)
+    parser.add_argument("--message-passing", type=int, default=None, help="message-passing layers (default: the model's)")
+    parser.add_argument("--trajectories", type=int, default=100, help="training trajectories (paper: 100)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--cache-dir", default="results/datasets", help="training data cache")
+    parser.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
+    parser.add_argument("--out", required=True, help="checkpoint file (.npz), written after every epoch")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.set_defaults(run=_cmd_train)
+
+    rollout = commands.add_parser("rollout", help="roll a trained model out on a scene")
+    rollout.add_argument("scene", help="built-in scene name or scene JSON file")
+    rollout.add_argument("--model", required=True, help="checkpoint written by lgnn train")
+    _add_simulation_options(rollout)
+    rollout.add_argument("--out", required=True, help="output .npz file (same layout as lgnn simulate)")
+    rollout.add_argument("--quiet", action="store_true", help="no progress bar")
+    rollout.set_defaults(run=_cmd_rollout)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lgnn", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -177,6 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--quiet", action="store_true", help="no progress bar")
     simulate.set_defaults(run=_cmd_simulate)
     _add_mujoco_commands(commands)
+    _add_train_parser(commands)
     return parser
 
 

@@ -19,3 +19,7 @@ class ConfigError(LgnnError):
 
 class SimulationError(LgnnError):
     """A simulation produced a non-finite or exploding state."""
+
+
+class CheckpointError(LgnnError):
+    """A model checkpoint is missing, corrupt, or does not match what it is used for."""

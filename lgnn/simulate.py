@@ -14,6 +14,7 @@ import functools
 import json
 import math
 import os
+import zipfile
 from typing import Callable
 
 import jax
@@ -91,7 +92,7 @@ class Trajectory:
                     raise ConfigError(f"{path}: not a trajectory file (missing {', '.join(missing)})")
                 metadata = json.loads(str(data["metadata"])) if "metadata" in data else {}
                 return cls(*(np.asarray(data[key]) for key in NPZ_KEYS), metadata=metadata)
-        except (OSError, ValueError) as err:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
             raise ConfigError(f"{path}: cannot read trajectory: {err}") from None
 
 

@@ -1,0 +1,295 @@
+"""Training: Adam on the mean squared error of accelerations, with resumable checkpoints.
+
+`train(model_config, train_config, dataset, out=CKPT)` fits a model to a `data.Dataset`
+(float64 under x64; the caller enables it): each epoch shuffles the training states
+with a key derived from `(seed, epoch)` and takes `len(train) // batch_size` Adam steps
+(the remainder of a shuffle is dropped), one jitted `lax.scan` per epoch; the
+validation loss is computed after every epoch in large vmapped chunks; the parameters
+with the best validation loss are kept; training stops at the epoch budget, the
+minutes budget (checked after each epoch), or after `patience` epochs without
+improvement. After every `checkpoint_every` epochs the whole training state (params,
+best params, Adam state, epoch, losses) is written atomically to `out`, so an
+interrupted run resumed from it (`resume=True`) reaches exactly the same result as an
+uninterrupted one.
+
+Checkpoint files (`.npz`): the arrays `params/k`, `best/k`, `opt/k` (leaves in pytree
+order) and one JSON string `meta` (format, lgnn version, model/train/data settings,
+progress, and a sha256 over everything else). `load_checkpoint` rebuilds the pytrees
+from the model config and refuses, with one `CheckpointError` line, a file that is
+unreadable, corrupt or of another shape.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import os
+import zipfile
+import time
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from lgnn import models
+from lgnn._io import atomic_path
+from lgnn.data import DataConfig, Dataset
+from lgnn.errors import CheckpointError, ConfigError
+from lgnn.scene import Scene
+
+CHECKPOINT_FORMAT = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    # Paper: Adam, learning rate 1e-3, batch size 10.
+    learning_rate: float = 1e-3
+    batch_size: int = 10
+    # Paper budget: 10 000 epochs with early stopping.
+    epochs: int = 10_000
+    # Wall-clock budget in minutes (None: no limit); checked after each epoch.
+    minutes: float | None = None
+    # Early stopping: stop after this many epochs without a better validation loss.
+    patience: int = 500
+    # Seed of the initial parameters and of every epoch's shuffle.
+    seed: int = 0
+    # States per vmapped validation chunk (memory vs. speed).
+    val_chunk: int = 500
+    # Write the checkpoint every this many epochs (and at the end).
+    checkpoint_every: int = 1
+
+    def __post_init__(self):
+        if not self.learning_rate > 0:
+            raise ConfigError(f"learning rate must be > 0, got {self.learning_rate}")
+        if self.batch_size < 1 or self.epochs < 0 or self.patience < 1 or self.checkpoint_every < 1:
+            raise ConfigError("batch size, patience and checkpoint interval must be >= 1, epochs >= 0")
+        if self.minutes is not None and not self.minutes > 0:
+            raise ConfigError(f"minutes must be > 0, got {self.minutes}")
+
+
+class TrainState(NamedTuple):
+    params: dict
+    opt_state: tuple
+    best_params: dict
+    best_val: float
+    best_epoch: int
+    epoch: int  # epochs completed
+    history: list  # [(epoch, train_loss, val_loss), ...]
+
+
+def optimizer(config: TrainConfig) -> optax.GradientTransformation:
+    return optax.adam(config.learning_rate)
+
+
+def loss_fn(model: models.ModelConfig, scene: Scene):
+    """`loss(params, q, qd, qdd)`: mean squared acceleration error over a batch (B, N, D)."""
+
+    def loss(params, q, qd, qdd):
+        accel = jax.vmap(models.acceleration_fn(model, params, scene))
+        return jnp.mean((accel(q, qd) - qdd) ** 2)
+
+    return loss
+
+
+@functools.lru_cache(maxsize=16)
+def _epoch_fn(model, scene, config: TrainConfig):
+    """The jitted epoch, cached per (model, scene object, optimisation settings) so that
+    resuming or re-running in one process does not recompile."""
+    loss = loss_fn(model, scene)
+    opt = optimizer(config)
+
+    def step(carry, batch):
+        params, opt_state = carry
+        value, grads = jax.value_and_grad(loss)(params, *batch)
+        updates, opt_state = opt.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), value
+
+    @jax.jit
+    def epoch(params, opt_state, q, qd, qdd, key):
+        n_batches = q.shape[0] // config.batch_size
+        order = jax.random.permutation(key, q.shape[0])[: n_batches * config.batch_size]
+        batches = tuple(a[order].reshape(n_batches, config.batch_size, *a.shape[1:]) for a in (q, qd, qdd))
+        (params, opt_state), losses = jax.lax.scan(step, (params, opt_state), batches)
+        return params, opt_state, jnp.mean(losses)
+
+    return epoch
+
+
+@functools.lru_cache(maxsize=16)
+def evaluate_fn(model: models.ModelConfig, scene: Scene, chunk: int = 500):
+    """`evaluate(params, q, qd, qdd) -> float` mean squared error over all states, in
+    jitted chunks (the caller's arrays may be large)."""
+    batch_sse = jax.jit(lambda p, q, qd, qdd: jnp.sum((jax.vmap(models.acceleration_fn(model, p, scene))(q, qd) - qdd) ** 2))
+
+    def evaluate(params, q, qd, qdd) -> float:
+        total = sum(float(batch_sse(params, q[s : s + chunk], qd[s : s + chunk], qdd[s : s + chunk])) for s in range(0, len(q), chunk))
+        return total / q.size
+
+    return evaluate
+
+
+def initial_state(model: models.ModelConfig, config: TrainConfig) -> TrainState:
+    params = models.init(jax.random.fold_in(jax.random.PRNGKey(config.seed), 0), model)
+    return TrainState(params, optimizer(config).init(params), params, float("inf"), -1, 0, [])
+
+
+def train(
+    model: models.ModelConfig,
+    config: TrainConfig,
+    dataset: Dataset,
+    scene: Scene,
+    *,
+    out: str | os.PathLike | None = None,
+    data_config: DataConfig | None = None,
+    resume: bool = False,
+    progress: bool = False,
+) -> TrainState:
+    """Train (or resume training of) `model` on `dataset` of `scene`; module docstring."""
+    from tqdm.auto import tqdm
+
+    models.check_compatible(model, scene)
+    if len(dataset.train) < config.batch_size:
+        raise ConfigError(f"{len(dataset.train)} training states is fewer than one batch of {config.batch_size}")
+    if resume and out is not None and Path(out).exists():
+        state, saved = load_checkpoint(out)
+        if saved["model"] != model.to_dict() or saved["train"] != _train_key(config):
+            raise CheckpointError(f"{out}: cannot resume: it was written with other model or training settings")
+    else:
+        state = initial_state(model, config)
+    epoch_fn = _epoch_fn(model, scene, dataclasses.replace(config, epochs=0, minutes=None, patience=1, checkpoint_every=1))
+    evaluate = evaluate_fn(model, scene, config.val_chunk)
+    train_arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
+    val_arrays = tuple(jnp.asarray(a[dataset.val]) for a in (dataset.q, dataset.qd, dataset.qdd))
+    base_key = jax.random.fold_in(jax.random.PRNGKey(config.seed), 1)
+    start = time.monotonic()
+    params, opt_state = state.params, state.opt_state
+    best_params, best_val, best_epoch, history = state.best_params, state.best_val, state.best_epoch, list(state.history)
+    epoch = state.epoch
+    bar = tqdm(total=config.epochs, initial=epoch, desc=f"train {model.name}", unit="epoch", disable=not progress, leave=False)
+    try:
+        while epoch < config.epochs and epoch - best_epoch <= config.patience:
+            params, opt_state, train_loss = epoch_fn(params, opt_state, *train_arrays, jax.random.fold_in(base_key, epoch))
+            val_loss = evaluate(params, *val_arrays)
+            epoch += 1
+            history.append((epoch, float(train_loss), val_loss))
+            if val_loss < best_val:
+                best_params, best_val, best_epoch = params, val_loss, epoch
+            bar.update(1)
+            bar.set_postfix(train=f"{float(train_loss):.3e}", val=f"{val_loss:.3e}", best=f"{best_val:.3e}")
+            out_of_time = config.minutes is not None and time.monotonic() - start > 60 * config.minutes
+            state = TrainState(params, opt_state, best_params, best_val, best_epoch, epoch, history)
+            if out is not None and (epoch % config.checkpoint_every == 0 or out_of_time):
+                save_checkpoint(out, state, model, config, data_config)
+            if out_of_time:
+                break
+    finally:
+        bar.close()
+    state = TrainState(params, opt_state, best_params, best_val, best_epoch, epoch, history)
+    if out is not None:
+        save_checkpoint(out, state, model, config, data_config)
+    return state
+
+
+# ---------------------------------------------------------------------------------
+# Checkpoints
+# ---------------------------------------------------------------------------------
+
+
+def _train_key(config: TrainConfig) -> dict:
+    # Budgets may change on resume (train longer); the optimisation itself may not.
+    return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("epochs", "minutes", "patience", "checkpoint_every", "val_chunk")}
+
+
+def _arrays_checksum(arrays: dict, meta_text: str) -> str:
+    digest = hashlib.sha256(meta_text.encode())
+    for name in sorted(arrays):
+        value = np.ascontiguousarray(arrays[name])
+        digest.update(f"{name}:{value.dtype.str}:{value.shape};".encode())
+        digest.update(value.tobytes())
+    return digest.hexdigest()
+
+
+def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: TrainConfig, data_config: DataConfig | None = None) -> None:
+    """Write the training state atomically (module docstring for the layout)."""
+    from lgnn import __version__
+
+    arrays = {}
+    for prefix, tree in (("params", state.params), ("best", state.best_params), ("opt", state.opt_state)):
+        for k, leaf in enumerate(jax.tree.leaves(tree)):
+            arrays[f"{prefix}/{k}"] = np.asarray(leaf)
+    meta = {
+        "format": CHECKPOINT_FORMAT,
+        "lgnn": __version__,
+        "model": model.to_dict(),
+        "train": _train_key(config),
+        "train_config": dataclasses.asdict(config),
+        "data": dataclasses.asdict(data_config) if data_config else None,
+        "epoch": state.epoch,
+        "best_epoch": state.best_epoch,
+        "best_val": state.best_val if np.isfinite(state.best_val) else None,
+        "history": state.history,
+    }
+    meta_text = json.dumps(meta, sort_keys=True)
+    checksum = _arrays_checksum(arrays, meta_text)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as handle:
+            np.savez(handle, meta=meta_text, checksum=checksum, **arrays)
+
+
+def _read(path) -> tuple[dict, dict]:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: np.asarray(data[k]) for k in data.files if k not in ("meta", "checksum")}
+            meta_text, checksum = str(data["meta"]), str(data["checksum"])
+        meta = json.loads(meta_text)
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
+        raise CheckpointError(f"{path}: not a readable lgnn checkpoint ({type(err).__name__})") from None
+    if _arrays_checksum(arrays, meta_text) != checksum:
+        raise CheckpointError(f"{path}: corrupt checkpoint (checksum mismatch)")
+    if meta.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, expected {CHECKPOINT_FORMAT}")
+    return meta, arrays
+
+
+def _restore(path, template, arrays: dict, prefix: str):
+    leaves, treedef = jax.tree.flatten(template)
+    restored = []
+    for k, leaf in enumerate(leaves):
+        name = f"{prefix}/{k}"
+        if name not in arrays or arrays[name].shape != np.shape(leaf):
+            raise CheckpointError(f"{path}: checkpoint does not match its model settings ({name})")
+        restored.append(jnp.asarray(arrays[name], dtype=jnp.asarray(leaf).dtype))
+    if f"{prefix}/{len(leaves)}" in arrays:
+        raise CheckpointError(f"{path}: checkpoint does not match its model settings (extra {prefix} arrays)")
+    return jax.tree.unflatten(treedef, restored)
+
+
+def load_checkpoint(path) -> tuple[TrainState, dict]:
+    """The training state and metadata of a checkpoint; `CheckpointError` if unusable."""
+    meta, arrays = _read(path)
+    try:
+        model = models.ModelConfig.from_dict(meta["model"])
+        config = TrainConfig(**meta["train_config"])
+    except (ConfigError, TypeError, KeyError) as err:
+        raise CheckpointError(f"{path}: checkpoint settings are invalid ({err})") from None
+    template = initial_state(model, config)
+    params = _restore(path, template.params, arrays, "params")
+    best = _restore(path, template.params, arrays, "best")
+    opt_state = _restore(path, template.opt_state, arrays, "opt")
+    best_val = meta["best_val"] if meta["best_val"] is not None else float("inf")
+    history = [tuple(h) for h in meta["history"]]
+    return TrainState(params, opt_state, best, best_val, meta["best_epoch"], meta["epoch"], history), meta
+
+
+def load_model(path) -> tuple[models.ModelConfig, dict]:
+    """The model settings and best parameters of a checkpoint, for rollouts."""
+    state, meta = load_checkpoint(path)
+    return models.ModelConfig.from_dict(meta["model"]), state.best_params

@@ -1,0 +1,307 @@
+"""Learned models: the learned pipeline is the physics pipeline, graphs, training, checkpoints, CLI."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lgnn import data, graphs, models, physics, train
+from lgnn.cli import main
+from lgnn.errors import CheckpointError, ConfigError
+from lgnn.scene import scene_from_dict, scene_to_dict
+from lgnn.scenes import get_scene
+from lgnn.simulate import SimulationConfig, simulate
+
+SHORT = SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.2)
+TINY_DATA = data.DataConfig(n_trajectories=10, duration=0.2, sample_dt=0.01, dt=1e-3)
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    return data.load_or_generate(TINY_DATA, tmp_path_factory.mktemp("cache"))
+
+
+def _moving_state(scene, seed=0):
+    """A generic state on the constraint manifold with non-zero velocities."""
+    key = jax.random.PRNGKey(seed)
+    q = jnp.asarray(scene.nodes)
+    return physics.projection_fn(scene)(q, jax.random.normal(key, q.shape))
+
+
+def _true_edge_energies(scene):
+    """The exact per-link energies written on LGNN's graph features (each link twice)."""
+    m, inertia = np.tile(scene.masses, 2), np.tile(scene.inertias, 2)
+    gravity = float(scene.gravity)
+
+    def energies(graph):
+        s, r = graph.senders, graph.receivers
+        v_cm = 0.5 * (graph.nodes["qd"][s] + graph.nodes["qd"][r])
+        dq2 = jnp.sum(graph.edges["dq"] ** 2, -1)
+        kinetic = 0.5 * m * jnp.sum(v_cm**2, -1) + 0.5 * inertia * jnp.sum(graph.edges["w"] ** 2, -1) / dq2**2
+        potential = m * gravity * 0.5 * (graph.nodes["q"][s, 1] + graph.nodes["q"][r, 1])
+        return kinetic, potential
+
+    return energies
+
+
+# ---------------------------------------------------------------------------------
+# The learned pipeline is the physics pipeline
+# ---------------------------------------------------------------------------------
+
+
+def test_cheating_model_reproduces_ground_truth(monkeypatch):
+    scene = get_scene("chain4")
+    truth = simulate(scene, SHORT)
+    monkeypatch.setattr(models, "acceleration_fn", lambda config, params, s: physics.true_acceleration_fn(s))
+    predicted = models.rollout(models.ModelConfig(), {}, scene, SHORT)
+    assert np.max(np.abs(predicted.q - truth.q)) < 1e-12
+    assert np.max(np.abs(predicted.energy - truth.energy)) < 1e-12
+    assert predicted.metadata["model"]["name"] == "lgnn"
+
+
+@pytest.mark.parametrize("name", ["chain4-varied", "chain4-drag", "T2"])
+def test_lgnn_machinery_with_true_edge_energies_is_the_ground_truth(name):
+    scene = get_scene(name)
+    vocabulary = tuple(sorted(set(scene.link_types)))
+    lagrangian = models.lgnn_lagrangian_fn(scene, vocabulary, _true_edge_energies(scene))
+    state = _moving_state(scene)
+    assert abs(lagrangian(*state) - physics.lagrangian_fn(scene)(*state)) < 1e-12
+    factory = lambda s: physics.acceleration_fn(s, lagrangian, physics.drag_force_fn(s))  # noqa: E731
+    config = SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.05)
+    truth = simulate(scene, config)
+    predicted = simulate(scene, config, accel_factory=factory)
+    assert np.max(np.abs(predicted.q - truth.q)) < 1e-10
+
+
+# ---------------------------------------------------------------------------------
+# Models
+# ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", models.MODEL_NAMES)
+def test_models_give_finite_accelerations_with_pins_at_rest(name):
+    scene = get_scene("chain4")
+    config = models.ModelConfig.for_scene(name, scene)
+    params = models.init(jax.random.PRNGKey(1), config)
+    qdd = jax.jit(models.acceleration_fn(config, params, scene))(*_moving_state(scene))
+    assert qdd.shape == (5, 2) and np.all(np.isfinite(qdd))
+    assert np.all(qdd[0] == 0)
+
+
+def test_unknown_model_and_clnn_size_are_clear_errors():
+    with pytest.raises(ConfigError, match="unknown model"):
+        models.ModelConfig("transformer")
+    config = models.ModelConfig.for_scene("clnn", get_scene("chain4"))
+    with pytest.raises(ConfigError, match="tied to its training system size"):
+        models.acceleration_fn(config, models.init(jax.random.PRNGKey(0), config), get_scene("chain8"))
+
+
+@pytest.mark.parametrize("name", ["lgnn", "clnn"])
+def test_loss_gradient_matches_finite_differences(name):
+    scene = get_scene("chain4")
+    config = models.ModelConfig.for_scene(name, scene)
+    params = models.init(jax.random.PRNGKey(2), config)
+    states = [_moving_state(scene, seed) for seed in range(2)]
+    q, qd = (jnp.stack(a) for a in zip(*states))
+    qdd = jax.vmap(physics.true_acceleration_fn(scene))(q, qd)
+    loss = jax.jit(train.loss_fn(config, scene))
+    direction = jax.tree.map(lambda x: jax.random.normal(jax.random.PRNGKey(3), x.shape), params)
+    analytic = sum(jnp.vdot(g, d) for g, d in zip(jax.tree.leaves(jax.grad(loss)(params, q, qd, qdd)), jax.tree.leaves(direction)))
+    eps = 1e-6
+    shifted = lambda s: jax.tree.map(lambda p, d: p + s * d, params, direction)  # noqa: E731
+    numeric = (loss(shifted(eps), q, qd, qdd) - loss(shifted(-eps), q, qd, qdd)) / (2 * eps)
+    assert abs(analytic - numeric) <= 1e-6 * max(1.0, abs(analytic))
+
+
+@pytest.mark.parametrize("name", ["lgnn", "clnn"])
+def test_learned_mass_matrix_is_symmetric(name):
+    scene = get_scene("chain4")
+    config = models.ModelConfig.for_scene(name, scene)
+    mass = jax.jit(models.mass_matrix_fn(config, models.init(jax.random.PRNGKey(4), config), scene))(*_moving_state(scene))
+    assert mass.shape == (10, 10)
+    np.testing.assert_allclose(mass, mass.T, rtol=0, atol=1e-12 * np.abs(mass).max())
+
+
+def test_gns_has_no_mass_matrix():
+    config = models.ModelConfig("gns")
+    with pytest.raises(ConfigError, match="no mass matrix"):
+        models.mass_matrix_fn(config, models.init(jax.random.PRNGKey(0), config), get_scene("chain4"))
+
+
+# ---------------------------------------------------------------------------------
+# Graphs
+# ---------------------------------------------------------------------------------
+
+
+def _relabelled(scene, perm):
+    """The same structure with node k renamed perm[k], links listed backwards, each
+    link's ends swapped."""
+    d = scene_to_dict(scene)
+    inverse = np.argsort(perm)
+    d["nodes"] = [d["nodes"][k] for k in inverse]
+    d["velocities"] = [d["velocities"][k] for k in inverse]
+    d["pinned"] = [int(perm[k]) for k in d["pinned"]]
+    for link in d["links"]:
+        link["nodes"] = [int(perm[link["nodes"][1]]), int(perm[link["nodes"][0]])]
+    d["links"] = d["links"][::-1]
+    return scene_from_dict(d)
+
+
+def test_graph_features():
+    scene = get_scene("T2")
+    q, qd = _moving_state(scene)
+    graph = graphs.graph_from_state(scene, q, qd, ("link", "rod"))
+    e = scene.n_links
+    assert graph.edges["type"].shape == (2 * e, 2) and graph.edges["w"].shape == (2 * e, 1)
+    np.testing.assert_allclose(graph.edges["dq"][:e], -graph.edges["dq"][e:])
+    np.testing.assert_allclose(graph.edges["w"][:e], graph.edges["w"][e:])  # w is orientation-free
+    types = np.asarray(graph.edges["type"][:e]).argmax(-1)
+    assert [("link", "rod")[t] for t in types] == list(scene.link_types)
+    # A single-type vocabulary maps every edge to it; a multi-type one refuses unseen types.
+    assert np.all(graphs.graph_from_state(scene, q, qd, ("link",)).edges["type"] == 1)
+    with pytest.raises(ConfigError, match="not trained on"):
+        graphs.graph_from_state(scene, q, qd, ("link", "spring"))
+    padded = graphs.pad_batch([graph, graph], 2 * scene.n_nodes + 1, 4 * e + 1)
+    assert padded.nodes["q"].shape == (2 * scene.n_nodes + 1, 2)
+
+
+@pytest.mark.parametrize("name", ["lgnn", "gns"])  # LGN shares GNS's graph network
+def test_models_invariant_to_node_relabelling(name):
+    scene = get_scene("chain4")
+    perm = np.asarray([3, 0, 4, 1, 2])
+    other = _relabelled(scene, perm)
+    q, qd = _moving_state(scene)
+    q2, qd2 = (jnp.zeros_like(a).at[perm].set(a) for a in (q, qd))
+    config = models.ModelConfig.for_scene(name, scene)
+    params = models.init(jax.random.PRNGKey(5), config)
+    qdd = jax.jit(models.acceleration_fn(config, params, scene))(q, qd)
+    qdd2 = jax.jit(models.acceleration_fn(config, params, other))(q2, qd2)
+    np.testing.assert_allclose(qdd2[perm], qdd, rtol=1e-9, atol=1e-9)
+    if name == "lgnn":
+        lagrangian = models.lagrangian_fn(config, params, scene)
+        np.testing.assert_allclose(models.lagrangian_fn(config, params, other)(q2, qd2), lagrangian(q, qd), rtol=1e-12)
+
+
+# ---------------------------------------------------------------------------------
+# Data
+# ---------------------------------------------------------------------------------
+
+
+def test_dataset_layout_and_exact_targets(tiny_dataset):
+    ds = tiny_dataset
+    assert ds.q.shape == (200, 5, 2) and len(ds.train) == 150 and len(ds.val) == 50
+    assert not set(ds.train) & set(ds.val)
+    scene = get_scene("chain4")
+    qdd = jax.vmap(physics.true_acceleration_fn(scene))(ds.q[:7], ds.qd[:7])
+    np.testing.assert_allclose(ds.qdd[:7], qdd, rtol=0, atol=1e-12)
+    assert np.all(ds.qd[ds.trajectory == 0][0] == 0)  # released from rest
+
+
+def test_corrupt_or_stale_cache_is_regenerated(tmp_path, capsys):
+    config = TINY_DATA  # same settings as the fixture: compiled once
+    first = data.load_or_generate(config, tmp_path)
+    path = data.cache_path(config, tmp_path)
+    with np.load(path) as stored:
+        arrays = dict(stored)
+    arrays["q"] = arrays["q"] + 1e-9  # corrupt, checksum kept
+    np.savez(path, **arrays)
+    again = data.load_or_generate(config, tmp_path)
+    assert "corrupt data cache" in capsys.readouterr().err
+    np.testing.assert_array_equal(again.q, first.q)
+    arrays = dict(np.load(path))
+    key = json.loads(str(arrays["key"]))
+    key["settings"]["dt"] = 1.0  # stale: made with other settings
+    arrays["key"] = json.dumps(key)
+    np.savez(path, **arrays)
+    data.load_or_generate(config, tmp_path)
+    assert "stale data cache" in capsys.readouterr().err
+    data.load(config, path)  # the regenerated file is valid
+
+
+# ---------------------------------------------------------------------------------
+# Training and checkpoints
+# ---------------------------------------------------------------------------------
+
+
+def test_tiny_lgnn_training_lowers_validation_loss_tenfold(tiny_dataset):
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene("lgnn", scene)
+    config = train.TrainConfig(learning_rate=1e-2, epochs=20)  # 300 steps
+    evaluate = train.evaluate_fn(model, scene)
+    val = tuple(a[tiny_dataset.val] for a in (tiny_dataset.q, tiny_dataset.qd, tiny_dataset.qdd))
+    before = evaluate(train.initial_state(model, config).params, *val)
+    state = train.train(model, config, tiny_dataset, scene)
+    assert state.best_val < before / 10
+    assert evaluate(state.best_params, *val) == pytest.approx(state.best_val, rel=1e-12)
+
+
+def test_checkpoint_round_trip_and_resume_are_exact(tiny_dataset, tmp_path):
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene("lgnn", scene)
+    config = train.TrainConfig(learning_rate=1e-2, epochs=4)
+    whole = train.train(model, config, tiny_dataset, scene, out=tmp_path / "whole.npz")
+    loaded, meta = train.load_checkpoint(tmp_path / "whole.npz")
+    for a, b in zip(jax.tree.leaves((whole.params, whole.opt_state, whole.best_params)), jax.tree.leaves((loaded.params, loaded.opt_state, loaded.best_params))):
+        np.testing.assert_array_equal(a, b)
+    assert loaded.history == whole.history and meta["epoch"] == 4
+    # Interrupted after 2 epochs, then resumed to 4.
+    part = tmp_path / "part.npz"
+    train.train(model, train.TrainConfig(learning_rate=1e-2, epochs=2), tiny_dataset, scene, out=part)
+    resumed = train.train(model, config, tiny_dataset, scene, out=part, resume=True)
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(CheckpointError, match="other model or training settings"):
+        train.train(model, train.TrainConfig(learning_rate=1e-3, epochs=5), tiny_dataset, scene, out=part, resume=True)
+
+
+def test_corrupt_or_mismatched_checkpoint_is_one_clear_error(tmp_path):
+    model = models.ModelConfig("lgnn")
+    config = train.TrainConfig()
+    path = tmp_path / "ckpt.npz"
+    train.save_checkpoint(path, train.initial_state(model, config), model, config)
+    (tmp_path / "short.npz").write_bytes(path.read_bytes()[:200])
+    with pytest.raises(CheckpointError, match="not a readable"):
+        train.load_model(tmp_path / "short.npz")
+    with np.load(path) as stored:
+        arrays = dict(stored)
+    arrays["params/0"] = arrays["params/0"] + 1.0
+    np.savez(tmp_path / "tampered.npz", **arrays)
+    with pytest.raises(CheckpointError, match="checksum"):
+        train.load_model(tmp_path / "tampered.npz")
+    meta = json.loads(str(arrays["meta"]))
+    meta["model"]["message_passing"] = 1  # arrays of an L = 0 model under L = 1 settings
+    arrays["params/0"] = arrays["params/0"] - 1.0
+    arrays["meta"] = json.dumps(meta, sort_keys=True)
+    arrays["checksum"] = train._arrays_checksum({k: v for k, v in arrays.items() if "/" in k}, str(arrays["meta"]))
+    np.savez(tmp_path / "mismatch.npz", **arrays)
+    with pytest.raises(CheckpointError, match="does not match"):
+        train.load_model(tmp_path / "mismatch.npz")
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        train.load_model(tmp_path / "missing.npz")
+
+
+# ---------------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------------
+
+
+def test_cli_train_and_zero_shot_rollout(tmp_path, capsys, tiny_dataset):
+    ckpt, clnn = tmp_path / "lgnn.npz", tmp_path / "clnn.npz"
+    # Seed the cache the CLI reads (its default 1 s trajectories take minutes to make).
+    cli_data = data.DataConfig("chain4", n_trajectories=2)
+    data.save(tiny_dataset, cli_data, data.cache_path(cli_data, tmp_path))
+    common = ["--scene", "chain4", "--trajectories", "2", "--epochs", "1", "--cache-dir", str(tmp_path), "--quiet"]
+    assert main(["train", "--model", "lgnn", *common, "--out", str(ckpt)]) == 0
+    assert main(["train", "--model", "clnn", *common, "--out", str(clnn)]) == 0
+    out = tmp_path / "roll.npz"
+    assert main(["rollout", "--model", str(ckpt), "chain8", "--dt", "1e-3", "--duration", "0.05", "--out", str(out), "--quiet"]) == 0
+    with np.load(out) as rolled:
+        assert set(rolled.files) >= {"t", "q", "qd", "energy"} and rolled["q"].shape == (51, 9, 2)
+        scene = get_scene("chain8")
+        np.testing.assert_allclose(rolled["energy"], jax.vmap(physics.energy_fn(scene))(rolled["q"], rolled["qd"]), rtol=1e-12)
+    capsys.readouterr()
+    assert main(["rollout", "--model", str(clnn), "chain8", "--duration", "0.01", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "tied to its training system size" in err
