@@ -4,12 +4,8 @@
 `pytest bench/ --benchmark` runs the full profile.
 """
 
-import os
-
-# before numpy/jax load OpenBLAS (see lgnn/__init__.py)
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
-import jax  # noqa: E402
+import lgnn  # noqa: F401  (first: sets the XLA and OpenBLAS environment before JAX starts)
+import jax
 import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)

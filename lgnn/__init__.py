@@ -18,6 +18,12 @@ import os as _os
 # contention: a 300x300 LU took 83 ms with it and 3 ms without on 2 cores. Set before
 # numpy loads OpenBLAS; an explicit setting by the user wins.
 _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# XLA's CPU concurrency-optimised scheduler deadlocks (all threads idle, forever) on
+# vmapped rollouts whose steps hold several batched LAPACK calls (measured: chain16 x
+# 100, one RK4 step with projection, jax 0.10). Read when the CPU backend starts.
+_DEADLOCK_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+if _DEADLOCK_FLAG not in _os.environ.get("XLA_FLAGS", ""):
+    _os.environ["XLA_FLAGS"] = (_os.environ.get("XLA_FLAGS", "") + " " + _DEADLOCK_FLAG).strip()
 
 from lgnn.errors import ConfigError, LgnnError, SceneError, SimulationError
 from lgnn.scene import Scene, State, load_scene_file, scene_from_dict, scene_to_dict, scene_to_json

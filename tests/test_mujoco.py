@@ -176,14 +176,21 @@ def test_mujoco_keeps_singular_loops_closed(name):
     assert max_violation(s, mujoco_c(name).q[0]) <= 5e-6
 
 
-@pytest.mark.xfail(strict=True, reason="Lagrangian engine drops instantaneously-redundant rows at the singular initial "
-                   "configuration of T2/T3 (taut straight ropes); those links then stretch (0.04-0.3 by 0.1 s). "
-                   "T3 (same failure, 100 s to compile) is shown by `lgnn crosscheck T3`")
-@pytest.mark.parametrize("name", ["T2"])
-def test_singular_loops_agree_with_lagrangian(name):
+@pytest.mark.parametrize(("name", "tolerance"), [("T2", 5e-4), ("T3", 2e-2)])
+def test_singular_loops_agree_with_lagrangian_as_far_as_the_model_allows(name, tolerance):
+    """T2 and T3 start self-stressed (taut straight ropes between pins: a singular
+    constraint Jacobian, physics.py). There the inextensible model is singular: a rope
+    that stretches by e sags by ~sqrt(e l), so MuJoCo's soft `connect` (e ~ 4e-7) sags
+    ~2e-4 where the exact engine (e ~ 1e-9) sags ~4e-5. T2 is prestress-stable: both
+    keep it at rest to that level. T3 is partly free; over 0.1 s both move ~4e-2 and
+    differ by ~8e-3 (measured), the exact engine converging only at first order there."""
+    s = scene(name)
     ref = lagrangian(name, 0.1)
-    assert max_violation(scene(name), ref.q) <= 1e-6
-    assert np.max(np.abs(mujoco_c(name, 0.1).q[0] - ref.q)) <= 1e-6
+    ours = mujoco_c(name, 0.1).q[0]
+    assert max_violation(s, ref.q) <= 1e-7
+    assert np.max(np.abs(ours - ref.q)) <= tolerance
+    if name == "T2":
+        assert np.max(np.abs(ref.q - ref.q[0])) <= 1e-4 and np.max(np.abs(ours - ours[0])) <= 5e-4
 
 
 def test_drag_agrees_with_lagrangian():
