@@ -61,8 +61,10 @@ def test_cheating_model_reproduces_ground_truth(monkeypatch):
     assert predicted.metadata["model"]["name"] == "lgnn"
 
 
-@pytest.mark.parametrize("name", ["chain4-varied", "chain4-drag", "T2"])
+@pytest.mark.parametrize("name", ["chain4-varied", "chain4-drag", "T1"])
 def test_lgnn_machinery_with_true_edge_energies_is_the_ground_truth(name):
+    # T1, not T2/T3: those start at a singular (self-stressed) configuration where
+    # round-off differences between equal Lagrangians are amplified (lgnn/physics.py).
     scene = get_scene(name)
     vocabulary = tuple(sorted(set(scene.link_types)))
     lagrangian = models.lgnn_lagrangian_fn(scene, vocabulary, _true_edge_energies(scene))
