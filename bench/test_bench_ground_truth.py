@@ -32,7 +32,7 @@ def test_lagrangian_rk4_steps_per_second(benchmark, full_profile, name, batch):
     start = time.perf_counter()
     jax.block_until_ready(run(q, qd))
     compile_s = time.perf_counter() - start
-    benchmark.pedantic(lambda: jax.block_until_ready(run(q, qd)), rounds=3, iterations=1)
+    benchmark.pedantic(lambda: jax.block_until_ready(run(q, qd)), rounds=5 if full_profile else 2, iterations=1)
     benchmark.extra_info.update(
         scene=name, batch=batch, steps=STEPS, compile_s=compile_s, steps_per_s=batch * STEPS / benchmark.stats.stats.mean
     )

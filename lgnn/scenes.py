@@ -112,7 +112,7 @@ def chain4_drag(seed: int = 0) -> Scene:
 
 @functools.cache
 def _paper_structures() -> dict:
-    text = resources.files("lgnn").joinpath("data/paper_structures.json").read_text()
+    text = resources.files("lgnn").joinpath("assets/paper_structures.json").read_text()
     return json.loads(text)
 
 

@@ -100,10 +100,10 @@ def test_every_builtin_scene_runs(name):
         assert displacement > 1e-3  # falls from rest
 
 
-@pytest.mark.parametrize(("scene_fn", "duration"), [(lambda: get_scene("chain4"), 1.0), (double_pinned_chain, 1.0), (lambda: get_scene("T1"), 0.2)])
+@pytest.mark.parametrize(("scene_fn", "duration"), [(lambda: get_scene("chain4"), 1.0), (double_pinned_chain, 1.0), (lambda: get_scene("T1"), 0.1)])
 def test_default_settings_are_accurate(scene_fn, duration):
     """Default settings: max node error <= 1e-6 against a converged reference (over 1 s;
-    T1 over 0.2 s to keep CI short, its 1 s check is in the MuJoCo cross-check)."""
+    T1 over 0.1 s to keep CI short, its 1 s check is in the MuJoCo cross-check)."""
     scene = scene_fn()
     default = simulate(scene, SimulationConfig(duration=duration))
     reference = simulate(scene, SimulationConfig(dt=2.5e-5, duration=duration))
