@@ -83,6 +83,7 @@ KKT_REFINEMENT_STEPS = 3
 # unit Jacobian rows has eigenvalues of order 1): bounds the step at singular
 # configurations, where an unshifted step along a self-stress diverges.
 PROJECTION_SHIFT = 1e-6
+VELOCITY_PROJECTION_PASSES = 5
 
 
 # ---------------------------------------------------------------------------------
@@ -361,7 +362,7 @@ def true_acceleration_fn(scene: Scene) -> AccelerationFn:
     return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
 
 
-def projection_fn(scene: Scene, iterations: int = 3) -> Callable[[Array, Array], tuple[Array, Array]]:
+def projection_fn(scene: Scene, iterations: int = 4) -> Callable[[Array, Array], tuple[Array, Array]]:
     """Project `(q, qd)` back onto the constraint manifold.
 
     Positions: Gauss-Newton steps `x <- x - A^T (A A^T)^-1 Phi(x)` (the minimum-norm
@@ -374,20 +375,23 @@ def projection_fn(scene: Scene, iterations: int = 3) -> Callable[[Array, Array],
     """
     constraints = Constraints(scene)
 
-    def minimum_norm_correction(jac, residual):
-        gram = jac @ jac.T
-        gram = gram + PROJECTION_SHIFT * jnp.eye(gram.shape[0], dtype=gram.dtype)
-        return jac.T @ jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(gram), residual)
+    def shifted_gram_factor(jac):
+        gram = jac @ jac.T + PROJECTION_SHIFT * jnp.eye(jac.shape[0], dtype=jac.dtype)
+        return jax.scipy.linalg.cho_factor(gram)
 
     def project(q, qd):
         if constraints.n_rows == 0:
             return q, qd
         x, v = constraints.restrict(q), constraints.restrict(qd)
         for _ in range(iterations):
-            x = x - minimum_norm_correction(constraints.jacobian(x), constraints.residual(x))
+            jac = constraints.jacobian(x)
+            x = x - jac.T @ jax.scipy.linalg.cho_solve(shifted_gram_factor(jac), constraints.residual(x))
         jac = constraints.jacobian(x)
-        for _ in range(2):  # the second pass removes the Levenberg-Marquardt shift's residual
-            v = v - minimum_norm_correction(jac, jac @ v)
+        factor = shifted_gram_factor(jac)
+        # The shift leaves a fraction ~shift / sigma^2 of `A v` per pass; repeated passes
+        # with the same factor remove it geometrically (iterative refinement).
+        for _ in range(VELOCITY_PROJECTION_PASSES):
+            v = v - jac.T @ jax.scipy.linalg.cho_solve(factor, jac @ v)
         return constraints.embed(x), constraints.embed_velocity(v)
 
     return project
