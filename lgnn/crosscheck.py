@@ -27,7 +27,7 @@ import numpy as np
 from lgnn import physics
 from lgnn._io import write_text_atomic
 from lgnn.scene import Scene, State
-from lgnn.simulate import SimulationConfig
+from lgnn.simulate import SimulationConfig, rollout_fn
 
 ENGINES = ("lagrangian", "mujoco", "mjx")
 # Deepest spanning tree MJX is compiled for by default (chain4 compiles in ~35 s on a
@@ -110,19 +110,6 @@ def write_table(rows: list[dict], csv_path: str, md_path: str, command: str, col
 # ---------------------------------------------------------------------------------
 
 
-def _lagrangian_batch_runner(scene: Scene, config: SimulationConfig):
-    """jit(vmap) of the Lagrangian RK4 rollout (final state only) for timing batches."""
-    from lgnn.integrate import advance
-
-    integrator = config.integrator_for(physics.true_acceleration_fn(scene), physics.projection_fn(scene))
-
-    def one(q, qd):
-        carry, frames = advance(integrator, integrator.init_fn(State(q, qd)), config.n_frames, config.steps_per_frame)
-        return frames.q
-
-    return jax.jit(jax.vmap(one))
-
-
 def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, dtype="float64"):
     """(compile_s, run_s, q (B, F+1, N, 2)) of one engine on a batch of initial states."""
     from lgnn import mujoco as lm
@@ -139,7 +126,7 @@ def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, d
         run = lm.mjx_runner(scene, config, dtype)
         args = (jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     else:
-        run = _lagrangian_batch_runner(scene, config)
+        run = jax.jit(jax.vmap(rollout_fn(scene, config)))
         args = (jnp.asarray(states.q), jnp.asarray(states.qd))
     start = time.perf_counter()
     compiled = run.lower(*args).compile()

@@ -33,10 +33,9 @@ import numpy as np
 from lgnn import physics
 from lgnn._io import atomic_path
 from lgnn.errors import ConfigError
-from lgnn.integrate import rollout
-from lgnn.scene import Scene, State, scene_from_dict, scene_to_dict, scene_to_json
+from lgnn.scene import Scene, scene_from_dict, scene_to_dict, scene_to_json
 from lgnn.scenes import get_scene, sample_initial_states
-from lgnn.simulate import SimulationConfig
+from lgnn.simulate import SimulationConfig, rollout_fn
 
 DATA_FORMAT = 1
 ARRAY_KEYS = ("q", "qd", "qdd", "trajectory", "train", "val")
@@ -132,10 +131,8 @@ def _compiled(scene_json: str, sim: SimulationConfig):
     """Jitted, vmapped trajectory and target functions, cached per scene content and
     settings (regenerating a cache in the same process does not recompile)."""
     scene = scene_from_dict(json.loads(scene_json))
-    accel = physics.true_acceleration_fn(scene)
-    integrator = sim.integrator_for(accel, physics.projection_fn(scene))
-    run = jax.jit(jax.vmap(lambda q, qd: rollout(integrator, State(q, qd), sim.n_frames, sim.steps_per_frame)))
-    return run, jax.jit(jax.vmap(accel))
+    run = jax.jit(jax.vmap(rollout_fn(scene, sim)))
+    return run, jax.jit(jax.vmap(physics.true_acceleration_fn(scene)))
 
 
 def _checksum(arrays: dict) -> str:

@@ -318,7 +318,7 @@ def check_scene(scene: Scene) -> None:
     k = int(np.argmax(rate))
     if rate[k] > LENGTH_TOLERANCE:
         raise _fail(
-            f"velocities",
+            "velocities",
             f"initial velocities stretch links[{k}] (nodes {i[k]}-{j[k]}): rate of length change {rate[k] * speed:.3g}",
         )
 
