@@ -116,7 +116,7 @@ def rollout_fn(
     """`run(q, qd) -> State` of the `config.n_frames + 1` frames from one initial state:
     the pure function behind `simulate`, for callers to `jit` and `vmap` over initial
     conditions (benchmarks, data generation)."""
-    integrator = config.integrator_for(accel_factory(scene), physics.projection_fn(scene))
+    integrator = _integrator(scene, config, accel_factory)
 
     def run(q, qd):
         return rollout(integrator, State(q, qd), config.n_frames, config.steps_per_frame)
@@ -124,20 +124,28 @@ def rollout_fn(
     return run
 
 
+def _integrator(scene: Scene, config: SimulationConfig, accel_factory: Callable) -> Integrator:
+    return config.integrator_for(accel_factory(scene), physics.projection_fn(scene))
+
+
 @functools.lru_cache(maxsize=32)
 def _chunk_runner(scene: Scene, config: SimulationConfig, accel_factory: Callable):
-    """Compiled `init(state)` and `run(carry, n_frames) -> (carry, frames, energies)`,
-    cached per scene object (scenes hash by identity) and settings."""
-    accel = accel_factory(scene)
-    integrator = config.integrator_for(accel, physics.projection_fn(scene))
+    """Compiled `init(state) -> (carry, energy)` and `run(carry, n_frames) -> (carry,
+    frames, energies)`, cached per scene object (scenes hash by identity) and settings."""
+    integrator = _integrator(scene, config, accel_factory)
     energy = jax.vmap(physics.energy_fn(scene))
+
+    @jax.jit
+    def init(state):
+        carry = integrator.init_fn(state)
+        return carry, energy(carry.state.q[None], carry.state.qd[None])
 
     @functools.partial(jax.jit, static_argnums=1)
     def run(carry, n_frames):
         carry, frames = advance(integrator, carry, n_frames, config.steps_per_frame)
         return carry, frames, energy(frames.q, frames.qd)
 
-    return jax.jit(integrator.init_fn), run
+    return init, run
 
 
 def simulate(
@@ -157,9 +165,8 @@ def simulate(
     """
     state = check_state(scene, scene.initial_state if state is None else state)
     init, run = _chunk_runner(scene, config, accel_factory)
-    energy = physics.energy_fn(scene)
-    carry = init(State(jnp.asarray(state.q), jnp.asarray(state.qd)))
-    qs, qds, energies = [np.asarray(state.q)[None]], [np.asarray(state.qd)[None]], [np.asarray(energy(*carry.state))[None]]
+    carry, initial_energy = init(State(jnp.asarray(state.q), jnp.asarray(state.qd)))
+    qs, qds, energies = [np.asarray(state.q)[None]], [np.asarray(state.qd)[None]], [np.asarray(initial_energy)]
     done = 0
     bar = _progress_bar(config.n_frames, scene.name, progress)
     try:
