@@ -1,7 +1,8 @@
 """Benchmark setup: float64 as the ground truth runs, and the two profiles.
 
-`pytest bench/` runs the quick profile (minutes on 2 CPU cores, part of CI);
-`pytest bench/ --benchmark` runs the full profile.
+`pytest bench/` runs the quick profile (minutes on 2 CPU cores, part of CI; outputs in
+`results/quick/`); `pytest bench/ --benchmark` runs the full profile (outputs in
+`results/`). The profiles themselves are declared in `lgnn.benchmark.PROFILES`.
 """
 
 import lgnn  # noqa: F401  (first: sets the XLA and OpenBLAS environment before JAX starts)
@@ -18,3 +19,18 @@ def pytest_addoption(parser):
 @pytest.fixture(scope="session")
 def full_profile(request) -> bool:
     return bool(request.config.getoption("--benchmark"))
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    """Print the benchmark's summary table after the run (if the report was written)."""
+    from lgnn import benchmark
+
+    profile = benchmark.get_profile("full" if config.getoption("--benchmark") else "quick")
+    readme = benchmark.default_out(profile) / "README.md"
+    written = getattr(config, "_lgnn_report_written", False)
+    if written and readme.exists():
+        text = readme.read_text()
+        start = text.find("## Rollout error against the Lagrangian ground truth")
+        end = text.find("## Energy error")
+        terminalreporter.write_sep("=", f"lgnn benchmark ({profile.name} profile): {readme}")
+        terminalreporter.write_line(text[start:end].strip())

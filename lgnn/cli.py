@@ -216,6 +216,31 @@ def _add_train_parser(commands) -> None:
     rollout.set_defaults(run=_cmd_rollout)
 
 
+def _cmd_benchmark(args) -> None:
+    from pathlib import Path
+
+    from lgnn import benchmark
+
+    profile = benchmark.get_profile("full" if args.full else "quick")
+    stages = benchmark.STAGES if args.stage == "all" else (args.stage,)
+    out = benchmark.run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet)
+    if "report" in stages:
+        print((out / "README.md").read_text())
+
+
+def _add_benchmark_parser(commands) -> None:
+    from lgnn.benchmark import STAGES
+
+    parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
+    parser.add_argument("--full", action="store_true", help="the full profile (default: the quick one, minutes on a laptop)")
+    parser.add_argument("--stage", default="all", choices=("all",) + STAGES, help="run one stage (default: all, resuming finished work)")
+    parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")
+    parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")
+    parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, results/quick/ otherwise)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.set_defaults(run=_cmd_benchmark)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lgnn", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -240,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.set_defaults(run=_cmd_simulate)
     _add_mujoco_commands(commands)
     _add_train_parser(commands)
+    _add_benchmark_parser(commands)
     return parser
 
 

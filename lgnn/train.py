@@ -80,6 +80,15 @@ class TrainState(NamedTuple):
     best_epoch: int
     epoch: int  # epochs completed
     history: list  # [(epoch, train_loss, val_loss), ...]
+    # Wall-clock seconds spent training, summed over resumed runs (the minutes budget
+    # counts all of them, so an interrupted run does not get a fresh budget).
+    elapsed_s: float = 0.0
+
+
+def finished(state: TrainState, config: TrainConfig) -> bool:
+    """Whether training has ended by one of `config`'s budgets or early stopping."""
+    out_of_time = config.minutes is not None and state.elapsed_s >= 60 * config.minutes
+    return state.epoch >= config.epochs or state.epoch - state.best_epoch > config.patience or out_of_time
 
 
 def optimizer(config: TrainConfig) -> optax.GradientTransformation:
@@ -120,6 +129,13 @@ def _epoch_fn(model, scene, config: TrainConfig):
     return epoch
 
 
+def compiled_epoch_fn(model: models.ModelConfig, scene: Scene, config: TrainConfig):
+    """`epoch(params, opt_state, q, qd, qdd, key) -> (params, opt_state, mean loss)`,
+    jitted and shared by every caller with the same optimisation settings (budgets do
+    not matter): training, resuming, and the benchmark's timing of an epoch."""
+    return _epoch_fn(model, scene, dataclasses.replace(config, epochs=0, minutes=None, patience=1, checkpoint_every=1))
+
+
 @functools.lru_cache(maxsize=16)
 def evaluate_fn(model: models.ModelConfig, scene: Scene, chunk: int = 500):
     """`evaluate(params, q, qd, qdd) -> float` mean squared error over all states, in
@@ -135,7 +151,7 @@ def evaluate_fn(model: models.ModelConfig, scene: Scene, chunk: int = 500):
 
 def initial_state(model: models.ModelConfig, config: TrainConfig) -> TrainState:
     params = models.init(jax.random.fold_in(jax.random.PRNGKey(config.seed), 0), model)
-    return TrainState(params, optimizer(config).init(params), params, float("inf"), -1, 0, [])
+    return TrainState(params, optimizer(config).init(params), params, float("inf"), -1, 0, [], 0.0)
 
 
 def train(
@@ -161,18 +177,18 @@ def train(
             raise CheckpointError(f"{out}: cannot resume: it was written with other model or training settings")
     else:
         state = initial_state(model, config)
-    epoch_fn = _epoch_fn(model, scene, dataclasses.replace(config, epochs=0, minutes=None, patience=1, checkpoint_every=1))
+    epoch_fn = compiled_epoch_fn(model, scene, config)
     evaluate = evaluate_fn(model, scene, config.val_chunk)
     train_arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
     val_arrays = tuple(jnp.asarray(a[dataset.val]) for a in (dataset.q, dataset.qd, dataset.qdd))
     base_key = jax.random.fold_in(jax.random.PRNGKey(config.seed), 1)
-    start = time.monotonic()
+    start, elapsed_before = time.monotonic(), state.elapsed_s
     params, opt_state = state.params, state.opt_state
     best_params, best_val, best_epoch, history = state.best_params, state.best_val, state.best_epoch, list(state.history)
     epoch = state.epoch
     bar = tqdm(total=config.epochs, initial=epoch, desc=f"train {model.name}", unit="epoch", disable=not progress, leave=False)
     try:
-        while epoch < config.epochs and epoch - best_epoch <= config.patience:
+        while not finished(state, config):
             params, opt_state, train_loss = epoch_fn(params, opt_state, *train_arrays, jax.random.fold_in(base_key, epoch))
             val_loss = evaluate(params, *val_arrays)
             epoch += 1
@@ -181,15 +197,12 @@ def train(
                 best_params, best_val, best_epoch = params, val_loss, epoch
             bar.update(1)
             bar.set_postfix(train=f"{float(train_loss):.3e}", val=f"{val_loss:.3e}", best=f"{best_val:.3e}")
-            out_of_time = config.minutes is not None and time.monotonic() - start > 60 * config.minutes
-            state = TrainState(params, opt_state, best_params, best_val, best_epoch, epoch, history)
-            if out is not None and (epoch % config.checkpoint_every == 0 or out_of_time):
+            elapsed = elapsed_before + time.monotonic() - start
+            state = TrainState(params, opt_state, best_params, best_val, best_epoch, epoch, history, elapsed)
+            if out is not None and (epoch % config.checkpoint_every == 0 or finished(state, config)):
                 save_checkpoint(out, state, model, config, data_config)
-            if out_of_time:
-                break
     finally:
         bar.close()
-    state = TrainState(params, opt_state, best_params, best_val, best_epoch, epoch, history)
     if out is not None:
         save_checkpoint(out, state, model, config, data_config)
     return state
@@ -233,6 +246,7 @@ def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: 
         "best_epoch": state.best_epoch,
         "best_val": state.best_val if np.isfinite(state.best_val) else None,
         "history": state.history,
+        "elapsed_s": state.elapsed_s,
     }
     meta_text = json.dumps(meta, sort_keys=True)
     checksum = _arrays_checksum(arrays, meta_text)
@@ -286,7 +300,8 @@ def load_checkpoint(path) -> tuple[TrainState, dict]:
     opt_state = _restore(path, template.opt_state, arrays, "opt")
     best_val = meta["best_val"] if meta["best_val"] is not None else float("inf")
     history = [tuple(h) for h in meta["history"]]
-    return TrainState(params, opt_state, best, best_val, meta["best_epoch"], meta["epoch"], history), meta
+    elapsed = float(meta.get("elapsed_s", 0.0))
+    return TrainState(params, opt_state, best, best_val, meta["best_epoch"], meta["epoch"], history, elapsed), meta
 
 
 def load_model(path) -> tuple[models.ModelConfig, dict]:

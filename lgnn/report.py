@@ -1,0 +1,433 @@
+"""The benchmark's report: tidy CSVs, markdown tables, figures and `README.md`, from
+the records `lgnn.benchmark` wrote (nothing is computed here but statistics of them).
+
+Files under `<out>` (`results/` for the full profile, `results/quick/` for the quick):
+
+- `benchmark/summary.csv`: `scene, model, seed, metric, statistic, value` plus
+  `commit, versions, device` of the run that made each number. Metrics:
+  `rollout_error`, `energy_error`, `rollout_error_vs_mujoco`, and per scene the
+  ground truth's `chaos_floor` and `truth_vs_mujoco`; statistics: `gmean` (over frames
+  t > 0 and initial conditions), `ci_low`/`ci_high` (bootstrap 95% over initial
+  conditions), `initial_conditions`, `diverged` (count), `first_divergence_s`.
+- `benchmark/curves.csv`: the same metrics per frame (every 0.01 s): geometric mean
+  over initial conditions with a normal-approximation 95% band (`t` column).
+- `benchmark/speed_error.csv`, `.md`: wall time per simulated second against rollout
+  error (`lgnn.benchmark.speed_error`).
+- `benchmark/mass_matrix.csv`: percentage errors of the learned mass matrix.
+- `figures/*.png`; `README.md`: the summary tables and how each file was made.
+
+pandas and matplotlib are imported here only (the library's numerics do not need them).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from lgnn import benchmark as bm
+from lgnn._io import atomic_path, write_text_atomic
+
+MODEL_ORDER = ("lgnn", "gns", "lgn", "clnn")
+COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3"}
+CURVE_STEP_S = 0.01
+
+
+def _records(profile: bm.Profile, out: Path):
+    """(truth records by scene, pair records) that exist and match the profile's settings."""
+    layout = bm.Layout(out)
+    truths, pairs = {}, []
+    for scene in bm.evaluation_scenes(profile):
+        record = bm.load_record(layout.truth_record(scene), bm._truth_key(profile, bm.scene_named(scene)))
+        if record is not None:
+            truths[scene] = record
+    for pair in bm.evaluation_pairs(profile):
+        checkpoint = layout.checkpoint(pair.job)
+        if not checkpoint.exists():
+            continue
+        record = bm.load_record(layout.pair_record(pair), bm._pair_key(profile, pair, checkpoint))
+        if record is not None:
+            pairs.append((pair, record))
+    return truths, pairs
+
+
+def _env_columns(meta: dict) -> dict:
+    env = meta.get("environment", {})
+    return {k: env.get(k, "unknown") for k in ("commit", "versions", "device")}
+
+
+def _summary_rows(scene, model, seed, metric, arrays, meta, prefix, diverged=None):
+    value, low, high = bm.summarise(arrays[f"{prefix}/per_ic_log"])
+    base = dict(scene=scene, model=model, seed=seed, metric=metric, **_env_columns(meta))
+    stats = {"gmean": value, "ci_low": low, "ci_high": high, "initial_conditions": len(arrays[f"{prefix}/per_ic_log"])}
+    if diverged is not None:
+        stats["diverged"] = int(np.sum(np.isfinite(diverged)))
+        stats["first_divergence_s"] = float(np.nanmin(diverged)) if np.isfinite(diverged).any() else float("nan")
+    return [{**base, "statistic": k, "value": v} for k, v in stats.items()]
+
+
+def _curve_rows(scene, model, seed, metric, arrays, meta, prefix):
+    t = arrays["t"]
+    stride = max(1, round(CURVE_STEP_S / (t[1] - t[0]))) if len(t) > 1 else 1
+    rows = []
+    env = _env_columns(meta)
+    for statistic in ("gmean", "low", "high"):
+        values = arrays[f"{prefix}/{statistic}"]
+        for k in range(stride - 1, len(t), stride):
+            rows.append(dict(scene=scene, model=model, seed=seed, metric=metric, statistic=statistic, t=round(float(t[k]), 9), value=float(values[k]), **env))
+    return rows
+
+
+def tables(profile: bm.Profile, out: Path):
+    """`(summary, curves)` DataFrames from the records (module docstring)."""
+    import pandas as pd
+
+    truths, pairs = _records(profile, out)
+    summary, curves = [], []
+    for scene, (arrays, meta) in truths.items():
+        for metric in ("chaos_floor", "truth_vs_mujoco"):
+            summary += _summary_rows(scene, "ground truth", 0, metric, arrays, meta, metric)
+            curves += _curve_rows(scene, "ground truth", 0, metric, arrays, meta, metric)
+    for pair, (arrays, meta) in pairs:
+        for metric in bm.METRICS:
+            summary += _summary_rows(pair.scene, pair.job.label, pair.job.seed, metric, arrays, meta, metric, arrays["diverged_at"])
+            curves += _curve_rows(pair.scene, pair.job.label, pair.job.seed, metric, arrays, meta, metric)
+    return pd.DataFrame(summary), pd.DataFrame(curves)
+
+
+def _write_csv(frame, path: Path) -> None:
+    buffer = io.StringIO()
+    frame.to_csv(buffer, index=False, float_format="%.6g")
+    write_text_atomic(path, buffer.getvalue())
+
+
+def _fmt(value: float) -> str:
+    return "—" if value is None or not math.isfinite(value) else f"{value:.2e}"
+
+
+def _interval(row: dict) -> str:
+    text = _fmt(row.get("gmean"))
+    if math.isfinite(row.get("ci_low", float("nan"))):
+        text += f" [{_fmt(row['ci_low'])}, {_fmt(row['ci_high'])}]"
+    if row.get("diverged"):
+        text += f" ({int(row['diverged'])} diverged, first at {row['first_divergence_s']:.3g} s)"
+    return text
+
+
+def summary_markdown(summary, metric: str) -> str:
+    """A markdown table: scene rows, model columns, `gmean [95% interval]` cells, and
+    the scene's chaos floor (and, for the rollout error, Lagrangian-vs-MuJoCo) beside."""
+    if summary.empty:
+        return "(no results)\n"
+    wide = summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
+    models = [m for m in wide["model"].unique() if m != "ground truth"]
+    models.sort(key=lambda m: (MODEL_ORDER.index(m.split()[0]) if m.split()[0] in MODEL_ORDER else 9, m))
+    scenes = [s for s in bm.TRANSFER_SCENES + ("chain4-varied", "chain4-drag") if s in set(wide["scene"])]
+    extra = ["chaos floor"] + (["Lagrangian vs MuJoCo"] if metric == "rollout_error" else [])
+    lines = ["| scene | " + " | ".join(models + extra) + " |", "|---" * (len(models) + len(extra) + 1) + "|"]
+    for scene in scenes:
+        cells = []
+        for model in models:
+            match = wide[(wide.scene == scene) & (wide.model == model) & (wide.metric == metric)]
+            cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "")
+        for truth_metric in (["chaos_floor"] + (["truth_vs_mujoco"] if metric == "rollout_error" else [])):
+            match = wide[(wide.scene == scene) & (wide.model == "ground truth") & (wide.metric == truth_metric)]
+            cells.append(_fmt(match.iloc[0]["gmean"]) if len(match) else "")
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _speed_rows(profile: bm.Profile, out: Path) -> list[dict]:
+    rows = []
+    for scene in profile.speed_scenes:
+        path = bm.Layout(out).speed_record(scene)
+        if path.exists():
+            stored = json.loads(path.read_text())
+            env = {k: stored.get("environment", {}).get(k, "unknown") for k in ("commit", "versions", "device")}
+            rows += [{**r, "horizon_s": stored["horizon"], **env} for r in stored["rows"]]
+    return rows
+
+
+def speed_markdown(rows: list[dict]) -> str:
+    lines = ["| scene | solver | dt | wall s per simulated s | evaluations per simulated s | compile s | rollout error | note |", "|---" * 8 + "|"]
+    for r in rows:
+        compile_s = "—" if not math.isfinite(r["compile_s"]) else f"{r['compile_s']:.1f}"
+        lines.append(f"| {r['scene']} | {r['solver']} | {r['dt']:g} | {_fmt(r['wall_s_per_sim_s'])} | {r['evaluations_per_sim_s']:.0f} | "
+                     f"{compile_s} | {_fmt(r['rollout_error'])} | {r['note']} |")
+    return "\n".join(lines) + "\n"
+
+
+def _mass_rows(profile: bm.Profile, out: Path) -> list[tuple[dict, dict]]:
+    found = []
+    for scene in profile.mass_scenes:
+        record = bm.load_record(bm.Layout(out).mass_record(scene))
+        if record is not None:
+            found.append(record)
+    return found
+
+
+# ---------------------------------------------------------------------------------
+# Figures
+# ---------------------------------------------------------------------------------
+
+
+def _savefig(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def _plot_error_vs_time(curves, scenes: list[str], path: Path, title: str) -> bool:
+    import matplotlib.pyplot as plt
+
+    scenes = [s for s in scenes if s in set(curves["scene"])]
+    if not scenes:
+        return False
+    fig, axes = plt.subplots(2, len(scenes), figsize=(4.2 * len(scenes), 6.4), squeeze=False, sharex=True)
+    for col, scene in enumerate(scenes):
+        for row, metric in enumerate(("rollout_error", "energy_error")):
+            ax = axes[row, col]
+            sub = curves[(curves.scene == scene) & (curves.metric == metric)]
+            for model in sub["model"].unique():
+                if model == "ground truth":
+                    continue
+                kind = model.split()[0]
+                m = sub[sub.model == model]
+                g = m[m.statistic == "gmean"]
+                ax.plot(g.t, g.value, color=COLORS.get(kind), label=model.upper() if kind == model else model)
+                lo, hi = m[m.statistic == "low"], m[m.statistic == "high"]
+                if np.isfinite(lo.value.to_numpy()).any():
+                    ax.fill_between(lo.t, lo.value, hi.value, color=COLORS.get(kind), alpha=0.2, linewidth=0)
+            floor = curves[(curves.scene == scene) & (curves.metric == "chaos_floor") & (curves.statistic == "gmean")]
+            if len(floor) and metric == "rollout_error":
+                ax.plot(floor.t, floor.value, "k--", linewidth=1, label="chaos floor (1e-4)")
+            ax.set_yscale("log")
+            ax.set_title(f"{scene}: {metric.replace('_', ' ')}", fontsize=9)
+            if row == 1:
+                ax.set_xlabel("t (s)")
+        axes[0, 0].legend(fontsize=7)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    _savefig(fig, path)
+    return True
+
+
+def _plot_mass_matrices(records, path: Path) -> bool:
+    import matplotlib.pyplot as plt
+
+    if not records:
+        return False
+    fig, axes = plt.subplots(len(records), 3, figsize=(12, 3.8 * len(records)), squeeze=False)
+    for row, (arrays, meta) in enumerate(records):
+        true_m, learned_m = arrays["true"], arrays["learned"]
+        scale = np.max(np.abs(true_m))
+        for col, (matrix, name) in enumerate(((true_m, "true M"), (learned_m, "learned M (LGNN)"))):
+            image = axes[row, col].imshow(matrix, cmap="RdBu_r", vmin=-scale, vmax=scale)
+            axes[row, col].set_title(f"{meta['scene']}: {name}", fontsize=9)
+            fig.colorbar(image, ax=axes[row, col], shrink=0.8)
+        diff = 100 * np.abs(learned_m - true_m) / scale
+        image = axes[row, 2].imshow(diff, cmap="viridis")
+        axes[row, 2].set_title(f"|difference| (% of max |M|); Frobenius {meta['percent_error']:.2g}%, tangent {meta['tangent_percent_error']:.2g}%", fontsize=8)
+        fig.colorbar(image, ax=axes[row, 2], shrink=0.8)
+    fig.tight_layout()
+    _savefig(fig, path)
+    return True
+
+
+def _plot_snapshots(profile: bm.Profile, out: Path, scene: str, truths: dict, pairs: list, path: Path) -> bool:
+    import matplotlib.pyplot as plt
+
+    if scene not in truths:
+        return False
+    learned = [(p, r) for p, r in pairs if p.scene == scene and p.job.scene == "chain4"]
+    if not learned:
+        return False
+    mujoco_q = truths[scene][0]["snapshot/mujoco"]
+    structure = bm.scene_named(scene)
+    frames = np.linspace(0, len(mujoco_q) - 1, 5).round().astype(int)
+    fig, axes = plt.subplots(len(learned), len(frames), figsize=(2.6 * len(frames), 2.6 * len(learned)), squeeze=False)
+    edges = np.asarray(structure.edges)
+    for row, (pair, (arrays, _)) in enumerate(learned):
+        model_q = arrays["snapshot/model"]
+        for col, f in enumerate(frames):
+            ax = axes[row, col]
+            for q, style, color, label in ((mujoco_q[f], "-", "k", "MuJoCo"), (model_q[f], "--", COLORS.get(pair.job.model), pair.job.label.upper())):
+                if np.isfinite(q).all():
+                    for k, seg in enumerate(q[edges]):
+                        ax.plot(seg[:, 0], seg[:, 1], style, color=color, linewidth=1.2, label=label if k == 0 else None)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_title(f"t = {f * bm.SNAPSHOT_DT:.2f} s", fontsize=9)
+            if col == 0:
+                ax.legend(fontsize=6, loc="lower left")
+    fig.suptitle(f"{scene}: learned (dashed) against MuJoCo (black), initial condition 0", fontsize=10)
+    fig.tight_layout()
+    _savefig(fig, path)
+    return True
+
+
+def _plot_speed_error(rows: list[dict], path: Path) -> bool:
+    import matplotlib.pyplot as plt
+
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    if not scenes:
+        return False
+    fig, axes = plt.subplots(1, len(scenes), figsize=(4.5 * len(scenes), 4), squeeze=False)
+    markers = {"lagrangian": "o", "mujoco": "s", "mjx": "^"}
+    for ax, scene in zip(axes[0], scenes):
+        for r in rows:
+            if r["scene"] != scene or not (math.isfinite(r["wall_s_per_sim_s"]) and math.isfinite(r["rollout_error"])):
+                continue
+            if r["kind"] == "engine":
+                ax.loglog(r["wall_s_per_sim_s"], r["rollout_error"], markers[r["solver"]], color="k", fillstyle="none")
+                ax.annotate(f"{r['solver']} {r['dt']:g}", (r["wall_s_per_sim_s"], r["rollout_error"]), fontsize=6)
+            else:
+                kind = r["solver"].split()[0]
+                ax.loglog(r["wall_s_per_sim_s"], r["rollout_error"], "*", color=COLORS.get(kind), markersize=10, label=r["solver"].upper())
+        ax.set_title(scene, fontsize=9)
+        ax.set_xlabel("wall s per simulated s")
+        ax.set_ylabel("rollout error vs MuJoCo reference")
+        handles = ax.get_legend_handles_labels()
+        if handles[0]:
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    _savefig(fig, path)
+    return True
+
+
+# ---------------------------------------------------------------------------------
+# README
+# ---------------------------------------------------------------------------------
+
+
+def _command(profile: bm.Profile) -> str:
+    return "pytest bench/ --benchmark" if profile.name == "full" else "pytest bench/  (or: lgnn benchmark)"
+
+
+def _training_lines(profile: bm.Profile, out: Path) -> list[str]:
+    from lgnn import train
+
+    lines = ["| model | training scene | epochs | minutes | best validation MSE (epoch) |", "|---|---|---|---|---|"]
+    for job in bm.training_jobs(profile):
+        path = bm.Layout(out).checkpoint(job)
+        if not path.exists():
+            continue
+        state, meta = train.load_checkpoint(path)
+        lines.append(f"| {job.model} | {job.scene} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) |")
+    return lines
+
+
+def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, figures: list[str]) -> str:
+    from lgnn.provenance import environment
+
+    env = environment()
+    p = profile
+    envs = sorted(set(summary["device"])) if not summary.empty else []
+    lines = [
+        f"# Benchmark results ({p.name} profile)",
+        "",
+        f"Written by `{_command(p)}` (report stage: `lgnn benchmark{' --full' if p.name == 'full' else ''} --stage report`); nothing here is edited by hand.",
+        f"Report written at commit {env['commit']}; {env['versions']}.",
+        "Each number's own commit, versions and device are columns of `benchmark/summary.csv` (the stages may run on different machines): "
+        + "; ".join(envs) + ".",
+        "",
+        "## Settings",
+        "",
+        f"- Training: {p.data.n_trajectories} trajectories of {p.data.duration:g} s, a state every {p.data.sample_dt:g} s (75:25 split), "
+        f"Adam {p.train.learning_rate:g}, batch {p.train.batch_size}, budget {p.train.epochs} epochs"
+        + (f" or {p.train.minutes:g} minutes per model (whichever ends first; the paper's 10 000 epochs did not fit)" if p.train.minutes else "")
+        + f", patience {p.train.patience}, seeds {', '.join(map(str, p.seeds))}.",
+        f"- Evaluation: {p.initial_conditions} initial conditions per chain scene (paper sampler, seed {p.ic_seed}; T1-T3: their rest state), "
+        f"{p.duration:g} s, frames every {p.frame_dt:g} s, RK4 at dt {p.dt:g} with projection for models and the Lagrangian ground truth; "
+        f"MuJoCo C at RK4 dt {p.mujoco_dt:g}. Chaos floor: initial positions perturbed by {p.floor_perturbation:g}.",
+        "- Errors (SPEC): per frame `||q_hat - q|| / (||q_hat|| + ||q||)`; energy error the same on the true Hamiltonian; "
+        "geometric mean over frames t > 0 and initial conditions, [bootstrap 95% interval over initial conditions]; "
+        f"errors clipped to [{bm.ERROR_FLOOR:g}, 1]; a rollout whose state becomes non-finite or moves a node {bm.EXPLOSION_LENGTHS:g} "
+        "structure lengths counts as diverged: error 1 from then on, and the cell says when.",
+        "",
+        "## Training",
+        "",
+        *_training_lines(p, out),
+        "",
+        "## Rollout error against the Lagrangian ground truth",
+        "",
+        summary_markdown(summary, "rollout_error"),
+        "## Energy error",
+        "",
+        summary_markdown(summary, "energy_error"),
+        "## Rollout error against MuJoCo",
+        "",
+        summary_markdown(summary, "rollout_error_vs_mujoco"),
+    ]
+    if mass_records:
+        lines += ["## Learned mass matrix (LGNN trained on chain4)", "",
+                  "| scene | % error (Frobenius, free coordinates) | % error on the constraint tangent space |", "|---|---|---|"]
+        lines += [f"| {m['scene']} | {m['percent_error']:.3g} | {m['tangent_percent_error']:.3g} |" for _, m in mass_records]
+        lines.append("")
+    if speed_rows:
+        lines += [f"## Speed against error (single trajectory, {speed_rows[0]['horizon_s']:g} s horizon, compile apart)", "",
+                  "Error: geometric-mean rollout error against MuJoCo C at a tenth of the smallest step.", "", speed_markdown(speed_rows)]
+    lines += ["## Files", "", "| file | what |", "|---|---|",
+              "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
+              "| `benchmark/curves.csv` | per-frame geometric means and 95% bands (every 0.01 s) |",
+              "| `benchmark/speed_error.csv`, `.md` | speed against error |",
+              "| `benchmark/mass_matrix.csv` | learned mass matrix errors |",
+              "| `benchmark/checkpoints/` | the trained models (`lgnn rollout --model ...` runs them) |",
+              "| `benchmark/runs/` | the per-stage records the tables are made from (resumable) |"]
+    lines += [f"| `figures/{name}` | figure |" for name in figures]
+    if p.name == "full":
+        lines += [
+            "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 T1 T2 T3 --out-dir results`) |",
+            "| `engines_speed_error.csv`, `.md` | engines' steps/s and error at dt 1e-3..1e-5 (`lgnn crosscheck --speed chain4 chain16 chain100 T1 --out-dir results`) |",
+            "| `checkpoints/cpu-reduced/` | earlier models trained on a reduced CPU budget (its README) |",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def write(profile: bm.Profile, out: Path) -> Path:
+    """Write every report file under `out` from the records there; returns README.md's path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import pandas as pd
+
+    out = Path(out)
+    summary, curves = tables(profile, out)
+    bench_dir = out / "benchmark"
+    bench_dir.mkdir(parents=True, exist_ok=True)
+    _write_csv(summary, bench_dir / "summary.csv")
+    _write_csv(curves, bench_dir / "curves.csv")
+    speed_rows = _speed_rows(profile, out)
+    _write_csv(pd.DataFrame(speed_rows), bench_dir / "speed_error.csv")
+    write_text_atomic(bench_dir / "speed_error.md", speed_markdown(speed_rows))
+    mass_records = _mass_rows(profile, out)
+    _write_csv(pd.DataFrame([{**{k: m[k] for k in ("scene", "job", "percent_error", "tangent_percent_error")}, **_env_columns(m)} for _, m in mass_records]),
+               bench_dir / "mass_matrix.csv")
+    figures_dir = out / "figures"
+    figures = []
+    truths, pairs = _records(profile, out)
+    plots = [
+        ("error_vs_time_chain4_8_16.png", lambda p: _plot_error_vs_time(curves, ["chain4", "chain8", "chain16"], p, "Error against time: 4, 8, 16 links (trained on 4)")),
+        ("error_vs_time_chain100.png", lambda p: _plot_error_vs_time(curves, ["chain100"], p, "Error against time: 100 links (trained on 4)")),
+        ("error_vs_time_T1_T2_T3.png", lambda p: _plot_error_vs_time(curves, ["T1", "T2", "T3"], p, "Error against time: T1-T3 (trained on chain4)")),
+        ("error_vs_time_varied_drag.png", lambda p: _plot_error_vs_time(curves, ["chain4-varied", "chain4-drag"], p, "Error against time: varied links, drag (trained on each)")),
+        ("mass_matrix.png", lambda p: _plot_mass_matrices(mass_records, p)),
+        ("snapshots_chain8.png", lambda p: _plot_snapshots(profile, out, "chain8", truths, pairs, p)),
+        ("snapshots_T1.png", lambda p: _plot_snapshots(profile, out, "T1", truths, pairs, p)),
+        ("speed_error.png", lambda p: _plot_speed_error(speed_rows, p)),
+    ]
+    for name, plot in plots:
+        if not curves.empty or name in ("mass_matrix.png", "speed_error.png"):
+            if plot(figures_dir / name):
+                figures.append(name)
+    path = out / "README.md"
+    write_text_atomic(path, readme(profile, out, summary, speed_rows, mass_records, figures))
+    return path
