@@ -5,6 +5,8 @@
 `results/`). The profiles themselves are declared in `lgnn.benchmark.PROFILES`.
 """
 
+import time
+
 import lgnn  # noqa: F401  (first: sets the XLA and OpenBLAS environment before JAX starts)
 import jax
 import pytest  # noqa: E402
@@ -21,14 +23,18 @@ def full_profile(request) -> bool:
     return bool(request.config.getoption("--benchmark"))
 
 
+def pytest_sessionstart(session):
+    session.config._lgnn_started = time.time()
+
+
 def pytest_terminal_summary(terminalreporter, config):
-    """Print the benchmark's summary table after the run (if the report was written)."""
+    """Print the benchmark's summary table after the run if this session wrote the report
+    (also under xdist, where the report is written by a worker)."""
     from lgnn import benchmark
 
     profile = benchmark.get_profile("full" if config.getoption("--benchmark") else "quick")
     readme = benchmark.default_out(profile) / "README.md"
-    written = getattr(config, "_lgnn_report_written", False)
-    if written and readme.exists():
+    if readme.exists() and readme.stat().st_mtime >= getattr(config, "_lgnn_started", float("inf")):
         text = readme.read_text()
         start = text.find("## Rollout error against the Lagrangian ground truth")
         end = text.find("## Energy error")
