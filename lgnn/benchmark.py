@@ -154,7 +154,7 @@ class Profile:
     mass_scenes: tuple[str, ...] = ("chain16", "T1")
     # Lagrangian engine runs longer than this many link-steps are skipped (with a row
     # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
-    max_link_steps: float = 2e6
+    max_link_steps: float = 5e5
 
     @property
     def simulation(self) -> SimulationConfig:
@@ -191,7 +191,7 @@ PROFILES = {
         data=data.DataConfig(),
         # The paper's 10 000 epochs do not fit a session; the minutes budget ends training
         # first (results/README.md states the epochs reached).
-        train=train.TrainConfig(epochs=10_000, minutes=8.0),
+        train=train.TrainConfig(epochs=10_000, minutes=6.5),
         seeds=(0,),
         scenes=None,
         initial_conditions=100,
