@@ -23,6 +23,20 @@ def full_profile(request) -> bool:
     return bool(request.config.getoption("--benchmark"))
 
 
+@pytest.fixture
+def record_rate(benchmark):
+    """`record_rate(unit, count, **info)`: store what a benchmark timed in `extra_info`,
+    and `count / mean time` as `<unit>_per_s` when timings exist (pytest-benchmark
+    disables timing under xdist, as in CI, and then has no stats)."""
+
+    def record(unit: str, count: float, **info) -> None:
+        benchmark.extra_info.update(info, **{unit: count})
+        if benchmark.stats is not None:
+            benchmark.extra_info[f"{unit}_per_s"] = count / benchmark.stats.stats.mean
+
+    return record
+
+
 def pytest_sessionstart(session):
     session.config._lgnn_started = time.time()
 

@@ -29,24 +29,20 @@ def _states(name, batch):
     return scene, State(np.asarray(states.q), np.asarray(states.qd))
 
 
-def _record(benchmark, batch):
-    benchmark.extra_info["steps_per_s"] = batch * STEPS / benchmark.stats.stats.mean
-
-
 @pytest.mark.parametrize("batch", [1, 100])
 @pytest.mark.parametrize("name", ["chain4", "chain16", "chain100", "T1"])
-def test_mujoco_c(benchmark, name, batch):
+def test_mujoco_c(benchmark, record_rate, name, batch):
     scene, states = _states(name, batch)
     lm.compile_scene(scene, CONFIG.dt)
     benchmark.pedantic(lm.rollout, args=(scene, CONFIG, states), kwargs={"threads": 2}, rounds=3, warmup_rounds=1)
-    _record(benchmark, batch)
+    record_rate("steps", batch * STEPS, scene=scene.name, batch=batch)
 
 
 @pytest.mark.skipif(os.environ.get("LGNN_BENCH_MJX") != "1", reason="MJX compile is ~35 s on CPU: set LGNN_BENCH_MJX=1")
 @pytest.mark.parametrize("batch", [1, 100])
-def test_mjx_chain4(benchmark, batch):
+def test_mjx_chain4(benchmark, record_rate, batch):
     scene, states = _states("chain4", batch)
     run = lm.mjx_runner(scene, CONFIG, "float64")
     args = (jnp.asarray(states.q), jnp.asarray(states.qd))
     benchmark.pedantic(lambda: jax.block_until_ready(run(*args)), rounds=3, warmup_rounds=1)
-    _record(benchmark, batch)
+    record_rate("steps", batch * STEPS, scene=scene.name, batch=batch)

@@ -43,13 +43,6 @@ def _ids(items):
     return [getattr(i, "name", None) or f"{i.job.name}-on-{i.scene}" for i in items]
 
 
-def _record_rate(benchmark, unit: str, count: int, **info) -> None:
-    """extra_info: what was timed, and its rate (absent when timing is disabled, e.g. under xdist)."""
-    benchmark.extra_info.update(info, **{unit: count})
-    if benchmark.stats is not None:
-        benchmark.extra_info[f"{unit}_per_s"] = count / benchmark.stats.stats.mean
-
-
 def pytest_generate_tests(metafunc):
     profile = FULL if metafunc.config.getoption("--benchmark") else QUICK
     if "job" in metafunc.fixturenames:
@@ -69,7 +62,7 @@ def pytest_generate_tests(metafunc):
         metafunc.parametrize("mass_scene", profile.mass_scenes)
 
 
-def test_training(benchmark, profile, out, job):
+def test_training(benchmark, record_rate, profile, out, job):
     path = bm.train_job(profile, job, out)
     state, meta = train.load_checkpoint(path)
     assert np.isfinite(state.best_val) and state.epoch >= 1
@@ -78,7 +71,7 @@ def test_training(benchmark, profile, out, job):
     run, steps = bm.timed_epoch_fn(profile, job, out)
     run()  # compiled already if this process trained; otherwise compile before timing
     benchmark.pedantic(run, rounds=3, iterations=1)
-    _record_rate(benchmark, "adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
+    record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
 
 
 def test_ground_truth(profile, out, eval_scene):
@@ -100,11 +93,11 @@ def test_evaluation(profile, out, pair):
     assert arrays["diverged_at"].shape == (count,)
 
 
-def test_rollout_speed(benchmark, profile, out, timed_pair):
+def test_rollout_speed(benchmark, record_rate, profile, out, timed_pair):
     run, steps = bm.timed_rollout_fn(profile, timed_pair, out)
     run()  # compiled already if this process evaluated; otherwise compile before timing
     benchmark.pedantic(run, rounds=1 if profile is FULL else 3, iterations=1)
-    _record_rate(benchmark, "rk4_steps", steps, pair=f"{timed_pair.job.label} on {timed_pair.scene}")
+    record_rate("rk4_steps", steps, pair=f"{timed_pair.job.label} on {timed_pair.scene}")
 
 
 def test_speed_error(profile, out, speed_scene):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -131,7 +132,9 @@ def paper_structure(name: str) -> Scene:
     rods = {frozenset(edge) for edge in data["rods"]}
     links = []
     for i, j in data["edges"]:
-        length = float(np.linalg.norm(nodes[i] - nodes[j]))
+        # math.hypot, not np.linalg.norm: the same last bit on every machine, so the
+        # rendered MJCF (mjcf/) does not depend on where it was rendered.
+        length = math.hypot(*(nodes[i] - nodes[j]))
         link_type = "rod" if frozenset((i, j)) in rods else "link"
         links.append({"nodes": [i, j], "mass": 1.0, "inertia": length**4 / 12.0, "type": link_type})
     pinned = sorted(int(k) for k in data["pinned"])
