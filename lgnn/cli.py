@@ -7,6 +7,7 @@ output files are written atomically. x64 is enabled here, at the entry point.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 
@@ -20,6 +21,16 @@ def _positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
     if not math.isfinite(value) or value <= 0:
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive whole number, got {text}")
     return value
 
 
@@ -222,6 +233,9 @@ def _cmd_benchmark(args) -> None:
     from lgnn import benchmark
 
     profile = benchmark.get_profile("full" if args.full else "quick")
+    if args.chunk is not None:
+        # Not an evaluation setting (records stay valid): only how many rollouts share a call.
+        profile = dataclasses.replace(profile, chunk=args.chunk)
     stages = benchmark.STAGES if args.stage == "all" else (args.stage,)
     out = benchmark.run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet)
     if "report" in stages:
@@ -237,6 +251,7 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")
     parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")
     parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, results/quick/ otherwise)")
+    parser.add_argument("--chunk", type=_positive_int, default=None, help="initial conditions per compiled rollout call (default 25; a GPU wants 100)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_benchmark)
 
