@@ -59,7 +59,7 @@ import numpy as np
 
 from lgnn import data, models, physics, train
 from lgnn._io import atomic_path
-from lgnn.errors import CheckpointError, ConfigError
+from lgnn.errors import CheckpointError, ConfigError, SimulationError
 from lgnn.scene import Scene, State, scene_to_dict
 from lgnn.scenes import get_scene, is_pinned_chain, sample_initial_states
 from lgnn.simulate import SimulationConfig, rollout_fn
@@ -133,6 +133,11 @@ class Profile:
     # Rollouts: RK4 with projection at `dt` for models and the Lagrangian ground truth.
     duration: float
     dt: float = 1e-3
+    # Scenes that need a smaller step than `dt`, for models and ground truth alike (the
+    # same integrator for both, SPEC): T2 and T3 start self-stressed, singular
+    # configurations (lgnn/physics.py) where RK4 at 1e-3 and 5e-4 runs to NaN within
+    # 0.01 s and 1e-4 converges (results/crosscheck.md).
+    scene_dts: tuple[tuple[str, float], ...] = (("T2", 1e-4), ("T3", 1e-4))
     frame_dt: float = 1e-3
     # Seed of the evaluation initial conditions (training data use DataConfig.seed = 0).
     ic_seed: int = 1
@@ -156,14 +161,17 @@ class Profile:
     # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
     max_link_steps: float = 5e5
 
-    @property
-    def simulation(self) -> SimulationConfig:
-        return SimulationConfig("rk4", self.dt, self.frame_dt, self.duration, True)
+    def dt_for(self, scene_name: str) -> float:
+        return dict(self.scene_dts).get(scene_name, self.dt)
 
-    def eval_key(self) -> dict:
-        """Settings an evaluation record depends on."""
-        fields = ("initial_conditions", "duration", "dt", "frame_dt", "ic_seed", "floor_perturbation", "mujoco_dt")
-        return {f: getattr(self, f) for f in fields}
+    def simulation(self, scene_name: str) -> SimulationConfig:
+        """Rollout settings of models and Lagrangian ground truth on a scene."""
+        return SimulationConfig("rk4", self.dt_for(scene_name), self.frame_dt, self.duration, True)
+
+    def eval_key(self, scene_name: str) -> dict:
+        """Settings a scene's evaluation records depend on."""
+        fields = ("initial_conditions", "duration", "frame_dt", "ic_seed", "floor_perturbation", "mujoco_dt")
+        return {**{f: getattr(self, f) for f in fields}, "dt": self.dt_for(scene_name)}
 
 
 PROFILES = {
@@ -496,11 +504,14 @@ def _ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> d
     """In-memory ground truth of a scene's evaluation (not stored: large, cheap to redo)."""
     scene = scene_named(scene_name)
     states = initial_states(profile, scene)
-    config = profile.simulation
+    config = profile.simulation(scene_name)
     log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s")
     q, qd, compile_s, run_s = _batched_rollouts(scene, config, physics.true_acceleration_fn, states, profile.chunk, f"truth {scene_name}", progress)
+    _check_reference(scene, q, "Lagrangian ground truth", config)
     noise = profile.floor_perturbation * jax.random.normal(jax.random.PRNGKey(profile.ic_seed + 1000), states.q.shape)
     perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
+    # The perturbed runs are not references: one that diverges (T2/T3's perturbed
+    # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
     q_floor, _, _, _ = _batched_rollouts(scene, config, physics.true_acceleration_fn, perturbed, profile.chunk, f"floor {scene_name}", progress)
     from lgnn import mujoco as lm
 
@@ -508,8 +519,26 @@ def _ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> d
     start = time.perf_counter()
     q_mj = lm.rollout(scene, mj_config, states, threads=os.cpu_count() or 1).q
     mujoco_s = time.perf_counter() - start
+    _check_reference(scene, q_mj, "MuJoCo reference", mj_config)
     return dict(q=q, qd=qd, energy=_energies(scene, q, qd), q_floor=q_floor, q_mujoco=q_mj, states=states,
                 compile_s=compile_s, run_s=run_s, mujoco_s=mujoco_s)
+
+
+def _metric_frames(diverged: np.ndarray) -> np.ndarray:
+    """Divergence frame indices (C,) shifted to the metric arrays, which exclude t = 0."""
+    return np.where(diverged > 0, diverged - 1, diverged)
+
+
+def _check_reference(scene: Scene, q: np.ndarray, what: str, config: SimulationConfig) -> None:
+    """A reference trajectory that diverged would turn every error into 1 for every
+    model: stop with one line instead of recording meaningless numbers."""
+    diverged = divergence_frames(q, _structure_length(scene))
+    if (diverged >= 0).any():
+        first = int(np.argmax(diverged >= 0))
+        raise SimulationError(
+            f"{scene.name}: the {what} diverged at t = {diverged[first] * config.frame_dt:g} s (initial condition {first}, "
+            f"RK4 dt {config.dt:g}): give the scene a smaller step (Profile.scene_dts)"
+        )
 
 
 def _structure_length(scene: Scene) -> float:
@@ -528,7 +557,7 @@ def _metric_arrays(prefix: str, errors: np.ndarray) -> dict:
 
 
 def _truth_key(profile: Profile, scene: Scene) -> str:
-    return _digest({"eval": profile.eval_key(), "scene": scene_to_dict(scene)})
+    return _digest({"eval": profile.eval_key(scene.name), "scene": scene_to_dict(scene)})
 
 
 def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool = True) -> Path:
@@ -539,9 +568,11 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
         return path
     truth = _ground_truth(profile, scene_name, progress)
     none = np.full(len(truth["q"]), -1)
+    floor_diverged = divergence_frames(truth["q_floor"], _structure_length(scene))
     arrays = {
         "t": np.arange(1, truth["q"].shape[1]) * profile.frame_dt,
-        **_metric_arrays("chaos_floor", clean_errors(relative_error(truth["q_floor"], truth["q"], 2)[:, 1:], none)),
+        **_metric_arrays("chaos_floor", clean_errors(relative_error(truth["q_floor"], truth["q"], 2)[:, 1:], _metric_frames(floor_diverged))),
+        "chaos_floor/diverged_at": np.where(floor_diverged >= 0, floor_diverged * profile.frame_dt, np.nan),
         **_metric_arrays("truth_vs_mujoco", clean_errors(relative_error(truth["q"], truth["q_mujoco"], 2)[:, 1:], none)),
         "snapshot/truth": _snapshot(profile, truth["q"]),
         "snapshot/mujoco": _snapshot(profile, truth["q_mujoco"]),
@@ -569,10 +600,11 @@ def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True
     truth = _ground_truth(profile, pair.scene, progress)
     log(f"evaluate {pair.job.label} on {pair.scene}: {len(truth['q'])} initial conditions")
     q, qd, compile_s, run_s = _batched_rollouts(
-        scene, profile.simulation, _model_accel_factory(checkpoint, _file_digest(checkpoint)), truth["states"], profile.chunk, f"{pair.job.label} on {pair.scene}", progress
+        scene, profile.simulation(pair.scene), _model_accel_factory(checkpoint, _file_digest(checkpoint)), truth["states"], profile.chunk,
+        f"{pair.job.label} on {pair.scene}", progress
     )
     diverged = divergence_frames(q, _structure_length(scene))
-    after_t0 = np.where(diverged > 0, diverged - 1, diverged)  # metric frames exclude t = 0
+    after_t0 = _metric_frames(diverged)
     energy = _energies(scene, q, qd)
     arrays = {
         "t": np.arange(1, q.shape[1]) * profile.frame_dt,
@@ -582,7 +614,8 @@ def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True
         "diverged_at": np.where(diverged >= 0, diverged * profile.frame_dt, np.nan),
         "snapshot/model": _snapshot(profile, q),
     }
-    steps = len(q) * profile.simulation.n_frames * profile.simulation.steps_per_frame
+    config = profile.simulation(pair.scene)
+    steps = len(q) * config.n_frames * config.steps_per_frame
     meta = dict(job=pair.job.name, model=pair.job.model, label=pair.job.label, train_scene=pair.job.scene, seed=pair.job.seed,
                 scene=pair.scene, initial_conditions=len(q), compile_s=compile_s, run_s=run_s, steps_per_s=steps / run_s)
     save_record(path, key, arrays, meta)
@@ -610,9 +643,10 @@ def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
     chunk = min(profile.chunk, len(states.q))
     checkpoint = Layout(out).checkpoint(pair.job)
     accel_factory = _model_accel_factory(checkpoint, _file_digest(checkpoint))
-    compiled, _ = _compiled_rollouts(scene, profile.simulation, accel_factory, chunk, str(states.q.dtype))
+    config = profile.simulation(pair.scene)
+    compiled, _ = _compiled_rollouts(scene, config, accel_factory, chunk, str(states.q.dtype))
     q, qd = jnp.asarray(states.q[:chunk]), jnp.asarray(states.qd[:chunk])
-    steps = chunk * profile.simulation.n_frames * profile.simulation.steps_per_frame
+    steps = chunk * config.n_frames * config.steps_per_frame
     return (lambda: jax.block_until_ready(compiled(q, qd))), steps
 
 
@@ -641,8 +675,9 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     jobs = [j for j in (jobs or training_jobs(profile)) if j.scene == "chain4" and (j.model != "clnn" or scene_name == "chain4")
             and (profile.speed_models is None or j.model in profile.speed_models)]
     checkpoints = {j.name: _file_digest(layout.checkpoint(j)) for j in jobs if layout.checkpoint(j).exists()}
-    fields = ("speed_scenes", "speed_dts", "speed_horizon", "mjx", "speed_models", "frame_dt", "dt", "ic_seed", "max_link_steps")
-    key = _digest({"settings": {f: getattr(profile, f) for f in fields}, "scene": scene_to_dict(scene), "checkpoints": checkpoints})
+    fields = ("speed_scenes", "speed_dts", "speed_horizon", "mjx", "speed_models", "frame_dt", "ic_seed", "max_link_steps")
+    settings = {**{f: getattr(profile, f) for f in fields}, "dt": profile.dt_for(scene_name)}
+    key = _digest({"settings": settings, "scene": scene_to_dict(scene), "checkpoints": checkpoints})
     path = layout.speed_record(scene_name)
     if path.exists():
         try:
@@ -680,10 +715,10 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
             compile_s, run_s, q = _timed(engine, scene, config, single)
             row(engine, "engine", dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=_gmean_error(q[0], reference))
             log(f"speed/error {scene_name} {engine} dt {dt:g}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
-    config = SimulationConfig("rk4", profile.dt, frame_dt, horizon, True)
+    config = SimulationConfig("rk4", profile.dt_for(scene_name), frame_dt, horizon, True)
     for job in jobs:
         if job.name not in checkpoints:
-            row(job.label, "learned", profile.dt, note="no checkpoint")
+            row(job.label, "learned", config.dt, note="no checkpoint")
             continue
         model, params = train.load_model(layout.checkpoint(job))
         run = jax.jit(rollout_fn(scene, config, lambda s: models.acceleration_fn(model, params, s)))
@@ -694,7 +729,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
         start = time.perf_counter()
         q = np.asarray(jax.block_until_ready(compiled(*args)).q)
         run_s = time.perf_counter() - start
-        row(job.label, "learned", profile.dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=_gmean_error(q, reference))
+        row(job.label, "learned", config.dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=_gmean_error(q, reference))
         log(f"speed/error {scene_name} {job.label}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:

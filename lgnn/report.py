@@ -89,7 +89,7 @@ def tables(profile: bm.Profile, out: Path):
     summary, curves = [], []
     for scene, (arrays, meta) in truths.items():
         for metric in ("chaos_floor", "truth_vs_mujoco"):
-            summary += _summary_rows(scene, "ground truth", 0, metric, arrays, meta, metric)
+            summary += _summary_rows(scene, "ground truth", 0, metric, arrays, meta, metric, arrays.get(f"{metric}/diverged_at"))
             curves += _curve_rows(scene, "ground truth", 0, metric, arrays, meta, metric)
     for pair, (arrays, meta) in pairs:
         for metric in bm.METRICS:
@@ -112,7 +112,7 @@ def _interval(row: dict) -> str:
     text = _fmt(row.get("gmean"))
     if math.isfinite(row.get("ci_low", float("nan"))):
         text += f" [{_fmt(row['ci_low'])}, {_fmt(row['ci_high'])}]"
-    if row.get("diverged"):
+    if math.isfinite(row.get("diverged", float("nan"))) and row["diverged"] > 0:
         text += f" ({int(row['diverged'])} diverged, first at {row['first_divergence_s']:.3g} s)"
     return text
 
@@ -135,7 +135,8 @@ def summary_markdown(summary, metric: str) -> str:
             cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "")
         for truth_metric in (["chaos_floor"] + (["truth_vs_mujoco"] if metric == "rollout_error" else [])):
             match = wide[(wide.scene == scene) & (wide.model == "ground truth") & (wide.metric == truth_metric)]
-            cells.append(_fmt(match.iloc[0]["gmean"]) if len(match) else "")
+            # The value and any divergence, without an interval (a scene-level reference).
+            cells.append(_interval({k: v for k, v in match.iloc[0].to_dict().items() if k != "ci_low"}) if len(match) else "")
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -346,7 +347,8 @@ def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, fi
         + (f" or {p.train.minutes:g} minutes per model (whichever ends first; the paper's 10 000 epochs did not fit)" if p.train.minutes else "")
         + f", patience {p.train.patience}, seeds {', '.join(map(str, p.seeds))}.",
         f"- Evaluation: {p.initial_conditions} initial conditions per chain scene (paper sampler, seed {p.ic_seed}; T1-T3: their rest state), "
-        f"{p.duration:g} s, frames every {p.frame_dt:g} s, RK4 at dt {p.dt:g} with projection for models and the Lagrangian ground truth; "
+        f"{p.duration:g} s, frames every {p.frame_dt:g} s, RK4 at dt {p.dt:g} with projection for models and the Lagrangian ground truth"
+        + "".join(f" ({scene}: dt {dt:g})" for scene, dt in p.scene_dts if scene in bm.evaluation_scenes(p)) + "; "
         f"MuJoCo C at RK4 dt {p.mujoco_dt:g}. Chaos floor: initial positions perturbed by {p.floor_perturbation:g}.",
         "- Errors (SPEC): per frame `||q_hat - q|| / (||q_hat|| + ||q||)`; energy error the same on the true Hamiltonian; "
         "geometric mean over frames t > 0 and initial conditions, [bootstrap 95% interval over initial conditions]; "
