@@ -257,7 +257,10 @@ def scene_from_dict(data: Any) -> Scene:
         inertia = _number(link["inertia"], f"{where}.inertia")
         if inertia < 0:
             raise _fail(f"{where}.inertia", f"must be >= 0, got {inertia}")
-        distance = float(np.linalg.norm(nodes[i] - nodes[j]))
+        # math.hypot is correctly rounded on every platform; np.linalg.norm's last bit
+        # depends on the CPU's FMA path, which would make a scene (and every record
+        # keyed on it) differ between machines.
+        distance = math.hypot(*(float(x) for x in nodes[i] - nodes[j]))
         length = _number(link["length"], f"{where}.length") if "length" in link else distance
         if length <= 0:
             raise _fail(f"{where}.length", f"must be > 0, got {length}")

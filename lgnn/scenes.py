@@ -132,9 +132,10 @@ def paper_structure(name: str) -> Scene:
     rods = {frozenset(edge) for edge in data["rods"]}
     links = []
     for i, j in data["edges"]:
-        # math.hypot, not np.linalg.norm: the same last bit on every machine, so the
-        # rendered MJCF (mjcf/) does not depend on where it was rendered.
-        length = math.hypot(*(nodes[i] - nodes[j]))
+        # math.hypot, not np.linalg.norm: the same last bit on every machine (as the
+        # default length in scene_from_dict), so mjcf/ and the records keyed on the
+        # scene do not depend on where they were made.
+        length = math.hypot(*(float(x) for x in nodes[i] - nodes[j]))
         link_type = "rod" if frozenset((i, j)) in rods else "link"
         links.append({"nodes": [i, j], "mass": 1.0, "inertia": length**4 / 12.0, "type": link_type})
     pinned = sorted(int(k) for k in data["pinned"])
