@@ -57,7 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn import data, models, physics, train
+from lgnn import data, models, physics, sharding, train
 from lgnn._io import atomic_path
 from lgnn.errors import CheckpointError, ConfigError, SimulationError
 from lgnn.scene import Scene, State, scene_to_dict
@@ -459,8 +459,9 @@ def summarise(per_ic_log: np.ndarray, seed: int = 0, resamples: int = 2000) -> t
 @functools.lru_cache(maxsize=64)
 def _compiled_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, chunk: int, dtype: str):
     """`(compiled, compile_s)`: the jitted, vmapped rollout of `chunk` initial
-    conditions, compiled once per (scene object, settings, acceleration factory)."""
-    run = jax.jit(jax.vmap(rollout_fn(scene, config, accel_factory)))
+    conditions (a multiple of the device count: they are sharded over every local
+    device), compiled once per (scene object, settings, acceleration factory)."""
+    run = sharding.batch_jit(jax.vmap(rollout_fn(scene, config, accel_factory)))
     shape = jax.ShapeDtypeStruct((chunk, scene.n_nodes, scene.dim), jnp.dtype(dtype))
     start = time.perf_counter()
     compiled = run.lower(shape, shape).compile()
@@ -473,15 +474,15 @@ def _batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Cal
     from tqdm.auto import tqdm
 
     count = len(states.q)
-    chunk = min(chunk, count)
+    chunk = sharding.padded_size(min(chunk, count))
     compiled, compile_s = _compiled_rollouts(scene, config, accel_factory, chunk, str(states.q.dtype))
-    pad = lambda a, start: np.concatenate([a[start : start + chunk], np.repeat(a[-1:], max(0, start + chunk - count), 0)])  # noqa: E731
+    pad = lambda a, start: jnp.asarray(sharding.pad_batch(a[start : start + chunk], chunk))  # noqa: E731
     qs, qds = [], []
     run_s = 0.0
     with tqdm(total=count, desc=label, unit="IC", disable=not progress, leave=False, file=sys.stderr) as bar:
         for start in range(0, count, chunk):
             t0 = time.perf_counter()
-            out = jax.block_until_ready(compiled(jnp.asarray(pad(states.q, start)), jnp.asarray(pad(states.qd, start))))
+            out = jax.block_until_ready(compiled(pad(states.q, start), pad(states.qd, start)))
             run_s += time.perf_counter() - t0
             take = min(chunk, count - start)
             qs.append(np.asarray(out.q[:take]))
@@ -640,12 +641,12 @@ def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
     the RK4 steps it takes; for pytest-benchmark."""
     scene = scene_named(pair.scene)
     states = initial_states(profile, scene)
-    chunk = min(profile.chunk, len(states.q))
+    chunk = sharding.padded_size(min(profile.chunk, len(states.q)))
     checkpoint = Layout(out).checkpoint(pair.job)
     accel_factory = _model_accel_factory(checkpoint, _file_digest(checkpoint))
     config = profile.simulation(pair.scene)
     compiled, _ = _compiled_rollouts(scene, config, accel_factory, chunk, str(states.q.dtype))
-    q, qd = jnp.asarray(states.q[:chunk]), jnp.asarray(states.qd[:chunk])
+    q, qd = (jnp.asarray(sharding.pad_batch(a[:chunk], chunk)) for a in states)
     steps = chunk * config.n_frames * config.steps_per_frame
     return (lambda: jax.block_until_ready(compiled(q, qd))), steps
 
@@ -747,15 +748,19 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
 def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob | None = None) -> Path:
     """The true and learned (LGNN trained on chain4) mass matrices over the free node
     coordinates at a ground-truth state (IC 0 at half the rollout, from the scene's
-    evaluation record), their percentage
-    errors `100 ||M_hat - M||_F / ||M||_F`, and the same on the constraint tangent space
-    (`P M P`, P the orthogonal projector onto `A v = 0`: the part of M the dynamics see)."""
+    evaluation record), and their percentage errors `100 ||M_hat - M||_F / ||M||_F`:
+    over all free coordinates, and on the constraint tangent space (`P M P`, P the
+    orthogonal projector onto `A v = 0`: the part of M the dynamics see). Accelerations
+    determine a Lagrangian only up to an overall factor (`c L` has the same
+    Euler-Lagrange equations), so both are also given for `c M_hat`, `c` the
+    least-squares factor on the tangent space (recorded as `scale`)."""
     job = job or TrainingJob("lgnn", "chain4", profile.seeds[0])
     layout = Layout(out)
     checkpoint = layout.checkpoint(job)
     scene = scene_named(scene_name)
     path = layout.mass_record(scene_name)
-    key = _digest({"truth": _truth_key(profile, scene), "checkpoint": _file_digest(checkpoint)})
+    # "analysis" versions what is derived from the matrices (2: the scale-fitted errors).
+    key = _digest({"truth": _truth_key(profile, scene), "checkpoint": _file_digest(checkpoint), "analysis": 2})
     if load_record(path, key) is not None:
         return path
     truth = load_record(layout.truth_record(scene_name), _truth_key(profile, scene))
@@ -770,11 +775,16 @@ def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob
     constraints = physics.Constraints(scene)
     jac = np.asarray(constraints.jacobian(constraints.restrict(q)))
     projector = np.eye(len(coords)) - jac.T @ np.linalg.pinv(jac @ jac.T) @ jac  # analysis only, not dynamics
+    tangent_true, tangent_learned = projector @ true_m @ projector, projector @ learned_m @ projector
+    scale = float(np.sum(tangent_learned * tangent_true) / np.sum(tangent_learned**2))
     percent = lambda a, b: float(100 * np.linalg.norm(a - b) / np.linalg.norm(b))  # noqa: E731
     meta = dict(scene=scene_name, job=job.name, percent_error=percent(learned_m, true_m),
-                tangent_percent_error=percent(projector @ learned_m @ projector, projector @ true_m @ projector))
+                tangent_percent_error=percent(tangent_learned, tangent_true), scale=scale,
+                scaled_percent_error=percent(scale * learned_m, true_m),
+                scaled_tangent_percent_error=percent(scale * tangent_learned, tangent_true))
     save_record(path, key, {"true": true_m, "learned": learned_m}, meta)
-    log(f"mass matrix {scene_name}: learned within {meta['percent_error']:.2g}% (tangent space {meta['tangent_percent_error']:.2g}%)")
+    log(f"mass matrix {scene_name}: learned within {meta['percent_error']:.2g}% (tangent space {meta['tangent_percent_error']:.2g}%); "
+        f"times {scale:.3g}: {meta['scaled_percent_error']:.2g}% (tangent {meta['scaled_tangent_percent_error']:.2g}%)")
     return path
 
 

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from lgnn import physics
+from lgnn import physics, sharding
 from lgnn._io import atomic_path
 from lgnn.errors import ConfigError
 from lgnn.scene import Scene, scene_from_dict, scene_to_dict, scene_to_json
@@ -105,17 +105,22 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
     scene = get_scene(config.scene)
     run, targets = _compiled(scene_to_json(scene), config.simulation)
     initial = sample_initial_states(scene, jax.random.PRNGKey(config.seed), config.n_trajectories)
+    initial_q, initial_qd = np.asarray(initial.q), np.asarray(initial.qd)
+    # One batch shape for every call (the last batch padded): one compile, sharded over
+    # every local device.
+    size = sharding.padded_size(min(config.chunk, config.n_trajectories))
     qs, qds, qdds = [], [], []
     with tqdm(total=config.n_trajectories, desc=f"data {scene.name}", unit="traj", disable=not progress, leave=False) as bar:
-        for start in range(0, config.n_trajectories, config.chunk):
-            stop = min(start + config.chunk, config.n_trajectories)
-            frames = run(initial.q[start:stop], initial.qd[start:stop])
+        for start in range(0, config.n_trajectories, size):
+            take = min(size, config.n_trajectories - start)
+            frames = run(*(sharding.pad_batch(a[start : start + take], size) for a in (initial_q, initial_qd)))
             q = frames.q.reshape(-1, scene.n_nodes, scene.dim)
             qd = frames.qd.reshape(q.shape)
-            qs.append(np.asarray(q))
-            qds.append(np.asarray(qd))
-            qdds.append(np.asarray(targets(q, qd)))
-            bar.update(stop - start)
+            states = take * config.states_per_trajectory
+            qs.append(np.asarray(q)[:states])
+            qds.append(np.asarray(qd)[:states])
+            qdds.append(np.asarray(targets(q, qd))[:states])
+            bar.update(take)
     q, qd, qdd = (np.concatenate(a) for a in (qs, qds, qdds))
     if not (np.isfinite(q).all() and np.isfinite(qd).all() and np.isfinite(qdd).all()):
         raise ConfigError(f"data for {scene.name}: the ground truth produced non-finite states; try a smaller dt")
@@ -131,8 +136,8 @@ def _compiled(scene_json: str, sim: SimulationConfig):
     """Jitted, vmapped trajectory and target functions, cached per scene content and
     settings (regenerating a cache in the same process does not recompile)."""
     scene = scene_from_dict(json.loads(scene_json))
-    run = jax.jit(jax.vmap(rollout_fn(scene, sim)))
-    return run, jax.jit(jax.vmap(physics.true_acceleration_fn(scene)))
+    run = sharding.batch_jit(jax.vmap(rollout_fn(scene, sim)))
+    return run, sharding.batch_jit(jax.vmap(physics.true_acceleration_fn(scene)))
 
 
 def _checksum(arrays: dict) -> str:

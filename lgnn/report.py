@@ -34,6 +34,7 @@ from lgnn._io import atomic_path, write_text_atomic
 MODEL_ORDER = ("lgnn", "gns", "lgn", "clnn")
 COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3"}
 CURVE_STEP_S = 0.01
+MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale", "scaled_percent_error", "scaled_tangent_percent_error")
 
 
 def _records(profile: bm.Profile, out: Path):
@@ -226,15 +227,16 @@ def _plot_mass_matrices(records, path: Path) -> bool:
         return False
     fig, axes = plt.subplots(len(records), 3, figsize=(12, 3.8 * len(records)), squeeze=False)
     for row, (arrays, meta) in enumerate(records):
-        true_m, learned_m = arrays["true"], arrays["learned"]
+        # The learned matrix times the fitted overall factor (a Lagrangian's scale is not identifiable).
+        true_m, learned_m = arrays["true"], meta["scale"] * arrays["learned"]
         scale = np.max(np.abs(true_m))
-        for col, (matrix, name) in enumerate(((true_m, "true M"), (learned_m, "learned M (LGNN)"))):
+        for col, (matrix, name) in enumerate(((true_m, "true M"), (learned_m, f"learned M (LGNN) x {meta['scale']:.3g}"))):
             image = axes[row, col].imshow(matrix, cmap="RdBu_r", vmin=-scale, vmax=scale)
             axes[row, col].set_title(f"{meta['scene']}: {name}", fontsize=9)
             fig.colorbar(image, ax=axes[row, col], shrink=0.8)
         diff = 100 * np.abs(learned_m - true_m) / scale
         image = axes[row, 2].imshow(diff, cmap="viridis")
-        axes[row, 2].set_title(f"|difference| (% of max |M|); Frobenius {meta['percent_error']:.2g}%, tangent {meta['tangent_percent_error']:.2g}%", fontsize=8)
+        axes[row, 2].set_title(f"|difference| (% of max |M|); Frobenius {meta['scaled_percent_error']:.2g}%, tangent {meta['scaled_tangent_percent_error']:.2g}%", fontsize=8)
         fig.colorbar(image, ax=axes[row, 2], shrink=0.8)
     fig.tight_layout()
     _savefig(fig, path)
@@ -371,12 +373,20 @@ def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, fi
     ]
     if mass_records:
         lines += ["## Learned mass matrix (LGNN trained on chain4)", "",
-                  "| scene | % error (Frobenius, free coordinates) | % error on the constraint tangent space |", "|---|---|---|"]
-        lines += [f"| {m['scene']} | {m['percent_error']:.3g} | {m['tangent_percent_error']:.3g} |" for _, m in mass_records]
+                  "Percentage Frobenius error over the free node coordinates and on the constraint tangent space (the part the dynamics "
+                  "see), as learned and after the least-squares overall factor: accelerations fix a Lagrangian only up to a factor.", "",
+                  "| scene | % error | % error, tangent space | factor | % error x factor | % error x factor, tangent space |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {m['scene']} | {m['percent_error']:.3g} | {m['tangent_percent_error']:.3g} | {m['scale']:.3g} | "
+                  f"{m['scaled_percent_error']:.3g} | {m['scaled_tangent_percent_error']:.3g} |" for _, m in mass_records]
         lines.append("")
     if speed_rows:
         lines += [f"## Speed against error (single trajectory, {speed_rows[0]['horizon_s']:g} s horizon, compile apart)", "",
-                  "Error: geometric-mean rollout error against MuJoCo C at a tenth of the smallest step.", "", speed_markdown(speed_rows)]
+                  "Error: geometric-mean rollout error against MuJoCo C at a tenth of the smallest step. Each scene's row group was "
+                  "timed by one process on its own CPU core (`taskset`), the learned models and the Lagrangian engine through XLA's CPU "
+                  "backend (`JAX_PLATFORMS=cpu`), on:", "",
+                  *[f"- {scene}: {device}" for scene, device in dict.fromkeys((r["scene"], r["device"]) for r in speed_rows)], "",
+                  speed_markdown(speed_rows)]
     lines += ["## Files", "", "| file | what |", "|---|---|",
               "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
               "| `benchmark/curves.csv` | per-frame geometric means and 95% bands (every 0.01 s) |",
@@ -389,7 +399,6 @@ def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, fi
         lines += [
             "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 T1 T2 T3 --out-dir results`) |",
             "| `engines_speed_error.csv`, `.md` | engines' steps/s and error at dt 1e-3..1e-5 (`lgnn crosscheck --speed chain4 chain16 chain100 T1 --out-dir results`) |",
-            "| `checkpoints/cpu-reduced/` | earlier models trained on a reduced CPU budget (its README) |",
         ]
     return "\n".join(lines) + "\n"
 
@@ -411,7 +420,7 @@ def write(profile: bm.Profile, out: Path) -> Path:
     _write_csv(pd.DataFrame(speed_rows), bench_dir / "speed_error.csv")
     write_text_atomic(bench_dir / "speed_error.md", speed_markdown(speed_rows))
     mass_records = _mass_rows(profile, out)
-    _write_csv(pd.DataFrame([{**{k: m[k] for k in ("scene", "job", "percent_error", "tangent_percent_error")}, **_env_columns(m)} for _, m in mass_records]),
+    _write_csv(pd.DataFrame([{**{k: m[k] for k in MASS_COLUMNS}, **_env_columns(m)} for _, m in mass_records]),
                bench_dir / "mass_matrix.csv")
     figures_dir = out / "figures"
     figures = []

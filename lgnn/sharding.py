@@ -1,0 +1,50 @@
+"""Batches of independent rollouts spread over every local device (`jax.sharding`).
+
+Evaluation and data generation integrate many initial conditions that never interact:
+`batch_jit(fn)` is `jax.jit(fn)` with the leading (batch) axis of every argument and
+output split across `jax.local_devices()` on a one-axis mesh named `"batch"`. The same
+code then uses one CPU, every GPU of a host, or forced host devices
+(`XLA_FLAGS=--xla_force_host_platform_device_count=N`, as the tests do); there is no
+hand-made multiprocessing and no communication between devices.
+
+A batch must be a whole multiple of the device count: `padded_size` rounds a size up
+and `pad_batch` fills a short batch by repeating its last element (callers drop the
+padding from the results).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+
+def device_count() -> int:
+    return len(jax.local_devices())
+
+
+def batch_sharding() -> NamedSharding:
+    """Leading axis split over the local devices, other axes whole on each."""
+    return NamedSharding(Mesh(np.asarray(jax.local_devices()), ("batch",)), PartitionSpec("batch"))
+
+
+def batch_jit(fn: Callable) -> Callable:
+    """`jax.jit(fn)` with every argument and output sharded along its leading axis."""
+    sharding = batch_sharding()
+    return jax.jit(fn, in_shardings=sharding, out_shardings=sharding)
+
+
+def padded_size(size: int) -> int:
+    """The smallest multiple of the device count that holds `size` elements."""
+    n = device_count()
+    return -(-size // n) * n
+
+
+def pad_batch(array: np.ndarray, size: int) -> np.ndarray:
+    """`array` (B, ...) with B <= size, its last element repeated up to `size`."""
+    missing = size - len(array)
+    if missing < 0:
+        raise ValueError(f"batch of {len(array)} does not fit {size}")
+    return np.concatenate([array, np.repeat(array[-1:], missing, axis=0)]) if missing else array

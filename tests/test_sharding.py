@@ -1,0 +1,77 @@
+"""Evaluation and data generation shard their batch over every local device.
+
+The check runs in a subprocess with two forced CPU host devices
+(`XLA_FLAGS=--xla_force_host_platform_device_count=2`: JAX reads it once, at start-up):
+the sharded rollouts and data must equal the single-device results of this process,
+with odd batch sizes so that padding is exercised.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from lgnn import benchmark as bm
+from lgnn import data, physics, sharding
+from lgnn.scenes import sample_initial_states
+from lgnn.simulate import SimulationConfig
+
+CONFIG = SimulationConfig(dt=1e-3, frame_dt=5e-3, duration=0.02)
+DATA = data.DataConfig(n_trajectories=3, duration=0.04, sample_dt=0.01, chunk=3)
+
+SHARDED = """
+import json, sys
+import lgnn, jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+from lgnn import benchmark as bm, data, physics, sharding
+from lgnn.scenes import get_scene, sample_initial_states
+from lgnn.simulate import SimulationConfig
+assert jax.device_count() == 2, jax.devices()
+config = SimulationConfig(**json.loads(sys.argv[1]))
+scene = bm.scene_named("chain4")
+states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
+compiled, _ = bm._compiled_rollouts(scene, config, physics.true_acceleration_fn, 4, "float64")
+q, qd = (jax.numpy.asarray(sharding.pad_batch(np.asarray(a), 4)) for a in states)
+out = compiled(q, qd)
+devices = sorted(d.id for d in out.q.sharding.device_set)
+q, _, _, _ = bm._batched_rollouts(scene, config, physics.true_acceleration_fn, states, 3, "sharded", False)
+dataset = data.generate(data.DataConfig(**json.loads(sys.argv[2])))
+np.savez(sys.argv[3], q=q, data_q=dataset.q, data_qdd=dataset.qdd)
+print(json.dumps({"devices": devices}))
+"""
+
+
+def test_rollouts_and_data_sharded_over_two_devices_equal_one_device(tmp_path):
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    out = tmp_path / "sharded.npz"
+    result = subprocess.run(
+        [sys.executable, "-c", SHARDED, json.dumps(asdict(CONFIG)), json.dumps(asdict(DATA)), str(out)],
+        capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[1], timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads(result.stdout.splitlines()[-1])["devices"] == [0, 1], "the batch spans both devices"
+    sharded = np.load(out)
+
+    assert sharding.device_count() == 1
+    scene = bm.scene_named("chain4")
+    states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
+    q, _, _, _ = bm._batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 3, "single", False)
+    np.testing.assert_allclose(sharded["q"], q, rtol=0, atol=1e-13)
+    dataset = data.generate(DATA)
+    np.testing.assert_allclose(sharded["data_q"], dataset.q, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(sharded["data_qdd"], dataset.qdd, rtol=0, atol=1e-10)
+    assert len(dataset.q) == DATA.n_trajectories * DATA.states_per_trajectory
+
+
+def test_pad_batch_repeats_the_last_element():
+    padded = sharding.pad_batch(np.arange(3.0)[:, None], 5)
+    np.testing.assert_array_equal(padded[:, 0], [0, 1, 2, 2, 2])
+    size = sharding.padded_size(3)
+    assert size >= 3 and size % sharding.device_count() == 0 and size - 3 < sharding.device_count()
