@@ -31,6 +31,7 @@ with the Lagrangian engine less closely than drag-free ones (measured, see tests
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import functools
 import time
@@ -425,6 +426,19 @@ def _drag_forces(compiled: Compiled, data: mujoco.MjData, jac: np.ndarray) -> No
 _INSTABILITY_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
 
 
+@contextlib.contextmanager
+def _warnings_as_counters():
+    """Silence MuJoCo's warning printer for the duration: by default it prints each
+    warning and appends it to MUJOCO_LOG.TXT in the working directory. The counters in
+    `MjData.warning` still count, and `_check_warnings` turns them into one error."""
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda message: None)
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
 def _check_warnings(scene: Scene, config, datas, frame: int) -> None:
     """Raise `SimulationError` if MuJoCo flagged (and reset) an unstable state by `frame`."""
     for data in datas:
@@ -459,35 +473,36 @@ def rollout(scene: Scene, config, states: State | None = None, *, threads: int =
     frames_qpos[:, 0], frames_qvel[:, 0] = qpos, qvel
     datas = [mujoco.MjData(model) for _ in range(max(1, min(threads, batch)))]
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    if scene.drag:
-        data, jac = datas[0], np.empty((3, model.nv))
-        for b in range(batch):
-            mujoco.mj_resetData(model, data)
-            data.qpos[:], data.qvel[:] = qpos[b], qvel[b]
-            for f in range(config.n_frames):
-                for _ in range(spf):
-                    _drag_forces(compiled, data, jac)
-                    mujoco.mj_step(model, data)
-                _check_warnings(scene, config, [data], f + 1)
-                frames_qpos[b, f + 1], frames_qvel[b, f + 1] = data.qpos, data.qvel
-    else:
-        from mujoco import rollout as mj_rollout
+    with _warnings_as_counters():
+        if scene.drag:
+            data, jac = datas[0], np.empty((3, model.nv))
+            for b in range(batch):
+                mujoco.mj_resetData(model, data)
+                data.qpos[:], data.qvel[:] = qpos[b], qvel[b]
+                for f in range(config.n_frames):
+                    for _ in range(spf):
+                        _drag_forces(compiled, data, jac)
+                        mujoco.mj_step(model, data)
+                    _check_warnings(scene, config, [data], f + 1)
+                    frames_qpos[b, f + 1], frames_qvel[b, f + 1] = data.qpos, data.qvel
+        else:
+            from mujoco import rollout as mj_rollout
 
-        nstate = mujoco.mj_stateSize(model, spec)
-        data = datas[0]
-        state = np.empty((batch, nstate))
-        for b in range(batch):
-            data.qpos[:], data.qvel[:], data.time = qpos[b], qvel[b], 0.0
-            mujoco.mj_getState(model, data, state[b], spec)
-        out = np.empty((batch, spf, nstate))
-        with mj_rollout.Rollout(nthread=len(datas) if len(datas) > 1 else 0) as runner:
-            for f in range(config.n_frames):
-                runner.rollout(model, datas, state, nstep=spf, state=out)
-                _check_warnings(scene, config, datas, f + 1)
-                state = out[:, -1].copy()
-                # FULLPHYSICS layout: time, qpos, qvel, ...
-                frames_qpos[:, f + 1] = state[:, 1 : 1 + model.nq]
-                frames_qvel[:, f + 1] = state[:, 1 + model.nq : 1 + model.nq + model.nv]
+            nstate = mujoco.mj_stateSize(model, spec)
+            data = datas[0]
+            state = np.empty((batch, nstate))
+            for b in range(batch):
+                data.qpos[:], data.qvel[:], data.time = qpos[b], qvel[b], 0.0
+                mujoco.mj_getState(model, data, state[b], spec)
+            out = np.empty((batch, spf, nstate))
+            with mj_rollout.Rollout(nthread=len(datas) if len(datas) > 1 else 0) as runner:
+                for f in range(config.n_frames):
+                    runner.rollout(model, datas, state, nstep=spf, state=out)
+                    _check_warnings(scene, config, datas, f + 1)
+                    state = out[:, -1].copy()
+                    # FULLPHYSICS layout: time, qpos, qvel, ...
+                    frames_qpos[:, f + 1] = state[:, 1 : 1 + model.nq]
+                    frames_qvel[:, f + 1] = state[:, 1 + model.nq : 1 + model.nq + model.nv]
     finite = np.isfinite(frames_qpos).all(axis=(0, 2)) & np.isfinite(frames_qvel).all(axis=(0, 2))
     if not finite.all():
         t = int(np.argmin(finite)) * config.frame_dt

@@ -110,11 +110,14 @@ def test_large_steps_with_projection_stay_on_the_constraints():
     assert row["status"] == "ok" and row["max_constraint_violation"] < 1e-9 and row["energy_drift"] < 5e-2, row
 
 
-def test_mujoco_instability_is_detected_not_reset():
+def test_mujoco_instability_is_detected_not_reset(tmp_path, monkeypatch):
     """MuJoCo C resets an unstable state to the rest pose and carries on; T3 at dt 1e-2
-    then looked perfectly at rest. It must be an error naming the time instead."""
+    then looked perfectly at rest. It must be an error naming the time instead, without
+    MuJoCo's own printout and MUJOCO_LOG.TXT in the working directory."""
+    monkeypatch.chdir(tmp_path)
     row = stability.run_case(stability.Case("large-step", "T3", "mujoco", dt=1e-2, frame_dt=1e-2, duration=0.3))
     assert row["status"] == "detected" and "MuJoCo" in row["message"] and 0 < row["time_to_failure"] <= 0.3, row
+    assert not list(tmp_path.iterdir())
 
 
 def test_bad_learned_model_stops_through_lgnn_rollout(tmp_path, capsys):
