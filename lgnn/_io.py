@@ -31,7 +31,11 @@ def check_writable(path: str | os.PathLike) -> Path:
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path in the target's directory; rename it over `path` on success."""
     path = check_writable(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    except OSError as err:
+        # os.access says yes to root on read-only or special file systems
+        raise ConfigError(f"cannot write in {path.parent}: {err.strerror}") from None
     os.close(fd)
     # mkstemp creates 0600; give the result the permissions of an ordinary new file
     umask = os.umask(0)
@@ -40,6 +44,9 @@ def atomic_path(path: str | os.PathLike):
     try:
         yield Path(tmp)
         os.replace(tmp, path)
+    except OSError as err:
+        # a full disk, a quota, a vanished directory: one line, and no partial file
+        raise ConfigError(f"cannot write {path}: {err.strerror or err}") from None
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)

@@ -14,6 +14,14 @@ import sys
 from lgnn.errors import ConfigError, LgnnError
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line `lgnn: error: ...` (exit 2) like every
+    other bad input; `--help` still shows the usage."""
+
+    def error(self, message: str):
+        self.exit(2, f"lgnn: error: {message} (see: {self.prog} --help)\n")
+
+
 def _positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -166,6 +174,8 @@ def _add_mujoco_commands(commands) -> None:
 
 
 def _cmd_train(args) -> None:
+    from pathlib import Path
+
     from lgnn import data, models, train
     from lgnn._io import check_writable
     from lgnn.scenes import get_scene
@@ -175,6 +185,8 @@ def _cmd_train(args) -> None:
     scene = get_scene(args.scene)
     model = models.ModelConfig.for_scene(args.model, scene, message_passing=args.message_passing)
     config = train.TrainConfig(args.lr, args.batch_size, args.epochs, args.minutes, args.patience, args.seed)
+    if args.resume and Path(args.out).exists():
+        train.check_resumable(args.out, model, config)  # before minutes of data generation
     dataset = data.load_or_generate(data_config, args.cache_dir, progress=not args.quiet)
     state = train.train(model, config, dataset, scene, out=args.out, data_config=data_config, resume=args.resume, progress=not args.quiet)
     print(f"{args.model} on {scene.name}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out}")
@@ -256,8 +268,51 @@ def _add_benchmark_parser(commands) -> None:
     parser.set_defaults(run=_cmd_benchmark)
 
 
+def _cmd_stability(args) -> None:
+    import dataclasses
+
+    from lgnn import stability
+    from lgnn._io import check_writable
+
+    out = check_writable(args.out)
+    if out.suffix != ".md":
+        raise ConfigError(f"--out must be a .md file (the CSV is written beside it), got {out}")
+    settings = stability.StabilitySettings(
+        **{k: getattr(args, k) for k in ("long_horizon", "large_step_horizon", "chain1000_horizon", "model_horizon", "singular_horizon")},
+        cost_sizes=tuple(args.cost_sizes),
+    )
+    selected = stability.cases(settings)
+    if args.case:
+        known = sorted({c.name for c in selected})
+        unknown = sorted(set(args.case) - set(known))
+        if unknown:
+            raise ConfigError(f"unknown stability case {unknown[0]!r} (choose from {', '.join(known)})")
+        selected = tuple(c for c in selected if c.name in args.case)
+    log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
+    rows = stability.run(selected, log=log)
+    cost, exponent = stability.cost_rows(settings.cost_sizes, log=log) if settings.cost_sizes else ([], float("nan"))
+    command = "lgnn " + " ".join(args.argv)
+    csv_path = stability.write_report(rows + cost, out, command, exponent, stability.NOTES + (f"settings: {dataclasses.asdict(settings)}",))
+    print(f"wrote {out} and {csv_path}")
+
+
+def _add_stability_parser(commands) -> None:
+    from lgnn.stability import StabilitySettings
+
+    default = StabilitySettings()
+    parser = commands.add_parser("stability", help="run the hard cases (long, large, near-singular, learned) and write a report")
+    parser.add_argument("--out", default="results/stability.md", help="markdown report; the CSV goes beside it (default: results/stability.md)")
+    for name in ("long_horizon", "large_step_horizon", "chain1000_horizon", "model_horizon", "singular_horizon"):
+        parser.add_argument(f"--{name.replace('_', '-')}", type=_positive_float, default=getattr(default, name),
+                            help=f"simulated seconds (default {getattr(default, name):g})")
+    parser.add_argument("--cost-sizes", type=int, nargs="*", default=list(default.cost_sizes), help="chain sizes timed per step (none: skip)")
+    parser.add_argument("--case", action="append", help="only this case (repeatable), e.g. large-step")
+    parser.add_argument("--quiet", action="store_true", help="no per-case lines")
+    parser.set_defaults(run=_cmd_stability)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lgnn", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="lgnn", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     scenes = commands.add_parser("scenes", help="list the built-in scenes")
@@ -281,12 +336,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mujoco_commands(commands)
     _add_train_parser(commands)
     _add_benchmark_parser(commands)
+    _add_stability_parser(commands)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args = parser.parse_args(argv)
+    args.argv = argv  # reports name the exact command
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -18,7 +18,17 @@ class ConfigError(LgnnError):
 
 
 class SimulationError(LgnnError):
-    """A simulation produced a non-finite or exploding state."""
+    """A simulation produced a non-finite or exploding state.
+
+    `time` is the simulated time (s) of the first bad frame when known, and
+    `trajectory` the frames before it (a `simulate.Trajectory`), so callers can
+    report how far a run got; both are None when unknown.
+    """
+
+    def __init__(self, message: str, *, time: float | None = None, trajectory=None):
+        super().__init__(message)
+        self.time = time
+        self.trajectory = trajectory
 
 
 class CheckpointError(LgnnError):

@@ -316,7 +316,8 @@ def mass_matrix_fn(config: ModelConfig, params: dict, scene: Scene):
 def rollout(config: ModelConfig, params: dict, scene: Scene, simulation=None, state=None, *, progress: bool = False):
     """The model's predicted `Trajectory` of `scene` from `state` (default: the scene's
     own), through the ground truth's integrators (`simulate.simulate`); its `energy` is
-    the scene's true Hamiltonian of the predicted states."""
+    the scene's true Hamiltonian of the predicted states. A prediction that becomes
+    non-finite or explodes stops with `SimulationError` naming the time."""
     from lgnn.simulate import SimulationConfig, simulate
 
     check_compatible(config, scene)
@@ -326,5 +327,6 @@ def rollout(config: ModelConfig, params: dict, scene: Scene, simulation=None, st
         state,
         accel_factory=lambda s: acceleration_fn(config, params, s),
         progress=progress,
+        hint=f"the {config.name} model's predicted dynamics diverge (its rollout stops there)",
     )
     return dataclasses.replace(trajectory, metadata={**trajectory.metadata, "model": config.to_dict()})

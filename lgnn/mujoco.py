@@ -31,6 +31,7 @@ with the Lagrangian engine less closely than drag-free ones (measured, see tests
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import functools
 import time
@@ -282,7 +283,13 @@ def compile_scene(scene: Scene, dt: float = 1e-4) -> Compiled:
     """Render and compile the scene's model (cached per scene object and `dt`)."""
     layout = scene_layout(scene)
     try:
-        model = mujoco.MjModel.from_xml_string(scene_to_mjcf(scene, dt))
+        text = scene_to_mjcf(scene, dt)
+    except RecursionError:
+        # The writer nests one <body> per tree level; MuJoCo's XML parser refuses such
+        # depths anyway (measured: a 1000-link chain, "XML parse error 18").
+        raise SimulationError(f"{scene.name}: spanning tree of depth {layout.depth} is too deep to render as nested MJCF bodies") from None
+    try:
+        model = mujoco.MjModel.from_xml_string(text)
     except ValueError as err:
         raise SimulationError(f"{scene.name}: MuJoCo rejected the rendered model: {str(err).splitlines()[0]}") from None
     assert model.nq == model.nv, "only hinge and slide joints are rendered"
@@ -412,12 +419,47 @@ def _drag_forces(compiled: Compiled, data: mujoco.MjData, jac: np.ndarray) -> No
         data.xfrc_applied[body, :3] = -compiled.scene.drag * (jac @ data.qvel)
 
 
+# MuJoCo's instability warnings. On any of them MuJoCo C resets the state to the
+# model's rest pose and carries on (its "autoreset"), which here is the scene's initial
+# shape: the run would continue as if nothing happened (measured: T3 at dt 1e-2 then
+# looked perfectly at rest, energy drift 2e-5). So each one is an error.
+_INSTABILITY_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
+
+
+@contextlib.contextmanager
+def _warnings_as_counters():
+    """Silence MuJoCo's warning printer for the duration: by default it prints each
+    warning and appends it to MUJOCO_LOG.TXT in the working directory. The counters in
+    `MjData.warning` still count, and `_check_warnings` turns them into one error."""
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda message: None)
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
+def _check_warnings(scene: Scene, config, datas, frame: int) -> None:
+    """Raise `SimulationError` if MuJoCo flagged (and reset) an unstable state by `frame`."""
+    for data in datas:
+        bad = [w for w in _INSTABILITY_WARNINGS if data.warning[w].number > 0]
+        if bad:
+            what = mujoco.mjtWarning(bad[0]).name.removeprefix("mjWARN_BAD").lower()
+            t = frame * config.frame_dt
+            raise SimulationError(
+                f"{scene.name}: MuJoCo found a non-finite or huge {what} by t = {t:.6g} s (dt = {config.dt:g}); try a smaller dt",
+                time=t,
+            )
+
+
 def rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1) -> State:
     """MuJoCo C trajectories from initial node states (B, N, 2) (default: the scene's
     own, B = 1): node `State` (B, F+1, N, 2), frame 0 the initial state.
 
     Drag-free scenes run through `mujoco.rollout` (one call per frame, `threads`
-    MjData for batches); drag scenes step in Python to update the drag force.
+    MjData for batches); drag scenes step in Python to update the drag force. An
+    unstable state (MuJoCo's bad-qacc/qpos/qvel warning, after which MuJoCo would
+    silently reset) or a non-finite one raises `SimulationError` with its frame's time.
     """
     _check_config(scene, config)
     compiled = compile_scene(scene, config.dt)
@@ -431,35 +473,40 @@ def rollout(scene: Scene, config, states: State | None = None, *, threads: int =
     frames_qpos[:, 0], frames_qvel[:, 0] = qpos, qvel
     datas = [mujoco.MjData(model) for _ in range(max(1, min(threads, batch)))]
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    if scene.drag:
-        data, jac = datas[0], np.empty((3, model.nv))
-        for b in range(batch):
-            mujoco.mj_resetData(model, data)
-            data.qpos[:], data.qvel[:] = qpos[b], qvel[b]
-            for f in range(config.n_frames):
-                for _ in range(spf):
-                    _drag_forces(compiled, data, jac)
-                    mujoco.mj_step(model, data)
-                frames_qpos[b, f + 1], frames_qvel[b, f + 1] = data.qpos, data.qvel
-    else:
-        from mujoco import rollout as mj_rollout
+    with _warnings_as_counters():
+        if scene.drag:
+            data, jac = datas[0], np.empty((3, model.nv))
+            for b in range(batch):
+                mujoco.mj_resetData(model, data)
+                data.qpos[:], data.qvel[:] = qpos[b], qvel[b]
+                for f in range(config.n_frames):
+                    for _ in range(spf):
+                        _drag_forces(compiled, data, jac)
+                        mujoco.mj_step(model, data)
+                    _check_warnings(scene, config, [data], f + 1)
+                    frames_qpos[b, f + 1], frames_qvel[b, f + 1] = data.qpos, data.qvel
+        else:
+            from mujoco import rollout as mj_rollout
 
-        nstate = mujoco.mj_stateSize(model, spec)
-        data = datas[0]
-        state = np.empty((batch, nstate))
-        for b in range(batch):
-            data.qpos[:], data.qvel[:], data.time = qpos[b], qvel[b], 0.0
-            mujoco.mj_getState(model, data, state[b], spec)
-        out = np.empty((batch, spf, nstate))
-        with mj_rollout.Rollout(nthread=len(datas) if len(datas) > 1 else 0) as runner:
-            for f in range(config.n_frames):
-                runner.rollout(model, datas, state, nstep=spf, state=out)
-                state = out[:, -1].copy()
-                # FULLPHYSICS layout: time, qpos, qvel, ...
-                frames_qpos[:, f + 1] = state[:, 1 : 1 + model.nq]
-                frames_qvel[:, f + 1] = state[:, 1 + model.nq : 1 + model.nq + model.nv]
-    if not (np.isfinite(frames_qpos).all() and np.isfinite(frames_qvel).all()):
-        raise SimulationError(f"{scene.name}: MuJoCo state became non-finite (dt = {config.dt:g}); try a smaller dt")
+            nstate = mujoco.mj_stateSize(model, spec)
+            data = datas[0]
+            state = np.empty((batch, nstate))
+            for b in range(batch):
+                data.qpos[:], data.qvel[:], data.time = qpos[b], qvel[b], 0.0
+                mujoco.mj_getState(model, data, state[b], spec)
+            out = np.empty((batch, spf, nstate))
+            with mj_rollout.Rollout(nthread=len(datas) if len(datas) > 1 else 0) as runner:
+                for f in range(config.n_frames):
+                    runner.rollout(model, datas, state, nstep=spf, state=out)
+                    _check_warnings(scene, config, datas, f + 1)
+                    state = out[:, -1].copy()
+                    # FULLPHYSICS layout: time, qpos, qvel, ...
+                    frames_qpos[:, f + 1] = state[:, 1 : 1 + model.nq]
+                    frames_qvel[:, f + 1] = state[:, 1 + model.nq : 1 + model.nq + model.nv]
+    finite = np.isfinite(frames_qpos).all(axis=(0, 2)) & np.isfinite(frames_qvel).all(axis=(0, 2))
+    if not finite.all():
+        t = int(np.argmin(finite)) * config.frame_dt
+        raise SimulationError(f"{scene.name}: MuJoCo state became non-finite at t = {t:.6g} s (dt = {config.dt:g}); try a smaller dt", time=t)
     qs, qds = zip(*(node_states(compiled, frames_qpos[b], frames_qvel[b], datas[0]) for b in range(batch)))
     return State(np.stack(qs), np.stack(qds))
 
@@ -535,8 +582,10 @@ def mjx_rollout(scene: Scene, config, states: State | None = None, dtype: str = 
 
 def simulate(scene: Scene, config, state: State | None = None, *, engine: str = "mujoco", dtype: str = "float64"):
     """One trajectory of `engine` ("mujoco" or "mjx") as a `Trajectory` (the `.npz`
-    layout of the Lagrangian engine), with lgnn's exact energy of the node states."""
-    from lgnn.simulate import Trajectory
+    layout of the Lagrangian engine), with lgnn's exact energy of the node states.
+    Stops, like the Lagrangian engine, at the first non-finite or exploding frame
+    (`simulate.ExplosionBounds`) with a `SimulationError` carrying the frames before it."""
+    from lgnn.simulate import ExplosionBounds, Trajectory
 
     if engine not in ENGINES:
         raise ConfigError(f"unknown MuJoCo engine {engine!r} (choose from {', '.join(ENGINES)})")
@@ -556,4 +605,12 @@ def simulate(scene: Scene, config, state: State | None = None, *, engine: str = 
         "engine": {"name": engine, "mujoco": mujoco.__version__, "dtype": dtype if engine == "mjx" else "float64",
                    "wall_s": wall, "solref_steps": SOLREF_STEPS, "solimp": list(SOLIMP)},
     }
+    violation = ExplosionBounds.of(scene, State(q[0], qd[0]), float(energy[0])).first_violation(t, q, qd, energy)
+    if violation is not None:
+        k, reason = violation
+        raise SimulationError(
+            f"{scene.name}: {engine} state {reason} at t = {t[k]:.6g} s (dt = {config.dt:g}); try a smaller dt",
+            time=float(t[k]),
+            trajectory=Trajectory(t[:k], q[:k], qd[:k], energy[:k], metadata),
+        )
     return Trajectory(t, q, qd, energy, metadata)

@@ -54,6 +54,10 @@ MIN_RELATIVE_LENGTH = 1e-6
 # is ~100 MB of JSON; anything larger is almost certainly not a scene).
 MAX_SCENE_FILE_BYTES = 256 * 1024 * 1024
 DEFAULT_LINK_TYPE = "link"
+# Largest magnitude of any number in a scene: energies multiply a few of them and
+# square lengths, so beyond this float64 overflows (1e300 coordinates used to load,
+# with lengths inf - inf = NaN slipping past the length check, and fail at step 1).
+MAX_MAGNITUDE = 1e30
 
 
 class State(NamedTuple):
@@ -152,6 +156,8 @@ def _number(value, field: str) -> float:
     value = float(value)
     if not math.isfinite(value):
         raise _fail(field, f"must be finite, got {value}")
+    if abs(value) > MAX_MAGNITUDE:
+        raise _fail(field, f"magnitude {value:g} is beyond {MAX_MAGNITUDE:g} (float64 would overflow)")
     return value
 
 
@@ -305,8 +311,8 @@ def check_scene(scene: Scene) -> None:
     dq = scene.nodes[i] - scene.nodes[j]
     distance = np.linalg.norm(dq, axis=-1)
     stretch = np.abs(distance - lengths) / lengths
-    k = int(np.argmax(stretch))
-    if stretch[k] > LENGTH_TOLERANCE:
+    k = int(np.argmax(~(stretch <= LENGTH_TOLERANCE)))  # NaN counts as a violation
+    if not stretch[k] <= LENGTH_TOLERANCE:
         raise _fail(
             f"links[{k}]",
             f"initial positions violate the link length: nodes {i[k]}-{j[k]} are {distance[k]!r} apart, length is {lengths[k]!r}",
@@ -318,8 +324,8 @@ def check_scene(scene: Scene) -> None:
     dqd = scene.velocities[i] - scene.velocities[j]
     speed = max(float(np.abs(scene.velocities).max()), 1.0)
     rate = np.abs(np.sum(dq * dqd, axis=-1)) / lengths / speed
-    k = int(np.argmax(rate))
-    if rate[k] > LENGTH_TOLERANCE:
+    k = int(np.argmax(~(rate <= LENGTH_TOLERANCE)))
+    if not rate[k] <= LENGTH_TOLERANCE:
         raise _fail(
             "velocities",
             f"initial velocities stretch links[{k}] (nodes {i[k]}-{j[k]}): rate of length change {rate[k] * speed:.3g}",

@@ -3,8 +3,10 @@
 `simulate(scene, config)` integrates the scene's exact constrained Lagrangian dynamics
 from its initial state and returns a `Trajectory` (NumPy): `t` (F,), `q` and `qd`
 (F, N, D), `energy` (F,), frame 0 being the initial state. Work is done in jitted
-chunks of frames so long runs show progress and a non-finite state is reported with
-the time it appeared. Other engines (MuJoCo, learned models) return the same type.
+chunks of frames so long runs show progress, and a run stops at the first non-finite
+or exploding frame (see `ExplosionBounds`) with a `SimulationError` that names its
+time and carries the frames before it; a NaN trajectory is never returned. Other
+engines (MuJoCo, learned models) return the same type.
 """
 
 from __future__ import annotations
@@ -28,6 +30,10 @@ from lgnn.integrate import INTEGRATORS, Integrator, advance, rollout
 from lgnn.scene import Scene, State, scene_to_dict
 
 NPZ_KEYS = ("t", "q", "qd", "energy")
+# A finite state has "exploded" when it is this many scales beyond anything the
+# scene's physics allows (`ExplosionBounds`): far enough that no correct run, however
+# inaccurate, gets there, close enough to stop a diverging run long before overflow.
+EXPLOSION_FACTOR = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,6 +102,55 @@ class Trajectory:
             raise ConfigError(f"{path}: cannot read trajectory: {err}") from None
 
 
+@dataclasses.dataclass(frozen=True)
+class ExplosionBounds:
+    """What a correct motion of the scene from one initial state cannot exceed.
+
+    Energy: the true `H` is conserved (or lost to drag), so `|H - H0|` beyond
+    `EXPLOSION_FACTOR` energy scales is an explosion; the scale is the structure's
+    mass times (its largest possible drop `g * size`, the initial squared speed, and
+    a floor of moving its own size per second), so a scene at rest without gravity
+    still has one. Positions: no node moves farther from its start than
+    `EXPLOSION_FACTOR` sizes plus the distance a free fall covers (`v0 t + g t^2 / 2`),
+    which only an unpinned body's fall can approach. `size` is the sum of the link
+    lengths plus the initial extent.
+    """
+
+    energy0: float
+    energy_scale: float
+    q0: np.ndarray
+    size: float
+    speed0: float
+    gravity: float
+
+    @classmethod
+    def of(cls, scene: Scene, state: State, energy0: float) -> "ExplosionBounds":
+        q0, qd0 = np.asarray(state.q, np.float64), np.asarray(state.qd, np.float64)
+        size = float(np.sum(scene.lengths) + np.max(np.ptp(q0, axis=0)))
+        speed0 = float(np.max(np.linalg.norm(qd0, axis=-1)))
+        gravity = abs(float(scene.gravity))
+        scale = float(np.sum(scene.masses)) * (gravity * size + speed0**2 + size**2)
+        return cls(float(energy0), scale, q0, size, speed0, gravity)
+
+    def first_violation(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> tuple[int, str] | None:
+        """(index, reason) of the first frame of `t` (F,), `q`, `qd` (F, N, D) and
+        `energy` (F,) that is non-finite or exploding; None if every frame is fine."""
+        finite = np.isfinite(q).all(axis=(1, 2)) & np.isfinite(qd).all(axis=(1, 2)) & np.isfinite(energy)
+        with np.errstate(invalid="ignore", over="ignore"):
+            energy_out = np.abs(energy - self.energy0) > EXPLOSION_FACTOR * self.energy_scale
+            reach = EXPLOSION_FACTOR * self.size + self.speed0 * t + 0.5 * self.gravity * t**2
+            position_out = np.max(np.linalg.norm(q - self.q0, axis=-1), axis=-1) > reach
+        bad = ~finite | energy_out | position_out
+        if not bad.any():
+            return None
+        k = int(np.argmax(bad))
+        if not finite[k]:
+            return k, "became non-finite"
+        if energy_out[k]:
+            return k, f"exploded (true energy {energy[k]:.3g}, initial {self.energy0:.3g}, scale {self.energy_scale:.3g})"
+        return k, f"exploded (a node moved {np.max(np.linalg.norm(q[k] - self.q0, axis=-1)):.3g} from its start, size {self.size:.3g})"
+
+
 def check_state(scene: Scene, state: State) -> State:
     """Validate an initial state's shape and finiteness against the scene."""
     q, qd = (np.asarray(a, np.float64) for a in state)
@@ -156,40 +211,50 @@ def simulate(
     accel_factory: Callable[[Scene], physics.AccelerationFn] = physics.true_acceleration_fn,
     chunk_frames: int = 100,
     progress: bool = False,
+    hint: str = "try a smaller dt",
 ) -> Trajectory:
     """Integrate from `state` (default: the scene's initial state) for `config.duration`.
 
     `accel_factory(scene) -> accel` selects the dynamics (ground truth by default; a
     learned model's factory gives its rollout). Raises `SimulationError` at the first
-    chunk that contains a non-finite state, naming the time.
+    non-finite or exploding frame (`ExplosionBounds`), naming its time (`err.time`) and
+    carrying the frames before it (`err.trajectory`); `hint` ends its message.
     """
     state = check_state(scene, scene.initial_state if state is None else state)
     init, run = _chunk_runner(scene, config, accel_factory)
     carry, initial_energy = init(State(jnp.asarray(state.q), jnp.asarray(state.qd)))
     qs, qds, energies = [np.asarray(state.q)[None]], [np.asarray(state.qd)[None]], [np.asarray(initial_energy)]
+    bounds = ExplosionBounds.of(scene, state, float(initial_energy[0]))
+    metadata = {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config)}
     done = 0
     bar = _progress_bar(config.n_frames, scene.name, progress)
     try:
         while done < config.n_frames:
             count = min(chunk_frames, config.n_frames - done)
             carry, frames, chunk_energy = run(carry, count)
-            q, qd = np.asarray(frames.q), np.asarray(frames.qd)
-            finite = np.isfinite(q).all(axis=(1, 2)) & np.isfinite(qd).all(axis=(1, 2))
-            if not finite.all():
-                first = done + int(np.argmin(finite)) + 1
+            q, qd, chunk_energy = np.asarray(frames.q), np.asarray(frames.qd), np.asarray(chunk_energy)
+            t = (done + 1 + np.arange(count)) * config.frame_dt
+            violation = bounds.first_violation(t, q, qd, chunk_energy)
+            if violation is not None:
+                k, reason = violation
+                qs.append(q[:k])
+                qds.append(qd[:k])
+                energies.append(chunk_energy[:k])
+                frames_before = sum(len(a) for a in qs)
+                partial = Trajectory(np.arange(frames_before) * config.frame_dt, np.concatenate(qs), np.concatenate(qds), np.concatenate(energies), metadata)
                 raise SimulationError(
-                    f"{scene.name}: state became non-finite at t = {first * config.frame_dt:.6g} s "
-                    f"({config.integrator}, dt = {config.dt:g}); try a smaller dt"
+                    f"{scene.name}: state {reason} at t = {t[k]:.6g} s ({config.integrator}, dt = {config.dt:g}); {hint}",
+                    time=float(t[k]),
+                    trajectory=partial,
                 )
             qs.append(q)
             qds.append(qd)
-            energies.append(np.asarray(chunk_energy))
+            energies.append(chunk_energy)
             done += count
             bar.update(count)
     finally:
         bar.close()
     t = np.arange(config.n_frames + 1) * config.frame_dt
-    metadata = {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config)}
     return Trajectory(t, np.concatenate(qs), np.concatenate(qds), np.concatenate(energies), metadata)
 
 

@@ -172,9 +172,7 @@ def train(
     if len(dataset.train) < config.batch_size:
         raise ConfigError(f"{len(dataset.train)} training states is fewer than one batch of {config.batch_size}")
     if resume and out is not None and Path(out).exists():
-        state, saved = load_checkpoint(out)
-        if saved["model"] != model.to_dict() or saved["train"] != _train_key(config):
-            raise CheckpointError(f"{out}: cannot resume: it was written with other model or training settings")
+        state, _ = check_resumable(out, model, config)
     else:
         state = initial_state(model, config)
     epoch_fn = compiled_epoch_fn(model, scene, config)
@@ -302,6 +300,16 @@ def load_checkpoint(path) -> tuple[TrainState, dict]:
     history = [tuple(h) for h in meta["history"]]
     elapsed = float(meta.get("elapsed_s", 0.0))
     return TrainState(params, opt_state, best, best_val, meta["best_epoch"], meta["epoch"], history, elapsed), meta
+
+
+def check_resumable(path, model: models.ModelConfig, config: TrainConfig) -> tuple[TrainState, dict]:
+    """The checkpoint at `path` if training `model` with `config` can resume from it;
+    `CheckpointError` (one line) if it is unusable or was written with other settings.
+    Entry points call it before generating data, so a wrong `--resume` fails at once."""
+    state, saved = load_checkpoint(path)
+    if saved["model"] != model.to_dict() or saved["train"] != _train_key(config):
+        raise CheckpointError(f"{path}: cannot resume: it was written with other model or training settings")
+    return state, saved
 
 
 def load_model(path) -> tuple[models.ModelConfig, dict]:
