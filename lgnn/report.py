@@ -399,6 +399,7 @@ def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, fi
         lines += [
             "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 T1 T2 T3 --out-dir results`) |",
             "| `engines_speed_error.csv`, `.md` | engines' steps/s and error at dt 1e-3..1e-5 (`lgnn crosscheck --speed chain4 chain16 chain100 T1 --out-dir results`) |",
+            "| `stability.md`, `.csv` | hard cases: long horizons, 1000 links, large steps, near-singular geometry, diverging models (`lgnn stability --out results/stability.md`) |",
         ]
     return "\n".join(lines) + "\n"
 
