@@ -27,6 +27,10 @@ TIMED_SCENES = ("chain4",)
 # the inextensible model is singular (lgnn/physics.py) and only agree to ~1e-2.
 TRUTH_AGREEMENT = {"T2": 1e-1, "T3": 1e-1}
 TRUTH_AGREEMENT_DEFAULT = 1e-6
+# Scenes whose perturbed (chaos floor) run diverges at the profile's step: T2 and T3's
+# perturbed self-stressed states need dt <= 2.5e-5 (Profile.scene_dts). The record
+# must then say when, rather than hold a floor.
+FLOOR_DIVERGES = {"T2", "T3"}
 
 
 @pytest.fixture(scope="session")
@@ -78,7 +82,12 @@ def test_ground_truth(profile, out, eval_scene):
     arrays, meta = bm.load_record(bm.evaluate_scene(profile, eval_scene, out))
     floor = bm.summarise(arrays["chaos_floor/per_ic_log"])[0]
     agreement = bm.summarise(arrays["truth_vs_mujoco/per_ic_log"])[0]
-    assert 0 < floor < 1e-2, f"chaos floor {floor:.3g}"
+    # (Records written before divergence was recorded lack the array; their floor is checked below.)
+    floor_diverged = np.isfinite(arrays.get("chaos_floor/diverged_at", np.nan)).any()
+    if eval_scene in FLOOR_DIVERGES:
+        assert floor_diverged or 0 < floor < 1e-2, f"chaos floor {floor:.3g} without a recorded divergence"
+    else:
+        assert not floor_diverged and 0 < floor < 1e-2, f"chaos floor {floor:.3g}"
     assert agreement < TRUTH_AGREEMENT.get(eval_scene, TRUTH_AGREEMENT_DEFAULT), f"Lagrangian vs MuJoCo {agreement:.3g}"
 
 

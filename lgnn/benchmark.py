@@ -745,6 +745,17 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
 # ---------------------------------------------------------------------------------
 
 
+def mass_job(profile: Profile) -> TrainingJob:
+    """The model whose learned mass matrix is analysed: LGNN trained on chain4."""
+    return TrainingJob("lgnn", "chain4", profile.seeds[0])
+
+
+def mass_key(profile: Profile, scene_name: str, checkpoint: Path) -> str:
+    """Settings a mass-matrix record depends on; "analysis" versions what is derived
+    from the matrices (2: the scale-fitted errors)."""
+    return _digest({"truth": _truth_key(profile, scene_named(scene_name)), "checkpoint": _file_digest(checkpoint), "analysis": 2})
+
+
 def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob | None = None) -> Path:
     """The true and learned (LGNN trained on chain4) mass matrices over the free node
     coordinates at a ground-truth state (IC 0 at half the rollout, from the scene's
@@ -754,13 +765,11 @@ def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob
     determine a Lagrangian only up to an overall factor (`c L` has the same
     Euler-Lagrange equations), so both are also given for `c M_hat`, `c` the
     least-squares factor on the tangent space (recorded as `scale`)."""
-    job = job or TrainingJob("lgnn", "chain4", profile.seeds[0])
+    job = job or mass_job(profile)
     layout = Layout(out)
     checkpoint = layout.checkpoint(job)
     scene = scene_named(scene_name)
-    path = layout.mass_record(scene_name)
-    # "analysis" versions what is derived from the matrices (2: the scale-fitted errors).
-    key = _digest({"truth": _truth_key(profile, scene), "checkpoint": _file_digest(checkpoint), "analysis": 2})
+    path, key = layout.mass_record(scene_name), mass_key(profile, scene_name, checkpoint)
     if load_record(path, key) is not None:
         return path
     truth = load_record(layout.truth_record(scene_name), _truth_key(profile, scene))

@@ -163,9 +163,12 @@ def speed_markdown(rows: list[dict]) -> str:
 
 
 def _mass_rows(profile: bm.Profile, out: Path) -> list[tuple[dict, dict]]:
+    """Mass-matrix records that match the profile and the LGNN checkpoint they analyse."""
+    layout = bm.Layout(out)
+    checkpoint = layout.checkpoint(bm.mass_job(profile))
     found = []
     for scene in profile.mass_scenes:
-        record = bm.load_record(bm.Layout(out).mass_record(scene))
+        record = bm.load_record(layout.mass_record(scene), bm.mass_key(profile, scene, checkpoint)) if checkpoint.exists() else None
         if record is not None:
             found.append(record)
     return found
