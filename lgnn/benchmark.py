@@ -661,6 +661,22 @@ def _gmean_error(q: np.ndarray, reference: np.ndarray) -> float:
     return float(np.exp(np.mean(np.log(errors))))
 
 
+def _speed_settings(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None):
+    """`(jobs, checkpoint digests, key)` of a scene's speed-against-error record: the
+    chain4-trained models timed on it (CLNN on chain4 only) and what the record depends on."""
+    layout = Layout(out)
+    jobs = [j for j in (jobs or training_jobs(profile)) if j.scene == "chain4" and (j.model != "clnn" or scene_name == "chain4")
+            and (profile.speed_models is None or j.model in profile.speed_models)]
+    checkpoints = {j.name: _file_digest(layout.checkpoint(j)) for j in jobs if layout.checkpoint(j).exists()}
+    fields = ("speed_scenes", "speed_dts", "speed_horizon", "mjx", "speed_models", "frame_dt", "ic_seed", "max_link_steps")
+    settings = {**{f: getattr(profile, f) for f in fields}, "dt": profile.dt_for(scene_name)}
+    return jobs, checkpoints, _digest({"settings": settings, "scene": scene_to_dict(scene_named(scene_name)), "checkpoints": checkpoints})
+
+
+def speed_key(profile: Profile, scene_name: str, out: Path) -> str:
+    return _speed_settings(profile, scene_name, out)[2]
+
+
 def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> Path:
     """Rows `scene, solver, kind, dt, wall_s_per_sim_s, evaluations_per_sim_s,
     compile_s, rollout_error, note` (JSON record): every ground-truth engine at each of
@@ -673,12 +689,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
 
     scene = scene_named(scene_name)
     layout = Layout(out)
-    jobs = [j for j in (jobs or training_jobs(profile)) if j.scene == "chain4" and (j.model != "clnn" or scene_name == "chain4")
-            and (profile.speed_models is None or j.model in profile.speed_models)]
-    checkpoints = {j.name: _file_digest(layout.checkpoint(j)) for j in jobs if layout.checkpoint(j).exists()}
-    fields = ("speed_scenes", "speed_dts", "speed_horizon", "mjx", "speed_models", "frame_dt", "ic_seed", "max_link_steps")
-    settings = {**{f: getattr(profile, f) for f in fields}, "dt": profile.dt_for(scene_name)}
-    key = _digest({"settings": settings, "scene": scene_to_dict(scene), "checkpoints": checkpoints})
+    jobs, checkpoints, key = _speed_settings(profile, scene_name, out, jobs)
     path = layout.speed_record(scene_name)
     if path.exists():
         try:

@@ -146,8 +146,8 @@ def _speed_rows(profile: bm.Profile, out: Path) -> list[dict]:
     rows = []
     for scene in profile.speed_scenes:
         path = bm.Layout(out).speed_record(scene)
-        if path.exists():
-            stored = json.loads(path.read_text())
+        stored = json.loads(path.read_text()) if path.exists() else {}
+        if stored.get("key") == bm.speed_key(profile, scene, out):  # a stale record is not reported
             env = {k: stored.get("environment", {}).get(k, "unknown") for k in ("commit", "versions", "device")}
             rows += [{**r, "horizon_s": stored["horizon"], **env} for r in stored["rows"]]
     return rows
