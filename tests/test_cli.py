@@ -23,6 +23,22 @@ def test_scenes_lists_every_builtin(capsys):
         assert name in out
 
 
+def test_closed_output_pipe_is_quiet():
+    """`lgnn scenes | head -0`: the reader is gone before lgnn writes; no traceback."""
+    import os
+    import subprocess
+    import sys
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        result = subprocess.run([sys.executable, "-m", "lgnn.cli", "scenes"], stdout=write_end, stderr=subprocess.PIPE, timeout=120)
+    finally:
+        os.close(write_end)
+    stderr = result.stderr.decode()
+    assert result.returncode == 141 and "Traceback" not in stderr, stderr
+
+
 def test_scene_export_round_trips_through_simulate(capsys, tmp_path):
     path = tmp_path / "chain4.json"
     code, _, _ = run(capsys, "scene", "export", "chain4", "--out", str(path))
