@@ -127,14 +127,17 @@ def summary_markdown(summary, metric: str) -> str:
     models = [m for m in wide["model"].unique() if m != "ground truth"]
     models.sort(key=lambda m: (MODEL_ORDER.index(m.split()[0]) if m.split()[0] in MODEL_ORDER else 9, m))
     scenes = [s for s in bm.TRANSFER_SCENES + ("chain4-varied", "chain4-drag") if s in set(wide["scene"])]
-    extra = ["chaos floor"] + (["Lagrangian vs MuJoCo"] if metric == "rollout_error" else [])
+    # The chaos floor is a position error: it has no place beside energy errors.
+    floors = [] if metric == "energy_error" else ["chaos_floor"]
+    truth_metrics = floors + (["truth_vs_mujoco"] if metric == "rollout_error" else [])
+    extra = [{"chaos_floor": "chaos floor", "truth_vs_mujoco": "Lagrangian vs MuJoCo"}[m] for m in truth_metrics]
     lines = ["| scene | " + " | ".join(models + extra) + " |", "|---" * (len(models) + len(extra) + 1) + "|"]
     for scene in scenes:
         cells = []
         for model in models:
             match = wide[(wide.scene == scene) & (wide.model == model) & (wide.metric == metric)]
             cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "")
-        for truth_metric in (["chaos_floor"] + (["truth_vs_mujoco"] if metric == "rollout_error" else [])):
+        for truth_metric in truth_metrics:
             match = wide[(wide.scene == scene) & (wide.model == "ground truth") & (wide.metric == truth_metric)]
             # The value and any divergence, without an interval (a scene-level reference).
             cells.append(_interval({k: v for k, v in match.iloc[0].to_dict().items() if k != "ci_low"}) if len(match) else "")
@@ -331,6 +334,26 @@ def _training_lines(profile: bm.Profile, out: Path) -> list[str]:
     return lines
 
 
+def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_records: list) -> list[str]:
+    """Which machine and commit made each record, grouped (the stages may run apart)."""
+    groups: dict[tuple[str, str], list[str]] = {}
+
+    def add(env: dict, label: str) -> None:
+        groups.setdefault((env.get("device", "unknown"), env.get("commit", "unknown")), []).append(label)
+
+    for scene, (_, meta) in truths.items():
+        add(meta.get("environment", {}), f"ground truth {scene}")
+    for pair, (_, meta) in pairs:
+        add(meta.get("environment", {}), f"{pair.job.label} on {pair.scene}")
+    for scene, device, commit in dict.fromkeys((r["scene"], r["device"], r["commit"]) for r in speed_rows):
+        add({"device": device, "commit": commit}, f"speed {scene}")
+    for _, meta in mass_records:
+        add(meta.get("environment", {}), f"mass matrix {meta['scene']}")
+    lines = ["| machine | commit | records |", "|---|---|---|"]
+    lines += [f"| {device} | {commit} | {', '.join(labels)} |" for (device, commit), labels in groups.items()]
+    return lines
+
+
 def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, figures: list[str]) -> str:
     from lgnn.provenance import environment
 
@@ -390,6 +413,13 @@ def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, fi
                   "backend (`JAX_PLATFORMS=cpu`), on:", "",
                   *[f"- {scene}: {device}" for scene, device in dict.fromkeys((r["scene"], r["device"]) for r in speed_rows)], "",
                   speed_markdown(speed_rows)]
+    truths, pairs = _records(p, out)
+    lines += ["## Where each record was made", "",
+              "Every stage resumes from the records it finds, so stages may run apart, on several machines, and be assembled by the "
+              f"report: `lgnn benchmark{' --full' if p.name == 'full' else ''} --stage train|evaluate|speed|mass|report "
+              "[--scene S] [--job J] [--chunk N]`. `+dirty` marks a record written while the working tree had uncommitted "
+              "changes. Each record also holds the versions (`benchmark/summary.csv`).", "",
+              *_provenance_lines(truths, pairs, speed_rows, mass_records), ""]
     lines += ["## Files", "", "| file | what |", "|---|---|",
               "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
               "| `benchmark/curves.csv` | per-frame geometric means and 95% bands (every 0.01 s) |",
