@@ -289,9 +289,13 @@ def _plot_speed_error(rows: list[dict], path: Path) -> bool:
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     if not scenes:
         return False
-    fig, axes = plt.subplots(1, len(scenes), figsize=(4.5 * len(scenes), 4), squeeze=False)
+    cols = min(2, len(scenes))
+    rows = -(-len(scenes) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 4.5 * rows), squeeze=False)
+    for ax in axes.flat[len(scenes):]:
+        ax.set_visible(False)
     markers = {"lagrangian": "o", "mujoco": "s", "mjx": "^"}
-    for ax, scene in zip(axes[0], scenes):
+    for ax, scene in zip(axes.flat, scenes):
         for r in rows:
             if r["scene"] != scene or not (math.isfinite(r["wall_s_per_sim_s"]) and math.isfinite(r["rollout_error"])):
                 continue
