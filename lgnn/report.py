@@ -290,8 +290,8 @@ def _plot_speed_error(rows: list[dict], path: Path) -> bool:
     if not scenes:
         return False
     cols = min(2, len(scenes))
-    rows = -(-len(scenes) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 4.5 * rows), squeeze=False)
+    n_rows = -(-len(scenes) // cols)
+    fig, axes = plt.subplots(n_rows, cols, figsize=(6 * cols, 4.5 * n_rows), squeeze=False)
     for ax in axes.flat[len(scenes):]:
         ax.set_visible(False)
     markers = {"lagrangian": "o", "mujoco": "s", "mjx": "^"}
