@@ -133,6 +133,7 @@ def test_report(profile, out):
         assert f"| {pair.scene} |" in text
     for name in ("summary.csv", "curves.csv", "speed_error.csv", "mass_matrix.csv"):
         assert (out / "benchmark" / name).stat().st_size > 0
+    assert "Lagrangian / MuJoCo" in (out / "performance.md").read_text()
     figures = sorted((out / "figures").glob("*.png"))
     assert figures
     for figure in figures:

@@ -428,6 +428,7 @@ def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, fi
               "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
               "| `benchmark/curves.csv` | per-frame geometric means and 95% bands (every 0.01 s) |",
               "| `benchmark/speed_error.csv`, `.md` | speed against error |",
+              "| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, and cost against chain length |",
               "| `benchmark/mass_matrix.csv` | learned mass matrix errors |",
               "| `benchmark/checkpoints/` | the trained models (`lgnn rollout --model ...` runs them) |",
               "| `benchmark/runs/` | the per-stage records the tables are made from (resumable) |"]
@@ -439,6 +440,73 @@ def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, fi
             "| `stability.md`, `.csv` | hard cases: long horizons, 1000 links, large steps, near-singular geometry, diverging models (`lgnn stability --out results/stability.md`) |",
         ]
     return "\n".join(lines) + "\n"
+
+
+# Issue 7's accuracy bar for comparing engines' speed: a step whose rollout error
+# against the reference is at most this (the default settings' max node error).
+ACCURATE = 1e-6
+SCALING_SCENES = {"chain4": 4, "chain16": 16, "chain100": 100}
+
+
+def _fastest_accurate(rows: list[dict], scene: str, solver: str) -> dict | None:
+    """`solver`'s fastest row on `scene` whose error is within ACCURATE."""
+    ok = [r for r in rows if r["scene"] == scene and r["solver"] == solver and math.isfinite(r["wall_s_per_sim_s"])
+          and math.isfinite(r["rollout_error"]) and r["rollout_error"] <= ACCURATE]
+    return min(ok, key=lambda r: r["wall_s_per_sim_s"]) if ok else None
+
+
+def performance_markdown(profile: bm.Profile, rows: list[dict]) -> str:
+    """`performance.md`: the speed-against-error records read as issue 7's ratios."""
+    lines = [
+        "# Performance: ground truth and learned rollouts against MuJoCo",
+        "",
+        f"Written by the benchmark's report stage (`lgnn benchmark{' --full' if profile.name == 'full' else ''} --stage report`) "
+        "from the speed-against-error records (`benchmark/runs/speed-error/`, made by `--stage speed`); nothing here is edited "
+        "by hand. Every ratio compares rows timed in the same process on the same core (single trajectory, "
+        f"{rows[0]['horizon_s']:g} s simulated, compile apart); machines per scene in `README.md`.",
+        "",
+        f"## Ground truth against MuJoCo C at equal accuracy (rollout error <= {ACCURATE:g} against the reference)",
+        "",
+        "| scene | Lagrangian: dt, wall s per simulated s | MuJoCo C: dt, wall s per simulated s | Lagrangian / MuJoCo | "
+        "Lagrangian compile s |",
+        "|---|---|---|---|---|",
+    ]
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        ours, theirs = _fastest_accurate(rows, scene, "lagrangian"), _fastest_accurate(rows, scene, "mujoco")
+        if ours is None or theirs is None:
+            lines.append(f"| {scene} | {'—' if ours is None else ours['dt']} | {'—' if theirs is None else theirs['dt']} | — | — |")
+            continue
+        lines.append(f"| {scene} | {ours['dt']:g}, {ours['wall_s_per_sim_s']:.3g} | {theirs['dt']:g}, {theirs['wall_s_per_sim_s']:.3g} | "
+                     f"{ours['wall_s_per_sim_s'] / theirs['wall_s_per_sim_s']:.3g} | {ours['compile_s']:.1f} |")
+    lines += ["", f"## Cost per step against chain length (fitted exponent over n = {', '.join(map(str, SCALING_SCENES.values()))} links, "
+              f"dt {profile.dt:g})", "", "| solver | " + " | ".join(f"n = {n}: s per step" for n in SCALING_SCENES.values())
+              + " | exponent |", "|---" * (len(SCALING_SCENES) + 2) + "|"]
+    for solver in dict.fromkeys(r["solver"] for r in rows):
+        costs = {}
+        for r in rows:
+            if r["solver"] == solver and r["scene"] in SCALING_SCENES and r["dt"] == profile.dt and math.isfinite(r["wall_s_per_sim_s"]):
+                costs[SCALING_SCENES[r["scene"]]] = r["wall_s_per_sim_s"] * r["dt"]
+        if len(costs) < 2:
+            continue
+        sizes = sorted(costs)
+        slope = float(np.polyfit(np.log(sizes), np.log([costs[n] for n in sizes]), 1)[0])
+        lines.append(f"| {solver} | " + " | ".join(f"{costs[n]:.3g}" if n in costs else "—" for n in SCALING_SCENES.values())
+                     + f" | {slope:.2f} |")
+    lines += [
+        "",
+        "## Learned rollouts",
+        "",
+        f"Every learned model is integrated with RK4 at dt {profile.dt:g} (4 evaluations a step), not the paper's Verlet at "
+        "1e-5; its wall time per simulated second and rollout error are the `learned` rows of `benchmark/speed_error.md`.",
+        "",
+        "## More than one device",
+        "",
+        "Evaluation and data generation shard their batch of initial conditions over every local device (`lgnn/sharding.py`, "
+        "`jax.sharding`); `tests/test_sharding.py` checks two forced CPU host devices against one. Not measured here: GPU "
+        "throughput against MJX at batch 1024 and 8192, LGNN time to its final validation loss on a GPU, and two GPUs.",
+        "",
+    ]
+    return "\n".join(lines)
 
 
 def write(profile: bm.Profile, out: Path) -> Path:
@@ -457,6 +525,8 @@ def write(profile: bm.Profile, out: Path) -> Path:
     speed_rows = _speed_rows(profile, out)
     _write_csv(pd.DataFrame(speed_rows), bench_dir / "speed_error.csv")
     write_text_atomic(bench_dir / "speed_error.md", speed_markdown(speed_rows))
+    if speed_rows:
+        write_text_atomic(out / "performance.md", performance_markdown(profile, speed_rows))
     mass_records = _mass_rows(profile, out)
     _write_csv(pd.DataFrame([{**{k: m[k] for k in MASS_COLUMNS}, **_env_columns(m)} for _, m in mass_records]),
                bench_dir / "mass_matrix.csv")
