@@ -461,3 +461,40 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     assert resumed.epoch == killed.epoch + 5 and len(resumed.history) == resumed.epoch
     assert resumed.history[0][1] == -1.0 and resumed.history[1 : killed.epoch] == killed.history[1:]
     train.load_model(ckpt)
+
+
+def test_killed_benchmark_keeps_its_finished_records_and_resumes(tmp_path):
+    """`lgnn benchmark` killed at a random moment after its first record: the restarted
+    run reuses every record that was finished (not rewritten) and completes the rest."""
+    from lgnn import benchmark as bm
+
+    out = tmp_path / "out"
+    profile, pair = bm.PROFILES["quick"], bm.Pair(bm.TrainingJob("gns", "chain4", 0), "chain4")
+    layout = bm.Layout(out)
+    layout.checkpoint(pair.job).parent.mkdir(parents=True)
+    # Evaluation needs only a checkpoint file: the committed full-profile one will do.
+    layout.checkpoint(pair.job).write_bytes((ROOT / "results/benchmark/checkpoints/gns-chain4-s0.npz").read_bytes())
+    argv = [sys.executable, "-m", "lgnn.cli", "benchmark", "--stage", "evaluate", "--scene", "chain4", "--job", pair.job.name,
+            "--out-dir", str(out), "--quiet"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    truth = layout.truth_record("chain4")
+    process = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 300
+        while not truth.exists() and process.poll() is None:
+            assert time.monotonic() < deadline, "no ground-truth record after 300 s"
+            time.sleep(0.02)
+        time.sleep(random.Random(os.getpid()).uniform(0.0, 1.0))
+        process.send_signal(signal.SIGKILL)
+    finally:
+        process.kill()
+        process.communicate()
+    finished_before = {path: path.stat().st_mtime_ns for path in (truth, layout.pair_record(pair)) if path.exists()}
+    assert truth in finished_before, "the first record was written before the kill"
+    restarted = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert restarted.returncode == 0, restarted.stderr
+    for path, mtime in finished_before.items():
+        assert path.stat().st_mtime_ns == mtime, f"{path.name} was recomputed instead of reused"
+    assert bm.load_record(truth, bm._truth_key(profile, bm.scene_named("chain4"))) is not None
+    checkpoint = layout.checkpoint(pair.job)
+    assert bm.load_record(layout.pair_record(pair), bm._pair_key(profile, pair, checkpoint)) is not None
