@@ -82,11 +82,10 @@ def _curve_rows(scene, model, seed, metric, arrays, meta, prefix):
     return rows
 
 
-def tables(profile: bm.Profile, out: Path):
-    """`(summary, curves)` DataFrames from the records (module docstring)."""
+def tables(truths: dict, pairs: list):
+    """`(summary, curves)` DataFrames from the records of `_records` (module docstring)."""
     import pandas as pd
 
-    truths, pairs = _records(profile, out)
     summary, curves = [], []
     for scene, (arrays, meta) in truths.items():
         for metric in ("chaos_floor", "truth_vs_mujoco"):
@@ -358,7 +357,7 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
     return lines
 
 
-def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, figures: list[str]) -> str:
+def readme(profile: bm.Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str]) -> str:
     from lgnn.provenance import environment
 
     env = environment()
@@ -417,13 +416,12 @@ def readme(profile: bm.Profile, out: Path, summary, speed_rows, mass_records, fi
                   "backend (`JAX_PLATFORMS=cpu`), on:", "",
                   *[f"- {scene}: {device}" for scene, device in dict.fromkeys((r["scene"], r["device"]) for r in speed_rows)], "",
                   speed_markdown(speed_rows)]
-    truths, pairs = _records(p, out)
     lines += ["## Where each record was made", "",
               "Every stage resumes from the records it finds, so stages may run apart, on several machines, and be assembled by the "
               f"report: `lgnn benchmark{' --full' if p.name == 'full' else ''} --stage train|evaluate|speed|mass|report "
               "[--scene S] [--job J] [--chunk N]`. `+dirty` marks a record written while the working tree had uncommitted "
               "changes. Each record also holds the versions (`benchmark/summary.csv`).", "",
-              *_provenance_lines(truths, pairs, speed_rows, mass_records), ""]
+              *_provenance_lines(*records, speed_rows, mass_records), ""]
     lines += ["## Files", "", "| file | what |", "|---|---|",
               "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
               "| `benchmark/curves.csv` | per-frame geometric means and 95% bands (every 0.01 s) |",
@@ -517,7 +515,8 @@ def write(profile: bm.Profile, out: Path) -> Path:
     import pandas as pd
 
     out = Path(out)
-    summary, curves = tables(profile, out)
+    truths, pairs = _records(profile, out)
+    summary, curves = tables(truths, pairs)
     bench_dir = out / "benchmark"
     bench_dir.mkdir(parents=True, exist_ok=True)
     _write_csv(summary, bench_dir / "summary.csv")
@@ -532,7 +531,6 @@ def write(profile: bm.Profile, out: Path) -> Path:
                bench_dir / "mass_matrix.csv")
     figures_dir = out / "figures"
     figures = []
-    truths, pairs = _records(profile, out)
     plots = [
         ("error_vs_time_chain4_8_16.png", lambda p: _plot_error_vs_time(curves, ["chain4", "chain8", "chain16"], p, "Error against time: 4, 8, 16 links (trained on 4)")),
         ("error_vs_time_chain100.png", lambda p: _plot_error_vs_time(curves, ["chain100"], p, "Error against time: 100 links (trained on 4)")),
@@ -548,5 +546,5 @@ def write(profile: bm.Profile, out: Path) -> Path:
             if plot(figures_dir / name):
                 figures.append(name)
     path = out / "README.md"
-    write_text_atomic(path, readme(profile, out, summary, speed_rows, mass_records, figures))
+    write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures))
     return path
