@@ -141,9 +141,10 @@ def _cmd_crosscheck(args) -> None:
     if set(engines) - set(cc.ENGINES) or not engines:
         raise ConfigError(f"--engines: choose from {', '.join(cc.ENGINES)}, got {args.engines!r}")
     if args.speed:
-        rows = cc.speed_error(args.scenes or ["chain4", "chain16", "chain100", "T1"], engines, mjx_max_depth=args.mjx_max_depth)
-        columns = ["scene", "engine", "batch", "dt", "steps_per_s", "compile_s", "max_node_error", "note"]
-        notes = ["speed: steps/s = batch x steps / run time (compile apart), RK4, horizon 0.1 s, float64",
+        rows = cc.speed_error(args.scenes or ["chain4", "chain16", "chain100", "T1"], engines, dts=tuple(args.speed_dts), batches=tuple(args.batch),
+                              batch_dts=tuple(args.batch_dts), mjx_max_depth=args.mjx_max_depth, max_steps=args.max_steps, dtype=args.dtype)
+        columns = ["scene", "engine", "batch", "dt", "dtype", "steps_per_s", "compile_s", "max_node_error", "note"]
+        notes = [f"speed: steps/s = batch x steps / run time (compile apart), RK4, horizon 0.1 s, JAX engines in {args.dtype}",
                  "error: max node error after 0.1 s (single state) vs MuJoCo C RK4 at dt 1e-6"]
         stem, title = "engines_speed_error", "Engines: speed against error"
     else:
@@ -169,6 +170,11 @@ def _add_mujoco_commands(commands) -> None:
     check.add_argument("--engines", default="lagrangian,mujoco,mjx", help="comma-separated engines")
     check.add_argument("--mjx-max-depth", type=int, default=8, help="skip MJX on deeper trees (compile time)")
     check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")
+    check.add_argument("--speed-dts", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="--speed: steps of the single-state runs")
+    check.add_argument("--batch", type=int, nargs="+", default=[100], help="--speed: batch sizes of the batched runs (default 100)")
+    check.add_argument("--batch-dts", type=float, nargs="+", default=[1e-4], help="--speed: steps of the batched runs (default 1e-4)")
+    check.add_argument("--max-steps", type=int, default=25_000, help="--speed: skip JAX runs over 16x this many link-steps")
+    check.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="--speed: precision of the JAX engines")
     check.add_argument("--out-dir", default="results", help="output directory (default: results)")
     _add_simulation_options(check)
     check.set_defaults(run=_cmd_crosscheck)
@@ -231,6 +237,11 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_train)
 
+    inspect = commands.add_parser("checkpoint", help="summarise a checkpoint: epochs, losses, training time")
+    inspect.add_argument("path", help="checkpoint written by lgnn train or lgnn benchmark")
+    inspect.add_argument("--reference", help="another checkpoint: also print when this one reached its best validation loss")
+    inspect.set_defaults(run=_cmd_checkpoint)
+
     rollout = commands.add_parser("rollout", help="roll a trained model out on a scene")
     rollout.add_argument("scene", help="built-in scene name or scene JSON file")
     rollout.add_argument("--model", required=True, help="checkpoint written by lgnn train")
@@ -238,6 +249,24 @@ def _add_train_parser(commands) -> None:
     rollout.add_argument("--out", required=True, help="output .npz file (same layout as lgnn simulate)")
     rollout.add_argument("--quiet", action="store_true", help="no progress bar")
     rollout.set_defaults(run=_cmd_rollout)
+
+
+def _cmd_checkpoint(args) -> None:
+    from lgnn import train
+
+    state, meta = train.load_checkpoint(args.path)
+    print(f"{args.path}: {meta['model']['name']}, epoch {state.epoch}, best validation loss {state.best_val:.4g} at epoch {state.best_epoch}, "
+          f"{state.elapsed_s:.1f} s of training")
+    if args.reference:
+        reference, _ = train.load_checkpoint(args.reference)
+        seconds = train.seconds_to_reach(state, reference.best_val)
+        if seconds is not None:
+            reached = f"reached after {seconds:.1f} s"
+        elif state.history and len(state.history[0]) < 4:
+            reached = "unknown (this checkpoint predates per-epoch times)"
+        else:
+            reached = "not reached"
+        print(f"reference {args.reference}: best validation loss {reference.best_val:.4g} ({reference.elapsed_s:.1f} s of training): {reached}")
 
 
 def _cmd_benchmark(args) -> None:

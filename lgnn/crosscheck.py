@@ -115,19 +115,23 @@ def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, d
     from lgnn import mujoco as lm
 
     if engine == "mujoco":
-        # Warm-up: compiles the model and the jitted node-state map, kept apart.
+        # Warm-up: compiles the model, kept apart. Timed: MuJoCo's stepping alone; the
+        # map to node states afterwards is a Python loop over frames and nodes that
+        # would otherwise dominate small scenes (the JAX engines' timings include it,
+        # compiled into their rollout).
         start = time.perf_counter()
-        lm.rollout(scene, dataclasses.replace(config, frame_dt=config.dt, duration=config.dt), states, threads=2)
+        lm.joint_rollout(scene, dataclasses.replace(config, frame_dt=config.dt, duration=config.dt), states, threads=2)
         compile_s = time.perf_counter() - start
         start = time.perf_counter()
-        out = lm.rollout(scene, config, states, threads=2)
-        return compile_s, time.perf_counter() - start, out.q
+        compiled, qpos, qvel = lm.joint_rollout(scene, config, states, threads=2)
+        run_s = time.perf_counter() - start
+        return compile_s, run_s, lm.node_trajectories(compiled, qpos, qvel).q
     if engine == "mjx":
         run = lm.mjx_runner(scene, config, dtype)
         args = (jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     else:
         run = jax.jit(jax.vmap(rollout_fn(scene, config)))
-        args = (jnp.asarray(states.q), jnp.asarray(states.qd))
+        args = (jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     start = time.perf_counter()
     compiled = run.lower(*args).compile()
     compile_s = time.perf_counter() - start
@@ -138,16 +142,18 @@ def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, d
     return compile_s, run_s, np.asarray(q, np.float64)
 
 
-def speed_error(scenes, engines=ENGINES, dts=(1e-3, 1e-4, 1e-5), batch: int = 100, horizon: float = 0.1,
-                mjx_max_depth: int = MJX_MAX_DEPTH, max_steps: int = 25_000, log=print) -> list[dict]:
-    """Rows `scene, engine, batch, dt, steps_per_s, compile_s, max_node_error, note`.
+def speed_error(scenes, engines=ENGINES, dts=(1e-3, 1e-4, 1e-5), batches=(100,), batch_dts=(1e-4,), horizon: float = 0.1,
+                mjx_max_depth: int = MJX_MAX_DEPTH, max_steps: int = 25_000, dtype: str = "float64", log=print) -> list[dict]:
+    """Rows `scene, engine, batch, dt, dtype, steps_per_s, compile_s, max_node_error, note`.
 
     Speed: steps per second of simulated trajectories (batch x steps / run time),
-    compile excluded, at dt 1e-4 over `horizon` s, for a single state and a batch.
-    Accuracy: max node error over `horizon` s at each dt (single state) against the
-    MuJoCo C RK4 solution at dt / 10 of the smallest dt (RK4 is converged to
-    round-off there). Runs whose step count (batch x steps) exceeds `max_steps` for
-    the Lagrangian engine, or MJX beyond `mjx_max_depth`, get a row saying so.
+    compile excluded, over `horizon` s: a single state at each of `dts`, and each of
+    `batches` initial conditions at each of `batch_dts`. Accuracy: max node error over
+    `horizon` s at each dt (single state) against the MuJoCo C RK4 solution at dt / 10
+    of the smallest dt (RK4 is converged to round-off there). Runs whose link-steps
+    (batch x steps x links) exceed `max_steps` x 16 for the JAX engines, or MJX beyond
+    `mjx_max_depth`, get a row saying so. `dtype` applies to the JAX engines (MuJoCo C
+    is float64).
     """
     from lgnn import mujoco as lm
     from lgnn.scenes import get_scene, sample_initial_states
@@ -156,31 +162,33 @@ def speed_error(scenes, engines=ENGINES, dts=(1e-3, 1e-4, 1e-5), batch: int = 10
     for name in scenes:
         scene = get_scene(name)
         depth = lm.scene_layout(scene).depth
-        batch_states = sample_initial_states(scene, jax.random.key(0), batch)
-        batch_states = State(np.asarray(batch_states.q), np.asarray(batch_states.qd))
         single = State(scene.nodes[None], scene.velocities[None])
+        batched = []
+        for size in batches:
+            states = sample_initial_states(scene, jax.random.key(0), size)
+            batched.append(State(np.asarray(states.q), np.asarray(states.qd)))
         ref_config = SimulationConfig(dt=min(dts) / 10, frame_dt=horizon, duration=horizon)
         reference = lm.rollout(scene, ref_config, single).q[0, -1]
         for engine in engines:
             if engine == "mjx" and depth > mjx_max_depth:
-                rows.append(dict(scene=name, engine=engine, batch=0, dt=float("nan"), steps_per_s=float("nan"), compile_s=float("nan"),
+                rows.append(dict(scene=name, engine=engine, batch=0, dt=float("nan"), dtype=dtype, steps_per_s=float("nan"), compile_s=float("nan"),
                                  max_node_error=float("nan"), note=SKIP_MJX.format(depth=depth, limit=mjx_max_depth)))
                 continue
-            for dt in dts:
-                for states in ((single, batch_states) if dt == 1e-4 else (single,)):
-                    b = len(states.q)
-                    steps = round(horizon / dt)
-                    config = SimulationConfig(dt=dt, frame_dt=horizon, duration=horizon)
-                    row = dict(scene=name, engine=engine, batch=b, dt=dt, steps_per_s=float("nan"), compile_s=float("nan"),
-                               max_node_error=float("nan"), note="")
-                    if engine != "mujoco" and b * steps * scene.n_links > max_steps * 16:
-                        row["note"] = "not run: too slow on this CPU"
-                        rows.append(row)
-                        continue
-                    compile_s, run_s, q = _timed(engine, scene, config, states)
-                    row.update(steps_per_s=b * steps / run_s, compile_s=compile_s)
-                    if b == 1:
-                        row["max_node_error"] = float(np.max(np.abs(q[0, -1] - reference)))
+            runs = [(dt, single) for dt in dts] + [(dt, states) for dt in batch_dts for states in batched]
+            for dt, states in runs:
+                b = len(states.q)
+                steps = round(horizon / dt)
+                config = SimulationConfig(dt=dt, frame_dt=horizon, duration=horizon)
+                row = dict(scene=name, engine=engine, batch=b, dt=dt, dtype="float64" if engine == "mujoco" else dtype,
+                           steps_per_s=float("nan"), compile_s=float("nan"), max_node_error=float("nan"), note="")
+                if engine != "mujoco" and b * steps * scene.n_links > max_steps * 16:
+                    row["note"] = "not run: over the link-step limit (--max-steps)"
                     rows.append(row)
-                    log(f"{name} {engine} batch {b} dt {dt:g}: {row['steps_per_s']:.3g} steps/s, compile {compile_s:.1f} s, error {row['max_node_error']:.2e}")
+                    continue
+                compile_s, run_s, q = _timed(engine, scene, config, states, dtype)
+                row.update(steps_per_s=b * steps / run_s, compile_s=compile_s)
+                if b == 1:
+                    row["max_node_error"] = float(np.max(np.abs(q[0, -1] - reference)))
+                rows.append(row)
+                log(f"{name} {engine} batch {b} dt {dt:g}: {row['steps_per_s']:.3g} steps/s, compile {compile_s:.1f} s, error {row['max_node_error']:.2e}")
     return rows

@@ -58,6 +58,8 @@ SOLVER_ITERATIONS = 20
 GEOM_RADIUS = 0.03
 SITE_RADIUS = 0.04
 ENGINES = ("mujoco", "mjx")
+# Doubles of per-step state `rollout` buffers per call (64 MB).
+ROLLOUT_BUFFER_VALUES = 8_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -454,12 +456,27 @@ def _check_warnings(scene: Scene, config, datas, frame: int) -> None:
 
 def rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1) -> State:
     """MuJoCo C trajectories from initial node states (B, N, 2) (default: the scene's
-    own, B = 1): node `State` (B, F+1, N, 2), frame 0 the initial state.
+    own, B = 1): node `State` (B, F+1, N, 2), frame 0 the initial state. The stepping
+    (`joint_rollout`) followed by the node map (`node_states`)."""
+    return node_trajectories(*joint_rollout(scene, config, states, threads=threads))
 
-    Drag-free scenes run through `mujoco.rollout` (one call per frame, `threads`
+
+def node_trajectories(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray) -> State:
+    """`node_states` of a batch: (B, F, nq), (B, F, nv) -> `State` (B, F, N, 2)."""
+    data = mujoco.MjData(compiled.model)
+    qs, qds = zip(*(node_states(compiled, qpos[b], qvel[b], data) for b in range(len(qpos))))
+    return State(np.stack(qs), np.stack(qds))
+
+
+def joint_rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1):
+    """The stepping of `rollout`: `(compiled, qpos (B, F+1, nq), qvel (B, F+1, nv))` in
+    MuJoCo's joint coordinates (what a timing of MuJoCo itself should measure).
+
+    Drag-free scenes run through `mujoco.rollout` (many frames per call, `threads`
     MjData for batches); drag scenes step in Python to update the drag force. An
     unstable state (MuJoCo's bad-qacc/qpos/qvel warning, after which MuJoCo would
-    silently reset) or a non-finite one raises `SimulationError` with its frame's time.
+    silently reset) or a non-finite one raises `SimulationError` with the time by
+    which it happened.
     """
     _check_config(scene, config)
     compiled = compile_scene(scene, config.dt)
@@ -494,21 +511,26 @@ def rollout(scene: Scene, config, states: State | None = None, *, threads: int =
             for b in range(batch):
                 data.qpos[:], data.qvel[:], data.time = qpos[b], qvel[b], 0.0
                 mujoco.mj_getState(model, data, state[b], spec)
-            out = np.empty((batch, spf, nstate))
+            # Many frames per call, so that timing MuJoCo measures its stepping rather
+            # than a Python call per frame (which cost more than a chain4 step), with
+            # the per-step output buffer bounded.
+            frames_per_call = max(1, min(config.n_frames, ROLLOUT_BUFFER_VALUES // (batch * spf * nstate)))
+            out = np.empty((batch, frames_per_call * spf, nstate))
             with mj_rollout.Rollout(nthread=len(datas) if len(datas) > 1 else 0) as runner:
-                for f in range(config.n_frames):
-                    runner.rollout(model, datas, state, nstep=spf, state=out)
-                    _check_warnings(scene, config, datas, f + 1)
-                    state = out[:, -1].copy()
+                for first in range(0, config.n_frames, frames_per_call):
+                    count = min(frames_per_call, config.n_frames - first)
+                    runner.rollout(model, datas, state, nstep=count * spf, state=out[:, : count * spf])
+                    _check_warnings(scene, config, datas, first + count)
+                    frames = out[:, spf - 1 : count * spf : spf]
+                    state = frames[:, -1].copy()
                     # FULLPHYSICS layout: time, qpos, qvel, ...
-                    frames_qpos[:, f + 1] = state[:, 1 : 1 + model.nq]
-                    frames_qvel[:, f + 1] = state[:, 1 + model.nq : 1 + model.nq + model.nv]
+                    frames_qpos[:, first + 1 : first + count + 1] = frames[:, :, 1 : 1 + model.nq]
+                    frames_qvel[:, first + 1 : first + count + 1] = frames[:, :, 1 + model.nq : 1 + model.nq + model.nv]
     finite = np.isfinite(frames_qpos).all(axis=(0, 2)) & np.isfinite(frames_qvel).all(axis=(0, 2))
     if not finite.all():
         t = int(np.argmin(finite)) * config.frame_dt
         raise SimulationError(f"{scene.name}: MuJoCo state became non-finite at t = {t:.6g} s (dt = {config.dt:g}); try a smaller dt", time=t)
-    qs, qds = zip(*(node_states(compiled, frames_qpos[b], frames_qvel[b], datas[0]) for b in range(batch)))
-    return State(np.stack(qs), np.stack(qds))
+    return compiled, frames_qpos, frames_qvel
 
 
 # ---------------------------------------------------------------------------------

@@ -62,7 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from lgnn.scene import Scene
+from lgnn.scene import Scene, is_pinned_chain
 
 Array = jax.Array
 LagrangianFn = Callable[[Array, Array], Array]
@@ -84,6 +84,12 @@ KKT_REFINEMENT_STEPS = 3
 # configurations, where an unshifted step along a self-stress diverges.
 PROJECTION_SHIFT = 1e-6
 VELOCITY_PROJECTION_PASSES = 5
+# Scenes regular at their initial configuration (chains, T1) use a shift far below
+# the smallest Gram eigenvalue of any built-in scene (~2.5e-6 for a 1000-link chain),
+# which only keeps the factorisation defined should the motion pass a singular
+# configuration; two passes then reach round-off.
+REGULAR_PROJECTION_SHIFT = 1e-12
+REGULAR_VELOCITY_PROJECTION_PASSES = 2
 
 
 # ---------------------------------------------------------------------------------
@@ -268,13 +274,26 @@ class Constraints:
         dq = q[i] - q[j]
         return (jnp.sum(dq * dq, -1) - length**2) / (2 * length)
 
+    def link_directions(self, q: Array) -> Array:
+        """(K, D) `(q_i - q_j) / l` of the kept links at positions `q` (N, D): the
+        nonzero blocks of the Jacobian (row k is `+u_k` at node i, `-u_k` at node j)."""
+        i, j = self.edge_index[self.links].T
+        return (q[i] - q[j]) / jnp.asarray(self.lengths_all[self.links, None], q.dtype)
+
     def jacobian(self, x: Array) -> Array:
-        """A(x) = dPhi/dx (K, F)."""
-        return jax.jacfwd(self.residual)(x)
+        """A(x) = dPhi/dx (K, F), assembled from the link directions (tested against AD)."""
+        i, j = self.edge_index[self.links].T
+        u = self.link_directions(self.embed(x))
+        rows = jnp.arange(self.n_rows)
+        full = jnp.zeros((self.n_rows, *self.shape), x.dtype).at[rows, i].set(u).at[rows, j].add(-u)
+        return full.reshape(self.n_rows, -1)[:, self.free]
 
     def jacobian_dot_v(self, x: Array, v: Array) -> Array:
-        """`Adot v` (K,): the second directional derivative of Phi along v."""
-        return jax.jvp(lambda y: jax.jvp(self.residual, (y,), (v,))[1], (x,), (v,))[1]
+        """`Adot v` (K,): the second directional derivative of Phi along v, which for
+        `Phi = (|dq|^2 - l^2) / 2l` is `|dv|^2 / l` (tested against AD)."""
+        i, j = self.edge_index[self.links].T
+        dv = self.embed_velocity(v)[i] - self.embed_velocity(v)[j]
+        return jnp.sum(dv * dv, -1) / jnp.asarray(self.lengths_all[self.links], v.dtype)
 
 
 def constraint_violation(scene: Scene, q: Array) -> Array:
@@ -357,41 +376,285 @@ def mass_matrix_fn(lagrangian: LagrangianFn) -> Callable[[Array, Array], Array]:
     return mass_matrix
 
 
-def true_acceleration_fn(scene: Scene) -> AccelerationFn:
-    """Ground-truth accelerations: the exact rod Lagrangian, plus drag if the scene has it."""
-    return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
+def constant_node_mass(scene: Scene) -> np.ndarray:
+    """(N*D, N*D) the constant mass matrix of `constant_mass_lagrangian_fn`, assembled
+    from per-link blocks: a rod with ends a, b adds `m/4 + I/l^2` to the (a, a) and
+    (b, b) blocks and `m/4 - I/l^2` to (a, b) and (b, a), times the D x D identity."""
+    n, d = scene.n_nodes, scene.dim
+    mass = np.zeros((n, n))
+    same = np.asarray(scene.masses) / 4 + np.asarray(scene.inertias) / np.asarray(scene.lengths) ** 2
+    cross = np.asarray(scene.masses) / 4 - np.asarray(scene.inertias) / np.asarray(scene.lengths) ** 2
+    a, b = scene.edge_index.T
+    np.add.at(mass, (a, a), same)
+    np.add.at(mass, (b, b), same)
+    np.add.at(mass, (a, b), cross)
+    np.add.at(mass, (b, a), cross)
+    return np.kron(mass, np.eye(d))
+
+
+def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
+    """Ground-truth accelerations: the exact rod Lagrangian, plus drag if the scene has it.
+
+    `solver` picks how the constrained Euler-Lagrange equations are solved; all give
+    the same accelerations (to round-off, tested) wherever they apply:
+    - "generic": `acceleration_fn` on `lagrangian_fn` (the solver learned models use:
+      mass matrix by AD, regularised KKT solve). The reference.
+    - "schur": the on-manifold equivalent with a constant mass matrix
+      (`constant_mass_lagrangian_fn`), factored once per scene, and a Cholesky solve
+      of the Schur complement `A M^-1 A^T` for the multipliers (K x K instead of the
+      (F + K)-square KKT system, no mass matrix or its derivatives per call).
+    - "chain": the same equations for a chain pinned at one end, solved in time linear
+      in its length by block elimination from the free end (`_chain_solve`).
+    - "auto": "chain" where it applies, else "schur", and "generic" for scenes that
+      are self-stressed at their initial configuration (T2, T3), whose motion is
+      defined by the regularised KKT solve of the exact mass matrix (module docstring),
+      and for scenes whose constant mass matrix is singular on the free nodes (a
+      link of zero inertia, a node no link touches).
+    """
+    if solver not in ("auto", "generic", "schur", "chain"):
+        raise ValueError(f"unknown solver {solver!r}")
+    constraints = Constraints(scene)
+    mass = constant_node_mass(scene)[np.ix_(constraints.free, constraints.free)]
+    regular_mass = len(mass) == 0 or np.linalg.eigvalsh(mass).min() > 1e-12 * np.abs(mass).max()
+    if solver == "auto":
+        if constraints.self_stresses or not regular_mass:
+            solver = "generic"
+        else:
+            solver = "chain" if is_pinned_chain(scene) else "schur"
+    if solver == "generic":
+        return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
+    if not regular_mass:
+        raise ValueError(f"{scene.name}: the constant mass matrix is singular; use the generic solver")
+    if solver == "chain":
+        if not is_pinned_chain(scene):
+            raise ValueError(f"{scene.name}: the chain solver needs a planar chain pinned at node 0")
+        return _chain_acceleration_fn(scene)
+    return _schur_acceleration_fn(scene, constraints, mass)
+
+
+def _node_forces_fn(scene: Scene, free_nodes: np.ndarray) -> Callable[[Array, Array], Array]:
+    """`(q, qd) -> (N, D)` generalised forces on the free nodes: gravity (half of each
+    link's weight on each end) plus drag where the scene has it."""
+    gravity = np.zeros((scene.n_nodes, scene.dim))
+    weight = np.asarray(scene.masses) * float(scene.gravity) / 2
+    np.add.at(gravity[:, 1], scene.edge_index[:, 0], -weight)
+    np.add.at(gravity[:, 1], scene.edge_index[:, 1], -weight)
+    gravity *= free_nodes
+    drag = drag_force_fn(scene)
+
+    def forces(q, qd):
+        total = jnp.asarray(gravity, q.dtype)
+        return total if drag is None else total + drag(q, qd) * free_nodes
+
+    return forces
+
+
+def _schur_acceleration_fn(scene: Scene, constraints: Constraints, mass: np.ndarray) -> AccelerationFn:
+    """The "schur" solver of `true_acceleration_fn`: `a = M^-1 (f - A^T lam)` with
+    `(A M^-1 A^T) lam = A M^-1 f + Adot v`, `M` constant (inverted once, in NumPy).
+    `A M^-1 A^T` is assembled from `M^-1`'s columns at each link's two nodes, so a call
+    costs O(K N D^2) for the products plus the K x K Cholesky."""
+    n, d = constraints.shape
+    inverse = np.zeros((n * d, n * d))
+    inverse[np.ix_(constraints.free, constraints.free)] = np.linalg.inv(mass)
+    inverse = inverse.reshape(n, d, n, d)
+    free_nodes = np.zeros((n, d))
+    free_nodes.reshape(-1)[constraints.free] = 1.0
+    forces = _node_forces_fn(scene, free_nodes)
+    i, j = constraints.edge_index[constraints.links].T
+    # M^-1 A^T = (M^-1[:, i] - M^-1[:, j]) u per link: (N, D, K, D) before contracting u.
+    inverse_at_links = inverse[:, :, i, :] - inverse[:, :, j, :]
+
+    def accel(q, qd):
+        dtype = q.dtype
+        minv = jnp.asarray(inverse, dtype)
+        accel_free = jnp.einsum("ndme,me->nd", minv, forces(q, qd))
+        if constraints.n_rows == 0:
+            return accel_free
+        u = constraints.link_directions(q)
+        dv = qd[i] - qd[j]
+        rhs = jnp.sum(u * (accel_free[i] - accel_free[j]), -1) + jnp.sum(dv * dv, -1) / jnp.asarray(constraints.lengths_all[constraints.links], dtype)
+        minv_at = jnp.einsum("ndke,ke->ndk", jnp.asarray(inverse_at_links, dtype), u)
+        schur = jnp.einsum("ke,kel->kl", u, minv_at[i] - minv_at[j])
+        lam = _regularised_spd_solve(schur, rhs)
+        return accel_free - jnp.einsum("ndk,k->nd", minv_at, lam)
+
+    return accel
+
+
+def _regularised_spd_solve(matrix: Array, rhs: Array) -> Array:
+    """Cholesky solve of `(S + eps I) x = r`, refined against `S x = r`: exact at regular
+    configurations, bounded near singular ones (as `_solve_kkt`)."""
+    k = matrix.shape[0]
+    eps = KKT_REGULARISATION * jnp.trace(matrix) / k
+    factor = jax.scipy.linalg.cho_factor(matrix + eps * jnp.eye(k, dtype=matrix.dtype))
+    solution = jax.scipy.linalg.cho_solve(factor, rhs)
+    for _ in range(KKT_REFINEMENT_STEPS):
+        solution = solution + jax.scipy.linalg.cho_solve(factor, rhs - matrix @ solution)
+    return solution
+
+
+def _inverse_3x3(m: Array) -> Array:
+    """Inverse of a (3, 3) matrix by its adjugate: a handful of fused elementwise ops,
+    where a LAPACK call per block of the chain elimination would cost more than the
+    arithmetic."""
+    a, b, c = m[0, 0], m[0, 1], m[0, 2]
+    d, e, f = m[1, 0], m[1, 1], m[1, 2]
+    g, h, k = m[2, 0], m[2, 1], m[2, 2]
+    cofactor = (e * k - f * h, f * g - d * k, d * h - e * g)
+    adjugate = jnp.array([
+        [cofactor[0], c * h - b * k, b * f - c * e],
+        [cofactor[1], a * k - c * g, c * d - a * f],
+        [cofactor[2], b * g - a * h, a * e - b * d],
+    ])
+    return adjugate / (a * cofactor[0] + b * cofactor[1] + c * cofactor[2])
+
+
+def _chain_acceleration_fn(scene: Scene) -> AccelerationFn:
+    """The "chain" solver of `true_acceleration_fn`: the KKT system of a planar chain
+    pinned at node 0, in time linear in its length.
+
+    Block b (b = 0..n-1) holds node b+1's acceleration and link b's multiplier. Link b
+    joins nodes b and b+1 (row `+u_b` at node b, `-u_b` at node b+1) and the constant
+    mass matrix couples only neighbouring nodes, so the KKT matrix is block-tridiagonal
+    with 3 x 3 blocks: diagonal `D_b = [[M_b+1,b+1, -u_b], [-u_b^T, 0]]`, above it
+    `U_b = [[M_b+1,b+2, u_b+1], [0, 0]]`. Eliminating from the free end
+    (`D~_b = D_b - U_b D~_b+1^-1 U_b^T`, the articulated inertia of the chain beyond
+    node b+1) and substituting back from the pin are two `lax.scan`s. A pinned chain's
+    constraint rows are always independent, so no regularisation is needed.
+    """
+    n = scene.n_links
+    node_mass = constant_node_mass(scene).reshape(n + 1, 2, n + 1, 2)
+    # (n, 2, 2) blocks (nodes 1..n) and (n-1, 2, 2) blocks (node b with b+1).
+    diagonal_mass = node_mass[np.arange(1, n + 1), :, np.arange(1, n + 1), :]
+    upper_mass = node_mass[np.arange(1, n), :, np.arange(2, n + 1), :]
+    free_nodes = np.ones((n + 1, 2))
+    free_nodes[0] = 0.0
+    forces = _node_forces_fn(scene, free_nodes)
+    lengths = np.asarray(scene.lengths)
+
+    def eliminate(carry, block):
+        next_inverse, next_rhs = carry
+        diagonal, upper, rhs = block
+        weight = upper @ next_inverse
+        inverse = _inverse_3x3(diagonal - weight @ upper.T)
+        reduced_rhs = rhs - weight @ next_rhs
+        return (inverse, reduced_rhs), (inverse, reduced_rhs)
+
+    def substitute(previous, block):
+        inverse, reduced_rhs, upper = block
+        solution = inverse @ (reduced_rhs - upper.T @ previous)
+        return solution, solution
+
+    def accel(q, qd):
+        dtype = q.dtype
+        length = jnp.asarray(lengths, dtype)
+        u = (q[:-1] - q[1:]) / length[:, None]
+        dv = qd[:-1] - qd[1:]
+        diagonal = jnp.zeros((n, 3, 3), dtype).at[:, :2, :2].set(jnp.asarray(diagonal_mass, dtype)).at[:, :2, 2].set(-u).at[:, 2, :2].set(-u)
+        upper = jnp.zeros((n - 1, 3, 3), dtype).at[:, :2, :2].set(jnp.asarray(upper_mass, dtype)).at[:, :2, 2].set(u[1:])
+        # Node rows: the generalised forces; link rows: `A a = -Adot v`.
+        rhs = jnp.concatenate([forces(q, qd)[1:], -(jnp.sum(dv * dv, -1) / length)[:, None]], axis=1)
+        last = (_inverse_3x3(diagonal[-1]), rhs[-1])
+        _, (inverses, reduced) = jax.lax.scan(eliminate, last, (diagonal[:-1], upper, rhs[:-1]), reverse=True)
+        inverses = jnp.concatenate([inverses, last[0][None]])
+        reduced = jnp.concatenate([reduced, last[1][None]])
+        first = inverses[0] @ reduced[0]
+        _, rest = jax.lax.scan(substitute, first, (inverses[1:], reduced[1:], upper))
+        blocks = jnp.concatenate([first[None], rest])
+        return jnp.concatenate([jnp.zeros((1, 2), dtype), blocks[:, :2]])
+
+    return accel
+
+
+class _LinkGram:
+    """The Gram matrix `G = A A^T` of the kept constraint rows, from its sparsity.
+
+    `G_kl` is nonzero only when links k and l share a free node, where it is
+    `+-u_k . u_l`; the diagonal counts each link's free ends. The pairs are found once
+    per scene. When only consecutive kept links share nodes (a chain) G is tridiagonal
+    and solved in linear time; otherwise it is assembled dense and factored by Cholesky.
+    """
+
+    def __init__(self, constraints: Constraints):
+        i, j = constraints.edge_index[constraints.links].T
+        n_nodes = constraints.shape[0]
+        pinned = np.ones(n_nodes, bool)
+        pinned[constraints.free // constraints.shape[1]] = False
+        self.n_rows = constraints.n_rows
+        self.free_ends = (~pinned[i]).astype(np.float64) + (~pinned[j]).astype(np.float64)
+        ends = [(k, node, sign) for k in range(self.n_rows) for node, sign in ((i[k], 1.0), (j[k], -1.0)) if not pinned[node]]
+        by_node: dict[int, list[tuple[int, float]]] = {}
+        for k, node, sign in ends:
+            by_node.setdefault(int(node), []).append((k, sign))
+        pairs = [(a, b, sa * sb) for incident in by_node.values() for x, (a, sa) in enumerate(incident) for b, sb in incident[x + 1 :]]
+        pairs = [(min(a, b), max(a, b), sign) for a, b, sign in pairs]
+        self.first, self.second, self.sign = (np.asarray(c, dtype) for c, dtype in zip(zip(*pairs), (np.int64, np.int64, np.float64))) if pairs else (
+            np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        self.tridiagonal = bool(np.all(self.second - self.first == 1))
+
+    def solve_fn(self, u: Array, shift: float) -> Callable[[Array], Array]:
+        """`r -> (G + shift I)^-1 r` at link directions `u` (K, D), factored once."""
+        diag = self.free_ends * jnp.sum(u * u, -1) + shift
+        off = self.sign * jnp.sum(u[self.first] * u[self.second], -1)
+        if self.tridiagonal:
+            upper = jnp.zeros_like(diag).at[self.first].add(off)
+            lower = jnp.roll(upper, 1)
+            return lambda r: jax.lax.linalg.tridiagonal_solve(lower, diag, upper, r[:, None])[:, 0]
+        gram = jnp.diag(diag).at[self.first, self.second].add(off).at[self.second, self.first].add(off)
+        factor = jax.scipy.linalg.cho_factor(gram)
+        return lambda r: jax.scipy.linalg.cho_solve(factor, r)
 
 
 def projection_fn(scene: Scene, iterations: int = 4) -> Callable[[Array, Array], tuple[Array, Array]]:
     """Project `(q, qd)` back onto the constraint manifold.
 
-    Positions: Gauss-Newton steps `x <- x - A^T (A A^T)^-1 Phi(x)` (the minimum-norm
+    Positions: Gauss-Newton steps `q <- q - A^T (A A^T)^-1 Phi(q)` (the minimum-norm
     correction; quadratic convergence, so a fixed few steps reach round-off from the
-    small drift of one integration step). Velocities: the orthogonal projection onto
-    `A v = 0` at the corrected positions. `A A^T` is SPD at regular configurations
-    (the kept rows are independent); a tiny Levenberg-Marquardt shift keeps the
-    Cholesky factorisation defined at singular (self-stressed) ones. Pins are exact by
-    construction.
+    small drift of one integration step, and larger drifts still converge). Velocities:
+    the orthogonal projection onto `A v = 0` at the corrected positions. All products
+    with `A` use its per-link blocks (`_LinkGram` solves with `A A^T`), so a chain
+    projects in time linear in its length. `A A^T` is SPD at regular configurations;
+    a Levenberg-Marquardt shift keeps its factorisation defined at singular ones
+    (`REGULAR_PROJECTION_SHIFT` for scenes regular at their initial configuration,
+    `PROJECTION_SHIFT` for self-stressed ones, where an unshifted step along a
+    self-stress diverges). Pins are exact by construction.
     """
     constraints = Constraints(scene)
+    gram = _LinkGram(constraints)
+    i, j = constraints.edge_index[constraints.links].T
+    free_nodes = np.zeros(constraints.shape)
+    free_nodes.reshape(-1)[constraints.free] = 1.0
+    lengths = constraints.lengths_all[constraints.links]
+    singular = constraints.self_stresses > 0
+    shift = PROJECTION_SHIFT if singular else REGULAR_PROJECTION_SHIFT
+    # The shift leaves a fraction ~shift / sigma^2 of `A v` per pass; repeated passes
+    # with the same factor remove it geometrically (iterative refinement).
+    passes = VELOCITY_PROJECTION_PASSES if singular else REGULAR_VELOCITY_PROJECTION_PASSES
 
-    def shifted_gram_factor(jac):
-        gram = jac @ jac.T + PROJECTION_SHIFT * jnp.eye(jac.shape[0], dtype=jac.dtype)
-        return jax.scipy.linalg.cho_factor(gram)
+    def transpose_times(u, lam):
+        force = (u * lam[:, None]).astype(u.dtype)
+        return jnp.zeros(constraints.shape, u.dtype).at[i].add(force).at[j].add(-force) * free_nodes
+
+    def times(u, v):
+        return jnp.sum(u * (v[i] - v[j]), -1)
 
     def project(q, qd):
         if constraints.n_rows == 0:
-            return q, qd
-        x, v = constraints.restrict(q), constraints.restrict(qd)
+            return constraints.embed(constraints.restrict(q)), constraints.embed_velocity(constraints.restrict(qd))
+        length = jnp.asarray(lengths, q.dtype)
+        # Pinned nodes are put exactly at their pins, at rest.
+        q = jnp.where(free_nodes > 0, q, jnp.asarray(constraints.pin_positions, q.dtype))
+        qd = qd * free_nodes
         for _ in range(iterations):
-            jac = constraints.jacobian(x)
-            x = x - jac.T @ jax.scipy.linalg.cho_solve(shifted_gram_factor(jac), constraints.residual(x))
-        jac = constraints.jacobian(x)
-        factor = shifted_gram_factor(jac)
-        # The shift leaves a fraction ~shift / sigma^2 of `A v` per pass; repeated passes
-        # with the same factor remove it geometrically (iterative refinement).
-        for _ in range(VELOCITY_PROJECTION_PASSES):
-            v = v - jac.T @ jax.scipy.linalg.cho_solve(factor, jac @ v)
-        return constraints.embed(x), constraints.embed_velocity(v)
+            dq = q[i] - q[j]
+            residual = (jnp.sum(dq * dq, -1) - length**2) / (2 * length)
+            u = dq / length[:, None]
+            q = q - transpose_times(u, gram.solve_fn(u, shift)(residual))
+        u = (q[i] - q[j]) / length[:, None]
+        solve = gram.solve_fn(u, shift)
+        for _ in range(passes):
+            qd = qd - transpose_times(u, solve(times(u, qd)))
+        return q, qd
 
     return project

@@ -141,6 +141,13 @@ jax.tree_util.register_dataclass(
 
 _TOP_KEYS = {"name", "gravity", "drag", "nodes", "velocities", "pinned", "links"}
 _REQUIRED_TOP = {"name", "nodes", "pinned", "links"}
+def is_pinned_chain(scene: Scene) -> bool:
+    """True for a planar path 0-1-...-n pinned at node 0 only: the scenes the chain
+    sampler applies to, and whose constraint system physics solves in linear time."""
+    n = scene.n_nodes - 1
+    return scene.pinned == (0,) and scene.edges == tuple((k, k + 1) for k in range(n)) and scene.dim == 2
+
+
 _LINK_KEYS = {"nodes", "mass", "inertia", "length", "type"}
 _REQUIRED_LINK = {"nodes", "mass", "inertia"}
 

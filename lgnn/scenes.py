@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.errors import SceneError
-from lgnn.scene import Scene, State, load_scene_file, scene_from_dict
+from lgnn.scene import Scene, State, is_pinned_chain, load_scene_file, scene_from_dict
 
 # Paper's chain sampler (authors' code): each link hangs at (0, -1) rotated by an
 # independent angle in [-15, 15] degrees, then the whole chain is rotated by +45
@@ -53,12 +53,6 @@ def chain_positions(lengths, angles, rotation: float = CHAIN_ROTATION):
     theta = angles + rotation
     steps = lengths[:, None] * xp.stack([xp.sin(theta), -xp.cos(theta)], axis=-1)
     return xp.concatenate([xp.zeros((1, 2), steps.dtype), xp.cumsum(steps, axis=0)], axis=0)
-
-
-def is_pinned_chain(scene: Scene) -> bool:
-    """True for a path 0-1-...-n pinned at node 0 only: the scenes the chain sampler applies to."""
-    n = scene.n_nodes - 1
-    return scene.pinned == (0,) and scene.edges == tuple((k, k + 1) for k in range(n)) and scene.dim == 2
 
 
 def sample_initial_states(scene: Scene, key: jax.Array, count: int) -> State:

@@ -79,7 +79,7 @@ class TrainState(NamedTuple):
     best_val: float
     best_epoch: int
     epoch: int  # epochs completed
-    history: list  # [(epoch, train_loss, val_loss), ...]
+    history: list  # [(epoch, train_loss, val_loss, elapsed_s), ...] (older checkpoints: no elapsed_s)
     # Wall-clock seconds spent training, summed over resumed runs (the minutes budget
     # counts all of them, so an interrupted run does not get a fresh budget).
     elapsed_s: float = 0.0
@@ -190,12 +190,12 @@ def train(
             params, opt_state, train_loss = epoch_fn(params, opt_state, *train_arrays, jax.random.fold_in(base_key, epoch))
             val_loss = evaluate(params, *val_arrays)
             epoch += 1
-            history.append((epoch, float(train_loss), val_loss))
+            elapsed = elapsed_before + time.monotonic() - start
+            history.append((epoch, float(train_loss), val_loss, elapsed))
             if val_loss < best_val:
                 best_params, best_val, best_epoch = params, val_loss, epoch
             bar.update(1)
             bar.set_postfix(train=f"{float(train_loss):.3e}", val=f"{val_loss:.3e}", best=f"{best_val:.3e}")
-            elapsed = elapsed_before + time.monotonic() - start
             state = TrainState(params, opt_state, best_params, best_val, best_epoch, epoch, history, elapsed)
             if out is not None and (epoch % config.checkpoint_every == 0 or finished(state, config)):
                 save_checkpoint(out, state, model, config, data_config)
@@ -316,3 +316,12 @@ def load_model(path) -> tuple[models.ModelConfig, dict]:
     """The model settings and best parameters of a checkpoint, for rollouts."""
     state, meta = load_checkpoint(path)
     return models.ModelConfig.from_dict(meta["model"]), state.best_params
+
+
+def seconds_to_reach(state: TrainState, target: float) -> float | None:
+    """Training seconds until the validation loss first reached `target` (None if it
+    never did, or if the checkpoint predates per-epoch times)."""
+    for entry in state.history:
+        if len(entry) >= 4 and entry[2] <= target:
+            return float(entry[3])
+    return None

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from lgnn import physics
-from lgnn.scene import scene_from_dict
-from lgnn.scenes import get_scene, sample_initial_states
+from lgnn.scene import is_pinned_chain, scene_from_dict
+from lgnn.scenes import chain, get_scene, sample_initial_states
 from tests.scenes_for_tests import double_pinned_chain, free_triangle, pendulum, pinned_triangle
 
 
@@ -251,3 +251,99 @@ def test_gradient_of_acceleration_matches_finite_differences():
     numeric = (loss(qd + eps * direction) - loss(qd - eps * direction)) / (2 * eps)
     analytic = jnp.vdot(jax.grad(loss)(qd), direction)
     np.testing.assert_allclose(analytic, numeric, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------
+# The structured ground-truth solvers and the structured projection
+# ---------------------------------------------------------------------------------
+
+STRUCTURED_SCENES = {
+    "chain4": lambda: get_scene("chain4"),
+    "chain4-drag": lambda: get_scene("chain4-drag"),
+    "chain4-varied": lambda: get_scene("chain4-varied"),
+    "chain40": lambda: chain(40),
+    "T1": lambda: get_scene("T1"),
+    "double-pinned": double_pinned_chain,
+    "free-triangle": free_triangle,
+    "pinned-triangle": pinned_triangle,
+}
+
+
+@pytest.mark.parametrize("name", sorted(STRUCTURED_SCENES))
+def test_structured_solvers_match_the_generic_solve(name):
+    """Every solver that applies gives the generic (AD mass matrix, KKT) accelerations
+    to round-off at a random state on the manifold, drag included."""
+    scene = STRUCTURED_SCENES[name]()
+    q, qd = random_state(scene, seed=5, speed=2.0)
+    reference = np.asarray(jax.jit(physics.true_acceleration_fn(scene, "generic"))(q, qd))
+    solvers = ["auto", "schur"] + (["chain"] if is_pinned_chain(scene) else [])
+    for solver in solvers:
+        qdd = np.asarray(jax.jit(physics.true_acceleration_fn(scene, solver))(q, qd))
+        np.testing.assert_allclose(qdd, reference, atol=1e-11 * (1 + np.abs(reference).max()), err_msg=solver)
+
+
+def test_auto_solver_keeps_the_generic_solve_for_self_stressed_scenes():
+    """T2's accelerations at rest are defined by the regularised KKT solve of the exact
+    mass matrix (physics.py), which "auto" must keep; the constant-mass Schur solve
+    gives different (equally admissible) ones there."""
+    scene = get_scene("T2")
+    q, qd = jnp.asarray(scene.nodes), jnp.asarray(scene.velocities)
+    generic = jax.jit(physics.true_acceleration_fn(scene, "generic"))(q, qd)
+    np.testing.assert_array_equal(jax.jit(physics.true_acceleration_fn(scene))(q, qd), generic)
+
+
+def test_constant_node_mass_is_the_hessian_of_the_constant_mass_lagrangian():
+    scene = get_scene("chain4-varied")
+    n = scene.n_nodes * scene.dim
+    lagrangian = physics.constant_mass_lagrangian_fn(scene)
+    hessian = jax.hessian(lambda v: lagrangian(jnp.asarray(scene.nodes), v.reshape(scene.nodes.shape)))(jnp.zeros(n))
+    np.testing.assert_allclose(physics.constant_node_mass(scene), hessian, atol=1e-14)
+
+
+def test_singular_constant_mass_falls_back_to_the_generic_solve():
+    """A free link of zero inertia has a singular constant mass (its ends can move
+    oppositely at no cost): "auto" uses the generic solve, asking for "schur" is an error."""
+    data = {"name": "zero-inertia", "nodes": [[0.0, 0.0], [1.0, 0.0]], "pinned": [],
+            "links": [{"nodes": [0, 1], "mass": 1.0, "inertia": 0.0}]}
+    scene = scene_from_dict(data)
+    q, qd = random_state(scene)
+    np.testing.assert_allclose(physics.true_acceleration_fn(scene)(q, qd), physics.true_acceleration_fn(scene, "generic")(q, qd))
+    with pytest.raises(ValueError, match="singular"):
+        physics.true_acceleration_fn(scene, "schur")
+
+
+@pytest.mark.parametrize("name", ["chain4", "T1", "double-pinned"])
+def test_constraint_jacobian_and_its_derivative_match_autodiff(name):
+    scene = STRUCTURED_SCENES[name]()
+    constraints = physics.Constraints(scene)
+    q, qd = random_state(scene, seed=6)
+    x, v = constraints.restrict(q), constraints.restrict(qd) + 0.3
+    np.testing.assert_allclose(constraints.jacobian(x), jax.jacfwd(constraints.residual)(x), atol=1e-14)
+    second = jax.jvp(lambda y: jax.jvp(constraints.residual, (y,), (v,))[1], (x,), (v,))[1]
+    np.testing.assert_allclose(constraints.jacobian_dot_v(x, v), second, atol=1e-13)
+
+
+@pytest.mark.parametrize("name, tridiagonal", [("chain40", True), ("T1", False), ("double-pinned", True), ("pinned-triangle", True)])
+def test_link_gram_solve_matches_dense_normal_equations(name, tridiagonal):
+    """`A A^T` from the link pairs (tridiagonal for chains) equals the dense product."""
+    scene = STRUCTURED_SCENES[name]()
+    constraints = physics.Constraints(scene)
+    gram = physics._LinkGram(constraints)
+    assert gram.tridiagonal == tridiagonal
+    q, _ = random_state(scene, seed=7)
+    jac = constraints.jacobian(constraints.restrict(q))
+    rhs = jnp.asarray(np.random.default_rng(0).normal(size=constraints.n_rows))
+    expected = np.linalg.solve(np.asarray(jac @ jac.T), np.asarray(rhs))
+    solved = gram.solve_fn(constraints.link_directions(q), 0.0)(rhs)
+    np.testing.assert_allclose(solved, expected, rtol=1e-10, atol=1e-12)
+
+
+def test_chain_solver_is_accurate_on_a_long_chain():
+    """The linear-time chain elimination against the Schur solve on 300 links, at a
+    random configuration with fast motion (round-off relative to the scale)."""
+    scene = chain(300)
+    q = sample_initial_states(scene, jax.random.PRNGKey(3), 1).q[0]
+    q, qd = jax.jit(physics.projection_fn(scene))(q, jax.random.normal(jax.random.PRNGKey(4), q.shape))
+    fast = np.asarray(jax.jit(physics.true_acceleration_fn(scene, "chain"))(q, qd))
+    schur = np.asarray(jax.jit(physics.true_acceleration_fn(scene, "schur"))(q, qd))
+    np.testing.assert_allclose(fast, schur, atol=1e-10 * np.abs(schur).max())
