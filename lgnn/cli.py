@@ -136,7 +136,10 @@ def _cmd_crosscheck(args) -> None:
     from lgnn import crosscheck as cc
     from lgnn.scenes import get_scene
 
+    from lgnn._io import check_writable
+
     command = "lgnn " + " ".join(sys.argv[1:]) if sys.argv[0].endswith(("lgnn", "cli.py", "__main__.py")) else "lgnn crosscheck"
+    check_writable(f"{args.out_dir}/engines_speed_error.md" if args.speed else f"{args.out_dir}/crosscheck.md")
     engines = tuple(args.engines.split(","))
     if set(engines) - set(cc.ENGINES) or not engines:
         raise ConfigError(f"--engines: choose from {', '.join(cc.ENGINES)}, got {args.engines!r}")

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn import physics
+from lgnn import physics, sharding
 from lgnn._io import write_text_atomic
 from lgnn.scene import Scene, State
 from lgnn.simulate import SimulationConfig, rollout_fn
@@ -130,7 +130,10 @@ def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, d
         run = lm.mjx_runner(scene, config, dtype)
         args = (jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     else:
-        run = jax.jit(jax.vmap(rollout_fn(scene, config)))
+        rollouts = jax.vmap(rollout_fn(scene, config))
+        # A batch is spread over every local device (`sharding`; on one device this
+        # is plain `jit`).
+        run = sharding.batch_jit(rollouts) if len(states.q) % sharding.device_count() == 0 else jax.jit(rollouts)
         args = (jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     start = time.perf_counter()
     compiled = run.lower(*args).compile()

@@ -444,7 +444,7 @@ def _node_forces_fn(scene: Scene, free_nodes: np.ndarray) -> Callable[[Array, Ar
 
     def forces(q, qd):
         total = jnp.asarray(gravity, q.dtype)
-        return total if drag is None else total + drag(q, qd) * free_nodes
+        return total if drag is None else total + drag(q, qd) * jnp.asarray(free_nodes, q.dtype)
 
     return forces
 
@@ -595,8 +595,8 @@ class _LinkGram:
 
     def solve_fn(self, u: Array, shift: float) -> Callable[[Array], Array]:
         """`r -> (G + shift I)^-1 r` at link directions `u` (K, D), factored once."""
-        diag = self.free_ends * jnp.sum(u * u, -1) + shift
-        off = self.sign * jnp.sum(u[self.first] * u[self.second], -1)
+        diag = jnp.asarray(self.free_ends, u.dtype) * jnp.sum(u * u, -1) + shift
+        off = jnp.asarray(self.sign, u.dtype) * jnp.sum(u[self.first] * u[self.second], -1)
         if self.tridiagonal:
             upper = jnp.zeros_like(diag).at[self.first].add(off)
             lower = jnp.roll(upper, 1)
@@ -633,8 +633,8 @@ def projection_fn(scene: Scene, iterations: int = 4) -> Callable[[Array, Array],
     passes = VELOCITY_PROJECTION_PASSES if singular else REGULAR_VELOCITY_PROJECTION_PASSES
 
     def transpose_times(u, lam):
-        force = (u * lam[:, None]).astype(u.dtype)
-        return jnp.zeros(constraints.shape, u.dtype).at[i].add(force).at[j].add(-force) * free_nodes
+        force = u * lam[:, None]
+        return jnp.zeros(constraints.shape, u.dtype).at[i].add(force).at[j].add(-force) * jnp.asarray(free_nodes, u.dtype)
 
     def times(u, v):
         return jnp.sum(u * (v[i] - v[j]), -1)
@@ -645,7 +645,7 @@ def projection_fn(scene: Scene, iterations: int = 4) -> Callable[[Array, Array],
         length = jnp.asarray(lengths, q.dtype)
         # Pinned nodes are put exactly at their pins, at rest.
         q = jnp.where(free_nodes > 0, q, jnp.asarray(constraints.pin_positions, q.dtype))
-        qd = qd * free_nodes
+        qd = qd * jnp.asarray(free_nodes, qd.dtype)
         for _ in range(iterations):
             dq = q[i] - q[j]
             residual = (jnp.sum(dq * dq, -1) - length**2) / (2 * length)
