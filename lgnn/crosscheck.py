@@ -15,6 +15,7 @@ atomically with the command, machine and versions in the header.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import platform
@@ -135,12 +136,13 @@ def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, d
         # is plain `jit`).
         run = sharding.batch_jit(rollouts) if len(states.q) % sharding.device_count() == 0 else jax.jit(rollouts)
         args = (jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
-    start = time.perf_counter()
-    compiled = run.lower(*args).compile()
-    compile_s = time.perf_counter() - start
-    start = time.perf_counter()
-    out = jax.block_until_ready(compiled(*args))
-    run_s = time.perf_counter() - start
+    with lm.mjx_precision(dtype) if engine == "mjx" else contextlib.nullcontext():
+        start = time.perf_counter()
+        compiled = run.lower(*args).compile()
+        compile_s = time.perf_counter() - start
+        start = time.perf_counter()
+        out = jax.block_until_ready(compiled(*args))
+        run_s = time.perf_counter() - start
     q = out[0] if isinstance(out, tuple) else jnp.concatenate([args[0][:, None], out], axis=1)
     return compile_s, run_s, np.asarray(q, np.float64)
 

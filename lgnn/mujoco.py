@@ -591,11 +591,20 @@ def mjx_runner(scene: Scene, config, dtype: str = "float64"):
     return jax.jit(jax.vmap(one))
 
 
+def mjx_precision(dtype: str):
+    """Context to trace and run an `mjx_runner` of `dtype` in: float32 runs need x64 off,
+    since MJX builds float64 constants under x64 (its RK4 tableau, for one) that would
+    promote the float32 state and break its scans."""
+    return jax.enable_x64(False) if dtype == "float32" else contextlib.nullcontext()
+
+
 def mjx_rollout(scene: Scene, config, states: State | None = None, dtype: str = "float64") -> State:
     """MJX trajectories (B, F+1, N, 2) from initial node states (B, N, 2)."""
     if states is None:
         states = State(scene.nodes[None], scene.velocities[None])
-    q, qd = mjx_runner(scene, config, dtype)(jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
+    runner = mjx_runner(scene, config, dtype)
+    with mjx_precision(dtype):
+        q, qd = runner(jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
     if not (np.isfinite(q).all() and np.isfinite(qd).all()):
         raise SimulationError(f"{scene.name}: MJX state became non-finite (dt = {config.dt:g}, {dtype}); try a smaller dt")
