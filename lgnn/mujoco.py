@@ -551,6 +551,13 @@ def mjx_runner(scene: Scene, config, dtype: str = "float64"):
     if dtype == "float64" and not jax.config.jax_enable_x64:
         raise ConfigError("MJX float64 needs jax_enable_x64 (the CLI and tests enable it)")
     compiled = compile_scene(scene, config.dt)
+    if dtype == "float32":
+        # Traced under `mjx_precision` (x64 off), the index arrays would be converted to
+        # int32 once, and JAX reuses that conversion for the same NumPy objects in later
+        # float64 traces (MuJoCo C's state map then failed with int32 + int64): give
+        # this runner its own copies.
+        compiled = dataclasses.replace(compiled, **{f.name: getattr(compiled, f.name).copy() for f in dataclasses.fields(compiled)
+                                                    if isinstance(getattr(compiled, f.name), np.ndarray)})
     dt_ = jnp.dtype(dtype)
 
     def cast(tree):
