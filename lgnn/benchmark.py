@@ -160,6 +160,12 @@ class Profile:
     # Lagrangian engine runs longer than this many link-steps are skipped (with a row
     # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
     max_link_steps: float = 5e5
+    # Cost per step against chain length (the "scaling" stage): chains of these many
+    # links, this many RK4 steps at `dt`, single trajectory; and batches of
+    # `throughput_batch` initial conditions of each speed scene against MuJoCo C.
+    scaling_lengths: tuple[int, ...] = (4, 16, 100, 1000)
+    scaling_steps: int = 100
+    throughput_batch: int = 100
 
     def dt_for(self, scene_name: str) -> float:
         return dict(self.scene_dts).get(scene_name, self.dt)
@@ -193,6 +199,9 @@ PROFILES = {
         mjx=False,
         speed_models=("lgnn",),
         mass_scenes=("chain8",),
+        scaling_lengths=(4, 16),
+        scaling_steps=10,
+        throughput_batch=4,
     ),
     "full": Profile(
         name="full",
@@ -269,6 +278,10 @@ class Layout:
 
     def truth_record(self, scene: str) -> Path:
         return self.bench / "runs" / "ground-truth" / f"{scene}.npz"
+
+    @property
+    def scaling_record(self) -> Path:
+        return self.bench / "runs" / "scaling.json"
 
     def speed_record(self, scene: str) -> Path:
         return self.bench / "runs" / "speed-error" / f"{scene}.json"
@@ -752,6 +765,82 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
 
 
 # ---------------------------------------------------------------------------------
+# Cost against size, and batched throughput
+# ---------------------------------------------------------------------------------
+
+
+def _scaling_settings(profile: Profile, out: Path):
+    job = TrainingJob("lgnn", "chain4", profile.seeds[0])
+    checkpoint = Layout(out).checkpoint(job)
+    digest = _file_digest(checkpoint) if checkpoint.exists() else None
+    fields = ("scaling_lengths", "scaling_steps", "throughput_batch", "speed_scenes", "dt", "ic_seed")
+    return checkpoint, digest, _digest({"settings": {f: getattr(profile, f) for f in fields}, "lgnn": digest})
+
+
+def scaling(profile: Profile, out: Path) -> Path:
+    """Record (JSON) of rows `kind, scene, n_links, solver, batch, s_per_step, compile_s`:
+    - kind "size": wall seconds per RK4 step at the profile's dt against chain length
+      (`scaling_lengths`), single trajectory from the paper's sampler, for the
+      Lagrangian ground truth, MuJoCo C (its stepping alone) and LGNN trained on chain4;
+    - kind "batch": `throughput_batch` initial conditions of each speed scene at once
+      (batches spread over every local device; MuJoCo C on two threads), for the
+      Lagrangian ground truth and MuJoCo C.
+    Each timing runs `scaling_steps` steps after a compile (or warm-up) run kept apart."""
+    from lgnn.crosscheck import _timed
+    from lgnn.scenes import chain
+
+    layout = Layout(out)
+    checkpoint, digest, key = _scaling_settings(profile, out)
+    path = layout.scaling_record
+    if path.exists():
+        try:
+            if json.loads(path.read_text()).get("key") == key:
+                return path
+        except (OSError, ValueError):
+            log(f"warning: {path}: unreadable; recomputing")
+    steps, dt = profile.scaling_steps, profile.dt
+    config = SimulationConfig("rk4", dt, steps * dt, steps * dt, True)
+    model_params = train.load_model(checkpoint) if digest else None
+    rows = []
+    for n in profile.scaling_lengths:
+        scene = chain(n)
+        states = sample_initial_states(scene, jax.random.PRNGKey(profile.ic_seed), 1)
+        single = State(np.asarray(states.q), np.asarray(states.qd))
+        for solver in ("lagrangian", "mujoco", "lgnn"):
+            if solver == "lgnn":
+                if model_params is None:
+                    continue
+                model, params = model_params
+                run = jax.jit(jax.vmap(rollout_fn(scene, config, lambda s: models.acceleration_fn(model, params, s))))
+                args = (jnp.asarray(single.q), jnp.asarray(single.qd))
+                start = time.perf_counter()
+                compiled = run.lower(*args).compile()
+                compile_s = time.perf_counter() - start
+                start = time.perf_counter()
+                jax.block_until_ready(compiled(*args))
+                run_s = time.perf_counter() - start
+            else:
+                compile_s, run_s, _ = _timed(solver, scene, config, single)
+            rows.append(dict(kind="size", scene=scene.name, n_links=n, solver=solver, batch=1, s_per_step=run_s / steps, compile_s=compile_s))
+            log(f"scaling {scene.name} {solver}: {run_s / steps:.3g} s per step (compile {compile_s:.1f} s)")
+    for name in profile.speed_scenes:
+        scene = scene_named(name)
+        states = sample_initial_states(scene, jax.random.PRNGKey(profile.ic_seed), profile.throughput_batch)
+        batch = State(np.asarray(states.q), np.asarray(states.qd))
+        for solver in ("lagrangian", "mujoco"):
+            compile_s, run_s, _ = _timed(solver, scene, config, batch)
+            rows.append(dict(kind="batch", scene=name, n_links=scene.n_links, solver=solver, batch=profile.throughput_batch,
+                             s_per_step=run_s / steps, compile_s=compile_s))
+            log(f"throughput {name} {solver} x{profile.throughput_batch}: {profile.throughput_batch * steps / run_s:.3g} steps/s")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        from lgnn.provenance import environment
+
+        tmp.write_text(json.dumps({"key": key, "environment": environment(), "rows": rows}, indent=1, default=float))
+    return path
+
+
+# ---------------------------------------------------------------------------------
 # Learned mass matrix
 # ---------------------------------------------------------------------------------
 
@@ -812,7 +901,7 @@ def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob
 # The whole run
 # ---------------------------------------------------------------------------------
 
-STAGES = ("train", "evaluate", "speed", "mass", "report")
+STAGES = ("train", "evaluate", "speed", "scaling", "mass", "report")
 
 
 def run(profile: Profile, out: Path | None = None, stages=STAGES, jobs: list[str] | None = None, scenes: list[str] | None = None,
@@ -847,6 +936,8 @@ def run(profile: Profile, out: Path | None = None, stages=STAGES, jobs: list[str
         for scene in profile.speed_scenes:
             if not scenes or scene in scenes:
                 speed_error(profile, scene, out)
+    if "scaling" in stages and not scenes:
+        scaling(profile, out)
     if "mass" in stages:
         for scene in profile.mass_scenes:
             if not scenes or scene in scenes:

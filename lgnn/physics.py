@@ -323,12 +323,24 @@ def velocity_constraint_violation(scene: Scene, q: Array, qd: Array) -> Array:
 # ---------------------------------------------------------------------------------
 
 
-def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | None = None) -> AccelerationFn:
+def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | None = None, *, local_mass: bool = False) -> AccelerationFn:
     """Constrained Euler-Lagrange accelerations of *any* Lagrangian under the scene's
     constraints (module docstring). Returns `accel(q, qd) -> qdd`, all (N, D), with zero
     acceleration at pinned nodes. `force_fn(q, qd) -> (N, D)` adds generalised forces
-    (drag, external); pass `None` for none."""
+    (drag, external); pass `None` for none.
+
+    `local_mass=True` declares that the mass matrix `d2L/dqd2` couples only nodes that
+    share a link (true of the exact rods and of LGNN's per-link energies). It is then
+    assembled from a few Hessian-vector products on a distance-2 colouring of the
+    nodes (`_LocalMass`: 3 colours x D products for any chain, instead of one per
+    coordinate), and a chain pinned at node 0 is solved by the linear-time block
+    elimination of `_chain_kkt_solve` (regularised and refined like `_solve_kkt`), so
+    a step costs time linear in the chain's length. Declaring it for a Lagrangian
+    whose mass matrix is not local gives wrong accelerations (tests compare both).
+    """
     constraints = Constraints(scene)
+    local = _LocalMass(scene, constraints) if local_mass else None
+    chain_solve = local_mass and is_pinned_chain(scene)
 
     def reduced_lagrangian(x, v):
         return lagrangian(constraints.embed(x), constraints.embed_velocity(v))
@@ -338,15 +350,83 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
     def accel(q, qd):
         x, v = constraints.restrict(q), constraints.restrict(qd)
         pi = jax.grad(reduced_lagrangian, argnums=0)(x, v)
-        mass = jax.jacfwd(grad_v, argnums=1)(x, v)
         coriolis_v = jax.jvp(lambda y: grad_v(y, v), (x,), (v,))[1]
         rhs = pi - coriolis_v
         if force_fn is not None:
             rhs = rhs + constraints.restrict(force_fn(q, qd))
+        if local is None:
+            mass = jax.jacfwd(grad_v, argnums=1)(x, v)
+        else:
+            products = local.products(lambda seed: jax.jvp(lambda w: grad_v(x, w), (v,), (seed,))[1], x.dtype)
+            if chain_solve:
+                diagonal, upper = local.chain_blocks(products)
+                u = constraints.link_directions(q)
+                xdd = _chain_kkt_solve(diagonal, upper, u, rhs.reshape(-1, 2), -constraints.jacobian_dot_v(x, v),
+                                       KKT_REGULARISATION * jnp.trace(diagonal, axis1=1, axis2=2).mean() / 2, KKT_REFINEMENT_STEPS)
+                return constraints.embed_velocity(xdd.reshape(-1))
+            mass = local.dense(products)
         xdd = _solve_kkt(mass, constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
         return constraints.embed_velocity(xdd)
 
     return accel
+
+
+class _LocalMass:
+    """A mass matrix over the free coordinates whose only nonzero blocks couple a node
+    with itself and with the nodes it shares a link with, from Hessian-vector products.
+
+    Nodes are coloured so that no two nodes of one colour are linked or share a
+    neighbour (greedy distance-2 colouring: 3 colours for a chain). The product of M
+    with the indicator of colour c, coordinate d, then holds in each node's rows the
+    column d of its block with the one node of colour c it couples to. Static index
+    arrays (NumPy) map the products to blocks.
+    """
+
+    def __init__(self, scene: Scene, constraints: Constraints):
+        n, d = constraints.shape
+        free_node = np.zeros(n, bool)
+        free_node[constraints.free // d] = True
+        neighbours = [set() for _ in range(n)]
+        for a, b in scene.edges:
+            if free_node[a] and free_node[b]:
+                neighbours[a].add(b)
+                neighbours[b].add(a)
+        colour = np.full(n, -1)
+        for node in np.flatnonzero(free_node):
+            near = set(neighbours[node]).union(*(neighbours[k] for k in neighbours[node]))
+            taken = {colour[k] for k in near if colour[k] >= 0}
+            colour[node] = next(c for c in range(len(taken) + 1) if c not in taken)
+        self.n_colours = int(colour.max()) + 1 if free_node.any() else 0
+        self.dim = d
+        node_of = constraints.free // d
+        coord_of = constraints.free % d
+        # Seed (colour, coordinate) of each free coordinate, and the seeds as vectors.
+        self.seed_of = colour[node_of] * d + coord_of
+        self.seeds = np.zeros((self.n_colours * d, len(constraints.free)))
+        self.seeds[self.seed_of, np.arange(len(constraints.free))] = 1.0
+        adjacent = np.eye(n, dtype=bool)
+        for a, near in enumerate(neighbours):
+            adjacent[a, list(near)] = True
+        self.coupled = adjacent[np.ix_(node_of, node_of)]
+        # Free coordinates of node b (b = 1..n) of a chain pinned at node 0: 2 (b - 1) + i.
+        chain_nodes = (len(constraints.free) // 2) if d == 2 else 0
+        first = 2 * np.arange(chain_nodes)
+        self.diagonal_rows = first[:, None, None] + np.arange(2)[None, :, None] + 0 * np.arange(2)[None, None, :]
+        self.diagonal_seeds = self.seed_of[first[:, None, None] + np.arange(2)[None, None, :] + 0 * np.arange(2)[None, :, None]]
+        self.upper_rows = self.diagonal_rows[:-1]
+        self.upper_seeds = self.diagonal_seeds[1:]
+
+    def products(self, hvp: Callable[[Array], Array], dtype) -> Array:
+        """(S, F) `M @ seed` for every seed."""
+        return jax.vmap(hvp)(jnp.asarray(self.seeds, dtype))
+
+    def dense(self, products: Array) -> Array:
+        """(F, F) the mass matrix: entry (r, s) is row r of the product of s's seed."""
+        return jnp.where(self.coupled, products[self.seed_of[None, :], np.arange(products.shape[1])[:, None]], 0.0)
+
+    def chain_blocks(self, products: Array) -> tuple[Array, Array]:
+        """(n, 2, 2) diagonal and (n-1, 2, 2) upper (node b with b+1) blocks of a chain."""
+        return products[self.diagonal_seeds, self.diagonal_rows], products[self.upper_seeds, self.upper_rows]
 
 
 def _solve_kkt(mass: Array, jac: Array, force: Array, accel_rhs: Array) -> Array:
@@ -364,6 +444,242 @@ def _solve_kkt(mass: Array, jac: Array, force: Array, accel_rhs: Array) -> Array
     for _ in range(KKT_REFINEMENT_STEPS):
         solution = solution + jax.scipy.linalg.lu_solve(factor, rhs - kkt @ solution)
     return solution[:n]
+
+
+def mass_matrix_fn(lagrangian: LagrangianFn) -> Callable[[Array, Array], Array]:
+    """`M(q, qd) = d2L/dqd2` over all node coordinates, shape (N*D, N*D)."""
+
+    def mass_matrix(q, qd):
+        flat = lambda v: lagrangian(q, v.reshape(qd.shape))  # noqa: E731
+        return jax.hessian(flat)(qd.reshape(-1))
+
+    return mass_matrix
+
+
+def constant_node_mass(scene: Scene) -> np.ndarray:
+    """(N*D, N*D) the constant mass matrix of `constant_mass_lagrangian_fn`, assembled
+    from per-link blocks: a rod with ends a, b adds `m/4 + I/l^2` to the (a, a) and
+    (b, b) blocks and `m/4 - I/l^2` to (a, b) and (b, a), times the D x D identity."""
+    n, d = scene.n_nodes, scene.dim
+    mass = np.zeros((n, n))
+    same = np.asarray(scene.masses) / 4 + np.asarray(scene.inertias) / np.asarray(scene.lengths) ** 2
+    cross = np.asarray(scene.masses) / 4 - np.asarray(scene.inertias) / np.asarray(scene.lengths) ** 2
+    a, b = scene.edge_index.T
+    np.add.at(mass, (a, a), same)
+    np.add.at(mass, (b, b), same)
+    np.add.at(mass, (a, b), cross)
+    np.add.at(mass, (b, a), cross)
+    return np.kron(mass, np.eye(d))
+
+
+def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
+    """Ground-truth accelerations: the exact rod Lagrangian, plus drag if the scene has it.
+
+    `solver` picks how the constrained Euler-Lagrange equations are solved; all give
+    the same accelerations (to round-off, tested) wherever they apply:
+    - "generic": `acceleration_fn` on `lagrangian_fn` (the solver learned models use:
+      mass matrix by AD, regularised KKT solve). The reference.
+    - "schur": the on-manifold equivalent with a constant mass matrix
+      (`constant_mass_lagrangian_fn`), factored once per scene, and a Cholesky solve
+      of the Schur complement `A M^-1 A^T` for the multipliers (K x K instead of the
+      (F + K)-square KKT system, no mass matrix or its derivatives per call).
+    - "chain": the same equations for a chain pinned at one end, solved in time linear
+      in its length by block elimination from the free end (`_chain_solve`).
+    - "auto": "chain" where it applies, else "schur", and "generic" for scenes that
+      are self-stressed at their initial configuration (T2, T3), whose motion is
+      defined by the regularised KKT solve of the exact mass matrix (module docstring),
+      and for scenes whose constant mass matrix is singular on the free nodes (a
+      link of zero inertia, a node no link touches).
+    """
+    if solver not in ("auto", "generic", "schur", "chain"):
+        raise ValueError(f"unknown solver {solver!r}")
+    constraints = Constraints(scene)
+    mass = constant_node_mass(scene)[np.ix_(constraints.free, constraints.free)]
+    regular_mass = len(mass) == 0 or np.linalg.eigvalsh(mass).min() > 1e-12 * np.abs(mass).max()
+    if solver == "auto":
+        if constraints.self_stresses or not regular_mass:
+            solver = "generic"
+        else:
+            solver = "chain" if is_pinned_chain(scene) else "schur"
+    if solver == "generic":
+        return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
+    if not regular_mass:
+        raise ValueError(f"{scene.name}: the constant mass matrix is singular; use the generic solver")
+    if solver == "chain":
+        if not is_pinned_chain(scene):
+            raise ValueError(f"{scene.name}: the chain solver needs a planar chain pinned at node 0")
+        return _chain_acceleration_fn(scene)
+    return _schur_acceleration_fn(scene, constraints, mass)
+
+
+def _node_forces_fn(scene: Scene, free_nodes: np.ndarray) -> Callable[[Array, Array], Array]:
+    """`(q, qd) -> (N, D)` generalised forces on the free nodes: gravity (half of each
+    link's weight on each end) plus drag where the scene has it."""
+    gravity = np.zeros((scene.n_nodes, scene.dim))
+    weight = np.asarray(scene.masses) * float(scene.gravity) / 2
+    np.add.at(gravity[:, 1], scene.edge_index[:, 0], -weight)
+    np.add.at(gravity[:, 1], scene.edge_index[:, 1], -weight)
+    gravity *= free_nodes
+    drag = drag_force_fn(scene)
+
+    def forces(q, qd):
+        total = jnp.asarray(gravity, q.dtype)
+        return total if drag is None else total + drag(q, qd) * jnp.asarray(free_nodes, q.dtype)
+
+    return forces
+
+
+def _schur_acceleration_fn(scene: Scene, constraints: Constraints, mass: np.ndarray) -> AccelerationFn:
+    """The "schur" solver of `true_acceleration_fn`: `a = M^-1 (f - A^T lam)` with
+    `(A M^-1 A^T) lam = A M^-1 f + Adot v`, `M` constant (inverted once, in NumPy).
+    `A M^-1 A^T` is assembled from `M^-1`'s columns at each link's two nodes, so a call
+    costs O(K N D^2) for the products plus the K x K Cholesky."""
+    n, d = constraints.shape
+    inverse = np.zeros((n * d, n * d))
+    inverse[np.ix_(constraints.free, constraints.free)] = np.linalg.inv(mass)
+    inverse = inverse.reshape(n, d, n, d)
+    free_nodes = np.zeros((n, d))
+    free_nodes.reshape(-1)[constraints.free] = 1.0
+    forces = _node_forces_fn(scene, free_nodes)
+    i, j = constraints.edge_index[constraints.links].T
+    # M^-1 A^T = (M^-1[:, i] - M^-1[:, j]) u per link: (N, D, K, D) before contracting u.
+    inverse_at_links = inverse[:, :, i, :] - inverse[:, :, j, :]
+
+    def accel(q, qd):
+        dtype = q.dtype
+        minv = jnp.asarray(inverse, dtype)
+        accel_free = jnp.einsum("ndme,me->nd", minv, forces(q, qd))
+        if constraints.n_rows == 0:
+            return accel_free
+        u = constraints.link_directions(q)
+        dv = qd[i] - qd[j]
+        rhs = jnp.sum(u * (accel_free[i] - accel_free[j]), -1) + jnp.sum(dv * dv, -1) / jnp.asarray(constraints.lengths_all[constraints.links], dtype)
+        minv_at = jnp.einsum("ndke,ke->ndk", jnp.asarray(inverse_at_links, dtype), u)
+        schur = jnp.einsum("ke,kel->kl", u, minv_at[i] - minv_at[j])
+        lam = _regularised_spd_solve(schur, rhs)
+        return accel_free - jnp.einsum("ndk,k->nd", minv_at, lam)
+
+    return accel
+
+
+def _regularised_spd_solve(matrix: Array, rhs: Array) -> Array:
+    """Cholesky solve of `(S + eps I) x = r`, refined against `S x = r`: exact at regular
+    configurations, bounded near singular ones (as `_solve_kkt`)."""
+    k = matrix.shape[0]
+    eps = KKT_REGULARISATION * jnp.trace(matrix) / k
+    factor = jax.scipy.linalg.cho_factor(matrix + eps * jnp.eye(k, dtype=matrix.dtype))
+    solution = jax.scipy.linalg.cho_solve(factor, rhs)
+    for _ in range(KKT_REFINEMENT_STEPS):
+        solution = solution + jax.scipy.linalg.cho_solve(factor, rhs - matrix @ solution)
+    return solution
+
+
+def _inverse_3x3(m: Array) -> Array:
+    """Inverse of a (3, 3) matrix by its adjugate: a handful of fused elementwise ops,
+    where a LAPACK call per block of the chain elimination would cost more than the
+    arithmetic."""
+    a, b, c = m[0, 0], m[0, 1], m[0, 2]
+    d, e, f = m[1, 0], m[1, 1], m[1, 2]
+    g, h, k = m[2, 0], m[2, 1], m[2, 2]
+    cofactor = (e * k - f * h, f * g - d * k, d * h - e * g)
+    adjugate = jnp.array([
+        [cofactor[0], c * h - b * k, b * f - c * e],
+        [cofactor[1], a * k - c * g, c * d - a * f],
+        [cofactor[2], b * g - a * h, a * e - b * d],
+    ])
+    return adjugate / (a * cofactor[0] + b * cofactor[1] + c * cofactor[2])
+
+
+def _chain_acceleration_fn(scene: Scene) -> AccelerationFn:
+    """The "chain" solver of `true_acceleration_fn`: the constant-mass equations of a
+    planar chain pinned at node 0 by `_chain_kkt_solve`, in time linear in its length.
+    A pinned chain's constraint rows are always independent, so no regularisation is
+    needed."""
+    n = scene.n_links
+    node_mass = constant_node_mass(scene).reshape(n + 1, 2, n + 1, 2)
+    # (n, 2, 2) blocks (nodes 1..n) and (n-1, 2, 2) blocks (node b with b+1).
+    diagonal_mass = node_mass[np.arange(1, n + 1), :, np.arange(1, n + 1), :]
+    upper_mass = node_mass[np.arange(1, n), :, np.arange(2, n + 1), :]
+    free_nodes = np.ones((n + 1, 2))
+    free_nodes[0] = 0.0
+    forces = _node_forces_fn(scene, free_nodes)
+    lengths = np.asarray(scene.lengths)
+
+    def accel(q, qd):
+        dtype = q.dtype
+        length = jnp.asarray(lengths, dtype)
+        u = (q[:-1] - q[1:]) / length[:, None]
+        dv = qd[:-1] - qd[1:]
+        # Link rows: `A a = -Adot v`.
+        accel_nodes = _chain_kkt_solve(jnp.asarray(diagonal_mass, dtype), jnp.asarray(upper_mass, dtype), u, forces(q, qd)[1:],
+                                       -jnp.sum(dv * dv, -1) / length)
+        return jnp.concatenate([jnp.zeros((1, 2), dtype), accel_nodes])
+
+    return accel
+
+
+def _chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs: Array, link_rhs: Array,
+                     eps: Array | float = 0.0, refinement_steps: int = 0) -> Array:
+    """Solve the KKT system of a planar chain pinned at node 0 in time linear in n.
+
+    Block b (b = 0..n-1) holds node b+1's acceleration and link b's multiplier. Link b
+    joins nodes b and b+1 (row `+u_b` at node b, `-u_b` at node b+1; `u` (n, 2)) and the
+    mass matrix couples only neighbouring nodes (`diagonal_mass` (n, 2, 2) for nodes
+    1..n, `upper_mass` (n-1, 2, 2) node b with b+1), so the KKT matrix is
+    block-tridiagonal with 3 x 3 blocks: diagonal `D_b = [[M_b+1,b+1, -u_b], [-u_b^T,
+    -eps]]`, above it `U_b = [[M_b+1,b+2, u_b+1], [0, 0]]`. Eliminating from the free
+    end (`D~_b = D_b - U_b D~_b+1^-1 U_b^T`, the articulated inertia of the chain beyond
+    node b+1) and substituting back from the pin are two `lax.scan`s; with `eps > 0`
+    each refinement step against the exact (`eps = 0`) system costs two more.
+    Returns the node accelerations (n, 2).
+    """
+    n, dtype = u.shape[0], u.dtype
+
+    def blocks(eps_value):
+        diagonal = jnp.zeros((n, 3, 3), dtype).at[:, :2, :2].set(diagonal_mass).at[:, :2, 2].set(-u).at[:, 2, :2].set(-u)
+        return diagonal.at[:, 2, 2].set(-eps_value)
+
+    upper = jnp.zeros((n - 1, 3, 3), dtype).at[:, :2, :2].set(upper_mass).at[:, :2, 2].set(u[1:])
+    diagonal = blocks(eps)
+    rhs = jnp.concatenate([node_rhs, link_rhs[:, None]], axis=1)
+
+    def eliminate(carry, block):
+        next_inverse, next_reduced = carry
+        block_diagonal, block_upper, block_rhs = block
+        weight = block_upper @ next_inverse
+        inverse = _inverse_3x3(block_diagonal - weight @ block_upper.T)
+        reduced = block_rhs - weight @ next_reduced
+        return (inverse, reduced), (inverse, weight, reduced)
+
+    def reduce(next_reduced, block):
+        block_weight, block_rhs = block
+        reduced = block_rhs - block_weight @ next_reduced
+        return reduced, reduced
+
+    def substitute(previous, block):
+        inverse, reduced, block_upper = block
+        solution = inverse @ (reduced - block_upper.T @ previous)
+        return solution, solution
+
+    def back_substitute(inverses, reduced):
+        first = inverses[0] @ reduced[0]
+        _, rest = jax.lax.scan(substitute, first, (inverses[1:], reduced[1:], upper))
+        return jnp.concatenate([first[None], rest])
+
+    last_inverse = _inverse_3x3(diagonal[-1])
+    _, (inverses, weights, reduced) = jax.lax.scan(eliminate, (last_inverse, rhs[-1]), (diagonal[:-1], upper, rhs[:-1]), reverse=True)
+    inverses = jnp.concatenate([inverses, last_inverse[None]])
+    solution = back_substitute(inverses, jnp.concatenate([reduced, rhs[-1:]]))
+    exact = blocks(0.0)
+    for _ in range(refinement_steps):
+        # Residual against the exact system: K y = D_b y_b + U_b y_b+1 + U_b-1^T y_b-1.
+        product = jnp.einsum("bij,bj->bi", exact, solution)
+        product = product.at[:-1].add(jnp.einsum("bij,bj->bi", upper, solution[1:]))
+        product = product.at[1:].add(jnp.einsum("bji,bj->bi", upper, solution[:-1]))
+        residual = rhs - product
+        _, reduced = jax.lax.scan(reduce, residual[-1], (weights, residual[:-1]), reverse=True)
+        solution = solution + back_substitute(inverses, jnp.concatenate([reduced, residual[-1:]]))
+    return solution[:, :2]
 
 
 def mass_matrix_fn(lagrangian: LagrangianFn) -> Callable[[Array, Array], Array]:

@@ -155,6 +155,13 @@ def _speed_rows(profile: bm.Profile, out: Path) -> list[dict]:
     return rows
 
 
+def _scaling_record(profile: bm.Profile, out: Path) -> dict | None:
+    """The scaling stage's record if it matches the profile and checkpoint, else None."""
+    path = bm.Layout(out).scaling_record
+    stored = json.loads(path.read_text()) if path.exists() else {}
+    return stored if stored.get("key") == bm._scaling_settings(profile, out)[2] else None
+
+
 def speed_markdown(rows: list[dict]) -> str:
     lines = ["| scene | solver | dt | wall s per simulated s | evaluations per simulated s | compile s | rollout error | note |", "|---" * 8 + "|"]
     for r in rows:
@@ -443,7 +450,6 @@ def readme(profile: bm.Profile, out: Path, records: tuple, summary, speed_rows, 
 # Issue 7's accuracy bar for comparing engines' speed: a step whose rollout error
 # against the reference is at most this (the default settings' max node error).
 ACCURATE = 1e-6
-SCALING_SCENES = {"chain4": 4, "chain16": 16, "chain100": 100}
 
 
 def _fastest_accurate(rows: list[dict], scene: str, solver: str) -> dict | None:
@@ -453,17 +459,55 @@ def _fastest_accurate(rows: list[dict], scene: str, solver: str) -> dict | None:
     return min(ok, key=lambda r: r["wall_s_per_sim_s"]) if ok else None
 
 
-def performance_markdown(profile: bm.Profile, rows: list[dict]) -> str:
-    """`performance.md`: the speed-against-error records read as issue 7's ratios."""
+def _fit_exponent(costs: dict[int, float]) -> float:
+    sizes = sorted(costs)
+    return float(np.polyfit(np.log(sizes), np.log([costs[n] for n in sizes]), 1)[0])
+
+
+def _gpu_section(out: Path) -> list[str]:
+    """The GPU tables under `out/gpu/` (written by `lgnn crosscheck --speed` on a lent
+    GPU machine, commands in their headers): batched throughput, Lagrangian over MJX
+    where a table has both; and the LGNN training-time summary if present."""
+    import pandas as pd
+
+    gpu = out / "gpu"
+    tables = sorted(gpu.glob("*.csv")) if gpu.is_dir() else []
+    if not tables:
+        return ["Not measured in this output directory (no `gpu/` tables)."]
+    lines = ["Batched ground truth on GPUs, RK4 at dt 1e-3, from the tables in `gpu/` (each `.md` names its command, machine and "
+             "versions; `h200x2_*`: one and two H200s of one host, the batch split over the devices by `jax.sharding`).", "",
+             "| table | scene | batch | dtype | Lagrangian steps/s | MJX steps/s | Lagrangian / MJX | MuJoCo C steps/s |", "|---" * 8 + "|"]
+    for path in tables:
+        frame = pd.read_csv(path)
+        batched = frame[frame["batch"] > 1]
+        for (scene, batch), group in batched.groupby(["scene", "batch"], sort=False):
+            rate = {r["engine"]: r["steps_per_s"] for _, r in group.iterrows()}
+            dtype = group[group["engine"] == "lagrangian"]["dtype"].iloc[0] if "lagrangian" in rate else "—"
+            ratio = rate["lagrangian"] / rate["mjx"] if "lagrangian" in rate and "mjx" in rate else float("nan")
+            lines.append(f"| {path.stem} | {scene} | {batch} | {dtype} | {_fmt(rate.get('lagrangian', float('nan')))} | "
+                         f"{_fmt(rate.get('mjx', float('nan')))} | {_fmt(ratio)} | {_fmt(rate.get('mujoco', float('nan')))} |")
+    for path in sorted(gpu.glob("*training*.txt")):
+        lines += ["", f"LGNN training on a GPU (`{path.name}`, written by `lgnn benchmark --full --stage train --job lgnn-chain4-s0` "
+                  "in a fresh output directory, then `lgnn checkpoint ... --reference results/benchmark/checkpoints/lgnn-chain4-s0.npz`):",
+                  "", "```", path.read_text().strip(), "```"]
+    return lines
+
+
+def performance_markdown(profile: bm.Profile, rows: list[dict], scaling_record: dict | None = None, out: Path | None = None) -> str:
+    """`performance.md`: the speed records read as issue 7's ratios, the scaling record
+    as cost against size and batched throughput, and the GPU tables."""
     lines = [
         "# Performance: ground truth and learned rollouts against MuJoCo",
         "",
         f"Written by the benchmark's report stage (`lgnn benchmark{' --full' if profile.name == 'full' else ''} --stage report`) "
-        "from the speed-against-error records (`benchmark/runs/speed-error/`, made by `--stage speed`); nothing here is edited "
-        "by hand. Every ratio compares rows timed in the same process on the same core (single trajectory, "
-        f"{rows[0]['horizon_s']:g} s simulated, compile apart); machines per scene in `README.md`.",
+        "from the speed-against-error records (`benchmark/runs/speed-error/`, made by `--stage speed`) and the scaling record "
+        "(`benchmark/runs/scaling.json`, made by `--stage scaling`); nothing here is edited by hand. Every ratio compares rows "
+        "timed in the same process on the same machine, compile apart; MuJoCo C is timed on its stepping alone (not the map "
+        "from its joint coordinates to node states). Machines per record in `README.md`.",
         "",
         f"## Ground truth against MuJoCo C at equal accuracy (rollout error <= {ACCURATE:g} against the reference)",
+        "",
+        f"Single trajectory, {rows[0]['horizon_s']:g} s simulated." if rows else "No speed records.",
         "",
         "| scene | Lagrangian: dt, wall s per simulated s | MuJoCo C: dt, wall s per simulated s | Lagrangian / MuJoCo | "
         "Lagrangian compile s |",
@@ -476,32 +520,39 @@ def performance_markdown(profile: bm.Profile, rows: list[dict]) -> str:
             continue
         lines.append(f"| {scene} | {ours['dt']:g}, {ours['wall_s_per_sim_s']:.3g} | {theirs['dt']:g}, {theirs['wall_s_per_sim_s']:.3g} | "
                      f"{ours['wall_s_per_sim_s'] / theirs['wall_s_per_sim_s']:.3g} | {ours['compile_s']:.1f} |")
-    lines += ["", f"## Cost per step against chain length (fitted exponent over n = {', '.join(map(str, SCALING_SCENES.values()))} links, "
-              f"dt {profile.dt:g})", "", "| solver | " + " | ".join(f"n = {n}: s per step" for n in SCALING_SCENES.values())
-              + " | exponent |", "|---" * (len(SCALING_SCENES) + 2) + "|"]
-    for solver in dict.fromkeys(r["solver"] for r in rows):
-        costs = {}
-        for r in rows:
-            if r["solver"] == solver and r["scene"] in SCALING_SCENES and r["dt"] == profile.dt and math.isfinite(r["wall_s_per_sim_s"]):
-                costs[SCALING_SCENES[r["scene"]]] = r["wall_s_per_sim_s"] * r["dt"]
-        if len(costs) < 2:
-            continue
-        sizes = sorted(costs)
-        slope = float(np.polyfit(np.log(sizes), np.log([costs[n] for n in sizes]), 1)[0])
-        lines.append(f"| {solver} | " + " | ".join(f"{costs[n]:.3g}" if n in costs else "—" for n in SCALING_SCENES.values())
-                     + f" | {slope:.2f} |")
+    if scaling_record is not None:
+        srows = scaling_record["rows"]
+        batch = [r for r in srows if r["kind"] == "batch"]
+        env = scaling_record.get("environment", {})
+        lines += ["", f"## Batched ground truth against MuJoCo C ({batch[0]['batch'] if batch else 0} initial conditions at once, "
+                  f"dt {profile.dt:g}, {env.get('device', 'unknown device')})", "",
+                  "| scene | Lagrangian steps/s | MuJoCo C steps/s (2 threads) | Lagrangian / MuJoCo |", "|---|---|---|---|"]
+        for scene in dict.fromkeys(r["scene"] for r in batch):
+            rate = {r["solver"]: r["batch"] / r["s_per_step"] for r in batch if r["scene"] == scene}
+            lines.append(f"| {scene} | {rate['lagrangian']:.3g} | {rate['mujoco']:.3g} | {rate['lagrangian'] / rate['mujoco']:.3g} |")
+        size = [r for r in srows if r["kind"] == "size"]
+        lengths = sorted({r["n_links"] for r in size})
+        lines += ["", f"## Cost per step against chain length (single trajectory, RK4 at dt {profile.dt:g}, fitted exponent over "
+                  f"n = {', '.join(map(str, lengths))} links)", "",
+                  "| solver | " + " | ".join(f"n = {n}: s per step" for n in lengths) + " | exponent | compile s (largest n) |",
+                  "|---" * (len(lengths) + 3) + "|"]
+        for solver in dict.fromkeys(r["solver"] for r in size):
+            costs = {r["n_links"]: r["s_per_step"] for r in size if r["solver"] == solver}
+            compile_s = max((r for r in size if r["solver"] == solver), key=lambda r: r["n_links"])["compile_s"]
+            lines.append(f"| {solver} | " + " | ".join(f"{costs[n]:.3g}" if n in costs else "—" for n in lengths)
+                         + f" | {_fit_exponent(costs):.2f} | {compile_s:.1f} |")
     lines += [
         "",
         "## Learned rollouts",
         "",
         f"Every learned model is integrated with RK4 at dt {profile.dt:g} (4 evaluations a step), not the paper's Verlet at "
-        "1e-5; its wall time per simulated second and rollout error are the `learned` rows of `benchmark/speed_error.md`.",
+        "1e-5; its wall time per simulated second and rollout error are the `learned` rows of `benchmark/speed_error.md`. "
+        "LGNN's mass matrix couples only linked nodes, so its solve uses coloured Hessian-vector products and, on chains, "
+        "the linear-time block elimination (`physics.acceleration_fn(local_mass=True)`).",
         "",
-        "## More than one device",
+        "## GPUs",
         "",
-        "Evaluation and data generation shard their batch of initial conditions over every local device (`lgnn/sharding.py`, "
-        "`jax.sharding`); `tests/test_sharding.py` checks two forced CPU host devices against one. Not measured here: GPU "
-        "throughput against MJX at batch 1024 and 8192, LGNN time to its final validation loss on a GPU, and two GPUs.",
+        *(_gpu_section(out) if out is not None else ["Not measured."]),
         "",
     ]
     return "\n".join(lines)
@@ -525,7 +576,7 @@ def write(profile: bm.Profile, out: Path) -> Path:
     _write_csv(pd.DataFrame(speed_rows), bench_dir / "speed_error.csv")
     write_text_atomic(bench_dir / "speed_error.md", speed_markdown(speed_rows))
     if speed_rows:
-        write_text_atomic(out / "performance.md", performance_markdown(profile, speed_rows))
+        write_text_atomic(out / "performance.md", performance_markdown(profile, speed_rows, _scaling_record(profile, out), out))
     mass_records = _mass_rows(profile, out)
     _write_csv(pd.DataFrame([{**{k: m[k] for k in MASS_COLUMNS}, **_env_columns(m)} for _, m in mass_records]),
                bench_dir / "mass_matrix.csv")
