@@ -5,7 +5,7 @@ scene, measure speed against error and write the report (`lgnn.benchmark`,
     pytest bench/test_benchmark.py               # quick profile -> results/quick/
     pytest bench/test_benchmark.py --benchmark   # full profile  -> results/
 
-Tests run in file order (train, ground truth, evaluation, speed, mass matrix, report)
+Tests run in file order (train, ground truth, evaluation, speed, scaling, mass matrix, report)
 and every stage resumes from the records already on disk, so a killed run restarted
 loses no finished work. pytest-benchmark times one training epoch per job and, on
 chain4, one evaluation rollout chunk per model, with the functions the stages
@@ -119,6 +119,18 @@ def test_speed_error(profile, out, speed_scene):
     assert min(r["rollout_error"] for r in engines) < 1e-8
 
 
+def test_scaling(profile, out):
+    import json
+
+    rows = json.loads(bm.scaling(profile, out).read_text())["rows"]
+    sizes = {(r["solver"], r["n_links"]) for r in rows if r["kind"] == "size"}
+    assert {("lagrangian", n) for n in profile.scaling_lengths} <= sizes
+    assert {("mujoco", n) for n in profile.scaling_lengths} <= sizes
+    batched = [r for r in rows if r["kind"] == "batch"]
+    assert {r["scene"] for r in batched} == set(profile.speed_scenes)
+    assert all(np.isfinite(r["s_per_step"]) and r["s_per_step"] > 0 for r in rows)
+
+
 def test_mass_matrix(profile, out, mass_scene):
     arrays, meta = bm.load_record(bm.mass_matrices(profile, mass_scene, out))
     true_m = arrays["true"]
@@ -133,7 +145,8 @@ def test_report(profile, out):
         assert f"| {pair.scene} |" in text
     for name in ("summary.csv", "curves.csv", "speed_error.csv", "mass_matrix.csv"):
         assert (out / "benchmark" / name).stat().st_size > 0
-    assert "Lagrangian / MuJoCo" in (out / "performance.md").read_text()
+    performance = (out / "performance.md").read_text()
+    assert "Lagrangian / MuJoCo" in performance and "Cost per step against chain length" in performance
     figures = sorted((out / "figures").glob("*.png"))
     assert figures
     for figure in figures:

@@ -59,7 +59,7 @@ import numpy as np
 
 from lgnn import data, models, physics, sharding, train
 from lgnn._io import atomic_path
-from lgnn.errors import CheckpointError, ConfigError, SimulationError
+from lgnn.errors import CheckpointError, ConfigError, SceneError, SimulationError
 from lgnn.scene import Scene, State, scene_to_dict
 from lgnn.scenes import get_scene, is_pinned_chain, sample_initial_states
 from lgnn.simulate import SimulationConfig, rollout_fn
@@ -806,22 +806,32 @@ def scaling(profile: Profile, out: Path) -> Path:
         scene = chain(n)
         states = sample_initial_states(scene, jax.random.PRNGKey(profile.ic_seed), 1)
         single = State(np.asarray(states.q), np.asarray(states.qd))
-        for solver in ("lagrangian", "mujoco", "lgnn"):
-            if solver == "lgnn":
-                if model_params is None:
+        factories = {"lagrangian": physics.true_acceleration_fn, "mujoco": None}
+        if model_params is not None:
+            model, params = model_params
+            factories["lgnn"] = lambda s, model=model, params=params: models.acceleration_fn(model, params, s)
+        for solver, factory in factories.items():
+            row = dict(kind="size", scene=scene.name, n_links=n, solver=solver, batch=1, s_per_step=float("nan"), compile_s=float("nan"), note="")
+            if factory is None:
+                try:
+                    compile_s, run_s, _ = _timed("mujoco", scene, config, single)
+                except (ConfigError, SceneError, SimulationError) as err:
+                    row["note"] = f"not run: {err}"
+                    rows.append(row)
+                    log(f"scaling {scene.name} mujoco: {row['note']}")
                     continue
-                model, params = model_params
-                run = jax.jit(jax.vmap(rollout_fn(scene, config, lambda s: models.acceleration_fn(model, params, s))))
-                args = (jnp.asarray(single.q), jnp.asarray(single.qd))
+            else:
+                # One trajectory, not vmapped (as the speed stage times learned models).
+                run = jax.jit(rollout_fn(scene, config, factory))
+                args = (jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
                 start = time.perf_counter()
                 compiled = run.lower(*args).compile()
                 compile_s = time.perf_counter() - start
+                jax.block_until_ready(compiled(*args))  # first run's one-off costs apart
                 start = time.perf_counter()
                 jax.block_until_ready(compiled(*args))
                 run_s = time.perf_counter() - start
-            else:
-                compile_s, run_s, _ = _timed(solver, scene, config, single)
-            rows.append(dict(kind="size", scene=scene.name, n_links=n, solver=solver, batch=1, s_per_step=run_s / steps, compile_s=compile_s))
+            rows.append({**row, "s_per_step": run_s / steps, "compile_s": compile_s})
             log(f"scaling {scene.name} {solver}: {run_s / steps:.3g} s per step (compile {compile_s:.1f} s)")
     for name in profile.speed_scenes:
         scene = scene_named(name)
@@ -830,7 +840,7 @@ def scaling(profile: Profile, out: Path) -> Path:
         for solver in ("lagrangian", "mujoco"):
             compile_s, run_s, _ = _timed(solver, scene, config, batch)
             rows.append(dict(kind="batch", scene=name, n_links=scene.n_links, solver=solver, batch=profile.throughput_batch,
-                             s_per_step=run_s / steps, compile_s=compile_s))
+                             s_per_step=run_s / steps, compile_s=compile_s, note=""))
             log(f"throughput {name} {solver} x{profile.throughput_batch}: {profile.throughput_batch * steps / run_s:.3g} steps/s")
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:

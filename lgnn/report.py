@@ -537,10 +537,13 @@ def performance_markdown(profile: bm.Profile, rows: list[dict], scaling_record: 
                   "| solver | " + " | ".join(f"n = {n}: s per step" for n in lengths) + " | exponent | compile s (largest n) |",
                   "|---" * (len(lengths) + 3) + "|"]
         for solver in dict.fromkeys(r["solver"] for r in size):
-            costs = {r["n_links"]: r["s_per_step"] for r in size if r["solver"] == solver}
-            compile_s = max((r for r in size if r["solver"] == solver), key=lambda r: r["n_links"])["compile_s"]
+            timed = [r for r in size if r["solver"] == solver and math.isfinite(r["s_per_step"])]
+            costs = {r["n_links"]: r["s_per_step"] for r in timed}
+            exponent = f"{_fit_exponent(costs):.2f} (n = {min(costs)}..{max(costs)})" if len(costs) > 1 else "—"
+            compile_s = f"{max(timed, key=lambda r: r['n_links'])['compile_s']:.1f}" if timed else "—"
             lines.append(f"| {solver} | " + " | ".join(f"{costs[n]:.3g}" if n in costs else "—" for n in lengths)
-                         + f" | {_fit_exponent(costs):.2f} | {compile_s:.1f} |")
+                         + f" | {exponent} | {compile_s} |")
+        lines += [f"- {r['solver']} on {r['scene']}: {r['note']}" for r in size if r.get("note")]
     lines += [
         "",
         "## Learned rollouts",

@@ -45,7 +45,7 @@ class SimulationConfig:
     # The paper saves a frame every 1e-3 s.
     frame_dt: float = 1e-3
     duration: float = 1.0
-    # Projection keeps link lengths to round-off at a cost of ~10% per step.
+    # Projection keeps link lengths to round-off (per-link blocks: linear in a chain's length).
     project: bool = True
 
     def __post_init__(self):
