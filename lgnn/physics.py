@@ -421,10 +421,11 @@ class _LocalMass:
             adjacent[a, list(near)] = True
         self.coupled = adjacent[np.ix_(node_of, node_of)]
         # Free coordinates of node b (b = 1..n) of a chain pinned at node 0: 2 (b - 1) + i.
+        # Block (b, i, j) of a chain: row 2b + i, the seed of column 2b + j.
         chain_nodes = (len(constraints.free) // 2) if d == 2 else 0
-        first = 2 * np.arange(chain_nodes)
-        self.diagonal_rows = first[:, None, None] + np.arange(2)[None, :, None] + 0 * np.arange(2)[None, None, :]
-        self.diagonal_seeds = self.seed_of[first[:, None, None] + np.arange(2)[None, None, :] + 0 * np.arange(2)[None, :, None]]
+        block, row, column = np.meshgrid(np.arange(chain_nodes), np.arange(2), np.arange(2), indexing="ij")
+        self.diagonal_rows = 2 * block + row
+        self.diagonal_seeds = self.seed_of[2 * block + column]
         self.upper_rows = self.diagonal_rows[:-1]
         self.upper_seeds = self.diagonal_seeds[1:]
 
