@@ -520,13 +520,13 @@ def _ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> d
     states = initial_states(profile, scene)
     config = profile.simulation(scene_name)
     log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s")
-    q, qd, compile_s, run_s = _batched_rollouts(scene, config, physics.true_acceleration_fn, states, profile.chunk, f"truth {scene_name}", progress)
+    q, qd, compile_s, run_s = _batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, states, profile.chunk, f"truth {scene_name}", progress)
     _check_reference(scene, q, "Lagrangian ground truth", config)
     noise = profile.floor_perturbation * jax.random.normal(jax.random.PRNGKey(profile.ic_seed + 1000), states.q.shape)
     perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
     # The perturbed runs are not references: one that diverges (T2/T3's perturbed
     # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
-    q_floor, _, _, _ = _batched_rollouts(scene, config, physics.true_acceleration_fn, perturbed, profile.chunk, f"floor {scene_name}", progress)
+    q_floor, _, _, _ = _batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, profile.chunk, f"floor {scene_name}", progress)
     from lgnn import mujoco as lm
 
     mj_config = SimulationConfig("rk4", profile.mujoco_dt, profile.frame_dt, profile.duration, True)
@@ -751,6 +751,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
         start = time.perf_counter()
         compiled = run.lower(*args).compile()
         compile_s = time.perf_counter() - start
+        jax.block_until_ready(compiled(*args))  # the first run's one-off costs apart (~0.1 s for LGNN)
         start = time.perf_counter()
         q = np.asarray(jax.block_until_ready(compiled(*args)).q)
         run_s = time.perf_counter() - start

@@ -136,8 +136,8 @@ def _compiled(scene_json: str, sim: SimulationConfig):
     """Jitted, vmapped trajectory and target functions, cached per scene content and
     settings (regenerating a cache in the same process does not recompile)."""
     scene = scene_from_dict(json.loads(scene_json))
-    run = sharding.batch_jit(jax.vmap(rollout_fn(scene, sim)))
-    return run, sharding.batch_jit(jax.vmap(physics.true_acceleration_fn(scene)))
+    run = sharding.batch_jit(jax.vmap(rollout_fn(scene, sim, physics.vectorised_true_acceleration_fn)))
+    return run, sharding.batch_jit(jax.vmap(physics.vectorised_true_acceleration_fn(scene)))
 
 
 def _checksum(arrays: dict) -> str:

@@ -485,7 +485,7 @@ def constant_node_mass(scene: Scene) -> np.ndarray:
     return np.kron(mass, np.eye(d))
 
 
-def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
+def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool = False) -> AccelerationFn:
     """Ground-truth accelerations: the exact rod Lagrangian, plus drag if the scene has it.
 
     `solver` picks how the constrained Euler-Lagrange equations are solved; all give
@@ -498,8 +498,11 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
       (F + K)-square KKT system, no mass matrix or its derivatives per call).
     - "chain": the same equations for a chain pinned at one end, solved in time linear
       in its length by block elimination from the free end (`_chain_solve`).
-    - "auto": "chain" where it applies (from `CHAIN_SOLVER_MIN_LINKS` links), else
-      "schur", and "generic" for scenes that
+    - "auto": "chain" where it applies (from `CHAIN_SOLVER_MIN_LINKS` links, or any
+      length with `vectorised=True`: callers that `vmap` over many states, where the
+      scan's elementwise work vectorises over the batch while the small dense
+      factorisations run one matrix at a time; measured on 2 cores, chain16 x 100:
+      1.5e5 against 6.2e4 steps/s), else "schur", and "generic" for scenes that
       are self-stressed at their initial configuration (T2, T3), whose motion is
       defined by the regularised KKT solve of the exact mass matrix (module docstring),
       and for scenes whose constant mass matrix is singular on the free nodes (a
@@ -514,7 +517,8 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
         if constraints.self_stresses or not regular_mass:
             solver = "generic"
         else:
-            solver = "chain" if is_pinned_chain(scene) and scene.n_links >= CHAIN_SOLVER_MIN_LINKS else "schur"
+            long_enough = vectorised or scene.n_links >= CHAIN_SOLVER_MIN_LINKS
+            solver = "chain" if is_pinned_chain(scene) and long_enough else "schur"
     if solver == "generic":
         return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
     if not regular_mass:
@@ -524,6 +528,12 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
             raise ValueError(f"{scene.name}: the chain solver needs a planar chain pinned at node 0")
         return _chain_acceleration_fn(scene)
     return _schur_acceleration_fn(scene, constraints, mass)
+
+
+def vectorised_true_acceleration_fn(scene: Scene) -> AccelerationFn:
+    """`true_acceleration_fn` for callers that `vmap` it over many states (batched
+    rollouts, data generation): the same accelerations, the solver that vectorises."""
+    return true_acceleration_fn(scene, vectorised=True)
 
 
 def _node_forces_fn(scene: Scene, free_nodes: np.ndarray) -> Callable[[Array, Array], Array]:
@@ -722,7 +732,7 @@ def constant_node_mass(scene: Scene) -> np.ndarray:
     return np.kron(mass, np.eye(d))
 
 
-def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
+def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool = False) -> AccelerationFn:
     """Ground-truth accelerations: the exact rod Lagrangian, plus drag if the scene has it.
 
     `solver` picks how the constrained Euler-Lagrange equations are solved; all give
@@ -735,8 +745,11 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
       (F + K)-square KKT system, no mass matrix or its derivatives per call).
     - "chain": the same equations for a chain pinned at one end, solved in time linear
       in its length by block elimination from the free end (`_chain_solve`).
-    - "auto": "chain" where it applies (from `CHAIN_SOLVER_MIN_LINKS` links), else
-      "schur", and "generic" for scenes that
+    - "auto": "chain" where it applies (from `CHAIN_SOLVER_MIN_LINKS` links, or any
+      length with `vectorised=True`: callers that `vmap` over many states, where the
+      scan's elementwise work vectorises over the batch while the small dense
+      factorisations run one matrix at a time; measured on 2 cores, chain16 x 100:
+      1.5e5 against 6.2e4 steps/s), else "schur", and "generic" for scenes that
       are self-stressed at their initial configuration (T2, T3), whose motion is
       defined by the regularised KKT solve of the exact mass matrix (module docstring),
       and for scenes whose constant mass matrix is singular on the free nodes (a
@@ -751,7 +764,8 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
         if constraints.self_stresses or not regular_mass:
             solver = "generic"
         else:
-            solver = "chain" if is_pinned_chain(scene) and scene.n_links >= CHAIN_SOLVER_MIN_LINKS else "schur"
+            long_enough = vectorised or scene.n_links >= CHAIN_SOLVER_MIN_LINKS
+            solver = "chain" if is_pinned_chain(scene) and long_enough else "schur"
     if solver == "generic":
         return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
     if not regular_mass:
@@ -761,6 +775,12 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto") -> AccelerationFn:
             raise ValueError(f"{scene.name}: the chain solver needs a planar chain pinned at node 0")
         return _chain_acceleration_fn(scene)
     return _schur_acceleration_fn(scene, constraints, mass)
+
+
+def vectorised_true_acceleration_fn(scene: Scene) -> AccelerationFn:
+    """`true_acceleration_fn` for callers that `vmap` it over many states (batched
+    rollouts, data generation): the same accelerations, the solver that vectorises."""
+    return true_acceleration_fn(scene, vectorised=True)
 
 
 def _node_forces_fn(scene: Scene, free_nodes: np.ndarray) -> Callable[[Array, Array], Array]:
