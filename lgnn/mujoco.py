@@ -441,6 +441,18 @@ def _warnings_as_counters():
         mujoco.set_mju_user_warning(previous)
 
 
+def _reset_frame(config, start_time: np.ndarray, steps_out: np.ndarray, first_frame: int) -> int:
+    """The frame by which MuJoCo reset a run within a `rollout` call (its time restarts
+    at zero when it resets an unstable state): `steps_out` (B, steps, nstate) holds the
+    call's per-step FULLPHYSICS states, time first; the call's last frame if no restart
+    shows."""
+    steps = steps_out.shape[1]
+    expected = start_time[:, None] + config.dt * np.arange(1, steps + 1)[None, :]
+    off = np.abs(steps_out[:, :, 0] - expected).max(axis=0) > config.dt / 2
+    step = int(np.argmax(off)) if off.any() else steps - 1
+    return first_frame + step // config.steps_per_frame + 1
+
+
 def _check_warnings(scene: Scene, config, datas, frame: int) -> None:
     """Raise `SimulationError` if MuJoCo flagged (and reset) an unstable state by `frame`."""
     for data in datas:
@@ -520,7 +532,7 @@ def joint_rollout(scene: Scene, config, states: State | None = None, *, threads:
                 for first in range(0, config.n_frames, frames_per_call):
                     count = min(frames_per_call, config.n_frames - first)
                     runner.rollout(model, datas, state, nstep=count * spf, state=out[:, : count * spf])
-                    _check_warnings(scene, config, datas, first + count)
+                    _check_warnings(scene, config, datas, _reset_frame(config, state[:, 0], out[:, : count * spf], first))
                     frames = out[:, spf - 1 : count * spf : spf]
                     state = frames[:, -1].copy()
                     # FULLPHYSICS layout: time, qpos, qvel, ...
