@@ -478,14 +478,14 @@ def _gpu_section(out: Path) -> list[str]:
              "versions; `h200x2_*`: one and two H200s of one host, the batch split over the devices by `jax.sharding`).", "",
              "| table | scene | batch | dtype | Lagrangian steps/s | MJX steps/s | Lagrangian / MJX | MuJoCo C steps/s |", "|---" * 8 + "|"]
     for path in tables:
-        frame = pd.read_csv(path)
+        frame = pd.read_csv(path, comment="#")
         batched = frame[frame["batch"] > 1]
         for (scene, batch), group in batched.groupby(["scene", "batch"], sort=False):
             rate = {r["engine"]: r["steps_per_s"] for _, r in group.iterrows()}
             dtype = group[group["engine"] == "lagrangian"]["dtype"].iloc[0] if "lagrangian" in rate else "—"
             ratio = rate["lagrangian"] / rate["mjx"] if "lagrangian" in rate and "mjx" in rate else float("nan")
             lines.append(f"| {path.stem} | {scene} | {batch} | {dtype} | {_fmt(rate.get('lagrangian', float('nan')))} | "
-                         f"{_fmt(rate.get('mjx', float('nan')))} | {_fmt(ratio)} | {_fmt(rate.get('mujoco', float('nan')))} |")
+                         f"{_fmt(rate.get('mjx', float('nan')))} | {'—' if math.isnan(ratio) else f'{ratio:.3g}'} | {_fmt(rate.get('mujoco', float('nan')))} |")
     for path in sorted(gpu.glob("*training*.txt")):
         lines += ["", f"LGNN training on a GPU (`{path.name}`, written by `lgnn benchmark --full --stage train --job lgnn-chain4-s0` "
                   "in a fresh output directory, then `lgnn checkpoint ... --reference results/benchmark/checkpoints/lgnn-chain4-s0.npz`):",
