@@ -345,10 +345,10 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
     assembled from a few Hessian-vector products on a distance-2 colouring of the
     nodes (`_LocalMass`: 3 colours x D products for any chain, instead of one per
     coordinate), and a chain pinned at node 0 (from `CHAIN_SOLVER_MIN_LINKS` links) is
-    solved by the linear-time block
-    elimination of `_chain_kkt_solve` (regularised and refined like `_solve_kkt`), so
-    a step costs time linear in the chain's length. Declaring it for a Lagrangian
-    whose mass matrix is not local gives wrong accelerations (tests compare both).
+    solved by the linear-time block elimination of `_chain_kkt_solve` (regularised and
+    refined like `_solve_kkt`), so a step costs time linear in the chain's length.
+    Declaring it for a Lagrangian whose mass matrix is not local gives wrong
+    accelerations (tests compare both paths).
     """
     constraints = Constraints(scene)
     local = _LocalMass(scene, constraints) if local_mass else None
@@ -409,7 +409,6 @@ class _LocalMass:
             taken = {colour[k] for k in near if colour[k] >= 0}
             colour[node] = next(c for c in range(len(taken) + 1) if c not in taken)
         self.n_colours = int(colour.max()) + 1 if free_node.any() else 0
-        self.dim = d
         node_of = constraints.free // d
         coord_of = constraints.free % d
         # Seed (colour, coordinate) of each free coordinate, and the seeds as vectors.
@@ -420,8 +419,8 @@ class _LocalMass:
         for a, near in enumerate(neighbours):
             adjacent[a, list(near)] = True
         self.coupled = adjacent[np.ix_(node_of, node_of)]
-        # Free coordinates of node b (b = 1..n) of a chain pinned at node 0: 2 (b - 1) + i.
-        # Block (b, i, j) of a chain: row 2b + i, the seed of column 2b + j.
+        # A chain pinned at node 0 has free coordinates 2b + i for node b + 1, so its
+        # block (b, i, j) is row 2b + i of the product of column 2b + j's seed.
         chain_nodes = (len(constraints.free) // 2) if d == 2 else 0
         block, row, column = np.meshgrid(np.arange(chain_nodes), np.arange(2), np.arange(2), indexing="ij")
         self.diagonal_rows = 2 * block + row
