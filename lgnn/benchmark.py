@@ -779,7 +779,7 @@ def _scaling_settings(profile: Profile, out: Path):
 
 
 def scaling(profile: Profile, out: Path) -> Path:
-    """Record (JSON) of rows `kind, scene, n_links, solver, batch, s_per_step, compile_s`:
+    """Record (JSON) of rows `kind, scene, n_links, solver, batch, s_per_step, compile_s, note`:
     - kind "size": wall seconds per RK4 step at the profile's dt against chain length
       (`scaling_lengths`), single trajectory from the paper's sampler, for the
       Lagrangian ground truth, MuJoCo C (its stepping alone) and LGNN trained on chain4;
