@@ -213,8 +213,10 @@ class Constraints:
     """The scene's independent link-length constraints over the free coordinates.
 
     Attributes (all static NumPy): `free` indices into the flattened (N*D) coordinates
-    of the free (unpinned) nodes; `links` the link indices kept as constraint rows.
-    `embed(x)` maps free coordinates to full (N, D) positions (pins at their place).
+    of the free (unpinned) nodes, `free_mask` (N, D) the same as a mask; `links` the
+    link indices kept as constraint rows. `embed(x)` maps free coordinates to full
+    (N, D) positions (pins at their place). The `link_*` methods work on node arrays
+    (N, D), the others on free coordinates.
     """
 
     def __init__(self, scene: Scene):
@@ -222,6 +224,7 @@ class Constraints:
         free_mask = np.ones((n, d), bool)
         free_mask[list(scene.pinned)] = False
         self.shape = (n, d)
+        self.free_mask = free_mask
         self.free = np.flatnonzero(free_mask.ravel())
         self.pin_positions = np.asarray(scene.nodes, np.float64).copy()
         pinned = set(scene.pinned)
@@ -279,11 +282,20 @@ class Constraints:
 
     def residual(self, x: Array) -> Array:
         """Phi(x) (K,): `(|dq|^2 - l^2) / 2l` per kept link; zero on the manifold."""
-        q = self.embed(x)
+        return self.link_residual(self.embed(x))
+
+    def link_residual(self, q: Array) -> Array:
+        """`residual` at node positions `q` (N, D)."""
         i, j = self.edge_index[self.links].T
-        length = jnp.asarray(self.lengths_all[self.links], x.dtype)
+        length = jnp.asarray(self.lengths_all[self.links], q.dtype)
         dq = q[i] - q[j]
         return (jnp.sum(dq * dq, -1) - length**2) / (2 * length)
+
+    def link_speed_terms(self, qd: Array) -> Array:
+        """`Adot v` at node velocities `qd` (N, D): `|dv|^2 / l` per kept link."""
+        i, j = self.edge_index[self.links].T
+        dv = qd[i] - qd[j]
+        return jnp.sum(dv * dv, -1) / jnp.asarray(self.lengths_all[self.links], qd.dtype)
 
     def link_directions(self, q: Array) -> Array:
         """(K, D) `(q_i - q_j) / l` of the kept links at positions `q` (N, D): the
@@ -302,9 +314,7 @@ class Constraints:
     def jacobian_dot_v(self, x: Array, v: Array) -> Array:
         """`Adot v` (K,): the second directional derivative of Phi along v, which for
         `Phi = (|dq|^2 - l^2) / 2l` is `|dv|^2 / l` (tested against AD)."""
-        i, j = self.edge_index[self.links].T
-        dv = self.embed_velocity(v)[i] - self.embed_velocity(v)[j]
-        return jnp.sum(dv * dv, -1) / jnp.asarray(self.lengths_all[self.links], v.dtype)
+        return self.link_speed_terms(self.embed_velocity(v))
 
 
 def constraint_violation(scene: Scene, q: Array) -> Array:
@@ -396,8 +406,7 @@ class _LocalMass:
 
     def __init__(self, scene: Scene, constraints: Constraints):
         n, d = constraints.shape
-        free_node = np.zeros(n, bool)
-        free_node[constraints.free // d] = True
+        free_node = constraints.free_mask[:, 0]
         neighbours = [set() for _ in range(n)]
         for a, b in scene.edges:
             if free_node[a] and free_node[b]:
@@ -496,7 +505,7 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool
       of the Schur complement `A M^-1 A^T` for the multipliers (K x K instead of the
       (F + K)-square KKT system, no mass matrix or its derivatives per call).
     - "chain": the same equations for a chain pinned at one end, solved in time linear
-      in its length by block elimination from the free end (`_chain_solve`).
+      in its length by block elimination from the free end (`_chain_kkt_solve`).
     - "auto": "chain" where it applies (from `CHAIN_SOLVER_MIN_LINKS` links, or any
       length with `vectorised=True`: callers that `vmap` over many states, where the
       scan's elementwise work vectorises over the batch while the small dense
@@ -525,7 +534,7 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool
     if solver == "chain":
         if not is_pinned_chain(scene):
             raise ValueError(f"{scene.name}: the chain solver needs a planar chain pinned at node 0")
-        return _chain_acceleration_fn(scene)
+        return _chain_acceleration_fn(scene, constraints)
     return _schur_acceleration_fn(scene, constraints, mass)
 
 
@@ -535,9 +544,10 @@ def vectorised_true_acceleration_fn(scene: Scene) -> AccelerationFn:
     return true_acceleration_fn(scene, vectorised=True)
 
 
-def _node_forces_fn(scene: Scene, free_nodes: np.ndarray) -> Callable[[Array, Array], Array]:
-    """`(q, qd) -> (N, D)` generalised forces on the free nodes: gravity (half of each
-    link's weight on each end) plus drag where the scene has it."""
+def _node_forces_fn(scene: Scene, free_mask: np.ndarray) -> Callable[[Array, Array], Array]:
+    """`(q, qd) -> (N, D)` generalised forces on the free nodes (`free_mask` (N, D)):
+    gravity (half of each link's weight on each end) plus drag where the scene has it."""
+    free_nodes = free_mask.astype(np.float64)
     gravity = np.zeros((scene.n_nodes, scene.dim))
     weight = np.asarray(scene.masses) * float(scene.gravity) / 2
     np.add.at(gravity[:, 1], scene.edge_index[:, 0], -weight)
@@ -561,9 +571,7 @@ def _schur_acceleration_fn(scene: Scene, constraints: Constraints, mass: np.ndar
     inverse = np.zeros((n * d, n * d))
     inverse[np.ix_(constraints.free, constraints.free)] = np.linalg.inv(mass)
     inverse = inverse.reshape(n, d, n, d)
-    free_nodes = np.zeros((n, d))
-    free_nodes.reshape(-1)[constraints.free] = 1.0
-    forces = _node_forces_fn(scene, free_nodes)
+    forces = _node_forces_fn(scene, constraints.free_mask)
     i, j = constraints.edge_index[constraints.links].T
     # M^-1 A^T = (M^-1[:, i] - M^-1[:, j]) u per link: (N, D, K, D) before contracting u.
     inverse_at_links = inverse[:, :, i, :] - inverse[:, :, j, :]
@@ -575,8 +583,7 @@ def _schur_acceleration_fn(scene: Scene, constraints: Constraints, mass: np.ndar
         if constraints.n_rows == 0:
             return accel_free
         u = constraints.link_directions(q)
-        dv = qd[i] - qd[j]
-        rhs = jnp.sum(u * (accel_free[i] - accel_free[j]), -1) + jnp.sum(dv * dv, -1) / jnp.asarray(constraints.lengths_all[constraints.links], dtype)
+        rhs = jnp.sum(u * (accel_free[i] - accel_free[j]), -1) + constraints.link_speed_terms(qd)
         minv_at = jnp.einsum("ndke,ke->ndk", jnp.asarray(inverse_at_links, dtype), u)
         schur = jnp.einsum("ke,kel->kl", u, minv_at[i] - minv_at[j])
         lam = _regularised_spd_solve(schur, rhs)
@@ -613,29 +620,23 @@ def _inverse_3x3(m: Array) -> Array:
     return adjugate / (a * cofactor[0] + b * cofactor[1] + c * cofactor[2])
 
 
-def _chain_acceleration_fn(scene: Scene) -> AccelerationFn:
+def _chain_acceleration_fn(scene: Scene, constraints: Constraints) -> AccelerationFn:
     """The "chain" solver of `true_acceleration_fn`: the constant-mass equations of a
     planar chain pinned at node 0 by `_chain_kkt_solve`, in time linear in its length.
-    A pinned chain's constraint rows are always independent, so no regularisation is
-    needed."""
+    A pinned chain's constraint rows are always independent (every link is kept, in
+    order), so no regularisation is needed."""
     n = scene.n_links
     node_mass = constant_node_mass(scene).reshape(n + 1, 2, n + 1, 2)
     # (n, 2, 2) blocks (nodes 1..n) and (n-1, 2, 2) blocks (node b with b+1).
     diagonal_mass = node_mass[np.arange(1, n + 1), :, np.arange(1, n + 1), :]
     upper_mass = node_mass[np.arange(1, n), :, np.arange(2, n + 1), :]
-    free_nodes = np.ones((n + 1, 2))
-    free_nodes[0] = 0.0
-    forces = _node_forces_fn(scene, free_nodes)
-    lengths = np.asarray(scene.lengths)
+    forces = _node_forces_fn(scene, constraints.free_mask)
 
     def accel(q, qd):
         dtype = q.dtype
-        length = jnp.asarray(lengths, dtype)
-        u = (q[:-1] - q[1:]) / length[:, None]
-        dv = qd[:-1] - qd[1:]
         # Link rows: `A a = -Adot v`.
-        accel_nodes = _chain_kkt_solve(jnp.asarray(diagonal_mass, dtype), jnp.asarray(upper_mass, dtype), u, forces(q, qd)[1:],
-                                       -jnp.sum(dv * dv, -1) / length)
+        accel_nodes = _chain_kkt_solve(jnp.asarray(diagonal_mass, dtype), jnp.asarray(upper_mass, dtype), constraints.link_directions(q),
+                                       forces(q, qd)[1:], -constraints.link_speed_terms(qd))
         return jnp.concatenate([jnp.zeros((1, 2), dtype), accel_nodes])
 
     return accel
@@ -693,7 +694,7 @@ def _chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs
     _, (inverses, weights, reduced) = jax.lax.scan(eliminate, (last_inverse, rhs[-1]), (diagonal[:-1], upper, rhs[:-1]), reverse=True)
     inverses = jnp.concatenate([inverses, last_inverse[None]])
     solution = back_substitute(inverses, jnp.concatenate([reduced, rhs[-1:]]))
-    exact = blocks(0.0)
+    exact = blocks(0.0) if refinement_steps else None
     for _ in range(refinement_steps):
         # Residual against the exact system: K y = D_b y_b + U_b y_b+1 + U_b-1^T y_b-1.
         product = jnp.einsum("bij,bj->bi", exact, solution)
@@ -716,9 +717,7 @@ class _LinkGram:
 
     def __init__(self, constraints: Constraints):
         i, j = constraints.edge_index[constraints.links].T
-        n_nodes = constraints.shape[0]
-        pinned = np.ones(n_nodes, bool)
-        pinned[constraints.free // constraints.shape[1]] = False
+        pinned = ~constraints.free_mask[:, 0]
         self.n_rows = constraints.n_rows
         self.free_ends = (~pinned[i]).astype(np.float64) + (~pinned[j]).astype(np.float64)
         ends = [(k, node, sign) for k in range(self.n_rows) for node, sign in ((i[k], 1.0), (j[k], -1.0)) if not pinned[node]]
@@ -761,9 +760,7 @@ def projection_fn(scene: Scene, iterations: int = 4) -> Callable[[Array, Array],
     constraints = Constraints(scene)
     gram = _LinkGram(constraints)
     i, j = constraints.edge_index[constraints.links].T
-    free_nodes = np.zeros(constraints.shape)
-    free_nodes.reshape(-1)[constraints.free] = 1.0
-    lengths = constraints.lengths_all[constraints.links]
+    free_nodes = constraints.free_mask.astype(np.float64)
     singular = constraints.self_stresses > 0
     shift = PROJECTION_SHIFT if singular else REGULAR_PROJECTION_SHIFT
     # The shift leaves a fraction ~shift / sigma^2 of `A v` per pass; repeated passes
@@ -780,16 +777,13 @@ def projection_fn(scene: Scene, iterations: int = 4) -> Callable[[Array, Array],
     def project(q, qd):
         if constraints.n_rows == 0:
             return constraints.embed(constraints.restrict(q)), constraints.embed_velocity(constraints.restrict(qd))
-        length = jnp.asarray(lengths, q.dtype)
         # Pinned nodes are put exactly at their pins, at rest.
-        q = jnp.where(free_nodes > 0, q, jnp.asarray(constraints.pin_positions, q.dtype))
+        q = jnp.where(constraints.free_mask, q, jnp.asarray(constraints.pin_positions, q.dtype))
         qd = qd * jnp.asarray(free_nodes, qd.dtype)
         for _ in range(iterations):
-            dq = q[i] - q[j]
-            residual = (jnp.sum(dq * dq, -1) - length**2) / (2 * length)
-            u = dq / length[:, None]
-            q = q - transpose_times(u, gram.solve_fn(u, shift)(residual))
-        u = (q[i] - q[j]) / length[:, None]
+            u = constraints.link_directions(q)
+            q = q - transpose_times(u, gram.solve_fn(u, shift)(constraints.link_residual(q)))
+        u = constraints.link_directions(q)
         solve = gram.solve_fn(u, shift)
         for _ in range(passes):
             qd = qd - transpose_times(u, solve(times(u, qd)))
