@@ -319,6 +319,27 @@ def save_record(path: Path, key: str, arrays: dict, meta: dict) -> None:
             np.savez(handle, meta=meta_text, checksum=checksum, **arrays)
 
 
+def _fresh_json_record(path: Path, key: str) -> bool:
+    """Whether the JSON record at `path` exists and was made with the settings `key`
+    (an unreadable one is recomputed, with a warning)."""
+    if not path.exists():
+        return False
+    try:
+        return json.loads(path.read_text()).get("key") == key
+    except (OSError, ValueError):
+        log(f"warning: {path}: unreadable; recomputing")
+        return False
+
+
+def _save_json_record(path: Path, key: str, **fields) -> None:
+    """A JSON record: the settings `key`, the environment and `fields`, written atomically."""
+    from lgnn.provenance import environment
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps({"key": key, **fields, "environment": environment()}, indent=1, default=float))
+
+
 def _arrays_digest(arrays: dict, meta_text: str) -> str:
     digest = hashlib.sha256(meta_text.encode())
     for name in sorted(arrays):
@@ -698,19 +719,14 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     `frame_dt`; error: geometric mean of the rollout error against MuJoCo C at a tenth
     of the smallest step."""
     from lgnn import mujoco as lm
-    from lgnn.crosscheck import MJX_MAX_DEPTH, SKIP_MJX, _timed
+    from lgnn.crosscheck import MJX_MAX_DEPTH, SKIP_MJX, _timed, time_compiled
 
     scene = scene_named(scene_name)
     layout = Layout(out)
     jobs, checkpoints, key = _speed_settings(profile, scene_name, out, jobs)
     path = layout.speed_record(scene_name)
-    if path.exists():
-        try:
-            stored = json.loads(path.read_text())
-            if stored.get("key") == key:
-                return path
-        except (OSError, ValueError):
-            log(f"warning: {path}: unreadable; recomputing")
+    if _fresh_json_record(path, key):
+        return path
     states = initial_states(profile, scene)
     single = State(states.q[:1], states.qd[:1])
     horizon, frame_dt = profile.speed_horizon, profile.frame_dt
@@ -747,21 +763,11 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
             continue
         model, params = train.load_model(layout.checkpoint(job))
         run = jax.jit(rollout_fn(scene, config, lambda s: models.acceleration_fn(model, params, s)))
-        args = (jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
-        start = time.perf_counter()
-        compiled = run.lower(*args).compile()
-        compile_s = time.perf_counter() - start
-        jax.block_until_ready(compiled(*args))  # the first run's one-off costs apart (~0.1 s for LGNN)
-        start = time.perf_counter()
-        q = np.asarray(jax.block_until_ready(compiled(*args)).q)
-        run_s = time.perf_counter() - start
+        compile_s, run_s, out = time_compiled(run, jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
+        q = np.asarray(out.q)
         row(job.label, "learned", config.dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=_gmean_error(q, reference))
         log(f"speed/error {scene_name} {job.label}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        from lgnn.provenance import environment
-
-        tmp.write_text(json.dumps({"key": key, "horizon": horizon, "environment": environment(), "rows": rows}, indent=1, default=float))
+    _save_json_record(path, key, horizon=horizon, rows=rows)
     return path
 
 
@@ -778,6 +784,10 @@ def _scaling_settings(profile: Profile, out: Path):
     return checkpoint, digest, _digest({"settings": {f: getattr(profile, f) for f in fields}, "lgnn": digest})
 
 
+def scaling_key(profile: Profile, out: Path) -> str:
+    return _scaling_settings(profile, out)[2]
+
+
 def scaling(profile: Profile, out: Path) -> Path:
     """Record (JSON) of rows `kind, scene, n_links, solver, batch, s_per_step, compile_s, note`:
     - kind "size": wall seconds per RK4 step at the profile's dt against chain length
@@ -787,18 +797,14 @@ def scaling(profile: Profile, out: Path) -> Path:
       (batches spread over every local device; MuJoCo C on two threads), for the
       Lagrangian ground truth and MuJoCo C.
     Each timing runs `scaling_steps` steps after a compile (or warm-up) run kept apart."""
-    from lgnn.crosscheck import _timed
+    from lgnn.crosscheck import _timed, time_compiled
     from lgnn.scenes import chain
 
     layout = Layout(out)
     checkpoint, digest, key = _scaling_settings(profile, out)
     path = layout.scaling_record
-    if path.exists():
-        try:
-            if json.loads(path.read_text()).get("key") == key:
-                return path
-        except (OSError, ValueError):
-            log(f"warning: {path}: unreadable; recomputing")
+    if _fresh_json_record(path, key):
+        return path
     steps, dt = profile.scaling_steps, profile.dt
     config = SimulationConfig("rk4", dt, steps * dt, steps * dt, True)
     model_params = train.load_model(checkpoint) if digest else None
@@ -824,14 +830,7 @@ def scaling(profile: Profile, out: Path) -> Path:
             else:
                 # One trajectory, not vmapped (as the speed stage times learned models).
                 run = jax.jit(rollout_fn(scene, config, factory))
-                args = (jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
-                start = time.perf_counter()
-                compiled = run.lower(*args).compile()
-                compile_s = time.perf_counter() - start
-                jax.block_until_ready(compiled(*args))  # first run's one-off costs apart
-                start = time.perf_counter()
-                jax.block_until_ready(compiled(*args))
-                run_s = time.perf_counter() - start
+                compile_s, run_s, _ = time_compiled(run, jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
             rows.append({**row, "s_per_step": run_s / steps, "compile_s": compile_s})
             log(f"scaling {scene.name} {solver}: {run_s / steps:.3g} s per step (compile {compile_s:.1f} s)")
     for name in profile.speed_scenes:
@@ -843,11 +842,7 @@ def scaling(profile: Profile, out: Path) -> Path:
             rows.append(dict(kind="batch", scene=name, n_links=scene.n_links, solver=solver, batch=profile.throughput_batch,
                              s_per_step=run_s / steps, compile_s=compile_s, note=""))
             log(f"throughput {name} {solver} x{profile.throughput_batch}: {profile.throughput_batch * steps / run_s:.3g} steps/s")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        from lgnn.provenance import environment
-
-        tmp.write_text(json.dumps({"key": key, "environment": environment(), "rows": rows}, indent=1, default=float))
+    _save_json_record(path, key, rows=rows)
     return path
 
 

@@ -111,6 +111,18 @@ def write_table(rows: list[dict], csv_path: str, md_path: str, command: str, col
 # ---------------------------------------------------------------------------------
 
 
+def time_compiled(run, *args):
+    """`(compile_s, run_s, out)` of a jitted `run(*args)`: compile apart, then one
+    untimed run (its one-off costs, ~0.1 s for LGNN) and one timed run."""
+    start = time.perf_counter()
+    compiled = run.lower(*args).compile()
+    compile_s = time.perf_counter() - start
+    jax.block_until_ready(compiled(*args))
+    start = time.perf_counter()
+    out = jax.block_until_ready(compiled(*args))
+    return compile_s, time.perf_counter() - start, out
+
+
 def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, dtype="float64"):
     """(compile_s, run_s, q (B, F+1, N, 2)) of one engine on a batch of initial states."""
     from lgnn import mujoco as lm
@@ -138,13 +150,7 @@ def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, d
         run = sharding.batch_jit(rollouts) if len(states.q) % sharding.device_count() == 0 else jax.jit(rollouts)
         args = (jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     with lm.mjx_precision(dtype) if engine == "mjx" else contextlib.nullcontext():
-        start = time.perf_counter()
-        compiled = run.lower(*args).compile()
-        compile_s = time.perf_counter() - start
-        jax.block_until_ready(compiled(*args))  # the first run's one-off costs apart
-        start = time.perf_counter()
-        out = jax.block_until_ready(compiled(*args))
-        run_s = time.perf_counter() - start
+        compile_s, run_s, out = time_compiled(run, *args)
     q = out[0] if isinstance(out, tuple) else jnp.concatenate([args[0][:, None], out], axis=1)
     return compile_s, run_s, np.asarray(q, np.float64)
 

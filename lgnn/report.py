@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from lgnn import benchmark as bm
+from lgnn.stability import fit_exponent
 from lgnn._io import atomic_path, write_text_atomic
 
 MODEL_ORDER = ("lgnn", "gns", "lgn", "clnn")
@@ -159,7 +160,7 @@ def _scaling_record(profile: bm.Profile, out: Path) -> dict | None:
     """The scaling stage's record if it matches the profile and checkpoint, else None."""
     path = bm.Layout(out).scaling_record
     stored = json.loads(path.read_text()) if path.exists() else {}
-    return stored if stored.get("key") == bm._scaling_settings(profile, out)[2] else None
+    return stored if stored.get("key") == bm.scaling_key(profile, out) else None
 
 
 def speed_markdown(rows: list[dict]) -> str:
@@ -459,11 +460,6 @@ def _fastest_accurate(rows: list[dict], scene: str, solver: str) -> dict | None:
     return min(ok, key=lambda r: r["wall_s_per_sim_s"]) if ok else None
 
 
-def _fit_exponent(costs: dict[int, float]) -> float:
-    sizes = sorted(costs)
-    return float(np.polyfit(np.log(sizes), np.log([costs[n] for n in sizes]), 1)[0])
-
-
 def _gpu_section(out: Path) -> list[str]:
     """The GPU tables under `out/gpu/` (written by `lgnn crosscheck --speed` on a lent
     GPU machine, commands in their headers): batched throughput, Lagrangian over MJX
@@ -539,7 +535,7 @@ def performance_markdown(profile: bm.Profile, rows: list[dict], scaling_record: 
         for solver in dict.fromkeys(r["solver"] for r in size):
             timed = [r for r in size if r["solver"] == solver and math.isfinite(r["s_per_step"])]
             costs = {r["n_links"]: r["s_per_step"] for r in timed}
-            exponent = f"{_fit_exponent(costs):.2f} (n = {min(costs)}..{max(costs)})" if len(costs) > 1 else "—"
+            exponent = f"{fit_exponent(costs):.2f} (n = {min(costs)}..{max(costs)})" if len(costs) > 1 else "—"
             compile_s = f"{max(timed, key=lambda r: r['n_links'])['compile_s']:.1f}" if timed else "—"
             lines.append(f"| {solver} | " + " | ".join(f"{costs[n]:.3g}" if n in costs else "—" for n in lengths)
                          + f" | {exponent} | {compile_s} |")

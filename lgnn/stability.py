@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics
+from lgnn.crosscheck import time_compiled
 from lgnn.errors import SimulationError
 from lgnn.scene import Scene, scene_from_dict
 from lgnn.scenes import chain, get_scene
@@ -351,12 +352,8 @@ def step_cost(n_links: int, steps: int = 3) -> float:
     compile excluded: the second of two runs of `steps` steps."""
     scene = chain(n_links, SEED)
     config = SimulationConfig("rk4", 1e-3, 1e-3, steps * 1e-3)
-    run_fn = jax.jit(rollout_fn(scene, config))
-    q, qd = jnp.asarray(scene.nodes), jnp.asarray(scene.velocities)
-    jax.block_until_ready(run_fn(q, qd))
-    start = time.perf_counter()
-    jax.block_until_ready(run_fn(q, qd))
-    return (time.perf_counter() - start) / steps
+    _, run_s, _ = time_compiled(jax.jit(rollout_fn(scene, config)), jnp.asarray(scene.nodes), jnp.asarray(scene.velocities))
+    return run_s / steps
 
 
 def cost_rows(sizes=(4, 16, 100, 1000), log: Callable[[str], None] = lambda line: None) -> tuple[list[dict], float]:
@@ -369,8 +366,14 @@ def cost_rows(sizes=(4, 16, 100, 1000), log: Callable[[str], None] = lambda line
         case = Case("cost-per-step", f"chain{n}", dt=1e-3, duration=math.nan)
         rows.append(_row(case, step_s=cost, wall_s=time.perf_counter() - start, duration=math.nan))
         log(f"cost chain{n}: {cost:.3g} s/step")
-    exponent = float(np.polyfit(np.log(sizes), np.log([r["step_s"] for r in rows]), 1)[0]) if len(sizes) > 1 else math.nan
+    exponent = fit_exponent(dict(zip(sizes, (r["step_s"] for r in rows)))) if len(sizes) > 1 else math.nan
     return rows, exponent
+
+
+def fit_exponent(costs: dict[int, float]) -> float:
+    """`p` of `cost ~ n^p` from `{n: cost}`: least squares of log cost on log n."""
+    sizes = sorted(costs)
+    return float(np.polyfit(np.log(sizes), np.log([costs[n] for n in sizes]), 1)[0])
 
 
 # ---------------------------------------------------------------------------------
