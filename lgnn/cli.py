@@ -134,11 +134,10 @@ def _cmd_mjcf(args) -> None:
 
 def _cmd_crosscheck(args) -> None:
     from lgnn import crosscheck as cc
+    from lgnn._io import check_writable
     from lgnn.scenes import get_scene
 
-    from lgnn._io import check_writable
-
-    command = "lgnn " + " ".join(sys.argv[1:]) if sys.argv[0].endswith(("lgnn", "cli.py", "__main__.py")) else "lgnn crosscheck"
+    command = "lgnn " + " ".join(args.argv)
     check_writable(f"{args.out_dir}/engines_speed_error.md" if args.speed else f"{args.out_dir}/crosscheck.md")
     engines = tuple(args.engines.split(","))
     if set(engines) - set(cc.ENGINES) or not engines:
@@ -302,8 +301,6 @@ def _add_benchmark_parser(commands) -> None:
 
 
 def _cmd_stability(args) -> None:
-    import dataclasses
-
     from lgnn import stability
     from lgnn._io import check_writable
 
