@@ -2,16 +2,16 @@
 
 `pytest bench/` runs the quick profile (minutes on 2 CPU cores, part of CI; outputs in
 `results/quick/`); `pytest bench/ --benchmark` runs the full profile (outputs in
-`results/`). The profiles themselves are declared in `lgnn.benchmark.PROFILES`.
+`results/`). The profiles themselves are declared in `lgnn.bench.benchmark.PROFILES`.
 """
 
 import time
 
-import lgnn  # noqa: F401  (first: sets the XLA and OpenBLAS environment before JAX starts)
-import jax
-import pytest  # noqa: E402
+from lgnn.runtime import configure
 
-jax.config.update("jax_enable_x64", True)
+configure()  # first: thread counts and XLA flags before numpy and JAX load; float64
+
+import pytest  # noqa: E402
 
 
 def pytest_addoption(parser):
@@ -44,7 +44,7 @@ def pytest_sessionstart(session):
 def pytest_terminal_summary(terminalreporter, config):
     """Print the benchmark's summary table after the run if this session wrote the report
     (also under xdist, where the report is written by a worker)."""
-    from lgnn import benchmark
+    from lgnn.bench import benchmark
 
     profile = benchmark.get_profile("full" if config.getoption("--benchmark") else "quick")
     readme = benchmark.default_out(profile) / "README.md"

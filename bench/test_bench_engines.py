@@ -14,10 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lgnn import mujoco as lm
+from lgnn.engines import mujoco as lm
 from lgnn.scene import State
-from lgnn.scenes import get_scene, sample_initial_states
-from lgnn.simulate import SimulationConfig
+from lgnn.scene import get_scene, sample_initial_states
+from lgnn.engines.lagrangian import SimulationConfig
 
 CONFIG = SimulationConfig(dt=1e-4, frame_dt=0.01, duration=0.01)
 STEPS = 100

@@ -1,6 +1,6 @@
 """The benchmark as a test session: train every model of the grid, evaluate it on every
-scene, measure speed against error and write the report (`lgnn.benchmark`,
-`lgnn.report`).
+scene, measure speed against error and write the report (`lgnn.bench.benchmark`,
+`lgnn.bench.report`).
 
     pytest bench/test_benchmark.py               # quick profile -> results/quick/
     pytest bench/test_benchmark.py --benchmark   # full profile  -> results/
@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgnn import benchmark as bm
-from lgnn import train
+from lgnn.bench import benchmark as bm
+from lgnn.learn import train
 
 QUICK, FULL = bm.PROFILES["quick"], bm.PROFILES["full"]
 TIMED_SCENES = ("chain4",)

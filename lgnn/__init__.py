@@ -1,52 +1,56 @@
 """lgnn: a MuJoCo-validated benchmark suite for learned dynamics of articulated rigid bodies.
 
-The public interface, by lifecycle stage:
-- scenes: `Scene`, `State`, `get_scene`, `BUILTIN_SCENES`, `scene_from_dict`,
-  `load_scene_file`, `sample_initial_states`;
-- physics: `lgnn.physics` (Lagrangians, constraints, the constrained Euler-Lagrange
-  solve as a function transformer);
-- integration: `lgnn.integrate` (RK4, velocity Verlet, rollouts);
-- the ground-truth engine: `SimulationConfig`, `simulate`, `Trajectory`.
-- learned models: `lgnn.graphs` (graph features), `lgnn.models` (LGNN, GNS, LGN, CLNN),
-  `lgnn.data` (cached training data), `lgnn.train` (training, checkpoints).
+The public interface, by lifecycle stage (layers from the bottom; see ARCHITECTURE.md):
+- set-up: `configure()` (float64, thread counts, XLA flags), to call first;
+- scenes (`lgnn.scene`): `Scene`, `State`, `get_scene`, `BUILTIN_SCENES`,
+  `scene_from_dict`, `load_scene_file`, `sample_initial_states`;
+- physics (`lgnn.physics`): Lagrangians, constraints, the constrained Euler-Lagrange
+  solve as a function transformer; integration (`lgnn.integrate`): RK4, Verlet, rollouts;
+- engines (`lgnn.engines`): the Lagrangian ground truth `simulate`, `SimulationConfig`,
+  `Trajectory`; MuJoCo C and MJX (`lgnn.engines.mujoco`);
+- learned models (`lgnn.learn`): graph features, LGNN, GNS, LGN, CLNN, data, training;
+- the benchmark and its tools (`lgnn.bench`), the command line (`lgnn.cli`).
+
+`import lgnn` loads nothing heavy and changes nothing outside the package (no
+environment variable, no JAX setting): the names below are imported on first use, and
+runtime set-up is the explicit `configure()`.
 """
 
-import os as _os
-
-# The dense systems solved here are small (at most a few hundred unknowns), where
-# OpenBLAS's thread pool (used by numpy, scipy and jaxlib's CPU LAPACK) only adds
-# contention: a 300x300 LU took 83 ms with it and 3 ms without on 2 cores. Set before
-# numpy loads OpenBLAS; an explicit setting by the user wins.
-_os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-# XLA's CPU concurrency-optimised scheduler deadlocks (all threads idle, forever) on
-# vmapped rollouts whose steps hold several batched LAPACK calls (measured: chain16 x
-# 100, one RK4 step with projection, jax 0.10). Read when the CPU backend starts.
-_DEADLOCK_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
-if _DEADLOCK_FLAG not in _os.environ.get("XLA_FLAGS", ""):
-    _os.environ["XLA_FLAGS"] = (_os.environ.get("XLA_FLAGS", "") + " " + _DEADLOCK_FLAG).strip()
-
-from lgnn.errors import ConfigError, LgnnError, SceneError, SimulationError
-from lgnn.scene import Scene, State, load_scene_file, scene_from_dict, scene_to_dict, scene_to_json
-from lgnn.scenes import BUILTIN_SCENES, get_scene, sample_initial_states
-from lgnn.simulate import SimulationConfig, Trajectory, simulate
+import importlib
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "BUILTIN_SCENES",
-    "ConfigError",
-    "LgnnError",
-    "Scene",
-    "SceneError",
-    "SimulationConfig",
-    "SimulationError",
-    "State",
-    "Trajectory",
-    "get_scene",
-    "load_scene_file",
-    "sample_initial_states",
-    "scene_from_dict",
-    "scene_to_dict",
-    "scene_to_json",
-    "simulate",
-]
+# Public name -> the module that defines it; imported on first access (PEP 562), so
+# `import lgnn` followed by `lgnn.configure()` can still set the environment before
+# numpy and JAX load.
+_PUBLIC = {
+    "configure": "lgnn.runtime",
+    "ConfigError": "lgnn.errors",
+    "LgnnError": "lgnn.errors",
+    "SceneError": "lgnn.errors",
+    "SimulationError": "lgnn.errors",
+    "BUILTIN_SCENES": "lgnn.scene",
+    "Scene": "lgnn.scene",
+    "State": "lgnn.scene",
+    "get_scene": "lgnn.scene",
+    "load_scene_file": "lgnn.scene",
+    "sample_initial_states": "lgnn.scene",
+    "scene_from_dict": "lgnn.scene",
+    "scene_to_dict": "lgnn.scene",
+    "scene_to_json": "lgnn.scene",
+    "SimulationConfig": "lgnn.engines.lagrangian",
+    "Trajectory": "lgnn.engines.lagrangian",
+    "simulate": "lgnn.engines.lagrangian",
+}
+
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str):
+    if name in _PUBLIC:
+        return getattr(importlib.import_module(_PUBLIC[name]), name)
+    raise AttributeError(f"module 'lgnn' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + __all__)

@@ -1,7 +1,8 @@
 """The `lgnn` command line.
 
 Every `LgnnError` becomes one line on stderr (`lgnn: error: ...`) and exit status 2;
-output files are written atomically. x64 is enabled here, at the entry point.
+output files are written atomically. Runtime set-up (`lgnn.runtime.configure`: float64,
+thread counts, XLA flags) is done here, at the entry point.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ def _positive_int(text: str) -> int:
 
 
 def _cmd_scenes(args) -> None:
-    from lgnn.scenes import BUILTIN_SCENES
+    from lgnn.scene import BUILTIN_SCENES
 
     width = max(map(len, BUILTIN_SCENES))
     for entry in BUILTIN_SCENES.values():
@@ -53,9 +54,9 @@ def _cmd_scenes(args) -> None:
 
 
 def _cmd_scene_export(args) -> None:
-    from lgnn._io import write_text_atomic
+    from lgnn.files import write_text_atomic
     from lgnn.scene import scene_to_json
-    from lgnn.scenes import BUILTIN_SCENES, get_scene
+    from lgnn.scene import BUILTIN_SCENES, get_scene
 
     if args.name not in BUILTIN_SCENES:
         raise ConfigError(f"unknown built-in scene {args.name!r} (choose from {', '.join(BUILTIN_SCENES)})")
@@ -69,7 +70,7 @@ def _cmd_scene_export(args) -> None:
 
 def _add_simulation_options(parser: argparse.ArgumentParser) -> None:
     from lgnn.integrate import INTEGRATORS
-    from lgnn.simulate import SimulationConfig
+    from lgnn.engines.lagrangian import SimulationConfig
 
     default = SimulationConfig()
     parser.add_argument("--integrator", choices=sorted(INTEGRATORS), default=default.integrator)
@@ -80,15 +81,15 @@ def _add_simulation_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _simulation_config(args):
-    from lgnn.simulate import SimulationConfig
+    from lgnn.engines.lagrangian import SimulationConfig
 
     return SimulationConfig(args.integrator, args.dt, args.frame_dt, args.duration, args.project)
 
 
 def _cmd_simulate(args) -> None:
-    from lgnn._io import check_writable
-    from lgnn.scenes import get_scene
-    from lgnn.simulate import simulate
+    from lgnn.files import check_writable
+    from lgnn.scene import get_scene
+    from lgnn.engines.lagrangian import simulate
 
     config = _simulation_config(args)
     check_writable(args.out)
@@ -96,7 +97,7 @@ def _cmd_simulate(args) -> None:
     if args.engine == "lagrangian":
         trajectory = simulate(scene, config, progress=not args.quiet)
     elif args.engine in ("mujoco", "mjx"):
-        from lgnn import mujoco as lm
+        from lgnn.engines import mujoco as lm
 
         trajectory = lm.simulate(scene, config, engine=args.engine, dtype=args.dtype)
     else:
@@ -112,9 +113,9 @@ def _cmd_simulate(args) -> None:
 def _cmd_mjcf(args) -> None:
     from pathlib import Path
 
-    from lgnn._io import write_text_atomic
-    from lgnn.mujoco import scene_to_mjcf
-    from lgnn.scenes import BUILTIN_SCENES
+    from lgnn.files import write_text_atomic
+    from lgnn.engines.mujoco import scene_to_mjcf
+    from lgnn.scene import BUILTIN_SCENES
 
     out = Path(args.dir)
     if not out.is_dir():
@@ -133,9 +134,9 @@ def _cmd_mjcf(args) -> None:
 
 
 def _cmd_crosscheck(args) -> None:
-    from lgnn import crosscheck as cc
-    from lgnn._io import check_writable
-    from lgnn.scenes import get_scene
+    from lgnn.bench import crosscheck as cc
+    from lgnn.files import check_writable
+    from lgnn.scene import get_scene
 
     command = "lgnn " + " ".join(args.argv)
     check_writable(f"{args.out_dir}/engines_speed_error.md" if args.speed else f"{args.out_dir}/crosscheck.md")
@@ -185,9 +186,9 @@ def _add_mujoco_commands(commands) -> None:
 def _cmd_train(args) -> None:
     from pathlib import Path
 
-    from lgnn import data, models, train
-    from lgnn._io import check_writable
-    from lgnn.scenes import get_scene
+    from lgnn.learn import data, models, train
+    from lgnn.files import check_writable
+    from lgnn.scene import get_scene
 
     check_writable(args.out)
     data_config = data.DataConfig(args.scene, n_trajectories=args.trajectories, seed=args.seed)
@@ -202,10 +203,10 @@ def _cmd_train(args) -> None:
 
 
 def _cmd_rollout(args) -> None:
-    from lgnn import models
-    from lgnn._io import check_writable
-    from lgnn.scenes import get_scene
-    from lgnn.train import load_model
+    from lgnn.learn import models
+    from lgnn.files import check_writable
+    from lgnn.scene import get_scene
+    from lgnn.learn.train import load_model
 
     config = _simulation_config(args)
     check_writable(args.out)
@@ -218,8 +219,8 @@ def _cmd_rollout(args) -> None:
 
 
 def _add_train_parser(commands) -> None:
-    from lgnn.models import MODEL_NAMES
-    from lgnn.train import TrainConfig
+    from lgnn.learn.models import MODEL_NAMES
+    from lgnn.learn.train import TrainConfig
 
     default = TrainConfig()
     parser = commands.add_parser("train", help="train a learned model on ground-truth data")
@@ -254,7 +255,7 @@ def _add_train_parser(commands) -> None:
 
 
 def _cmd_checkpoint(args) -> None:
-    from lgnn import train
+    from lgnn.learn import train
 
     state, meta = train.load_checkpoint(args.path)
     print(f"{args.path}: {meta['model']['name']}, epoch {state.epoch}, best validation loss {state.best_val:.4g} at epoch {state.best_epoch}, "
@@ -274,7 +275,7 @@ def _cmd_checkpoint(args) -> None:
 def _cmd_benchmark(args) -> None:
     from pathlib import Path
 
-    from lgnn import benchmark
+    from lgnn.bench import benchmark
 
     profile = benchmark.get_profile("full" if args.full else "quick")
     if args.chunk is not None:
@@ -287,7 +288,7 @@ def _cmd_benchmark(args) -> None:
 
 
 def _add_benchmark_parser(commands) -> None:
-    from lgnn.benchmark import STAGES
+    from lgnn.bench.benchmark import STAGES
 
     parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
     parser.add_argument("--full", action="store_true", help="the full profile (default: the quick one, minutes on a laptop)")
@@ -301,8 +302,8 @@ def _add_benchmark_parser(commands) -> None:
 
 
 def _cmd_stability(args) -> None:
-    from lgnn import stability
-    from lgnn._io import check_writable
+    from lgnn.bench import stability
+    from lgnn.files import check_writable
 
     out = check_writable(args.out)
     if out.suffix != ".md":
@@ -327,7 +328,7 @@ def _cmd_stability(args) -> None:
 
 
 def _add_stability_parser(commands) -> None:
-    from lgnn.stability import StabilitySettings
+    from lgnn.bench.stability import StabilitySettings
 
     default = StabilitySettings()
     parser = commands.add_parser("stability", help="run the hard cases (long, large, near-singular, learned) and write a report")
@@ -371,13 +372,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from lgnn.runtime import configure
+
+    configure()  # first: before numpy and JAX load (thread counts, XLA flags, float64)
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args = parser.parse_args(argv)
     args.argv = argv  # reports name the exact command
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
     try:
         args.run(args)
     except LgnnError as err:

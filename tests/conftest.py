@@ -1,10 +1,11 @@
 """Shared test setup: float64 everywhere (accuracy is the point of these tests)."""
 
-import lgnn  # noqa: F401  (first: sets the XLA and OpenBLAS environment before JAX starts)
+from lgnn.runtime import configure
+
+configure()  # first: thread counts and XLA flags before numpy and JAX load; float64
+
 import jax
 import pytest
-
-jax.config.update("jax_enable_x64", True)
 
 
 @pytest.fixture(scope="session")

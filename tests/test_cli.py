@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from lgnn.cli import main
-from lgnn.scenes import BUILTIN_SCENES
-from lgnn.simulate import Trajectory
+from lgnn.scene import BUILTIN_SCENES
+from lgnn.engines.lagrangian import Trajectory
 
 
 def run(capsys, *argv):

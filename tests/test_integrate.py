@@ -7,8 +7,8 @@ import pytest
 
 from lgnn import physics
 from lgnn.integrate import rk4, rollout, velocity_verlet
-from lgnn.scenes import BUILTIN_SCENES, get_scene, sample_initial_states
-from lgnn.simulate import SimulationConfig, simulate
+from lgnn.scene import BUILTIN_SCENES, get_scene, sample_initial_states
+from lgnn.engines.lagrangian import SimulationConfig, simulate
 from tests.scenes_for_tests import double_pinned_chain, free_triangle, pendulum
 
 

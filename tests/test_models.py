@@ -7,12 +7,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lgnn import data, graphs, models, physics, train
+from lgnn.learn import data, graphs, models, train
+from lgnn import physics
 from lgnn.cli import main
 from lgnn.errors import CheckpointError, ConfigError
 from lgnn.scene import scene_from_dict, scene_to_dict
-from lgnn.scenes import get_scene
-from lgnn.simulate import SimulationConfig, simulate
+from lgnn.scene import get_scene
+from lgnn.engines.lagrangian import SimulationConfig, simulate
 
 SHORT = SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.2)
 TINY_DATA = data.DataConfig(n_trajectories=10, duration=0.2, sample_dt=0.01, dt=1e-3)

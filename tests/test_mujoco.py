@@ -15,12 +15,12 @@ import mujoco
 import numpy as np
 import pytest
 
-from lgnn import mujoco as lm
+from lgnn.engines import mujoco as lm
 from lgnn import physics
 from lgnn.cli import main
 from lgnn.scene import State, scene_from_dict, scene_to_dict
-from lgnn.scenes import BUILTIN_SCENES, chain, get_scene, sample_initial_states
-from lgnn.simulate import SimulationConfig, Trajectory, simulate
+from lgnn.scene import BUILTIN_SCENES, chain, get_scene, sample_initial_states
+from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
 
 ONE_SECOND = SimulationConfig(integrator="rk4", dt=1e-4, frame_dt=1e-3, duration=1.0)
 

@@ -7,7 +7,7 @@ import pytest
 
 from lgnn import physics
 from lgnn.scene import is_pinned_chain, scene_from_dict
-from lgnn.scenes import chain, get_scene, sample_initial_states
+from lgnn.scene import chain, get_scene, sample_initial_states
 from tests.scenes_for_tests import double_pinned_chain, free_triangle, pendulum, pinned_triangle
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from lgnn.errors import SceneError
 from lgnn.scene import Scene, load_scene_file, scene_from_dict, scene_to_dict, scene_to_json
-from lgnn.scenes import BUILTIN_SCENES, get_scene
+from lgnn.scene import BUILTIN_SCENES, get_scene
 
 
 def valid():
@@ -158,11 +158,11 @@ def test_missing_and_huge_files(tmp_path, monkeypatch):
         load_scene_file(tmp_path / "absent.json")
     with pytest.raises(SceneError, match="not a regular file"):
         load_scene_file(tmp_path)
-    import lgnn.scene
+    import lgnn.scene.schema
 
     big = tmp_path / "big.json"
     big.write_text(" " * 2048)
-    monkeypatch.setattr(lgnn.scene, "MAX_SCENE_FILE_BYTES", 1024)  # stands in for a 2 GB file
+    monkeypatch.setattr(lgnn.scene.schema, "MAX_SCENE_FILE_BYTES", 1024)  # stands in for a 2 GB file
     with pytest.raises(SceneError, match="larger than"):
         load_scene_file(big)
 

@@ -16,10 +16,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from lgnn import benchmark as bm
-from lgnn import data, physics, sharding
-from lgnn.scenes import sample_initial_states
-from lgnn.simulate import SimulationConfig
+from lgnn.bench import benchmark as bm
+from lgnn.learn import data
+from lgnn import physics, sharding
+from lgnn.scene import sample_initial_states
+from lgnn.engines.lagrangian import SimulationConfig
 
 CONFIG = SimulationConfig(dt=1e-3, frame_dt=5e-3, duration=0.02)
 DATA = data.DataConfig(n_trajectories=3, duration=0.04, sample_dt=0.01, chunk=3)
@@ -27,11 +28,13 @@ DATA = data.DataConfig(n_trajectories=3, duration=0.04, sample_dt=0.01, chunk=3)
 SHARDED = """
 import json, sys
 import lgnn, jax
-jax.config.update("jax_enable_x64", True)
+lgnn.configure()
 import numpy as np
-from lgnn import benchmark as bm, data, physics, sharding
-from lgnn.scenes import get_scene, sample_initial_states
-from lgnn.simulate import SimulationConfig
+from lgnn.bench import benchmark as bm
+from lgnn.learn import data
+from lgnn import physics, sharding
+from lgnn.scene import get_scene, sample_initial_states
+from lgnn.engines.lagrangian import SimulationConfig
 assert jax.device_count() == 2, jax.devices()
 config = SimulationConfig(**json.loads(sys.argv[1]))
 scene = bm.scene_named("chain4")

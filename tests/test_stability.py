@@ -23,12 +23,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from lgnn import data, models, physics, stability, train
+from lgnn.learn import data, models, train
+from lgnn import physics
+from lgnn.bench import stability
 from lgnn.cli import main
 from lgnn.errors import SceneError, SimulationError
 from lgnn.scene import scene_from_dict, scene_to_dict
-from lgnn.scenes import chain, get_scene
-from lgnn.simulate import EXPLOSION_FACTOR, ExplosionBounds, SimulationConfig, rollout_fn, simulate
+from lgnn.scene import chain, get_scene
+from lgnn.engines.lagrangian import EXPLOSION_FACTOR, ExplosionBounds, SimulationConfig, rollout_fn, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -471,7 +473,7 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
 def test_killed_benchmark_keeps_its_finished_records_and_resumes(tmp_path):
     """`lgnn benchmark` killed at a random moment after its first record: the restarted
     run reuses every record that was finished (not rewritten) and completes the rest."""
-    from lgnn import benchmark as bm
+    from lgnn.bench import benchmark as bm
 
     out = tmp_path / "out"
     profile, pair = bm.PROFILES["quick"], bm.Pair(bm.TrainingJob("gns", "chain4", 0), "chain4")

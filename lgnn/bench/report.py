@@ -1,5 +1,5 @@
 """The benchmark's report: tidy CSVs, markdown tables, figures and `README.md`, from
-the records `lgnn.benchmark` wrote (nothing is computed here but statistics of them).
+the records `lgnn.bench.benchmark` wrote (nothing is computed here but statistics of them).
 
 Files under `<out>` (`results/` for the full profile, `results/quick/` for the quick):
 
@@ -12,7 +12,7 @@ Files under `<out>` (`results/` for the full profile, `results/quick/` for the q
 - `benchmark/curves.csv`: the same metrics per frame (every 0.01 s): geometric mean
   over initial conditions with a normal-approximation 95% band (`t` column).
 - `benchmark/speed_error.csv`, `.md`: wall time per simulated second against rollout
-  error (`lgnn.benchmark.speed_error`).
+  error (`lgnn.bench.benchmark.speed_error`).
 - `benchmark/mass_matrix.csv`: percentage errors of the learned mass matrix.
 - `figures/*.png`; `README.md`: the summary tables and how each file was made.
 
@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lgnn import benchmark as bm
-from lgnn.stability import fit_exponent
-from lgnn._io import atomic_path, write_text_atomic
+from lgnn.bench import benchmark as bm
+from lgnn.bench.stability import fit_exponent
+from lgnn.files import atomic_path, write_text_atomic
 
 MODEL_ORDER = ("lgnn", "gns", "lgn", "clnn")
 COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3"}
@@ -333,7 +333,7 @@ def _command(profile: bm.Profile) -> str:
 
 
 def _training_lines(profile: bm.Profile, out: Path) -> list[str]:
-    from lgnn import train
+    from lgnn.learn import train
 
     lines = ["| model | training scene | epochs | minutes | best validation MSE (epoch) |", "|---|---|---|---|---|"]
     for job in bm.training_jobs(profile):

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.errors import SceneError
-from lgnn.scene import Scene, State, is_pinned_chain, load_scene_file, scene_from_dict
+from lgnn.scene.schema import Scene, State, is_pinned_chain, load_scene_file, scene_from_dict
 
 # Paper's chain sampler (authors' code): each link hangs at (0, -1) rotated by an
 # independent angle in [-15, 15] degrees, then the whole chain is rotated by +45

@@ -1,5 +1,5 @@
 """The benchmark: train every model of the grid, evaluate it on every scene, against
-both ground truths, and measure speed against error. `lgnn.report` turns the records
+both ground truths, and measure speed against error. `lgnn.bench.report` turns the records
 into `results/`.
 
 The grid and both profiles are declared once, here:
@@ -57,12 +57,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn import data, models, physics, sharding, train
-from lgnn._io import atomic_path
+from lgnn.learn import data, models, train
+from lgnn import physics, sharding
+from lgnn.files import atomic_path
 from lgnn.errors import CheckpointError, ConfigError, SceneError, SimulationError
 from lgnn.scene import Scene, State, scene_to_dict
-from lgnn.scenes import get_scene, is_pinned_chain, sample_initial_states
-from lgnn.simulate import SimulationConfig, rollout_fn
+from lgnn.scene import get_scene, is_pinned_chain, sample_initial_states
+from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 
 RECORD_FORMAT = 1
 TRANSFER_SCENES = ("chain4", "chain8", "chain16", "chain100", "T1", "T2", "T3")
@@ -548,7 +549,7 @@ def _ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> d
     # The perturbed runs are not references: one that diverges (T2/T3's perturbed
     # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
     q_floor, _, _, _ = _batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, profile.chunk, f"floor {scene_name}", progress)
-    from lgnn import mujoco as lm
+    from lgnn.engines import mujoco as lm
 
     mj_config = SimulationConfig("rk4", profile.mujoco_dt, profile.frame_dt, profile.duration, True)
     start = time.perf_counter()
@@ -718,8 +719,8 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     from the scene's first initial condition over `speed_horizon` s, frames every
     `frame_dt`; error: geometric mean of the rollout error against MuJoCo C at a tenth
     of the smallest step."""
-    from lgnn import mujoco as lm
-    from lgnn.crosscheck import MJX_MAX_DEPTH, SKIP_MJX, _timed, time_compiled
+    from lgnn.engines import mujoco as lm
+    from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX, _timed, time_compiled
 
     scene = scene_named(scene_name)
     layout = Layout(out)
@@ -797,8 +798,8 @@ def scaling(profile: Profile, out: Path) -> Path:
       (batches spread over every local device; MuJoCo C on two threads), for the
       Lagrangian ground truth and MuJoCo C.
     Each timing runs `scaling_steps` steps after a compile (or warm-up) run kept apart."""
-    from lgnn.crosscheck import _timed, time_compiled
-    from lgnn.scenes import chain
+    from lgnn.bench.crosscheck import _timed, time_compiled
+    from lgnn.scene import chain
 
     layout = Layout(out)
     checkpoint, digest, key = _scaling_settings(profile, out)
@@ -949,7 +950,7 @@ def run(profile: Profile, out: Path | None = None, stages=STAGES, jobs: list[str
             if not scenes or scene in scenes:
                 mass_matrices(profile, scene, out)
     if "report" in stages:
-        from lgnn import report
+        from lgnn.bench import report
 
         report.write(profile, out)
     return out

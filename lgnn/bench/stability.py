@@ -49,11 +49,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics
-from lgnn.crosscheck import time_compiled
+from lgnn.bench.crosscheck import time_compiled
 from lgnn.errors import SimulationError
 from lgnn.scene import Scene, scene_from_dict
-from lgnn.scenes import chain, get_scene
-from lgnn.simulate import ExplosionBounds, SimulationConfig, Trajectory, rollout_fn, simulate
+from lgnn.scene import chain, get_scene
+from lgnn.engines.lagrangian import ExplosionBounds, SimulationConfig, Trajectory, rollout_fn, simulate
 
 STATUSES = ("ok", "detected", "silent")
 COLUMNS = (
@@ -240,7 +240,7 @@ def max_violation(scene: Scene, q: np.ndarray) -> float:
 def bad_model_checkpoint(path: str | Path, scene: Scene, scale: float) -> Path:
     """Write a GNS checkpoint of untrained parameters times `scale` (the file `lgnn
     rollout --model` reads)."""
-    from lgnn import models, train
+    from lgnn.learn import models, train
 
     model = models.ModelConfig.for_scene("gns", scene)
     config = train.TrainConfig(seed=SEED)
@@ -256,11 +256,11 @@ def _trajectory(case: Case, scene: Scene) -> Trajectory:
     if case.engine == "lagrangian":
         return simulate(scene, config)
     if case.engine == "mujoco":
-        from lgnn import mujoco as lm
+        from lgnn.engines import mujoco as lm
 
         return lm.simulate(scene, config)
     if case.engine in ("gns-untrained", "gns-bad"):
-        from lgnn import models, train
+        from lgnn.learn import models, train
 
         with tempfile.TemporaryDirectory() as tmp:
             path = bad_model_checkpoint(Path(tmp) / "gns.npz", scene, 1.0 if case.engine == "gns-untrained" else BAD_MODEL_SCALE)
@@ -389,7 +389,7 @@ def _cell(value) -> str:
 
 def write_report(rows: list[dict], md_path: str | Path, command: str, exponent: float, notes=()) -> Path:
     """`md_path` and the CSV beside it (same stem), atomically, with provenance."""
-    from lgnn._io import check_writable, write_text_atomic
+    from lgnn.files import check_writable, write_text_atomic
     from lgnn.provenance import environment
 
     md_path = check_writable(md_path)

@@ -36,9 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from lgnn import models
-from lgnn._io import atomic_path
-from lgnn.data import DataConfig, Dataset
+from lgnn.learn import models
+from lgnn.files import atomic_path
+from lgnn.learn.data import DataConfig, Dataset
 from lgnn.errors import CheckpointError, ConfigError
 from lgnn.scene import Scene
 

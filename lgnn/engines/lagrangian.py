@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics
-from lgnn._io import atomic_path
+from lgnn.files import atomic_path
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.integrate import INTEGRATORS, Integrator, advance, rollout
 from lgnn.scene import Scene, State, scene_to_dict

@@ -211,7 +211,7 @@ def scene_to_mjcf(scene: Scene, dt: float = 1e-4) -> str:
     solimp = _vec(*SOLIMP)
     lines = [
         f'<mujoco model="{scene.name}">',
-        f"  <!-- Rendered by lgnn.mujoco.scene_to_mjcf from scene {scene.name!r} "
+        f"  <!-- Rendered by lgnn.engines.mujoco.scene_to_mjcf from scene {scene.name!r} "
         f"({scene.n_nodes} nodes, {scene.n_links} links, pins {list(scene.pinned)}); dt {dt:g}. -->",
     ]
     if layout.static_links:
@@ -635,7 +635,7 @@ def simulate(scene: Scene, config, state: State | None = None, *, engine: str = 
     layout of the Lagrangian engine), with lgnn's exact energy of the node states.
     Stops, like the Lagrangian engine, at the first non-finite or exploding frame
     (`simulate.ExplosionBounds`) with a `SimulationError` carrying the frames before it."""
-    from lgnn.simulate import ExplosionBounds, Trajectory
+    from lgnn.engines.lagrangian import ExplosionBounds, Trajectory
 
     if engine not in ENGINES:
         raise ConfigError(f"unknown MuJoCo engine {engine!r} (choose from {', '.join(ENGINES)})")

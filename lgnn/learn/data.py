@@ -31,11 +31,11 @@ import jax
 import numpy as np
 
 from lgnn import physics, sharding
-from lgnn._io import atomic_path
+from lgnn.files import atomic_path
 from lgnn.errors import ConfigError
 from lgnn.scene import Scene, scene_from_dict, scene_to_dict, scene_to_json
-from lgnn.scenes import get_scene, sample_initial_states
-from lgnn.simulate import SimulationConfig, rollout_fn
+from lgnn.scene import get_scene, sample_initial_states
+from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 
 DATA_FORMAT = 1
 ARRAY_KEYS = ("q", "qd", "qdd", "trajectory", "train", "val")

@@ -26,9 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics, sharding
-from lgnn._io import write_text_atomic
+from lgnn.files import write_text_atomic
 from lgnn.scene import Scene, State
-from lgnn.simulate import SimulationConfig, rollout_fn
+from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 
 ENGINES = ("lagrangian", "mujoco", "mjx")
 # Deepest spanning tree MJX is compiled for by default (chain4 compiles in ~35 s on a
@@ -38,8 +38,8 @@ SKIP_MJX = "skipped: MJX compile too slow on CPU (tree depth {depth} > {limit})"
 
 
 def _run_engine(scene: Scene, config: SimulationConfig, engine: str, dtype: str = "float64"):
-    from lgnn import mujoco as lm
-    from lgnn.simulate import simulate
+    from lgnn.engines import mujoco as lm
+    from lgnn.engines.lagrangian import simulate
 
     start = time.perf_counter()
     if engine == "lagrangian":
@@ -51,7 +51,7 @@ def _run_engine(scene: Scene, config: SimulationConfig, engine: str, dtype: str 
 
 def crosscheck(scene: Scene, config: SimulationConfig, engines=ENGINES, mjx_max_depth: int = MJX_MAX_DEPTH) -> list[dict]:
     """Tidy rows (module docstring). Wall time of MJX includes its compile (once per process)."""
-    from lgnn import mujoco as lm
+    from lgnn.engines import mujoco as lm
 
     rows, trajectories = [], {}
     violation = jax.jit(jax.vmap(lambda q: physics.constraint_violation(scene, q)))
@@ -125,7 +125,7 @@ def time_compiled(run, *args):
 
 def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, dtype="float64"):
     """(compile_s, run_s, q (B, F+1, N, 2)) of one engine on a batch of initial states."""
-    from lgnn import mujoco as lm
+    from lgnn.engines import mujoco as lm
 
     if engine == "mujoco":
         # Warm-up: compiles the model, kept apart. Timed: MuJoCo's stepping alone; the
@@ -168,8 +168,8 @@ def speed_error(scenes, engines=ENGINES, dts=(1e-3, 1e-4, 1e-5), batches=(100,),
     `mjx_max_depth`, get a row saying so. `dtype` applies to the JAX engines (MuJoCo C
     is float64).
     """
-    from lgnn import mujoco as lm
-    from lgnn.scenes import get_scene, sample_initial_states
+    from lgnn.engines import mujoco as lm
+    from lgnn.scene import get_scene, sample_initial_states
 
     rows = []
     for name in scenes:

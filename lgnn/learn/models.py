@@ -44,7 +44,7 @@ import numpy as np
 
 from lgnn import physics
 from lgnn.errors import ConfigError
-from lgnn.graphs import edge_type_indices, graph_from_state
+from lgnn.learn.graphs import edge_type_indices, graph_from_state
 from lgnn.scene import Scene
 
 MODEL_NAMES = ("lgnn", "gns", "lgn", "clnn")
@@ -321,7 +321,7 @@ def rollout(config: ModelConfig, params: dict, scene: Scene, simulation=None, st
     own), through the ground truth's integrators (`simulate.simulate`); its `energy` is
     the scene's true Hamiltonian of the predicted states. A prediction that becomes
     non-finite or explodes stops with `SimulationError` naming the time."""
-    from lgnn.simulate import SimulationConfig, simulate
+    from lgnn.engines.lagrangian import SimulationConfig, simulate
 
     check_compatible(config, scene)
     trajectory = simulate(
