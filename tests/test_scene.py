@@ -188,3 +188,15 @@ def test_paper_scene_conventions():
     assert get_scene("chain4-drag").drag == 0.01
     # built-ins are deterministic
     np.testing.assert_array_equal(get_scene("chain16").nodes, get_scene("chain16").nodes)
+
+
+def test_scenes_compare_and_hash_by_content():
+    """Caches keyed on a scene key on what it holds: the same scene built twice is one
+    key; any change to its structure, parameters or initial state is another."""
+    a, b = get_scene("chain4"), scene_from_dict(scene_to_dict(get_scene("chain4")))
+    assert a is not b and a == b and hash(a) == hash(b) and len({a, b}) == 1
+    heavier = a.replace(masses=a.masses * 1.001)
+    moved = a.replace(velocities=a.velocities + 1e-12)
+    renamed = a.replace(name="other")
+    assert len({a, heavier, moved, renamed}) == 4
+    assert a != "chain4"

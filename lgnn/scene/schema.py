@@ -6,7 +6,8 @@ of inertia about the rod's centre, and a type label. Some nodes are pinned (fixe
 space at their initial position). Gravity acts along -y; an optional linear drag
 acts on each link's centre velocity.
 
-`Scene` is a frozen dataclass registered as a JAX pytree:
+`Scene` is a frozen dataclass registered as a JAX pytree, equal to (and hashing like)
+any scene of the same content (`content_key`), so caches key on content:
 - static (meta) fields fix the topology and the model structure and are hashable:
   `name`, `edges`, `pinned`, `link_types`, `drag` (whether a drag term exists at all
   changes the equations, so it is static);
@@ -32,6 +33,8 @@ the field and the problem.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import json
 import math
 import os
@@ -117,9 +120,23 @@ class Scene:
     def replace(self, **changes) -> "Scene":
         return dataclasses.replace(self, **changes)
 
-    def with_state(self, state: State) -> "Scene":
-        """The same structure with another initial state (not re-validated)."""
-        return self.replace(nodes=np.asarray(state.q, np.float64), velocities=np.asarray(state.qd, np.float64))
+    @functools.cached_property
+    def content_key(self) -> str:
+        """A digest of everything the scene holds (structure, parameters, initial
+        state): two scenes with equal keys are the same scene. Equality and hashing use
+        it, so caches keyed on a scene key on its content, never on the object."""
+        digest = hashlib.sha256(repr((self.name, self.edges, self.pinned, self.link_types, float(self.drag))).encode())
+        for array in (self.nodes, self.velocities, self.lengths, self.masses, self.inertias, self.gravity):
+            array = np.ascontiguousarray(array, np.float64)
+            digest.update(repr(array.shape).encode())
+            digest.update(array.tobytes())
+        return digest.hexdigest()
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Scene) and self.content_key == other.content_key
+
+    def __hash__(self) -> int:
+        return hash(self.content_key)
 
     def __repr__(self) -> str:
         return (
