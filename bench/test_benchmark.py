@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lgnn import metrics
 from lgnn.bench import benchmark as bm
 from lgnn.learn import train
 
@@ -80,8 +81,8 @@ def test_training(benchmark, record_rate, profile, out, job):
 
 def test_ground_truth(profile, out, eval_scene):
     arrays, meta = bm.load_record(bm.evaluate_scene(profile, eval_scene, out))
-    floor = bm.summarise(arrays["chaos_floor/per_ic_log"])[0]
-    agreement = bm.summarise(arrays["truth_vs_mujoco/per_ic_log"])[0]
+    floor = metrics.summarise(arrays["chaos_floor/per_ic_log"])[0]
+    agreement = metrics.summarise(arrays["truth_vs_mujoco/per_ic_log"])[0]
     # (Records written before divergence was recorded lack the array; their floor is checked below.)
     floor_diverged = np.isfinite(arrays.get("chaos_floor/diverged_at", np.nan)).any()
     if eval_scene in FLOOR_DIVERGES:
@@ -98,7 +99,7 @@ def test_evaluation(profile, out, pair):
     for metric in bm.METRICS:
         assert arrays[f"{metric}/per_ic_log"].shape == (count,)
         gmean = arrays[f"{metric}/gmean"]
-        assert np.all((gmean >= bm.ERROR_FLOOR) & (gmean <= 1.0)), "errors are clipped to [1e-16, 1], never NaN"
+        assert np.all((gmean >= metrics.ERROR_FLOOR) & (gmean <= 1.0)), "errors are clipped to [1e-16, 1], never NaN"
     assert arrays["diverged_at"].shape == (count,)
 
 

@@ -90,6 +90,7 @@ def _cmd_simulate(args) -> None:
     from lgnn.files import check_writable
     from lgnn.scene import get_scene
     from lgnn.engines.lagrangian import simulate
+    from lgnn.metrics import energy_drift
 
     config = _simulation_config(args)
     check_writable(args.out)
@@ -103,10 +104,9 @@ def _cmd_simulate(args) -> None:
     else:
         raise ConfigError(f"unknown engine {args.engine!r} (choose from: lagrangian, mujoco, mjx)")
     trajectory.save(args.out)
-    drift = abs(trajectory.energy[-1] - trajectory.energy[0]) / max(abs(trajectory.energy[0]), 1e-300)
     print(
         f"{scene.name}: {len(trajectory.t)} frames over {config.duration:g} s "
-        f"({config.integrator}, dt {config.dt:g}); relative energy drift {drift:.2e}; wrote {args.out}"
+        f"({config.integrator}, dt {config.dt:g}); energy drift {energy_drift(scene, trajectory):.2e}; wrote {args.out}"
     )
 
 
@@ -207,6 +207,7 @@ def _cmd_rollout(args) -> None:
     from lgnn.files import check_writable
     from lgnn.scene import get_scene
     from lgnn.learn.train import load_model
+    from lgnn.metrics import energy_drift
 
     config = _simulation_config(args)
     check_writable(args.out)
@@ -214,8 +215,8 @@ def _cmd_rollout(args) -> None:
     scene = get_scene(args.scene)
     trajectory = models.rollout(model, params, scene, config, progress=not args.quiet)
     trajectory.save(args.out)
-    drift = abs(trajectory.energy[-1] - trajectory.energy[0]) / max(abs(trajectory.energy[0]), 1e-300)
-    print(f"{model.name} on {scene.name}: {len(trajectory.t)} frames over {config.duration:g} s; true energy drift {drift:.2e}; wrote {args.out}")
+    print(f"{model.name} on {scene.name}: {len(trajectory.t)} frames over {config.duration:g} s; "
+          f"true energy drift {energy_drift(scene, trajectory):.2e}; wrote {args.out}")
 
 
 def _add_train_parser(commands) -> None:

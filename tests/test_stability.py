@@ -30,7 +30,8 @@ from lgnn.cli import main
 from lgnn.errors import SceneError, SimulationError
 from lgnn.scene import scene_from_dict, scene_to_dict
 from lgnn.scene import chain, get_scene
-from lgnn.engines.lagrangian import EXPLOSION_FACTOR, ExplosionBounds, SimulationConfig, rollout_fn, simulate
+from lgnn.engines.lagrangian import SimulationConfig, rollout_fn, simulate
+from lgnn.metrics import EXPLOSION_FACTOR, ExplosionBounds
 
 ROOT = Path(__file__).resolve().parents[1]
 

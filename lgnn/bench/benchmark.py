@@ -25,11 +25,12 @@ settings it was made with match, redone otherwise):
    (t > 0) and initial condition: rollout error `||q_hat - q|| / (||q_hat|| + ||q||)`
    over all node coordinates, energy error (the same formula on the scene's true
    Hamiltonian of both trajectories), and the rollout error against MuJoCo's
-   trajectory. Errors are clipped to [1e-16, 1] (1 is the metric's maximum; 1e-16
-   keeps an exact match from dominating a geometric mean). A rollout *diverges* at
-   the first frame whose state is non-finite or has a node farther than
-   `EXPLOSION_LENGTHS` structure lengths (the sum of link lengths) from its start;
-   from that frame on its errors count as 1 and the divergence time is recorded.
+   trajectory (`lgnn.metrics`). Errors are clipped to [1e-16, 1] (1 is the metric's
+   maximum; 1e-16 keeps an exact match from dominating a geometric mean). A rollout
+   *diverges* at the first frame the one divergence rule of `lgnn.metrics` flags
+   (non-finite, true energy or a node's reach beyond 10 times what the scene allows),
+   the rule that stops every engine; from that frame on its errors count as 1 and
+   the divergence time is recorded.
 3. `speed_error`: wall time per simulated second (single trajectory, compile apart)
    against rollout error for the ground-truth engines at several steps and for each
    learned model, against a MuJoCo C reference at a tenth of the smallest step.
@@ -58,7 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.learn import data, models, train
-from lgnn import physics, sharding
+from lgnn import metrics, physics, sharding
 from lgnn.files import atomic_path
 from lgnn.errors import CheckpointError, ConfigError, SceneError, SimulationError
 from lgnn.scene import Scene, State, scene_to_dict
@@ -69,9 +70,6 @@ RECORD_FORMAT = 1
 TRANSFER_SCENES = ("chain4", "chain8", "chain16", "chain100", "T1", "T2", "T3")
 # Metrics recorded per frame and initial condition.
 METRICS = ("rollout_error", "energy_error", "rollout_error_vs_mujoco")
-ERROR_FLOOR = 1e-16
-# A rollout diverges when a node is this many structure lengths from where it started.
-EXPLOSION_LENGTHS = 100.0
 # Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s.
 SNAPSHOT_DT = 0.01
 
@@ -445,52 +443,6 @@ def initial_states(profile: Profile, scene: Scene) -> State:
     return State(np.asarray(states.q), np.asarray(states.qd))
 
 
-def relative_error(a: np.ndarray, b: np.ndarray, trailing: int) -> np.ndarray:
-    """`||a - b|| / (||a|| + ||b||)` over the last `trailing` axes."""
-    axes = tuple(range(-trailing, 0))
-    diff = np.sqrt(np.sum((a - b) ** 2, axis=axes))
-    scale = np.sqrt(np.sum(a**2, axis=axes)) + np.sqrt(np.sum(b**2, axis=axes))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return diff / scale
-
-
-def divergence_frames(q: np.ndarray, structure_length: float) -> np.ndarray:
-    """(C,) index of the first diverged frame of trajectories q (C, F, N, D), or -1."""
-    with np.errstate(invalid="ignore"):
-        moved = np.max(np.abs(q - q[:, :1]), axis=(-1, -2))
-        bad = ~np.isfinite(q).all(axis=(-1, -2)) | ~(moved <= EXPLOSION_LENGTHS * structure_length)
-    first = np.argmax(bad, axis=1)
-    return np.where(bad.any(axis=1), first, -1)
-
-
-def clean_errors(errors: np.ndarray, diverged: np.ndarray) -> np.ndarray:
-    """Errors (C, F) with every frame from divergence on set to 1, clipped to [ERROR_FLOOR, 1]."""
-    frames = np.arange(errors.shape[1])
-    after = (diverged[:, None] >= 0) & (frames[None] >= diverged[:, None])
-    errors = np.where(after | ~np.isfinite(errors), 1.0, errors)
-    return np.clip(errors, ERROR_FLOOR, 1.0)
-
-
-def error_statistics(errors: np.ndarray) -> dict:
-    """From clean errors (C, F) over frames t > 0: per-IC mean log error (C,), and per
-    frame the geometric mean over ICs with a normal-approximation 95% band (NaN for C = 1)."""
-    logs = np.log(errors)
-    mean = logs.mean(axis=0)
-    half = 1.96 * logs.std(axis=0, ddof=1) / np.sqrt(len(logs)) if len(logs) > 1 else np.full_like(mean, np.nan)
-    return {"per_ic_log": logs.mean(axis=1), "gmean": np.exp(mean), "low": np.exp(mean - half), "high": np.exp(mean + half)}
-
-
-def summarise(per_ic_log: np.ndarray, seed: int = 0, resamples: int = 2000) -> tuple[float, float, float]:
-    """Geometric mean over frames and ICs with a bootstrap 95% interval over ICs (NaN for one IC)."""
-    value = float(np.exp(per_ic_log.mean()))
-    if len(per_ic_log) < 2:
-        return value, float("nan"), float("nan")
-    rng = np.random.default_rng(seed)
-    boots = per_ic_log[rng.integers(0, len(per_ic_log), (resamples, len(per_ic_log)))].mean(axis=1)
-    low, high = np.percentile(boots, [2.5, 97.5])
-    return value, float(np.exp(low)), float(np.exp(high))
-
-
 @functools.lru_cache(maxsize=64)
 def _compiled_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, chunk: int, dtype: str):
     """`(compiled, compile_s)`: the jitted, vmapped rollout of `chunk` initial
@@ -526,15 +478,6 @@ def _batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Cal
     return np.concatenate(qs), np.concatenate(qds), compile_s, run_s
 
 
-def _energies(scene: Scene, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-    energy = jax.jit(jax.vmap(jax.vmap(physics.energy_fn(scene))))
-    with np.errstate(invalid="ignore"):
-        finite = np.isfinite(q).all(axis=(-1, -2)) & np.isfinite(qd).all(axis=(-1, -2))
-    safe_q = np.where(finite[..., None, None], q, q[:, :1])
-    safe_qd = np.where(finite[..., None, None], qd, qd[:, :1])
-    return np.where(finite, np.asarray(energy(safe_q, safe_qd)), np.nan)
-
-
 @functools.lru_cache(maxsize=2)
 def _ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> dict:
     """In-memory ground truth of a scene's evaluation (not stored: large, cheap to redo)."""
@@ -543,20 +486,22 @@ def _ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> d
     config = profile.simulation(scene_name)
     log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s")
     q, qd, compile_s, run_s = _batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, states, profile.chunk, f"truth {scene_name}", progress)
-    _check_reference(scene, q, "Lagrangian ground truth", config)
+    energy = metrics.true_energies(scene, q, qd)
+    _check_reference(scene, config, "Lagrangian ground truth", q, qd, energy)
     noise = profile.floor_perturbation * jax.random.normal(jax.random.PRNGKey(profile.ic_seed + 1000), states.q.shape)
     perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
     # The perturbed runs are not references: one that diverges (T2/T3's perturbed
     # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
-    q_floor, _, _, _ = _batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, profile.chunk, f"floor {scene_name}", progress)
+    q_floor, qd_floor, _, _ = _batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, profile.chunk, f"floor {scene_name}", progress)
     from lgnn.engines import mujoco as lm
 
     mj_config = SimulationConfig("rk4", profile.mujoco_dt, profile.frame_dt, profile.duration, True)
     start = time.perf_counter()
-    q_mj = lm.rollout(scene, mj_config, states, threads=os.cpu_count() or 1).q
+    q_mj, qd_mj = lm.rollout(scene, mj_config, states, threads=os.cpu_count() or 1)
     mujoco_s = time.perf_counter() - start
-    _check_reference(scene, q_mj, "MuJoCo reference", mj_config)
-    return dict(q=q, qd=qd, energy=_energies(scene, q, qd), q_floor=q_floor, q_mujoco=q_mj, states=states,
+    _check_reference(scene, mj_config, "MuJoCo reference", q_mj, qd_mj, metrics.true_energies(scene, q_mj, qd_mj))
+    floor_diverged = _divergence(scene, config, q_floor, qd_floor, metrics.true_energies(scene, q_floor, qd_floor))
+    return dict(q=q, qd=qd, energy=energy, q_floor=q_floor, floor_diverged=floor_diverged, q_mujoco=q_mj, states=states,
                 compile_s=compile_s, run_s=run_s, mujoco_s=mujoco_s)
 
 
@@ -565,20 +510,21 @@ def _metric_frames(diverged: np.ndarray) -> np.ndarray:
     return np.where(diverged > 0, diverged - 1, diverged)
 
 
-def _check_reference(scene: Scene, q: np.ndarray, what: str, config: SimulationConfig) -> None:
+def _divergence(scene: Scene, config: SimulationConfig, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> np.ndarray:
+    """(C,) first diverged frame of each trajectory (`lgnn.metrics`' one rule), or -1."""
+    return metrics.divergence_frames(scene, np.arange(q.shape[1]) * config.frame_dt, q, qd, energy)
+
+
+def _check_reference(scene: Scene, config: SimulationConfig, what: str, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> None:
     """A reference trajectory that diverged would turn every error into 1 for every
     model: stop with one line instead of recording meaningless numbers."""
-    diverged = divergence_frames(q, _structure_length(scene))
+    diverged = _divergence(scene, config, q, qd, energy)
     if (diverged >= 0).any():
         first = int(np.argmax(diverged >= 0))
         raise SimulationError(
             f"{scene.name}: the {what} diverged at t = {diverged[first] * config.frame_dt:g} s (initial condition {first}, "
             f"RK4 dt {config.dt:g}): give the scene a smaller step (Profile.scene_dts)"
         )
-
-
-def _structure_length(scene: Scene) -> float:
-    return float(np.sum(scene.lengths))
 
 
 def _snapshot(profile: Profile, trajectory: np.ndarray) -> np.ndarray:
@@ -588,7 +534,7 @@ def _snapshot(profile: Profile, trajectory: np.ndarray) -> np.ndarray:
 
 
 def _metric_arrays(prefix: str, errors: np.ndarray) -> dict:
-    stats = error_statistics(errors)
+    stats = metrics.error_statistics(errors)
     return {f"{prefix}/{k}": v for k, v in stats.items()}
 
 
@@ -604,12 +550,12 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
         return path
     truth = _ground_truth(profile, scene_name, progress)
     none = np.full(len(truth["q"]), -1)
-    floor_diverged = divergence_frames(truth["q_floor"], _structure_length(scene))
+    floor_diverged = truth["floor_diverged"]
     arrays = {
         "t": np.arange(1, truth["q"].shape[1]) * profile.frame_dt,
-        **_metric_arrays("chaos_floor", clean_errors(relative_error(truth["q_floor"], truth["q"], 2)[:, 1:], _metric_frames(floor_diverged))),
+        **_metric_arrays("chaos_floor", metrics.clean_errors(metrics.relative_error(truth["q_floor"], truth["q"], 2)[:, 1:], _metric_frames(floor_diverged))),
         "chaos_floor/diverged_at": np.where(floor_diverged >= 0, floor_diverged * profile.frame_dt, np.nan),
-        **_metric_arrays("truth_vs_mujoco", clean_errors(relative_error(truth["q"], truth["q_mujoco"], 2)[:, 1:], none)),
+        **_metric_arrays("truth_vs_mujoco", metrics.clean_errors(metrics.relative_error(truth["q"], truth["q_mujoco"], 2)[:, 1:], none)),
         "snapshot/truth": _snapshot(profile, truth["q"]),
         "snapshot/mujoco": _snapshot(profile, truth["q_mujoco"]),
         "mid_state": np.stack([truth["q"][0, truth["q"].shape[1] // 2], truth["qd"][0, truth["qd"].shape[1] // 2]]),
@@ -639,14 +585,14 @@ def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True
         scene, profile.simulation(pair.scene), _model_accel_factory(checkpoint, _file_digest(checkpoint)), truth["states"], profile.chunk,
         f"{pair.job.label} on {pair.scene}", progress
     )
-    diverged = divergence_frames(q, _structure_length(scene))
+    energy = metrics.true_energies(scene, q, qd)
+    diverged = _divergence(scene, profile.simulation(pair.scene), q, qd, energy)
     after_t0 = _metric_frames(diverged)
-    energy = _energies(scene, q, qd)
     arrays = {
         "t": np.arange(1, q.shape[1]) * profile.frame_dt,
-        **_metric_arrays("rollout_error", clean_errors(relative_error(q, truth["q"], 2)[:, 1:], after_t0)),
-        **_metric_arrays("energy_error", clean_errors(relative_error(energy, truth["energy"], 0)[:, 1:], after_t0)),
-        **_metric_arrays("rollout_error_vs_mujoco", clean_errors(relative_error(q, truth["q_mujoco"], 2)[:, 1:], after_t0)),
+        **_metric_arrays("rollout_error", metrics.clean_errors(metrics.relative_error(q, truth["q"], 2)[:, 1:], after_t0)),
+        **_metric_arrays("energy_error", metrics.clean_errors(metrics.relative_error(energy, truth["energy"], 0)[:, 1:], after_t0)),
+        **_metric_arrays("rollout_error_vs_mujoco", metrics.clean_errors(metrics.relative_error(q, truth["q_mujoco"], 2)[:, 1:], after_t0)),
         "diverged_at": np.where(diverged >= 0, diverged * profile.frame_dt, np.nan),
         "snapshot/model": _snapshot(profile, q),
     }
@@ -656,7 +602,7 @@ def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True
                 scene=pair.scene, initial_conditions=len(q), compile_s=compile_s, run_s=run_s, steps_per_s=steps / run_s)
     save_record(path, key, arrays, meta)
     n_div = int(np.sum(diverged >= 0))
-    log(f"evaluate {pair.job.label} on {pair.scene}: rollout error {summarise(arrays['rollout_error/per_ic_log'])[0]:.3g}"
+    log(f"evaluate {pair.job.label} on {pair.scene}: rollout error {metrics.summarise(arrays['rollout_error/per_ic_log'])[0]:.3g}"
         + (f", {n_div} diverged" if n_div else "") + f" ({run_s:.1f} s + compile {compile_s:.1f} s)")
     return path
 
@@ -689,11 +635,6 @@ def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
 # ---------------------------------------------------------------------------------
 # Speed against error
 # ---------------------------------------------------------------------------------
-
-
-def _gmean_error(q: np.ndarray, reference: np.ndarray) -> float:
-    errors = clean_errors(relative_error(q, reference, 2)[None, 1:], np.array([-1]))
-    return float(np.exp(np.mean(np.log(errors))))
 
 
 def _speed_settings(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None):
@@ -755,7 +696,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
                 continue
             config = SimulationConfig("rk4", dt, frame_dt, horizon, True)
             compile_s, run_s, q = _timed(engine, scene, config, single)
-            row(engine, "engine", dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=_gmean_error(q[0], reference))
+            row(engine, "engine", dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference))
             log(f"speed/error {scene_name} {engine} dt {dt:g}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     config = SimulationConfig("rk4", profile.dt_for(scene_name), frame_dt, horizon, True)
     for job in jobs:
@@ -766,7 +707,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
         run = jax.jit(rollout_fn(scene, config, lambda s: models.acceleration_fn(model, params, s)))
         compile_s, run_s, out = time_compiled(run, jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
         q = np.asarray(out.q)
-        row(job.label, "learned", config.dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=_gmean_error(q, reference))
+        row(job.label, "learned", config.dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=metrics.gmean_error(q, reference))
         log(f"speed/error {scene_name} {job.label}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     _save_json_record(path, key, horizon=horizon, rows=rows)
     return path

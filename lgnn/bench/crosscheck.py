@@ -2,8 +2,8 @@
 
 `crosscheck(scene, config, engines)` runs every engine from the scene's initial state
 and returns tidy rows `scene, engine, metric, value, note`: per engine the relative
-energy drift (max |E - E0| / |E0|), the constraint violation (max over frames of
-`physics.constraint_violation`, which includes loop closure) and the wall time; per
+energy drift and the constraint violation (`lgnn.metrics`: max over frames; the latter
+includes loop closure) and the wall time; per
 pair `a~b` the max node error over the run. MJX is skipped, with an explicit row,
 on scenes whose tree is deeper than `MJX_MAX_DEPTH` (its compile time on CPU grows
 steeply with depth: 35 s for chain4, minutes beyond 16 links).
@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn import physics, sharding
+from lgnn import metrics, physics, sharding
 from lgnn.files import write_text_atomic
 from lgnn.scene import Scene, State
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
@@ -54,7 +54,6 @@ def crosscheck(scene: Scene, config: SimulationConfig, engines=ENGINES, mjx_max_
     from lgnn.engines import mujoco as lm
 
     rows, trajectories = [], {}
-    violation = jax.jit(jax.vmap(lambda q: physics.constraint_violation(scene, q)))
     for engine in engines:
         depth = lm.scene_layout(scene).depth
         if engine == "mjx" and depth > mjx_max_depth:
@@ -63,10 +62,9 @@ def crosscheck(scene: Scene, config: SimulationConfig, engines=ENGINES, mjx_max_
             continue
         traj, wall = _run_engine(scene, config, engine)
         trajectories[engine] = traj
-        e0 = abs(traj.energy[0]) if traj.energy[0] != 0 else 1.0
         rows += [
-            dict(scene=scene.name, engine=engine, metric="energy_drift", value=float(np.max(np.abs(traj.energy - traj.energy[0])) / e0), note="max |E-E0|/|E0|"),
-            dict(scene=scene.name, engine=engine, metric="constraint_violation", value=float(np.max(violation(traj.q))), note="max link-length/pin/loop error"),
+            dict(scene=scene.name, engine=engine, metric="energy_drift", value=metrics.energy_drift(scene, traj), note="max |E-E0| / energy scale"),
+            dict(scene=scene.name, engine=engine, metric="constraint_violation", value=metrics.max_constraint_violation(scene, traj.q), note="max link-length/pin/loop error"),
             dict(scene=scene.name, engine=engine, metric="wall_s", value=wall, note="incl. compile" if engine != "mujoco" else ""),
         ]
     for a, b in itertools.combinations(trajectories, 2):

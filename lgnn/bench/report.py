@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lgnn import metrics
 from lgnn.bench import benchmark as bm
 from lgnn.bench.stability import fit_exponent
 from lgnn.files import atomic_path, write_text_atomic
@@ -62,7 +63,7 @@ def _env_columns(meta: dict) -> dict:
 
 
 def _summary_rows(scene, model, seed, metric, arrays, meta, prefix, diverged=None):
-    value, low, high = bm.summarise(arrays[f"{prefix}/per_ic_log"])
+    value, low, high = metrics.summarise(arrays[f"{prefix}/per_ic_log"])
     base = dict(scene=scene, model=model, seed=seed, metric=metric, **_env_columns(meta))
     stats = {"gmean": value, "ci_low": low, "ci_high": high, "initial_conditions": len(arrays[f"{prefix}/per_ic_log"])}
     if diverged is not None:
@@ -391,8 +392,9 @@ def readme(profile: bm.Profile, out: Path, records: tuple, summary, speed_rows, 
         f"MuJoCo C at RK4 dt {p.mujoco_dt:g}. Chaos floor: initial positions perturbed by {p.floor_perturbation:g}.",
         "- Errors (SPEC): per frame `||q_hat - q|| / (||q_hat|| + ||q||)`; energy error the same on the true Hamiltonian; "
         "geometric mean over frames t > 0 and initial conditions, [bootstrap 95% interval over initial conditions]; "
-        f"errors clipped to [{bm.ERROR_FLOOR:g}, 1]; a rollout whose state becomes non-finite or moves a node {bm.EXPLOSION_LENGTHS:g} "
-        "structure lengths counts as diverged: error 1 from then on, and the cell says when.",
+        f"errors clipped to [{metrics.ERROR_FLOOR:g}, 1]; a rollout counts as diverged at the first frame whose state is non-finite, "
+        f"whose true energy is {metrics.EXPLOSION_FACTOR:g} energy scales from the initial one, or where a node moved {metrics.EXPLOSION_FACTOR:g} "
+        "structure sizes (plus a free fall's reach) from its start (`lgnn.metrics`, the rule that stops every engine): error 1 from then on, and the cell says when.",
         "",
         "## Training",
         "",

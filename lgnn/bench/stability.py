@@ -48,12 +48,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn import physics
+from lgnn import metrics, physics
 from lgnn.bench.crosscheck import time_compiled
 from lgnn.errors import SimulationError
 from lgnn.scene import Scene, scene_from_dict
 from lgnn.scene import chain, get_scene
-from lgnn.engines.lagrangian import ExplosionBounds, SimulationConfig, Trajectory, rollout_fn, simulate
+from lgnn.engines.lagrangian import SimulationConfig, Trajectory, rollout_fn, simulate
 
 STATUSES = ("ok", "detected", "silent")
 COLUMNS = (
@@ -220,23 +220,6 @@ def _row(case: Case, **values) -> dict:
     return row
 
 
-def relative_drift(scene: Scene, energy: np.ndarray) -> float:
-    """`max |E - E0| / |E0|`; where `E0` is (nearly) zero, as for a taut rope on the
-    x axis, relative to the scene's energy scale (`simulate.ExplosionBounds`) instead."""
-    if len(energy) == 0:
-        return math.nan
-    scale = ExplosionBounds.of(scene, scene.initial_state, float(energy[0])).energy_scale
-    e0 = abs(float(energy[0]))
-    return float(np.max(np.abs(energy - energy[0])) / (e0 if e0 > 1e-6 * scale else scale))
-
-
-def max_violation(scene: Scene, q: np.ndarray) -> float:
-    """Largest link-length or pin error over frames `q` (F, N, D)."""
-    if len(q) == 0:
-        return math.nan
-    return float(np.max(jax.jit(jax.vmap(lambda x: physics.constraint_violation(scene, x)))(jnp.asarray(q))))
-
-
 def bad_model_checkpoint(path: str | Path, scene: Scene, scale: float) -> Path:
     """Write a GNS checkpoint of untrained parameters times `scale` (the file `lgnn
     rollout --model` reads)."""
@@ -277,10 +260,10 @@ def _run_rollout(case: Case, scene: Scene) -> dict:
         partial = err.trajectory
         values = dict(status="detected", message=str(err), time_to_failure=err.time if err.time is not None else math.nan)
         if partial is not None:
-            values.update(energy_drift=relative_drift(scene, partial.energy), max_constraint_violation=max_violation(scene, partial.q))
+            values.update(energy_drift=metrics.energy_drift(scene, partial), max_constraint_violation=metrics.max_constraint_violation(scene, partial.q))
         return _row(case, wall_s=time.perf_counter() - start, **values)
     wall = time.perf_counter() - start
-    drift, violation = relative_drift(scene, traj.energy), max_violation(scene, traj.q)
+    drift, violation = metrics.energy_drift(scene, traj), metrics.max_constraint_violation(scene, traj.q)
     problems = []
     if not drift <= case.max_drift:
         problems.append(f"energy drift {drift:.2g} > {case.max_drift:g}")
@@ -420,7 +403,7 @@ NOTES = (
     "status: ok = finished within the case's tolerances; detected = stopped with a one-line SimulationError at the first "
     "non-finite or exploding frame (time_to_failure; columns describe the frames before it); silent = finished without "
     "complaint but outside the tolerances",
-    "energy_drift = max |E - E0| / |E0| of the true energy (E0 = 0: over the energy scale m g size); max_constraint_violation = largest link-length/pin error over "
+    "energy_drift = max |E - E0| / energy scale of the true energy (lgnn.metrics: mass x (g size + v0^2 + size^2)); max_constraint_violation = largest link-length/pin error over "
     "the frames (acceleration cases: acceleration-level residual over every link, redundant ones included); accel_error = "
     "largest difference from the reference accelerations; step_s = seconds per RK4 step with projection, compile excluded",
     "tolerances: drift 1e-2 (large steps 5e-2), violation 1e-6 (without projection 1e-2), accelerations 1e-8",

@@ -4,7 +4,7 @@
 from its initial state and returns a `Trajectory` (NumPy): `t` (F,), `q` and `qd`
 (F, N, D), `energy` (F,), frame 0 being the initial state. Work is done in jitted
 chunks of frames so long runs show progress, and a run stops at the first non-finite
-or exploding frame (see `ExplosionBounds`) with a `SimulationError` that names its
+or exploding frame (`lgnn.metrics.ExplosionBounds`) with a `SimulationError` that names its
 time and carries the frames before it; a NaN trajectory is never returned. Other
 engines (MuJoCo, learned models) return the same type.
 """
@@ -25,15 +25,12 @@ import numpy as np
 
 from lgnn import physics
 from lgnn.files import atomic_path
+from lgnn.metrics import ExplosionBounds
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.integrate import INTEGRATORS, Integrator, advance, rollout
 from lgnn.scene import Scene, State, scene_to_dict
 
 NPZ_KEYS = ("t", "q", "qd", "energy")
-# A finite state has "exploded" when it is this many scales beyond anything the
-# scene's physics allows (`ExplosionBounds`): far enough that no correct run, however
-# inaccurate, gets there, close enough to stop a diverging run long before overflow.
-EXPLOSION_FACTOR = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,55 +97,6 @@ class Trajectory:
                 return cls(*(np.asarray(data[key]) for key in NPZ_KEYS), metadata=metadata)
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
             raise ConfigError(f"{path}: cannot read trajectory: {err}") from None
-
-
-@dataclasses.dataclass(frozen=True)
-class ExplosionBounds:
-    """What a correct motion of the scene from one initial state cannot exceed.
-
-    Energy: the true `H` is conserved (or lost to drag), so `|H - H0|` beyond
-    `EXPLOSION_FACTOR` energy scales is an explosion; the scale is the structure's
-    mass times (its largest possible drop `g * size`, the initial squared speed, and
-    a floor of moving its own size per second), so a scene at rest without gravity
-    still has one. Positions: no node moves farther from its start than
-    `EXPLOSION_FACTOR` sizes plus the distance a free fall covers (`v0 t + g t^2 / 2`),
-    which only an unpinned body's fall can approach. `size` is the sum of the link
-    lengths plus the initial extent.
-    """
-
-    energy0: float
-    energy_scale: float
-    q0: np.ndarray
-    size: float
-    speed0: float
-    gravity: float
-
-    @classmethod
-    def of(cls, scene: Scene, state: State, energy0: float) -> "ExplosionBounds":
-        q0, qd0 = np.asarray(state.q, np.float64), np.asarray(state.qd, np.float64)
-        size = float(np.sum(scene.lengths) + np.max(np.ptp(q0, axis=0)))
-        speed0 = float(np.max(np.linalg.norm(qd0, axis=-1)))
-        gravity = abs(float(scene.gravity))
-        scale = float(np.sum(scene.masses)) * (gravity * size + speed0**2 + size**2)
-        return cls(float(energy0), scale, q0, size, speed0, gravity)
-
-    def first_violation(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> tuple[int, str] | None:
-        """(index, reason) of the first frame of `t` (F,), `q`, `qd` (F, N, D) and
-        `energy` (F,) that is non-finite or exploding; None if every frame is fine."""
-        finite = np.isfinite(q).all(axis=(1, 2)) & np.isfinite(qd).all(axis=(1, 2)) & np.isfinite(energy)
-        with np.errstate(invalid="ignore", over="ignore"):
-            energy_out = np.abs(energy - self.energy0) > EXPLOSION_FACTOR * self.energy_scale
-            reach = EXPLOSION_FACTOR * self.size + self.speed0 * t + 0.5 * self.gravity * t**2
-            position_out = np.max(np.linalg.norm(q - self.q0, axis=-1), axis=-1) > reach
-        bad = ~finite | energy_out | position_out
-        if not bad.any():
-            return None
-        k = int(np.argmax(bad))
-        if not finite[k]:
-            return k, "became non-finite"
-        if energy_out[k]:
-            return k, f"exploded (true energy {energy[k]:.3g}, initial {self.energy0:.3g}, scale {self.energy_scale:.3g})"
-        return k, f"exploded (a node moved {np.max(np.linalg.norm(q[k] - self.q0, axis=-1)):.3g} from its start, size {self.size:.3g})"
 
 
 def check_state(scene: Scene, state: State) -> State:

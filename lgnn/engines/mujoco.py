@@ -634,8 +634,9 @@ def simulate(scene: Scene, config, state: State | None = None, *, engine: str = 
     """One trajectory of `engine` ("mujoco" or "mjx") as a `Trajectory` (the `.npz`
     layout of the Lagrangian engine), with lgnn's exact energy of the node states.
     Stops, like the Lagrangian engine, at the first non-finite or exploding frame
-    (`simulate.ExplosionBounds`) with a `SimulationError` carrying the frames before it."""
-    from lgnn.engines.lagrangian import ExplosionBounds, Trajectory
+    (`lgnn.metrics.ExplosionBounds`) with a `SimulationError` carrying the frames before it."""
+    from lgnn.engines.lagrangian import Trajectory
+    from lgnn.metrics import ExplosionBounds
 
     if engine not in ENGINES:
         raise ConfigError(f"unknown MuJoCo engine {engine!r} (choose from {', '.join(ENGINES)})")

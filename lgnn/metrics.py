@@ -1,0 +1,189 @@
+"""One definition of each measure of a trajectory, used by every command and the benchmark.
+
+- `energy_scale(scene, state)`: the energy a motion of the scene from `state` can
+  involve: its mass times (its largest possible drop `g * size`, the initial squared
+  speed, and a floor of moving its own size per second). It cannot vanish (a scene at
+  rest without gravity still has one), unlike the initial energy, which is zero for a
+  pendulum released horizontally.
+- `energy_drift(scene, trajectory)`: `max_t |E(t) - E(0)| / energy_scale`, the
+  maximum over the whole trajectory (not its last frame).
+- `ExplosionBounds` and `divergence_frames`: the one divergence rule. A frame has
+  diverged when its state is non-finite, or its true energy is more than
+  `EXPLOSION_FACTOR` energy scales from the initial one (the true `H` is conserved or
+  lost to drag), or a node is farther from its start than `EXPLOSION_FACTOR` sizes
+  plus the distance a free fall covers (`v0 t + g t^2 / 2`, which only an unpinned
+  body can approach). `size` is the sum of the link lengths plus the initial extent.
+  Far enough that no correct run, however inaccurate, gets there; close enough to stop
+  a diverging run long before overflow. Engines stop at the first such frame; the
+  benchmark scores every frame from it on as the metric's maximum.
+- `relative_error`, `clean_errors`, `error_statistics`, `summarise`, `gmean_error`:
+  the benchmark's rollout and energy errors `||a - b|| / (||a|| + ||b||)` and their
+  geometric-mean statistics with intervals.
+- `max_constraint_violation`: the largest link-length or pin error over frames.
+
+Arrays are NumPy; `q`, `qd` are (..., F, N, D) and energies (..., F) with frame 0 the
+initial state.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn import physics
+from lgnn.scene import Scene, State
+
+# How many scales beyond anything the scene's physics allows a state is "exploded".
+EXPLOSION_FACTOR = 10.0
+# Errors are clipped to [ERROR_FLOOR, 1]: 1 is the relative error's maximum, and the
+# floor keeps an exact match from dominating a geometric mean.
+ERROR_FLOOR = 1e-16
+
+
+def structure_size(scene: Scene, q0: np.ndarray) -> float:
+    """The sum of the link lengths plus the initial extent of the nodes `q0` (N, D)."""
+    return float(np.sum(scene.lengths) + np.max(np.ptp(np.asarray(q0, np.float64), axis=0)))
+
+
+def energy_scale(scene: Scene, state: State) -> float:
+    """The energy a motion of `scene` from `state` can involve (module docstring)."""
+    size = structure_size(scene, state.q)
+    speed0 = float(np.max(np.linalg.norm(np.asarray(state.qd, np.float64), axis=-1)))
+    return float(np.sum(scene.masses)) * (abs(float(scene.gravity)) * size + speed0**2 + size**2)
+
+
+def energy_drift(scene: Scene, trajectory) -> float:
+    """`max_t |E(t) - E(0)| / energy_scale` of a trajectory (anything with `q`, `qd`
+    (F, N, D) and true energies `energy` (F,), frame 0 its initial state); NaN for an
+    empty one."""
+    energy = np.asarray(trajectory.energy, np.float64)
+    if energy.size == 0:
+        return math.nan
+    scale = energy_scale(scene, State(trajectory.q[0], trajectory.qd[0]))
+    return float(np.max(np.abs(energy - energy[0])) / scale)
+
+
+@dataclasses.dataclass(frozen=True)
+class ExplosionBounds:
+    """What a correct motion of the scene from one initial state cannot exceed (the
+    divergence rule of the module docstring)."""
+
+    energy0: float
+    energy_scale: float
+    q0: np.ndarray
+    size: float
+    speed0: float
+    gravity: float
+
+    @classmethod
+    def of(cls, scene: Scene, state: State, energy0: float) -> "ExplosionBounds":
+        q0, qd0 = np.asarray(state.q, np.float64), np.asarray(state.qd, np.float64)
+        speed0 = float(np.max(np.linalg.norm(qd0, axis=-1)))
+        return cls(float(energy0), energy_scale(scene, state), q0, structure_size(scene, q0), speed0, abs(float(scene.gravity)))
+
+    def violations(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray):
+        """`(non_finite, energy_out, position_out)`, each (F,) booleans, for frames at
+        times `t` (F,) with states `q`, `qd` (F, N, D) and true energies (F,)."""
+        finite = np.isfinite(q).all(axis=(-1, -2)) & np.isfinite(qd).all(axis=(-1, -2)) & np.isfinite(energy)
+        with np.errstate(invalid="ignore", over="ignore"):
+            energy_out = np.abs(energy - self.energy0) > EXPLOSION_FACTOR * self.energy_scale
+            reach = EXPLOSION_FACTOR * self.size + self.speed0 * t + 0.5 * self.gravity * t**2
+            position_out = np.max(np.linalg.norm(q - self.q0, axis=-1), axis=-1) > reach
+        return ~finite, energy_out & finite, position_out & finite
+
+    def first_violation(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> tuple[int, str] | None:
+        """(index, reason) of the first frame that is non-finite or exploding; None if
+        every frame is fine."""
+        non_finite, energy_out, position_out = self.violations(t, q, qd, energy)
+        bad = non_finite | energy_out | position_out
+        if not bad.any():
+            return None
+        k = int(np.argmax(bad))
+        if non_finite[k]:
+            return k, "became non-finite"
+        if energy_out[k]:
+            return k, f"exploded (true energy {energy[k]:.3g}, initial {self.energy0:.3g}, scale {self.energy_scale:.3g})"
+        return k, f"exploded (a node moved {np.max(np.linalg.norm(q[k] - self.q0, axis=-1)):.3g} from its start, size {self.size:.3g})"
+
+
+def divergence_frames(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> np.ndarray:
+    """(C,) index of the first diverged frame of each trajectory `q`, `qd` (C, F, N, D)
+    with true energies (C, F) at times `t` (F,), or -1: `ExplosionBounds` from each
+    trajectory's frame 0."""
+    first = np.full(len(q), -1)
+    for c in range(len(q)):
+        bounds = ExplosionBounds.of(scene, State(q[c, 0], qd[c, 0]), float(energy[c, 0]))
+        violation = bounds.first_violation(t, q[c], qd[c], energy[c])
+        if violation is not None:
+            first[c] = violation[0]
+    return first
+
+
+def true_energies(scene: Scene, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+    """The scene's true `H = T + V` of states `q`, `qd` (..., N, D) -> (...); NaN where a
+    state is non-finite."""
+    q, qd = np.asarray(q), np.asarray(qd)
+    lead = q.shape[:-2]
+    flat_q, flat_qd = q.reshape(-1, *q.shape[-2:]), qd.reshape(-1, *qd.shape[-2:])
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(flat_q).all(axis=(-1, -2)) & np.isfinite(flat_qd).all(axis=(-1, -2))
+    safe_q = np.where(finite[:, None, None], flat_q, scene.nodes)  # any finite state: masked below
+    safe_qd = np.where(finite[:, None, None], flat_qd, 0.0)
+    energy = np.asarray(jax.jit(jax.vmap(physics.energy_fn(scene)))(jnp.asarray(safe_q), jnp.asarray(safe_qd)))
+    return np.where(finite, energy, np.nan).reshape(lead)
+
+
+def max_constraint_violation(scene: Scene, q: np.ndarray) -> float:
+    """Largest link-length or pin error over frames `q` (F, N, D); NaN for none."""
+    if len(q) == 0:
+        return math.nan
+    return float(np.max(jax.jit(jax.vmap(lambda x: physics.constraint_violation(scene, x)))(jnp.asarray(q))))
+
+
+def relative_error(a: np.ndarray, b: np.ndarray, trailing: int) -> np.ndarray:
+    """`||a - b|| / (||a|| + ||b||)` over the last `trailing` axes."""
+    axes = tuple(range(-trailing, 0))
+    diff = np.sqrt(np.sum((a - b) ** 2, axis=axes))
+    scale = np.sqrt(np.sum(a**2, axis=axes)) + np.sqrt(np.sum(b**2, axis=axes))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return diff / scale
+
+
+def clean_errors(errors: np.ndarray, diverged: np.ndarray) -> np.ndarray:
+    """Errors (C, F) with every frame from divergence (`diverged` (C,) frame indices
+    into these errors, -1 for none) on set to 1, clipped to [ERROR_FLOOR, 1]."""
+    frames = np.arange(errors.shape[1])
+    after = (diverged[:, None] >= 0) & (frames[None] >= diverged[:, None])
+    errors = np.where(after | ~np.isfinite(errors), 1.0, errors)
+    return np.clip(errors, ERROR_FLOOR, 1.0)
+
+
+def error_statistics(errors: np.ndarray) -> dict:
+    """From clean errors (C, F) over frames t > 0: per-IC mean log error (C,), and per
+    frame the geometric mean over ICs with a normal-approximation 95% band (NaN for C = 1)."""
+    logs = np.log(errors)
+    mean = logs.mean(axis=0)
+    half = 1.96 * logs.std(axis=0, ddof=1) / np.sqrt(len(logs)) if len(logs) > 1 else np.full_like(mean, np.nan)
+    return {"per_ic_log": logs.mean(axis=1), "gmean": np.exp(mean), "low": np.exp(mean - half), "high": np.exp(mean + half)}
+
+
+def summarise(per_ic_log: np.ndarray, seed: int = 0, resamples: int = 2000) -> tuple[float, float, float]:
+    """Geometric mean over frames and ICs with a bootstrap 95% interval over ICs (NaN for one IC)."""
+    value = float(np.exp(per_ic_log.mean()))
+    if len(per_ic_log) < 2:
+        return value, float("nan"), float("nan")
+    rng = np.random.default_rng(seed)
+    boots = per_ic_log[rng.integers(0, len(per_ic_log), (resamples, len(per_ic_log)))].mean(axis=1)
+    low, high = np.percentile(boots, [2.5, 97.5])
+    return value, float(np.exp(low)), float(np.exp(high))
+
+
+def gmean_error(q: np.ndarray, reference: np.ndarray) -> float:
+    """Geometric mean over frames t > 0 of the rollout error of one trajectory `q`
+    (F, N, D) against `reference`."""
+    errors = clean_errors(relative_error(q, reference, 2)[None, 1:], np.array([-1]))
+    return float(np.exp(np.mean(np.log(errors))))

@@ -1,0 +1,82 @@
+"""The one definition of each measure (`lgnn.metrics`): energy drift, divergence, errors."""
+
+import json
+import re
+
+import numpy as np
+
+from lgnn import metrics
+from lgnn.cli import main
+from lgnn.engines.lagrangian import SimulationConfig, simulate
+from lgnn.scene import State, get_scene, scene_from_dict
+
+
+def horizontal_double_pendulum():
+    """Two unit rods pinned at the origin, released along +x: initial energy exactly 0."""
+    return scene_from_dict({
+        "name": "double-pendulum", "nodes": [[0, 0], [1, 0], [2, 0]], "pinned": [0],
+        "links": [{"nodes": [0, 1], "mass": 1.0, "inertia": 1 / 12}, {"nodes": [1, 2], "mass": 1.0, "inertia": 1 / 12}],
+    })
+
+
+class Frames:
+    def __init__(self, q, qd, energy):
+        self.q, self.qd, self.energy = np.asarray(q), np.asarray(qd), np.asarray(energy, float)
+
+
+def test_energy_drift_is_the_maximum_over_frames_over_a_scale_that_cannot_vanish():
+    scene = horizontal_double_pendulum()
+    q = np.repeat(scene.nodes[None], 3, axis=0)
+    qd = np.zeros_like(q)
+    scale = metrics.energy_scale(scene, scene.initial_state)
+    # weight x size + size^2 per unit time^2 with size = 2 (links) + 2 (extent): m (g s + s^2)
+    assert np.isclose(scale, 2 * (10 * 4 + 16))
+    # E0 = 0 gives a finite drift; the largest excursion counts, not the last frame's
+    assert metrics.energy_drift(scene, Frames(q, qd, [0.0, 3.0, 1.0])) == 3.0 / scale
+    assert np.isnan(metrics.energy_drift(scene, Frames(q[:0], qd[:0], [])))
+
+
+def test_simulate_reports_the_drift_of_a_pendulum_released_with_zero_energy(tmp_path, capsys):
+    """Before: `relative energy drift 1.78e+286` (division by E0 = 0, last frame only)."""
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps({
+        "name": "double-pendulum", "nodes": [[0, 0], [1, 0], [2, 0]], "pinned": [0],
+        "links": [{"nodes": [0, 1], "mass": 1.0, "inertia": 0.0833}, {"nodes": [1, 2], "mass": 1.0, "inertia": 0.0833}],
+    }))
+    assert main(["simulate", str(path), "--duration", "0.1", "--out", str(tmp_path / "t.npz"), "--quiet"]) == 0
+    drift = float(re.search(r"energy drift ([0-9.e+-]+)", capsys.readouterr().out).group(1))
+    assert drift < 1e-12
+
+
+def test_divergence_rule_is_one_rule_for_engines_and_the_benchmark():
+    """`divergence_frames` (the benchmark, batched) flags exactly the frames that
+    `ExplosionBounds.first_violation` (every engine) stops at."""
+    scene = get_scene("chain4")
+    traj = simulate(scene, SimulationConfig(dt=1e-3, duration=0.05, frame_dt=5e-3), progress=False)
+    q, qd, energy = (np.repeat(np.asarray(a)[None], 4, axis=0).copy() for a in (traj.q, traj.qd, traj.energy))
+    bounds = metrics.ExplosionBounds.of(scene, State(traj.q[0], traj.qd[0]), float(traj.energy[0]))
+    q[1, 4:] += 2 * metrics.EXPLOSION_FACTOR * bounds.size  # a node far away
+    energy[2, 6:] += 2 * metrics.EXPLOSION_FACTOR * bounds.energy_scale  # an impossible energy
+    q[3, 8:] = np.nan
+    frames = metrics.divergence_frames(scene, traj.t, q, qd, energy)
+    assert list(frames) == [-1, 4, 6, 8]
+    for c in range(4):
+        found = bounds.first_violation(traj.t, q[c], qd[c], energy[c])
+        assert (found[0] if found else -1) == frames[c]
+
+
+def test_true_energies_match_the_engine_and_mask_non_finite_states():
+    scene = get_scene("chain4")
+    traj = simulate(scene, SimulationConfig(dt=1e-3, duration=0.02, frame_dt=5e-3), progress=False)
+    q = np.stack([traj.q, traj.q]); q[1, 2] = np.nan
+    energy = metrics.true_energies(scene, q, np.stack([traj.qd, traj.qd]))
+    np.testing.assert_allclose(energy[0], traj.energy, rtol=1e-12)
+    assert np.isnan(energy[1, 2]) and np.isfinite(np.delete(energy[1], 2)).all()
+
+
+def test_errors_are_clipped_and_count_as_one_after_divergence():
+    errors = np.array([[0.0, 1e-3, 1e-3], [1e-3, np.nan, 1e-3]])
+    clean = metrics.clean_errors(errors, np.array([2, -1]))
+    assert clean.tolist() == [[metrics.ERROR_FLOOR, 1e-3, 1.0], [1e-3, 1.0, 1e-3]]
+    a = np.ones((2, 3, 2))
+    assert np.allclose(metrics.relative_error(a, -a, 2), 1.0) and np.allclose(metrics.relative_error(a, a, 2), 0.0)
