@@ -45,12 +45,14 @@ def _positive_int(text: str) -> int:
 
 
 def _cmd_scenes(args) -> None:
-    from lgnn.scene import BUILTIN_SCENES
+    from lgnn.scene import BUILTIN_SCENES, HARD_SCENES
 
-    width = max(map(len, BUILTIN_SCENES))
-    for entry in BUILTIN_SCENES.values():
-        scene = entry.build()
-        print(f"{entry.name:<{width}}  {scene.n_nodes:4d} nodes {scene.n_links:4d} links  {entry.description}")
+    width = max(map(len, {**BUILTIN_SCENES, **HARD_SCENES}))
+    for title, catalogue in (("built-in scenes", BUILTIN_SCENES), ("hard cases (lgnn stability, tests)", HARD_SCENES)):
+        print(f"# {title}")
+        for entry in catalogue.values():
+            scene = entry.build()
+            print(f"{entry.name:<{width}}  {scene.n_nodes:4d} nodes {scene.n_links:4d} links  {entry.description}")
 
 
 def _cmd_scene_export(args) -> None:

@@ -9,7 +9,7 @@ from lgnn import physics
 from lgnn.integrate import rk4, rollout, velocity_verlet
 from lgnn.scene import BUILTIN_SCENES, get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig, simulate
-from tests.scenes_for_tests import double_pinned_chain, free_triangle, pendulum
+from lgnn.scene.catalogue import double_pinned_chain, free_triangle, pendulum
 
 
 def max_node_error(a, b):

@@ -8,7 +8,7 @@ import pytest
 from lgnn import physics
 from lgnn.scene import is_pinned_chain, scene_from_dict
 from lgnn.scene import chain, get_scene, sample_initial_states
-from tests.scenes_for_tests import double_pinned_chain, free_triangle, pendulum, pinned_triangle
+from lgnn.scene.catalogue import double_pinned_chain, free_triangle, pendulum, pinned_triangle
 
 
 def random_state(scene, seed=0, speed=1.0):

@@ -29,7 +29,7 @@ from lgnn.bench import stability
 from lgnn.cli import main
 from lgnn.errors import SceneError, SimulationError
 from lgnn.scene import scene_from_dict, scene_to_dict
-from lgnn.scene import chain, get_scene
+from lgnn.scene import chain, get_scene, taut_chain
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn, simulate
 from lgnn.metrics import EXPLOSION_FACTOR, ExplosionBounds
 
@@ -148,16 +148,16 @@ def test_hard_accelerations_are_unique_and_keep_every_constraint(scene):
         # At rest to the round-off of g = 10 (the Schur solve of the ground truth gives
         # ~4e-16; the generic KKT solve happens to give exactly zero, checked below).
         assert row["accel_error"] <= 1e-14
-        triangle = stability.build_scene(scene)
+        triangle = get_scene(scene)
         generic = physics.true_acceleration_fn(triangle, "generic")(jnp.asarray(triangle.nodes), jnp.asarray(triangle.velocities))
         assert np.abs(np.asarray(generic)).max() < 1e-30
 
 
 def test_exactly_taut_rope_is_a_rank_deficient_jacobian():
-    scene = stability.taut_chain(4, 1.0)
+    scene = taut_chain(4, 1.0)
     constraints = physics.Constraints(scene)
     assert constraints.self_stresses == 1
-    assert physics.Constraints(stability.taut_chain(4, 0.999)).self_stresses == 0
+    assert physics.Constraints(taut_chain(4, 0.999)).self_stresses == 0
 
 
 def test_folded_chain_unfolds_conserving_energy():

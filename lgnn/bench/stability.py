@@ -67,65 +67,6 @@ SEED = 0
 
 
 # ---------------------------------------------------------------------------------
-# Hard scenes
-# ---------------------------------------------------------------------------------
-
-
-def taut_chain(n_links: int = 4, fraction: float = 0.999) -> Scene:
-    """n unit links hanging between two pins `fraction * n` apart (a shallow V).
-
-    `fraction = 1` is exactly taut: a straight line, where the length constraints lose
-    a rank (one self-stress) and the inextensible model's exact motion is rest.
-    """
-    if not 0 < fraction <= 1:
-        raise ValueError(f"fraction must be in (0, 1], got {fraction}")
-    sag = math.sqrt(max(0.0, 1.0 - fraction**2))
-    nodes = [[k * fraction, -sag * min(k, n_links - k)] for k in range(n_links + 1)]
-    return scene_from_dict({
-        "name": f"taut{n_links}-{fraction:g}",
-        "nodes": nodes,
-        "pinned": [0, n_links],
-        "links": [{"nodes": [k, k + 1], "mass": 1.0, "inertia": 1 / 12, "length": 1.0} for k in range(n_links)],
-    })
-
-
-def folded_chain(n_links: int = 4) -> Scene:
-    """n unit links folded flat on each other (zig-zag along x, every other node on the
-    pin): all links collinear, so the rod mass matrix is singular, released from rest."""
-    nodes = [[float(k % 2), 0.0] for k in range(n_links + 1)]
-    return scene_from_dict({
-        "name": f"folded{n_links}",
-        "nodes": nodes,
-        "pinned": [0],
-        "links": [{"nodes": [k, k + 1], "mass": 1.0, "inertia": 1 / 12, "length": 1.0} for k in range(n_links)],
-    })
-
-
-def pinned_triangle() -> Scene:
-    """A rigid triangle pinned at two corners: 3 links + 2 pins on 3 nodes (redundant)."""
-    return scene_from_dict({
-        "name": "pinned-triangle",
-        "nodes": [[0.0, 0.0], [1.0, 0.0], [0.5, -0.8]],
-        "pinned": [0, 1],
-        "links": [{"nodes": list(e), "mass": 1.0, "inertia": 0.1} for e in ((0, 1), (1, 2), (2, 0))],
-    })
-
-
-HARD_SCENES: dict[str, Callable[[], Scene]] = {
-    "chain1000": lambda: chain(1000, SEED),
-    "taut4-0.999": lambda: taut_chain(4, 0.999),
-    "taut4-exact": lambda: taut_chain(4, 1.0),
-    "folded4": lambda: folded_chain(4),
-    "pinned-triangle": pinned_triangle,
-}
-
-
-def build_scene(name: str) -> Scene:
-    """A hard scene by name, or any built-in scene (or scene file)."""
-    return HARD_SCENES[name]() if name in HARD_SCENES else get_scene(name)
-
-
-# ---------------------------------------------------------------------------------
 # Cases
 # ---------------------------------------------------------------------------------
 
@@ -134,7 +75,7 @@ def build_scene(name: str) -> Scene:
 class Case:
     # Row label.
     name: str
-    # A HARD_SCENES name or a built-in scene.
+    # A scene of the catalogue (`lgnn.scene`: built-in or hard case) or a scene file.
     scene: str
     # "lagrangian", "mujoco", "gns-untrained" or "gns-bad" (BAD_MODEL_SCALE).
     engine: str = "lagrangian"
@@ -311,7 +252,7 @@ def _run_acceleration(case: Case, scene: Scene) -> dict:
 
 def run_case(case: Case) -> dict:
     """One tidy row (module docstring)."""
-    scene = build_scene(case.scene)
+    scene = get_scene(case.scene)
     return _run_acceleration(case, scene) if case.kind == "acceleration" else _run_rollout(case, scene)
 
 

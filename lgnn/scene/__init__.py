@@ -1,8 +1,9 @@
 """Scenes: the immutable description of a structure, its JSON schema, and the catalogue.
 
 - `schema`: `Scene` (a frozen pytree), `State`, JSON reading, writing and validation;
-- `catalogue`: the built-in scenes of the paper, the hard cases, and the
-  initial-condition sampler.
+- `catalogue`: the one catalogue of scenes: the built-in scenes of the paper
+  (`BUILTIN_SCENES`), the hard cases and small physics-test scenes (`HARD_SCENES`),
+  and the initial-condition sampler.
 
 Everything above this package takes a `Scene`; nothing here imports anything of lgnn
 but `lgnn.errors`.
@@ -20,19 +21,27 @@ from lgnn.scene.schema import (
 )
 from lgnn.scene.catalogue import (
     BUILTIN_SCENES,
+    HARD_SCENES,
     BuiltinScene,
     chain,
     chain4_drag,
     chain4_varied,
     chain_positions,
     get_scene,
+    double_pinned_chain,
+    folded_chain,
+    free_triangle,
     paper_structure,
+    pendulum,
+    pinned_triangle,
     sample_initial_states,
+    taut_chain,
 )
 
 __all__ = [
     "BUILTIN_SCENES",
     "BuiltinScene",
+    "HARD_SCENES",
     "Scene",
     "State",
     "chain",
@@ -40,12 +49,18 @@ __all__ = [
     "chain4_varied",
     "chain_positions",
     "check_scene",
+    "double_pinned_chain",
+    "folded_chain",
+    "free_triangle",
     "get_scene",
     "is_pinned_chain",
     "load_scene_file",
     "paper_structure",
+    "pendulum",
+    "pinned_triangle",
     "sample_initial_states",
     "scene_from_dict",
     "scene_to_dict",
     "scene_to_json",
+    "taut_chain",
 ]

@@ -1,7 +1,8 @@
-"""The built-in scenes of the paper, and the initial-condition sampler.
+"""The one catalogue of scenes: the built-ins of the paper, the hard cases, small test
+scenes, and the initial-condition sampler.
 
 Each built-in is constructed by one function from a seed; `get_scene(name_or_path)`
-resolves a built-in name or a user's scene JSON file.
+resolves a built-in or hard-case name or a user's scene JSON file.
 
 Inertia convention (see SPEC.md): scenes carry the *physical* moment of inertia of
 each rod about its centre. The authors' code computed the rotational energy as
@@ -161,12 +162,125 @@ BUILTIN_SCENES: dict[str, BuiltinScene] = {
 }
 
 
+# ---------------------------------------------------------------------------------
+# Hard cases (`lgnn stability`) and small scenes for the physics tests
+# ---------------------------------------------------------------------------------
+
+
+def taut_chain(n_links: int = 4, fraction: float = 0.999) -> Scene:
+    """n unit links hanging between two pins `fraction * n` apart (a shallow V).
+
+    `fraction = 1` is exactly taut: a straight line, where the length constraints lose
+    a rank (one self-stress) and the inextensible model's exact motion is rest.
+    """
+    if not 0 < fraction <= 1:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+    sag = math.sqrt(max(0.0, 1.0 - fraction**2))
+    nodes = [[k * fraction, -sag * min(k, n_links - k)] for k in range(n_links + 1)]
+    return scene_from_dict({
+        "name": f"taut{n_links}-{fraction:g}",
+        "nodes": nodes,
+        "pinned": [0, n_links],
+        "links": [{"nodes": [k, k + 1], "mass": 1.0, "inertia": 1 / 12, "length": 1.0} for k in range(n_links)],
+    })
+
+
+def folded_chain(n_links: int = 4) -> Scene:
+    """n unit links folded flat on each other (zig-zag along x, every other node on the
+    pin): all links collinear, so the rod mass matrix is singular, released from rest."""
+    nodes = [[float(k % 2), 0.0] for k in range(n_links + 1)]
+    return scene_from_dict({
+        "name": f"folded{n_links}",
+        "nodes": nodes,
+        "pinned": [0],
+        "links": [{"nodes": [k, k + 1], "mass": 1.0, "inertia": 1 / 12, "length": 1.0} for k in range(n_links)],
+    })
+
+
+def pinned_triangle() -> Scene:
+    """A rigid triangle pinned at two corners: 3 links + 2 pins on 3 nodes (redundant)."""
+    return scene_from_dict({
+        "name": "pinned-triangle",
+        "nodes": [[0.0, 0.0], [1.0, 0.0], [0.5, -0.8]],
+        "pinned": [0, 1],
+        "links": [{"nodes": list(e), "mass": 1.0, "inertia": 0.1} for e in ((0, 1), (1, 2), (2, 0))],
+    })
+
+
+def pendulum(angle: float = 0.3, length: float = 1.0, mass: float = 1.0, gravity: float = 10.0):
+    """One uniform rod pinned at node 0, released from rest at `angle` from the vertical."""
+    tip = [length * np.sin(angle), -length * np.cos(angle)]
+    return scene_from_dict(
+        {
+            "name": "pendulum",
+            "gravity": gravity,
+            "nodes": [[0.0, 0.0], tip],
+            "pinned": [0],
+            "links": [{"nodes": [0, 1], "mass": mass, "inertia": mass * length**2 / 12}],
+        }
+    )
+
+
+def free_triangle():
+    """An unpinned triangle with some spin: a free rigid body (no pins, no pin rows)."""
+    nodes = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 0.8]])
+    centre = nodes.mean(0)
+    spin = 1.3
+    velocities = spin * np.stack([-(nodes[:, 1] - centre[1]), nodes[:, 0] - centre[0]], -1) + [0.2, 0.5]
+    return scene_from_dict(
+        {
+            "name": "free-triangle",
+            "gravity": 10.0,
+            "nodes": nodes.tolist(),
+            "velocities": velocities.tolist(),
+            "pinned": [],
+            "links": [
+                {"nodes": [0, 1], "mass": 1.0, "inertia": 0.1},
+                {"nodes": [1, 2], "mass": 2.0, "inertia": 0.3},
+                {"nodes": [2, 0], "mass": 0.5, "inertia": 0.05},
+            ],
+        }
+    )
+
+
+def double_pinned_chain(n_links: int = 4, sag: float = 0.5):
+    """A chain of unit links hanging between two pins (a closed loop through the ground)."""
+    half = n_links // 2
+    xs = np.concatenate([np.arange(half + 1) * np.sqrt(1 - sag**2), half * np.sqrt(1 - sag**2) + np.arange(1, n_links - half + 1) * np.sqrt(1 - sag**2)])
+    ys = np.concatenate([-np.arange(half + 1) * sag, -half * sag + np.arange(1, n_links - half + 1) * sag])
+    nodes = np.stack([xs, ys], -1)
+    return scene_from_dict(
+        {
+            "name": "double-pinned",
+            "nodes": nodes.tolist(),
+            "pinned": [0, n_links],
+            "links": [{"nodes": [k, k + 1], "mass": 1.0, "inertia": 1 / 12} for k in range(n_links)],
+        }
+    )
+
+
+HARD_SCENES: dict[str, BuiltinScene] = {
+    entry.name: entry
+    for entry in [
+        BuiltinScene("chain1000", "1000 unit links pinned at one end (scaling)", lambda: chain(1000)),
+        BuiltinScene("taut4-0.999", "4 links hanging between two pins 0.999 x 4 apart (nearly taut)", lambda: taut_chain(4, 0.999)),
+        BuiltinScene("taut4-exact", "4 links pulled exactly taut between two pins (one self-stress)", lambda: taut_chain(4, 1.0)),
+        BuiltinScene("folded4", "4 links folded flat on each other (singular rod mass matrix)", lambda: folded_chain(4)),
+        BuiltinScene("pinned-triangle", "a rigid triangle pinned at two corners (a redundant constraint)", pinned_triangle),
+        BuiltinScene("pendulum", "one rod pinned at one end, released at 0.3 rad", pendulum),
+        BuiltinScene("free-triangle", "an unpinned spinning triangle (a free rigid body)", free_triangle),
+        BuiltinScene("double-pinned", "4 links hanging between two pins (a loop through the ground)", double_pinned_chain),
+    ]
+}
+
+
 def get_scene(name_or_path: str) -> Scene:
-    """A built-in scene by name, or a user's scene JSON file by path."""
-    if name_or_path in BUILTIN_SCENES:
-        return BUILTIN_SCENES[name_or_path].build()
+    """A built-in or hard-case scene by name, or a user's scene JSON file by path."""
+    for catalogue in (BUILTIN_SCENES, HARD_SCENES):
+        if name_or_path in catalogue:
+            return catalogue[name_or_path].build()
     if name_or_path.endswith(".json") or Path(name_or_path).exists():
         return load_scene_file(name_or_path)
     raise SceneError(
-        f"unknown scene {name_or_path!r}: not a built-in ({', '.join(BUILTIN_SCENES)}) nor a .json file"
+        f"unknown scene {name_or_path!r}: not a built-in ({', '.join(BUILTIN_SCENES)}), a hard case ({', '.join(HARD_SCENES)}) nor a .json file"
     )
