@@ -397,7 +397,7 @@ def train_job(profile: Profile, job: TrainingJob, out: Path, progress: bool = Tr
         else:
             same = (
                 meta["model"] == model.to_dict()
-                and meta["train"] == train._train_key(train_config)
+                and meta["train"] == train.training_key(train_config)
                 and meta["data"] == dataclasses.asdict(data_config)
             )
             if same and train.finished(state, train_config):
@@ -661,7 +661,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     `frame_dt`; error: geometric mean of the rollout error against MuJoCo C at a tenth
     of the smallest step."""
     from lgnn.engines import mujoco as lm
-    from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX, _timed, time_compiled
+    from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX, timed_rollout, time_compiled
 
     scene = scene_named(scene_name)
     layout = Layout(out)
@@ -695,7 +695,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
                 row(engine, "engine", dt, note=f"not run: over {profile.max_link_steps:g} link-steps")
                 continue
             config = SimulationConfig("rk4", dt, frame_dt, horizon, True)
-            compile_s, run_s, q = _timed(engine, scene, config, single)
+            compile_s, run_s, q = timed_rollout(engine, scene, config, single)
             row(engine, "engine", dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference))
             log(f"speed/error {scene_name} {engine} dt {dt:g}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     config = SimulationConfig("rk4", profile.dt_for(scene_name), frame_dt, horizon, True)
@@ -739,7 +739,7 @@ def scaling(profile: Profile, out: Path) -> Path:
       (batches spread over every local device; MuJoCo C on two threads), for the
       Lagrangian ground truth and MuJoCo C.
     Each timing runs `scaling_steps` steps after a compile (or warm-up) run kept apart."""
-    from lgnn.bench.crosscheck import _timed, time_compiled
+    from lgnn.bench.crosscheck import timed_rollout, time_compiled
     from lgnn.scene import chain
 
     layout = Layout(out)
@@ -763,7 +763,7 @@ def scaling(profile: Profile, out: Path) -> Path:
             row = dict(kind="size", scene=scene.name, n_links=n, solver=solver, batch=1, s_per_step=float("nan"), compile_s=float("nan"), note="")
             if factory is None:
                 try:
-                    compile_s, run_s, _ = _timed("mujoco", scene, config, single)
+                    compile_s, run_s, _ = timed_rollout("mujoco", scene, config, single)
                 except (ConfigError, SceneError, SimulationError) as err:
                     row["note"] = f"not run: {err}"
                     rows.append(row)
@@ -780,7 +780,7 @@ def scaling(profile: Profile, out: Path) -> Path:
         states = sample_initial_states(scene, jax.random.PRNGKey(profile.ic_seed), profile.throughput_batch)
         batch = State(np.asarray(states.q), np.asarray(states.qd))
         for solver in ("lagrangian", "mujoco"):
-            compile_s, run_s, _ = _timed(solver, scene, config, batch)
+            compile_s, run_s, _ = timed_rollout(solver, scene, config, batch)
             rows.append(dict(kind="batch", scene=name, n_links=scene.n_links, solver=solver, batch=profile.throughput_batch,
                              s_per_step=run_s / steps, compile_s=compile_s, note=""))
             log(f"throughput {name} {solver} x{profile.throughput_batch}: {profile.throughput_batch * steps / run_s:.3g} steps/s")

@@ -121,7 +121,7 @@ def time_compiled(run, *args):
     return compile_s, time.perf_counter() - start, out
 
 
-def _timed(engine: str, scene: Scene, config: SimulationConfig, states: State, dtype="float64"):
+def timed_rollout(engine: str, scene: Scene, config: SimulationConfig, states: State, dtype="float64"):
     """(compile_s, run_s, q (B, F+1, N, 2)) of one engine on a batch of initial states."""
     from lgnn.engines import mujoco as lm
 
@@ -196,7 +196,7 @@ def speed_error(scenes, engines=ENGINES, dts=(1e-3, 1e-4, 1e-5), batches=(100,),
                     row["note"] = "not run: over the link-step limit (--max-steps)"
                     rows.append(row)
                     continue
-                compile_s, run_s, q = _timed(engine, scene, config, states, dtype)
+                compile_s, run_s, q = timed_rollout(engine, scene, config, states, dtype)
                 row.update(steps_per_s=b * steps / run_s, compile_s=compile_s)
                 if b == 1:
                     row["max_node_error"] = float(np.max(np.abs(q[0, -1] - reference)))

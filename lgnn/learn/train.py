@@ -211,7 +211,7 @@ def train(
 # ---------------------------------------------------------------------------------
 
 
-def _train_key(config: TrainConfig) -> dict:
+def training_key(config: TrainConfig) -> dict:
     # Budgets may change on resume (train longer); the optimisation itself may not.
     return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("epochs", "minutes", "patience", "checkpoint_every", "val_chunk")}
 
@@ -237,7 +237,7 @@ def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: 
         "format": CHECKPOINT_FORMAT,
         "lgnn": __version__,
         "model": model.to_dict(),
-        "train": _train_key(config),
+        "train": training_key(config),
         "train_config": dataclasses.asdict(config),
         "data": dataclasses.asdict(data_config) if data_config else None,
         "epoch": state.epoch,
@@ -307,7 +307,7 @@ def check_resumable(path, model: models.ModelConfig, config: TrainConfig) -> tup
     `CheckpointError` (one line) if it is unusable or was written with other settings.
     Entry points call it before generating data, so a wrong `--resume` fails at once."""
     state, saved = load_checkpoint(path)
-    if saved["model"] != model.to_dict() or saved["train"] != _train_key(config):
+    if saved["model"] != model.to_dict() or saved["train"] != training_key(config):
         raise CheckpointError(f"{path}: cannot resume: it was written with other model or training settings")
     return state, saved
 
