@@ -24,7 +24,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lgnn.learn import data, models, train
-from lgnn import physics
+from lgnn import physics, records
 from lgnn.bench import stability
 from lgnn.cli import main
 from lgnn.errors import SceneError, SimulationError
@@ -264,7 +264,7 @@ def checkpoints(tmp_path_factory):
     meta = json.loads(str(arrays["meta"]))
     meta["format"] = train.CHECKPOINT_FORMAT + 1
     arrays["meta"] = json.dumps(meta, sort_keys=True)
-    arrays["checksum"] = train._arrays_checksum({k: v for k, v in arrays.items() if "/" in k}, arrays["meta"])
+    arrays["checksum"] = records.checksum({k: v for k, v in arrays.items() if "/" in k}, arrays["meta"])
     np.savez(tmp / "future.npz", **arrays)
     trajectory = simulate(get_scene("chain4"), SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.02))
     trajectory.save(tmp / "trajectory.npz")  # a valid .npz, but no checkpoint
@@ -311,7 +311,7 @@ def test_truncated_dataset_cache_is_regenerated(tmp_path, capsys):
     path = data.cache_path(config, tmp_path)
     path.write_bytes(path.read_bytes()[:500])
     again = data.load_or_generate(config, tmp_path)
-    assert "unreadable data cache" in capsys.readouterr().err
+    assert "not a readable lgnn data cache" in capsys.readouterr().err
     np.testing.assert_array_equal(again.q, first.q)
     data.load(config, path)
 
