@@ -474,11 +474,13 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
 def test_killed_benchmark_keeps_its_finished_records_and_resumes(tmp_path):
     """`lgnn benchmark` killed at a random moment after its first record: the restarted
     run reuses every record that was finished (not rewritten) and completes the rest."""
-    from lgnn.bench import benchmark as bm
+    from lgnn.bench import grid
+    from lgnn.bench.stages import evaluate
+    from lgnn.bench.store import Layout
 
     out = tmp_path / "out"
-    profile, pair = bm.PROFILES["quick"], bm.Pair(bm.TrainingJob("gns", "chain4", 0), "chain4")
-    layout = bm.Layout(out)
+    profile, pair = grid.PROFILES["quick"], grid.Pair(grid.TrainingJob("gns", grid.TRAINING_SCENE, 0), grid.TRAINING_SCENE)
+    layout = Layout(out)
     layout.checkpoint(pair.job).parent.mkdir(parents=True)
     # Evaluation needs only a checkpoint file: the committed full-profile one will do.
     layout.checkpoint(pair.job).write_bytes((ROOT / "results/benchmark/checkpoints/gns-chain4-s0.npz").read_bytes())
@@ -503,6 +505,5 @@ def test_killed_benchmark_keeps_its_finished_records_and_resumes(tmp_path):
     assert restarted.returncode == 0, restarted.stderr
     for path, mtime in finished_before.items():
         assert path.stat().st_mtime_ns == mtime, f"{path.name} was recomputed instead of reused"
-    assert bm.load_record(truth, bm._truth_key(profile, bm.scene_named("chain4"))) is not None
-    checkpoint = layout.checkpoint(pair.job)
-    assert bm.load_record(layout.pair_record(pair), bm._pair_key(profile, pair, checkpoint)) is not None
+    assert evaluate.load_truth(profile, "chain4", out) is not None
+    assert evaluate.load_pair(profile, pair, out) is not None
