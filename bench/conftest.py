@@ -2,7 +2,7 @@
 
 `pytest bench/` runs the quick profile (minutes on 2 CPU cores, part of CI; outputs in
 `results/quick/`); `pytest bench/ --benchmark` runs the full profile (outputs in
-`results/`). The profiles themselves are declared in `lgnn.bench.benchmark.PROFILES`.
+`results/`). The profiles themselves are declared in `lgnn.bench.grid.PROFILES`.
 """
 
 import time
@@ -44,10 +44,11 @@ def pytest_sessionstart(session):
 def pytest_terminal_summary(terminalreporter, config):
     """Print the benchmark's summary table after the run if this session wrote the report
     (also under xdist, where the report is written by a worker)."""
-    from lgnn.bench import benchmark
+    from lgnn.bench.grid import get_profile
+    from lgnn.bench.store import default_out
 
-    profile = benchmark.get_profile("full" if config.getoption("--benchmark") else "quick")
-    readme = benchmark.default_out(profile) / "README.md"
+    profile = get_profile("full" if config.getoption("--benchmark") else "quick")
+    readme = default_out(profile) / "README.md"
     if readme.exists() and readme.stat().st_mtime >= getattr(config, "_lgnn_started", float("inf")):
         text = readme.read_text()
         start = text.find("## Rollout error against the Lagrangian ground truth")

@@ -1,6 +1,6 @@
 """The benchmark as a test session: train every model of the grid, evaluate it on every
-scene, measure speed against error and write the report (`lgnn.bench.benchmark`,
-`lgnn.bench.report`).
+scene, measure speed against error and write the report (`lgnn.bench.stages`,
+`lgnn.bench.run`, `lgnn.bench.report`).
 
     pytest bench/test_benchmark.py               # quick profile -> results/quick/
     pytest bench/test_benchmark.py --benchmark   # full profile  -> results/
@@ -18,30 +18,34 @@ import numpy as np
 import pytest
 
 from lgnn import metrics
-from lgnn.bench import benchmark as bm
+from lgnn.bench import grid, store
+from lgnn.bench.run import run
+from lgnn.bench.stages import evaluate, mass, scaling, speed
+from lgnn.bench.stages import train as train_stage
 from lgnn.learn import train
+from lgnn.scene import get_scene
 
-QUICK, FULL = bm.PROFILES["quick"], bm.PROFILES["full"]
+QUICK, FULL = grid.PROFILES["quick"], grid.PROFILES["full"]
 TIMED_SCENES = ("chain4",)
 # Lagrangian RK4 (dt 1e-3) against MuJoCo C (RK4 dt 1e-4) over the evaluation: both
 # converge to the same solution on regular scenes; T2 and T3 start self-stressed, where
-# the inextensible model is singular (lgnn/physics.py) and only agree to ~1e-2.
+# the inextensible model is singular (lgnn.physics) and only agree to ~1e-2.
 TRUTH_AGREEMENT = {"T2": 1e-1, "T3": 1e-1}
 TRUTH_AGREEMENT_DEFAULT = 1e-6
 # Scenes whose perturbed (chaos floor) run diverges at the profile's step: T2 and T3's
-# perturbed self-stressed states need dt <= 2.5e-5 (Profile.scene_dts). The record
+# perturbed self-stressed states need dt <= 2.5e-5 (EvaluateSettings.scene_dts). The record
 # must then say when, rather than hold a floor.
 FLOOR_DIVERGES = {"T2", "T3"}
 
 
 @pytest.fixture(scope="session")
-def profile(full_profile) -> bm.Profile:
+def profile(full_profile) -> grid.Profile:
     return FULL if full_profile else QUICK
 
 
 @pytest.fixture(scope="session")
 def out(profile) -> Path:
-    return bm.default_out(profile)
+    return store.default_out(profile)
 
 
 def _ids(items):
@@ -51,36 +55,36 @@ def _ids(items):
 def pytest_generate_tests(metafunc):
     profile = FULL if metafunc.config.getoption("--benchmark") else QUICK
     if "job" in metafunc.fixturenames:
-        jobs = bm.training_jobs(profile)
+        jobs = grid.training_jobs(profile)
         metafunc.parametrize("job", jobs, ids=_ids(jobs))
     if "pair" in metafunc.fixturenames:
-        pairs = bm.evaluation_pairs(profile)
+        pairs = grid.evaluation_pairs(profile)
         metafunc.parametrize("pair", pairs, ids=_ids(pairs))
     if "timed_pair" in metafunc.fixturenames:
-        pairs = [p for p in bm.evaluation_pairs(profile) if p.scene in TIMED_SCENES]
+        pairs = [p for p in grid.evaluation_pairs(profile) if p.scene in TIMED_SCENES]
         metafunc.parametrize("timed_pair", pairs, ids=_ids(pairs))
     if "eval_scene" in metafunc.fixturenames:
-        metafunc.parametrize("eval_scene", bm.evaluation_scenes(profile))
+        metafunc.parametrize("eval_scene", grid.evaluation_scenes(profile))
     if "speed_scene" in metafunc.fixturenames:
-        metafunc.parametrize("speed_scene", profile.speed_scenes)
+        metafunc.parametrize("speed_scene", profile.speed.scenes)
     if "mass_scene" in metafunc.fixturenames:
-        metafunc.parametrize("mass_scene", profile.mass_scenes)
+        metafunc.parametrize("mass_scene", profile.mass.scenes)
 
 
 def test_training(benchmark, record_rate, profile, out, job):
-    path = bm.train_job(profile, job, out)
+    path = train_stage.train_job(profile, job, out)
     state, meta = train.load_checkpoint(path)
     assert np.isfinite(state.best_val) and state.epoch >= 1
     # The loss fell: the best validation error is below the first epoch's.
     assert state.best_val <= state.history[0][2]
-    run, steps = bm.timed_epoch_fn(profile, job, out)
-    run()  # compiled already if this process trained; otherwise compile before timing
-    benchmark.pedantic(run, rounds=3, iterations=1)
+    run_epoch, steps = train_stage.timed_epoch_fn(profile, job, out)
+    run_epoch()  # compiled already if this process trained; otherwise compile before timing
+    benchmark.pedantic(run_epoch, rounds=3, iterations=1)
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
 
 
 def test_ground_truth(profile, out, eval_scene):
-    arrays, meta = bm.load_record(bm.evaluate_scene(profile, eval_scene, out))
+    arrays, meta = store.load(evaluate.evaluate_scene(profile, eval_scene, out))
     floor = metrics.summarise(arrays["chaos_floor/per_ic_log"])[0]
     agreement = metrics.summarise(arrays["truth_vs_mujoco/per_ic_log"])[0]
     # (Records written before divergence was recorded lack the array; their floor is checked below.)
@@ -93,10 +97,9 @@ def test_ground_truth(profile, out, eval_scene):
 
 
 def test_evaluation(profile, out, pair):
-    arrays, meta = bm.load_record(bm.evaluate_pair(profile, pair, out))
-    scene = bm.scene_named(pair.scene)
-    count = len(bm.initial_states(profile, scene).q)
-    for metric in bm.METRICS:
+    arrays, meta = store.load(evaluate.evaluate_pair(profile, pair, out))
+    count = len(evaluate.initial_states(profile, get_scene(pair.scene)).q)
+    for metric in evaluate.METRICS:
         assert arrays[f"{metric}/per_ic_log"].shape == (count,)
         gmean = arrays[f"{metric}/gmean"]
         assert np.all((gmean >= metrics.ERROR_FLOOR) & (gmean <= 1.0)), "errors are clipped to [1e-16, 1], never NaN"
@@ -104,16 +107,16 @@ def test_evaluation(profile, out, pair):
 
 
 def test_rollout_speed(benchmark, record_rate, profile, out, timed_pair):
-    run, steps = bm.timed_rollout_fn(profile, timed_pair, out)
-    run()  # compiled already if this process evaluated; otherwise compile before timing
-    benchmark.pedantic(run, rounds=1 if profile is FULL else 3, iterations=1)
+    run_chunk, steps = evaluate.timed_rollout_fn(profile, timed_pair, out)
+    run_chunk()  # compiled already if this process evaluated; otherwise compile before timing
+    benchmark.pedantic(run_chunk, rounds=1 if profile is FULL else 3, iterations=1)
     record_rate("rk4_steps", steps, pair=f"{timed_pair.job.label} on {timed_pair.scene}")
 
 
 def test_speed_error(profile, out, speed_scene):
     import json
 
-    rows = json.loads(bm.speed_error(profile, speed_scene, out).read_text())["rows"]
+    rows = json.loads(speed.speed_error(profile, speed_scene, out).read_text())["rows"]
     engines = [r for r in rows if r["kind"] == "engine" and np.isfinite(r["rollout_error"])]
     assert engines, "at least one engine ran"
     # Converged ground truths agree with the reference far below any learned error.
@@ -123,26 +126,26 @@ def test_speed_error(profile, out, speed_scene):
 def test_scaling(profile, out):
     import json
 
-    rows = json.loads(bm.scaling(profile, out).read_text())["rows"]
+    rows = json.loads(scaling.scaling(profile, out).read_text())["rows"]
     sizes = {(r["solver"], r["n_links"]) for r in rows if r["kind"] == "size"}
-    assert {("lagrangian", n) for n in profile.scaling_lengths} <= sizes
-    assert {("mujoco", n) for n in profile.scaling_lengths} <= sizes
+    assert {("lagrangian", n) for n in profile.scaling.lengths} <= sizes
+    assert {("mujoco", n) for n in profile.scaling.lengths} <= sizes
     batched = [r for r in rows if r["kind"] == "batch"]
-    assert {r["scene"] for r in batched} == set(profile.speed_scenes)
+    assert {r["scene"] for r in batched} == set(profile.scaling.throughput_scenes)
     assert all(np.isfinite(r["s_per_step"]) and r["s_per_step"] > 0 for r in rows)
 
 
 def test_mass_matrix(profile, out, mass_scene):
-    arrays, meta = bm.load_record(bm.mass_matrices(profile, mass_scene, out))
+    arrays, meta = store.load(mass.mass_matrices(profile, mass_scene, out))
     true_m = arrays["true"]
     np.testing.assert_allclose(true_m, true_m.T, atol=1e-12)
     assert np.isfinite(arrays["learned"]).all() and np.isfinite(meta["percent_error"])
 
 
 def test_report(profile, out):
-    bm.run(profile, out, stages=("report",))
+    run(profile, out, stages=("report",))
     text = (out / "README.md").read_text()
-    for pair in bm.evaluation_pairs(profile):
+    for pair in grid.evaluation_pairs(profile):
         assert f"| {pair.scene} |" in text
     for name in ("summary.csv", "curves.csv", "speed_error.csv", "mass_matrix.csv"):
         assert (out / "benchmark" / name).stat().st_size > 0

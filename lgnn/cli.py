@@ -137,6 +137,7 @@ def _cmd_mjcf(args) -> None:
 
 def _cmd_crosscheck(args) -> None:
     from lgnn.bench import crosscheck as cc
+    from lgnn.bench.tables import write_table
     from lgnn.files import check_writable
     from lgnn.scene import get_scene
 
@@ -161,7 +162,7 @@ def _cmd_crosscheck(args) -> None:
         columns = ["scene", "engine", "metric", "value", "note"]
         notes = [f"RK4, dt {config.dt:g}, {config.duration:g} s, float64; MuJoCo loops: connect, solref 2 dt, solimp 0.9999"]
         stem, title = "crosscheck", "Cross-check of the ground-truth engines"
-    cc.write_table(rows, f"{args.out_dir}/{stem}.csv", f"{args.out_dir}/{stem}.md", command, columns, title, notes)
+    write_table(rows, columns, f"{args.out_dir}/{stem}.csv", f"{args.out_dir}/{stem}.md", title, cc.header(command), notes)
     print(f"wrote {args.out_dir}/{stem}.csv and .md")
 
 
@@ -278,20 +279,21 @@ def _cmd_checkpoint(args) -> None:
 def _cmd_benchmark(args) -> None:
     from pathlib import Path
 
-    from lgnn.bench import benchmark
+    from lgnn.bench import grid
+    from lgnn.bench.run import STAGES, run
 
-    profile = benchmark.get_profile("full" if args.full else "quick")
+    profile = grid.get_profile("full" if args.full else "quick")
     if args.chunk is not None:
         # Not an evaluation setting (records stay valid): only how many rollouts share a call.
-        profile = dataclasses.replace(profile, chunk=args.chunk)
-    stages = benchmark.STAGES if args.stage == "all" else (args.stage,)
-    out = benchmark.run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet)
+        profile = dataclasses.replace(profile, evaluate=dataclasses.replace(profile.evaluate, chunk=args.chunk))
+    stages = STAGES if args.stage == "all" else (args.stage,)
+    out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet)
     if "report" in stages:
         print((out / "README.md").read_text())
 
 
 def _add_benchmark_parser(commands) -> None:
-    from lgnn.bench.benchmark import STAGES
+    from lgnn.bench.run import STAGES
 
     parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
     parser.add_argument("--full", action="store_true", help="the full profile (default: the quick one, minutes on a laptop)")

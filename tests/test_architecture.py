@@ -20,7 +20,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "lgnn"
 
 LAYERS = (
-    ("lgnn", "lgnn.errors", "lgnn.files", "lgnn.provenance", "lgnn.runtime", "lgnn.sharding"),
+    ("lgnn", "lgnn.errors", "lgnn.files", "lgnn.provenance", "lgnn.records", "lgnn.runtime", "lgnn.sharding"),
     ("lgnn.scene",),
     ("lgnn.physics", "lgnn.integrate"),
     ("lgnn.metrics",),
@@ -90,7 +90,6 @@ def test_layers_point_down():
     assert not wrong, "\n".join(wrong)
 
 
-@pytest.mark.xfail(strict=True, reason="benchmark <-> report: removed by the bench split (issue 12, in progress)")
 def test_no_import_cycle():
     graph = {module: {target for target, _, _ in _imports(module) if target != module} for module in MODULES}
     state: dict[str, int] = {}
@@ -117,7 +116,6 @@ def _private(name: str) -> bool:
     return name.startswith("_") and not name.startswith("__")
 
 
-@pytest.mark.xfail(strict=True, reason="benchmark, report, crosscheck, train private names: removed by the bench split (issue 12, in progress)")
 def test_no_private_name_across_modules():
     """`from lgnn.x import _name` and `x._name` on an imported lgnn module are both
     another module's internals."""

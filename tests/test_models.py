@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lgnn.learn import data, graphs, models, train
-from lgnn import physics
+from lgnn import physics, records
 from lgnn.cli import main
 from lgnn.errors import CheckpointError, ConfigError
 from lgnn.scene import scene_from_dict, scene_to_dict
@@ -214,9 +214,10 @@ def test_corrupt_or_stale_cache_is_regenerated(tmp_path, capsys):
     assert "corrupt data cache" in capsys.readouterr().err
     np.testing.assert_array_equal(again.q, first.q)
     arrays = dict(np.load(path))
-    key = json.loads(str(arrays["key"]))
-    key["settings"]["dt"] = 1.0  # stale: made with other settings
-    arrays["key"] = json.dumps(key)
+    meta = json.loads(str(arrays["meta"]))
+    meta["key"]["settings"]["dt"] = 1.0  # stale: made with other settings (and a valid checksum)
+    arrays["meta"] = json.dumps(meta)
+    arrays["checksum"] = records.checksum({k: v for k, v in arrays.items() if k not in ("meta", "checksum")}, arrays["meta"])
     np.savez(path, **arrays)
     data.load_or_generate(config, tmp_path)
     assert "stale data cache" in capsys.readouterr().err
@@ -285,7 +286,7 @@ def test_corrupt_or_mismatched_checkpoint_is_one_clear_error(tmp_path):
     meta["model"]["message_passing"] = 1  # arrays of an L = 0 model under L = 1 settings
     arrays["params/0"] = arrays["params/0"] - 1.0
     arrays["meta"] = json.dumps(meta, sort_keys=True)
-    arrays["checksum"] = train._arrays_checksum({k: v for k, v in arrays.items() if "/" in k}, str(arrays["meta"]))
+    arrays["checksum"] = records.checksum({k: v for k, v in arrays.items() if "/" in k}, str(arrays["meta"]))
     np.savez(tmp_path / "mismatch.npz", **arrays)
     with pytest.raises(CheckpointError, match="does not match"):
         train.load_model(tmp_path / "mismatch.npz")

@@ -16,10 +16,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from lgnn.bench import benchmark as bm
+from lgnn.bench.timing import batched_rollouts, compiled_rollouts
 from lgnn.learn import data
 from lgnn import physics, sharding
-from lgnn.scene import sample_initial_states
+from lgnn.scene import get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig
 
 CONFIG = SimulationConfig(dt=1e-3, frame_dt=5e-3, duration=0.02)
@@ -30,20 +30,20 @@ import json, sys
 import lgnn, jax
 lgnn.configure()
 import numpy as np
-from lgnn.bench import benchmark as bm
+from lgnn.bench.timing import batched_rollouts, compiled_rollouts
 from lgnn.learn import data
 from lgnn import physics, sharding
 from lgnn.scene import get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig
 assert jax.device_count() == 2, jax.devices()
 config = SimulationConfig(**json.loads(sys.argv[1]))
-scene = bm.scene_named("chain4")
+scene = get_scene("chain4")
 states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
-compiled, _ = bm._compiled_rollouts(scene, config, physics.true_acceleration_fn, 4, "float64")
+compiled, _ = compiled_rollouts(scene, config, physics.true_acceleration_fn, 4, "float64")
 q, qd = (jax.numpy.asarray(sharding.pad_batch(np.asarray(a), 4)) for a in states)
 out = compiled(q, qd)
 devices = sorted(d.id for d in out.q.sharding.device_set)
-q, _, _, _ = bm._batched_rollouts(scene, config, physics.true_acceleration_fn, states, 3, "sharded", False)
+q, _, _, _ = batched_rollouts(scene, config, physics.true_acceleration_fn, states, 3, "sharded", False)
 dataset = data.generate(data.DataConfig(**json.loads(sys.argv[2])))
 np.savez(sys.argv[3], q=q, data_q=dataset.q, data_qdd=dataset.qdd)
 print(json.dumps({"devices": devices}))
@@ -63,9 +63,9 @@ def test_rollouts_and_data_sharded_over_two_devices_equal_one_device(tmp_path):
     sharded = np.load(out)
 
     assert sharding.device_count() == 1
-    scene = bm.scene_named("chain4")
+    scene = get_scene("chain4")
     states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
-    q, _, _, _ = bm._batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 3, "single", False)
+    q, _, _, _ = batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 3, "single", False)
     np.testing.assert_allclose(sharded["q"], q, rtol=0, atol=1e-13)
     dataset = data.generate(DATA)
     np.testing.assert_allclose(sharded["data_q"], dataset.q, rtol=0, atol=1e-13)

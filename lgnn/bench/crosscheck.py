@@ -9,8 +9,8 @@ on scenes whose tree is deeper than `MJX_MAX_DEPTH` (its compile time on CPU gro
 steeply with depth: 35 s for chain4, minutes beyond 16 links).
 
 `speed_error(...)` measures steps per second (compile excluded) and accuracy against
-a converged reference: the speed-against-error table. Both write CSV + markdown
-atomically with the command, machine and versions in the header.
+a converged reference: the speed-against-error table. The command writes both as CSV +
+markdown (`lgnn.bench.tables`) with `header(command)`: the command, machine and versions.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import metrics, physics, sharding
-from lgnn.files import write_text_atomic
 from lgnn.scene import Scene, State
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 
@@ -82,26 +81,6 @@ def header(command: str) -> list[str]:
         f"machine: {platform.node()} {platform.machine()} {platform.processor() or ''} ({jax.device_count()} {jax.default_backend()} device)".strip(),
         f"versions: python {platform.python_version()}, jax {jax.__version__}, mujoco {mujoco.__version__}, numpy {np.__version__}",
     ]
-
-
-def write_table(rows: list[dict], csv_path: str, md_path: str, command: str, columns: list[str], title: str, notes: list[str] = ()) -> None:
-    """Tidy CSV (comment header) and a markdown table of the same rows, atomically."""
-    import csv
-    import io
-
-    buffer = io.StringIO()
-    for line in header(command):
-        buffer.write(f"# {line}\n")
-    writer = csv.DictWriter(buffer, fieldnames=columns, lineterminator="\n")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: (f"{row[k]:.3e}" if isinstance(row[k], float) else row[k]) for k in columns})
-    write_text_atomic(csv_path, buffer.getvalue())
-    md = [f"# {title}", ""] + [f"- {line}" for line in header(command)] + [f"- {n}" for n in notes] + ["",
-          "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    for row in rows:
-        md.append("| " + " | ".join(f"{row[k]:.3g}" if isinstance(row[k], float) else str(row[k]) for k in columns) + " |")
-    write_text_atomic(md_path, "\n".join(md) + "\n")
 
 
 # ---------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
 """The benchmark's report: tidy CSVs, markdown tables, figures and `README.md`, from
-the records `lgnn.bench.benchmark` wrote (nothing is computed here but statistics of them).
+the records the stages wrote (`lgnn.bench.stages`), read through their public `load_*`
+functions only (nothing is computed here but statistics of them).
 
 Files under `<out>` (`results/` for the full profile, `results/quick/` for the quick):
 
@@ -12,7 +13,7 @@ Files under `<out>` (`results/` for the full profile, `results/quick/` for the q
 - `benchmark/curves.csv`: the same metrics per frame (every 0.01 s): geometric mean
   over initial conditions with a normal-approximation 95% band (`t` column).
 - `benchmark/speed_error.csv`, `.md`: wall time per simulated second against rollout
-  error (`lgnn.bench.benchmark.speed_error`).
+  error (`lgnn.bench.stages.speed`).
 - `benchmark/mass_matrix.csv`: percentage errors of the learned mass matrix.
 - `figures/*.png`; `README.md`: the summary tables and how each file was made.
 
@@ -29,32 +30,21 @@ from pathlib import Path
 import numpy as np
 
 from lgnn import metrics
-from lgnn.bench import benchmark as bm
+from lgnn.bench.grid import TRAINING_SCENE, TRANSFER_SCENES, Profile, evaluation_scenes
 from lgnn.bench.stability import fit_exponent
+from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
+from lgnn.bench.stages.mass import load_mass
+from lgnn.bench.stages.scaling import load_scaling
+from lgnn.bench.stages.speed import speed_rows as load_speed_rows
+from lgnn.bench.stages.train import load_checkpoints
+from lgnn.bench.tables import write_csv
 from lgnn.files import atomic_path, write_text_atomic
+from lgnn.scene import get_scene
 
 MODEL_ORDER = ("lgnn", "gns", "lgn", "clnn")
 COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3"}
 CURVE_STEP_S = 0.01
 MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale", "scaled_percent_error", "scaled_tangent_percent_error")
-
-
-def _records(profile: bm.Profile, out: Path):
-    """(truth records by scene, pair records) that exist and match the profile's settings."""
-    layout = bm.Layout(out)
-    truths, pairs = {}, []
-    for scene in bm.evaluation_scenes(profile):
-        record = bm.load_record(layout.truth_record(scene), bm._truth_key(profile, bm.scene_named(scene)))
-        if record is not None:
-            truths[scene] = record
-    for pair in bm.evaluation_pairs(profile):
-        checkpoint = layout.checkpoint(pair.job)
-        if not checkpoint.exists():
-            continue
-        record = bm.load_record(layout.pair_record(pair), bm._pair_key(profile, pair, checkpoint))
-        if record is not None:
-            pairs.append((pair, record))
-    return truths, pairs
 
 
 def _env_columns(meta: dict) -> dict:
@@ -85,7 +75,7 @@ def _curve_rows(scene, model, seed, metric, arrays, meta, prefix):
 
 
 def tables(truths: dict, pairs: list):
-    """`(summary, curves)` DataFrames from the records of `_records` (module docstring)."""
+    """`(summary, curves)` DataFrames from the ground-truth and pair records (module docstring)."""
     import pandas as pd
 
     summary, curves = [], []
@@ -94,16 +84,10 @@ def tables(truths: dict, pairs: list):
             summary += _summary_rows(scene, "ground truth", 0, metric, arrays, meta, metric, arrays.get(f"{metric}/diverged_at"))
             curves += _curve_rows(scene, "ground truth", 0, metric, arrays, meta, metric)
     for pair, (arrays, meta) in pairs:
-        for metric in bm.METRICS:
+        for metric in METRICS:
             summary += _summary_rows(pair.scene, pair.job.label, pair.job.seed, metric, arrays, meta, metric, arrays["diverged_at"])
             curves += _curve_rows(pair.scene, pair.job.label, pair.job.seed, metric, arrays, meta, metric)
     return pd.DataFrame(summary), pd.DataFrame(curves)
-
-
-def _write_csv(frame, path: Path) -> None:
-    buffer = io.StringIO()
-    frame.to_csv(buffer, index=False, float_format="%.6g")
-    write_text_atomic(path, buffer.getvalue())
 
 
 def _fmt(value: float) -> str:
@@ -127,7 +111,7 @@ def summary_markdown(summary, metric: str) -> str:
     wide = summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
     models = [m for m in wide["model"].unique() if m != "ground truth"]
     models.sort(key=lambda m: (MODEL_ORDER.index(m.split()[0]) if m.split()[0] in MODEL_ORDER else 9, m))
-    scenes = [s for s in bm.TRANSFER_SCENES + ("chain4-varied", "chain4-drag") if s in set(wide["scene"])]
+    scenes = [s for s in TRANSFER_SCENES + ("chain4-varied", "chain4-drag") if s in set(wide["scene"])]
     # The chaos floor is a position error: it has no place beside energy errors.
     floors = [] if metric == "energy_error" else ["chaos_floor"]
     truth_metrics = floors + (["truth_vs_mujoco"] if metric == "rollout_error" else [])
@@ -146,24 +130,6 @@ def summary_markdown(summary, metric: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _speed_rows(profile: bm.Profile, out: Path) -> list[dict]:
-    rows = []
-    for scene in profile.speed_scenes:
-        path = bm.Layout(out).speed_record(scene)
-        stored = json.loads(path.read_text()) if path.exists() else {}
-        if stored.get("key") == bm.speed_key(profile, scene, out):  # a stale record is not reported
-            env = {k: stored.get("environment", {}).get(k, "unknown") for k in ("commit", "versions", "device")}
-            rows += [{**r, "horizon_s": stored["horizon"], **env} for r in stored["rows"]]
-    return rows
-
-
-def _scaling_record(profile: bm.Profile, out: Path) -> dict | None:
-    """The scaling stage's record if it matches the profile and checkpoint, else None."""
-    path = bm.Layout(out).scaling_record
-    stored = json.loads(path.read_text()) if path.exists() else {}
-    return stored if stored.get("key") == bm.scaling_key(profile, out) else None
-
-
 def speed_markdown(rows: list[dict]) -> str:
     lines = ["| scene | solver | dt | wall s per simulated s | evaluations per simulated s | compile s | rollout error | note |", "|---" * 8 + "|"]
     for r in rows:
@@ -171,18 +137,6 @@ def speed_markdown(rows: list[dict]) -> str:
         lines.append(f"| {r['scene']} | {r['solver']} | {r['dt']:g} | {_fmt(r['wall_s_per_sim_s'])} | {r['evaluations_per_sim_s']:.0f} | "
                      f"{compile_s} | {_fmt(r['rollout_error'])} | {r['note']} |")
     return "\n".join(lines) + "\n"
-
-
-def _mass_rows(profile: bm.Profile, out: Path) -> list[tuple[dict, dict]]:
-    """Mass-matrix records that match the profile and the LGNN checkpoint they analyse."""
-    layout = bm.Layout(out)
-    checkpoint = layout.checkpoint(bm.mass_job(profile))
-    found = []
-    for scene in profile.mass_scenes:
-        record = bm.load_record(layout.mass_record(scene), bm.mass_key(profile, scene, checkpoint)) if checkpoint.exists() else None
-        if record is not None:
-            found.append(record)
-    return found
 
 
 # ---------------------------------------------------------------------------------
@@ -257,16 +211,16 @@ def _plot_mass_matrices(records, path: Path) -> bool:
     return True
 
 
-def _plot_snapshots(profile: bm.Profile, out: Path, scene: str, truths: dict, pairs: list, path: Path) -> bool:
+def _plot_snapshots(profile: Profile, out: Path, scene: str, truths: dict, pairs: list, path: Path) -> bool:
     import matplotlib.pyplot as plt
 
     if scene not in truths:
         return False
-    learned = [(p, r) for p, r in pairs if p.scene == scene and p.job.scene == "chain4"]
+    learned = [(p, r) for p, r in pairs if p.scene == scene and p.job.scene == TRAINING_SCENE]
     if not learned:
         return False
     mujoco_q = truths[scene][0]["snapshot/mujoco"]
-    structure = bm.scene_named(scene)
+    structure = get_scene(scene)
     frames = np.linspace(0, len(mujoco_q) - 1, 5).round().astype(int)
     fig, axes = plt.subplots(len(learned), len(frames), figsize=(2.6 * len(frames), 2.6 * len(learned)), squeeze=False)
     edges = np.asarray(structure.edges)
@@ -282,7 +236,7 @@ def _plot_snapshots(profile: bm.Profile, out: Path, scene: str, truths: dict, pa
             ax.set_xticks([])
             ax.set_yticks([])
             if row == 0:
-                ax.set_title(f"t = {f * bm.SNAPSHOT_DT:.2f} s", fontsize=9)
+                ax.set_title(f"t = {f * SNAPSHOT_DT:.2f} s", fontsize=9)
             if col == 0:
                 ax.legend(fontsize=6, loc="lower left")
     fig.suptitle(f"{scene}: learned (dashed) against MuJoCo (black), initial condition 0", fontsize=10)
@@ -329,19 +283,13 @@ def _plot_speed_error(rows: list[dict], path: Path) -> bool:
 # ---------------------------------------------------------------------------------
 
 
-def _command(profile: bm.Profile) -> str:
+def _command(profile: Profile) -> str:
     return "pytest bench/ --benchmark" if profile.name == "full" else "pytest bench/  (or: lgnn benchmark)"
 
 
-def _training_lines(profile: bm.Profile, out: Path) -> list[str]:
-    from lgnn.learn import train
-
+def _training_lines(profile: Profile, out: Path) -> list[str]:
     lines = ["| model | training scene | epochs | minutes | best validation MSE (epoch) |", "|---|---|---|---|---|"]
-    for job in bm.training_jobs(profile):
-        path = bm.Layout(out).checkpoint(job)
-        if not path.exists():
-            continue
-        state, meta = train.load_checkpoint(path)
+    for job, state in load_checkpoints(profile, out):
         lines.append(f"| {job.model} | {job.scene} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) |")
     return lines
 
@@ -366,11 +314,11 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
     return lines
 
 
-def readme(profile: bm.Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str]) -> str:
+def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str]) -> str:
     from lgnn.provenance import environment
 
     env = environment()
-    p = profile
+    p, t, e = profile, profile.training, profile.evaluate
     envs = sorted(set(summary["device"])) if not summary.empty else []
     lines = [
         f"# Benchmark results ({p.name} profile)",
@@ -382,14 +330,14 @@ def readme(profile: bm.Profile, out: Path, records: tuple, summary, speed_rows, 
         "",
         "## Settings",
         "",
-        f"- Training: {p.data.n_trajectories} trajectories of {p.data.duration:g} s, a state every {p.data.sample_dt:g} s (75:25 split), "
-        f"Adam {p.train.learning_rate:g}, batch {p.train.batch_size}, budget {p.train.epochs} epochs"
-        + (f" or {p.train.minutes:g} minutes per model (whichever ends first; the paper's 10 000 epochs did not fit)" if p.train.minutes else "")
-        + f", patience {p.train.patience}, seeds {', '.join(map(str, p.seeds))}.",
-        f"- Evaluation: {p.initial_conditions} initial conditions per chain scene (paper sampler, seed {p.ic_seed}; T1-T3: their rest state), "
-        f"{p.duration:g} s, frames every {p.frame_dt:g} s, RK4 at dt {p.dt:g} with projection for models and the Lagrangian ground truth"
-        + "".join(f" ({scene}: dt {dt:g})" for scene, dt in p.scene_dts if scene in bm.evaluation_scenes(p)) + "; "
-        f"MuJoCo C at RK4 dt {p.mujoco_dt:g}. Chaos floor: initial positions perturbed by {p.floor_perturbation:g}.",
+        f"- Training: {t.data.n_trajectories} trajectories of {t.data.duration:g} s, a state every {t.data.sample_dt:g} s (75:25 split), "
+        f"Adam {t.train.learning_rate:g}, batch {t.train.batch_size}, budget {t.train.epochs} epochs"
+        + (f" or {t.train.minutes:g} minutes per model (whichever ends first; the paper's 10 000 epochs did not fit)" if t.train.minutes else "")
+        + f", patience {t.train.patience}, seeds {', '.join(map(str, p.seeds))}.",
+        f"- Evaluation: {e.initial_conditions} initial conditions per chain scene (paper sampler, seed {e.ic_seed}; T1-T3: their rest state), "
+        f"{e.duration:g} s, frames every {e.frame_dt:g} s, RK4 at dt {e.dt:g} with projection for models and the Lagrangian ground truth"
+        + "".join(f" ({scene}: dt {dt:g})" for scene, dt in e.scene_dts if scene in evaluation_scenes(p)) + "; "
+        f"MuJoCo C at RK4 dt {e.mujoco_dt:g}. Chaos floor: initial positions perturbed by {e.floor_perturbation:g}.",
         "- Errors (SPEC): per frame `||q_hat - q|| / (||q_hat|| + ||q||)`; energy error the same on the true Hamiltonian; "
         "geometric mean over frames t > 0 and initial conditions, [bootstrap 95% interval over initial conditions]; "
         f"errors clipped to [{metrics.ERROR_FLOOR:g}, 1]; a rollout counts as diverged at the first frame whose state is non-finite, "
@@ -491,7 +439,7 @@ def _gpu_section(out: Path) -> list[str]:
     return lines
 
 
-def performance_markdown(profile: bm.Profile, rows: list[dict], scaling_record: dict | None = None, out: Path | None = None) -> str:
+def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dict | None = None, out: Path | None = None) -> str:
     """`performance.md`: the speed records read as issue 7's ratios, the scaling record
     as cost against size and batched throughput, and the GPU tables."""
     lines = [
@@ -523,14 +471,14 @@ def performance_markdown(profile: bm.Profile, rows: list[dict], scaling_record: 
         batch = [r for r in srows if r["kind"] == "batch"]
         env = scaling_record.get("environment", {})
         lines += ["", f"## Batched ground truth against MuJoCo C ({batch[0]['batch'] if batch else 0} initial conditions at once, "
-                  f"dt {profile.dt:g}, {env.get('device', 'unknown device')})", "",
+                  f"dt {profile.evaluate.dt:g}, {env.get('device', 'unknown device')})", "",
                   "| scene | Lagrangian steps/s | MuJoCo C steps/s (2 threads) | Lagrangian / MuJoCo |", "|---|---|---|---|"]
         for scene in dict.fromkeys(r["scene"] for r in batch):
             rate = {r["solver"]: r["batch"] / r["s_per_step"] for r in batch if r["scene"] == scene}
             lines.append(f"| {scene} | {rate['lagrangian']:.3g} | {rate['mujoco']:.3g} | {rate['lagrangian'] / rate['mujoco']:.3g} |")
         size = [r for r in srows if r["kind"] == "size"]
         lengths = sorted({r["n_links"] for r in size})
-        lines += ["", f"## Cost per step against chain length (single trajectory, RK4 at dt {profile.dt:g}, fitted exponent over "
+        lines += ["", f"## Cost per step against chain length (single trajectory, RK4 at dt {profile.evaluate.dt:g}, fitted exponent over "
                   f"n = {', '.join(map(str, lengths))} links)", "",
                   "| solver | " + " | ".join(f"n = {n}: s per step" for n in lengths) + " | exponent | compile s (largest n) |",
                   "|---" * (len(lengths) + 3) + "|"]
@@ -546,7 +494,7 @@ def performance_markdown(profile: bm.Profile, rows: list[dict], scaling_record: 
         "",
         "## Learned rollouts",
         "",
-        f"Every learned model is integrated with RK4 at dt {profile.dt:g} (4 evaluations a step), not the paper's Verlet at "
+        f"Every learned model is integrated with RK4 at dt {profile.evaluate.dt:g} (4 evaluations a step), not the paper's Verlet at "
         "1e-5; its wall time per simulated second and rollout error are the `learned` rows of `benchmark/speed_error.md`. "
         "LGNN's mass matrix couples only linked nodes, so its solve uses coloured Hessian-vector products and, on chains, "
         "the linear-time block elimination (`physics.acceleration_fn(local_mass=True)`).",
@@ -559,7 +507,7 @@ def performance_markdown(profile: bm.Profile, rows: list[dict], scaling_record: 
     return "\n".join(lines)
 
 
-def write(profile: bm.Profile, out: Path) -> Path:
+def write(profile: Profile, out: Path) -> Path:
     """Write every report file under `out` from the records there; returns README.md's path."""
     import matplotlib
 
@@ -567,19 +515,19 @@ def write(profile: bm.Profile, out: Path) -> Path:
     import pandas as pd
 
     out = Path(out)
-    truths, pairs = _records(profile, out)
+    truths, pairs = load_truths(profile, out), load_pairs(profile, out)
     summary, curves = tables(truths, pairs)
     bench_dir = out / "benchmark"
     bench_dir.mkdir(parents=True, exist_ok=True)
-    _write_csv(summary, bench_dir / "summary.csv")
-    _write_csv(curves, bench_dir / "curves.csv")
-    speed_rows = _speed_rows(profile, out)
-    _write_csv(pd.DataFrame(speed_rows), bench_dir / "speed_error.csv")
+    write_csv(summary, bench_dir / "summary.csv")
+    write_csv(curves, bench_dir / "curves.csv")
+    speed_rows = load_speed_rows(profile, out)
+    write_csv(pd.DataFrame(speed_rows), bench_dir / "speed_error.csv")
     write_text_atomic(bench_dir / "speed_error.md", speed_markdown(speed_rows))
     if speed_rows:
-        write_text_atomic(out / "performance.md", performance_markdown(profile, speed_rows, _scaling_record(profile, out), out))
-    mass_records = _mass_rows(profile, out)
-    _write_csv(pd.DataFrame([{**{k: m[k] for k in MASS_COLUMNS}, **_env_columns(m)} for _, m in mass_records]),
+        write_text_atomic(out / "performance.md", performance_markdown(profile, speed_rows, load_scaling(profile, out), out))
+    mass_records = load_mass(profile, out)
+    write_csv(pd.DataFrame([{**{k: m[k] for k in MASS_COLUMNS}, **_env_columns(m)} for _, m in mass_records]),
                bench_dir / "mass_matrix.csv")
     figures_dir = out / "figures"
     figures = []

@@ -35,9 +35,7 @@ measurement helpers, which are entry points.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import math
 import tempfile
 import time
@@ -311,9 +309,14 @@ def _cell(value) -> str:
     return str(value).replace("|", "/")
 
 
+def _csv_cell(value):
+    return repr(value) if isinstance(value, float) else value
+
+
 def write_report(rows: list[dict], md_path: str | Path, command: str, exponent: float, notes=()) -> Path:
     """`md_path` and the CSV beside it (same stem), atomically, with provenance."""
-    from lgnn.files import check_writable, write_text_atomic
+    from lgnn.bench.tables import write_table
+    from lgnn.files import check_writable
     from lgnn.provenance import environment
 
     md_path = check_writable(md_path)
@@ -321,22 +324,11 @@ def write_report(rows: list[dict], md_path: str | Path, command: str, exponent: 
     env = environment()
     header = [f"command: {command}", f"commit: {env['commit']}", f"machine: {env['device']}", f"versions: {env['versions']}",
               f"seed: {SEED} (chain shapes, model parameters)"]
-    buffer = io.StringIO()
-    for line in header:
-        buffer.write(f"# {line}\n")
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: (repr(row[k]) if isinstance(row[k], float) else row[k]) for k in COLUMNS})
     counts = {s: sum(r["status"] == s for r in rows if r["case"] != "cost-per-step") for s in STATUSES}
-    md = ["# Stability on hard cases", ""] + [f"- {line}" for line in header] + [f"- {n}" for n in notes] + [
-        f"- outcome: {counts['ok']} ok, {counts['detected']} detected failures, {counts['silent']} silent failures",
-        f"- cost per RK4 step of the ground truth grows like n^{exponent:.2f} over n = "
-        + ", ".join(r["scene"].removeprefix("chain") for r in rows if r["case"] == "cost-per-step") + " links",
-        "", "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-    md += ["| " + " | ".join(_cell(row[k]) for k in COLUMNS) + " |" for row in rows]
-    write_text_atomic(csv_path, buffer.getvalue())
-    write_text_atomic(md_path, "\n".join(md) + "\n")
+    outcome = (f"outcome: {counts['ok']} ok, {counts['detected']} detected failures, {counts['silent']} silent failures",
+               f"cost per RK4 step of the ground truth grows like n^{exponent:.2f} over n = "
+               + ", ".join(r["scene"].removeprefix("chain") for r in rows if r["case"] == "cost-per-step") + " links")
+    write_table(rows, COLUMNS, csv_path, md_path, "Stability on hard cases", header, tuple(notes) + outcome, csv_cell=_csv_cell, markdown_cell=_cell)
     return csv_path
 
 

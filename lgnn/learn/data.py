@@ -8,21 +8,19 @@ projection onto the constraints. The targets are the exact accelerations
 `physics.true_acceleration_fn(scene)` at the saved states (the paper's code used a
 central finite difference of the positions, whose O(dt^2) error we avoid).
 
-`load_or_generate(config, cache_dir)` returns a `Dataset`. The cache file is an `.npz`
-whose name holds a hash of the generating settings (`DataConfig`, the scene's full
-description, the lgnn version) and whose content repeats those settings and a sha256
-of its arrays; a file that fails either check is reported on stderr and regenerated,
-never used.
+`load_or_generate(config, cache_dir)` returns a `Dataset`. The cache file is an
+`lgnn.records` record whose name holds a hash of the generating settings (`DataConfig`,
+the scene's full description, the lgnn version, the format) and whose meta repeats those
+settings (checksummed with the arrays); a file that fails either check is reported on
+stderr and regenerated, never used.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import json
 import os
-import zipfile
 import sys
 from pathlib import Path
 from typing import NamedTuple
@@ -31,13 +29,15 @@ import jax
 import numpy as np
 
 from lgnn import physics, sharding
-from lgnn.files import atomic_path
+from lgnn import records
 from lgnn.errors import ConfigError
 from lgnn.scene import Scene, scene_from_dict, scene_to_dict, scene_to_json
 from lgnn.scene import get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 
-DATA_FORMAT = 1
+# 2: an `lgnn.records` record (1: its own layout and checksum); part of the key, so
+# caches of another format are regenerated, never misread.
+DATA_FORMAT = 2
 ARRAY_KEYS = ("q", "qd", "qdd", "trajectory", "train", "val")
 
 
@@ -140,42 +140,27 @@ def _compiled(scene_json: str, sim: SimulationConfig):
     return run, sharding.batch_jit(jax.vmap(physics.vectorised_true_acceleration_fn(scene)))
 
 
-def _checksum(arrays: dict) -> str:
-    digest = hashlib.sha256()
-    for key in ARRAY_KEYS:
-        value = np.ascontiguousarray(arrays[key])
-        digest.update(f"{key}:{value.dtype.str}:{value.shape};".encode())
-        digest.update(value.tobytes())
-    return digest.hexdigest()
-
-
 def cache_path(config: DataConfig, cache_dir: str | os.PathLike) -> Path:
     scene = get_scene(config.scene)
-    digest = hashlib.sha256(json.dumps(config.key(scene), sort_keys=True).encode()).hexdigest()[:16]
     safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in scene.name)
-    return Path(cache_dir) / f"data-{safe}-{digest}.npz"
+    return Path(cache_dir) / f"data-{safe}-{records.digest(config.key(scene))[:16]}.npz"
 
 
 def save(dataset: Dataset, config: DataConfig, path: str | os.PathLike) -> None:
-    arrays = dataset._asdict()
-    key = json.dumps(config.key(get_scene(config.scene)), sort_keys=True)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as handle:
-            np.savez(handle, key=key, checksum=_checksum(arrays), **arrays)
+    """Write `dataset` as an `lgnn.records` record whose meta holds the settings key."""
+    records.save(path, dataset._asdict(), {"key": config.key(get_scene(config.scene))})
 
 
 def load(config: DataConfig, path: str | os.PathLike) -> Dataset:
     """Read a cached dataset; raises `ConfigError` (one line) if it is corrupt or stale."""
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: np.asarray(data[key]) for key in ARRAY_KEYS}
-            key, checksum = str(data["key"]), str(data["checksum"])
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
-        raise ConfigError(f"{path}: unreadable data cache ({type(err).__name__}: {err})") from None
-    if json.loads(key) != json.loads(json.dumps(config.key(get_scene(config.scene)), sort_keys=True)):
+        arrays, meta = records.read(path, "data cache")
+    except records.RecordError as err:
+        raise ConfigError(str(err)) from None
+    if records.digest(meta.get("key")) != records.digest(config.key(get_scene(config.scene))):
         raise ConfigError(f"{path}: stale data cache (generated with other settings)")
-    if _checksum(arrays) != checksum:
-        raise ConfigError(f"{path}: corrupt data cache (checksum mismatch)")
+    if set(arrays) != set(ARRAY_KEYS):
+        raise ConfigError(f"{path}: not a readable lgnn data cache (arrays {sorted(arrays)})")
     return Dataset(**arrays)
 
 

@@ -13,8 +13,8 @@ interrupted run resumed from it (`resume=True`) reaches exactly the same result 
 uninterrupted one.
 
 Checkpoint files (`.npz`): the arrays `params/k`, `best/k`, `opt/k` (leaves in pytree
-order) and one JSON string `meta` (format, lgnn version, model/train/data settings,
-progress, and a sha256 over everything else). `load_checkpoint` rebuilds the pytrees
+order) and the JSON `meta` (format, lgnn version, model/train/data settings, progress,
+the environment that wrote it): an `lgnn.records` record. `load_checkpoint` rebuilds the pytrees
 from the model config and refuses, with one `CheckpointError` line, a file that is
 unreadable, corrupt or of another shape.
 """
@@ -23,10 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
-import json
 import os
-import zipfile
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -37,7 +34,7 @@ import numpy as np
 import optax
 
 from lgnn.learn import models
-from lgnn.files import atomic_path
+from lgnn import records
 from lgnn.learn.data import DataConfig, Dataset
 from lgnn.errors import CheckpointError, ConfigError
 from lgnn.scene import Scene
@@ -216,17 +213,8 @@ def training_key(config: TrainConfig) -> dict:
     return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("epochs", "minutes", "patience", "checkpoint_every", "val_chunk")}
 
 
-def _arrays_checksum(arrays: dict, meta_text: str) -> str:
-    digest = hashlib.sha256(meta_text.encode())
-    for name in sorted(arrays):
-        value = np.ascontiguousarray(arrays[name])
-        digest.update(f"{name}:{value.dtype.str}:{value.shape};".encode())
-        digest.update(value.tobytes())
-    return digest.hexdigest()
-
-
 def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: TrainConfig, data_config: DataConfig | None = None) -> None:
-    """Write the training state atomically (module docstring for the layout)."""
+    """Write the training state atomically as an `lgnn.records` record (module docstring for the layout)."""
     from lgnn import __version__
 
     arrays = {}
@@ -246,26 +234,14 @@ def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: 
         "history": state.history,
         "elapsed_s": state.elapsed_s,
     }
-    meta_text = json.dumps(meta, sort_keys=True)
-    checksum = _arrays_checksum(arrays, meta_text)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as handle:
-            np.savez(handle, meta=meta_text, checksum=checksum, **arrays)
+    records.save(path, arrays, meta)
 
 
 def _read(path) -> tuple[dict, dict]:
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: np.asarray(data[k]) for k in data.files if k not in ("meta", "checksum")}
-            meta_text, checksum = str(data["meta"]), str(data["checksum"])
-        meta = json.loads(meta_text)
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
-        raise CheckpointError(f"{path}: not a readable lgnn checkpoint ({type(err).__name__})") from None
-    if _arrays_checksum(arrays, meta_text) != checksum:
-        raise CheckpointError(f"{path}: corrupt checkpoint (checksum mismatch)")
+        arrays, meta = records.read(path, "checkpoint")
+    except records.RecordError as err:
+        raise CheckpointError(str(err)) from None
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, expected {CHECKPOINT_FORMAT}")
     return meta, arrays

@@ -1,0 +1,88 @@
+"""Record keys: every setting a stage reads enters its key, except those declared
+`NOT_IN_KEY` (so a changed setting never reuses a stale record, and splitting work
+differently never recomputes one); and the committed full-profile records match the
+current settings (`lgnn benchmark --full --stage report` recomputes nothing)."""
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from lgnn.bench import grid
+from lgnn.bench.stages import evaluate, mass, scaling, speed
+
+ROOT = Path(__file__).resolve().parents[1]
+QUICK = grid.PROFILES["quick"]
+SCENE = "chain4"
+# Values for fields a generic change would not reach (a step for another scene).
+CHANGED = {"scene_dts": ((SCENE, 5e-4),)}
+
+
+def _changed(name, value):
+    if name in CHANGED:
+        return CHANGED[name]
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, (int, float)):
+        return value * 2 + 1
+    if value is None:
+        return ("lgnn",)
+    if isinstance(value, tuple):
+        return value + value[-1:] if value else ("x",)
+    raise AssertionError(f"no change for {name}={value!r}")
+
+
+def _keys(profile, out: Path, checkpoint: Path) -> dict:
+    """Every stage's key on SCENE."""
+    pair = grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), SCENE)
+    return {
+        "truth": evaluate.truth_key(profile, SCENE),
+        "pair": evaluate.pair_key(profile, pair, checkpoint),
+        "speed": speed.speed_key(profile, SCENE, out),
+        "scaling": scaling.scaling_key(profile, out),
+        "mass": mass.mass_key(profile, SCENE, checkpoint),
+    }
+
+
+# The settings groups each stage reads.
+READS = {
+    "evaluate": {"truth", "pair", "speed", "scaling", "mass"},
+    "speed": {"speed"},
+    "scaling": {"scaling"},
+    "mass": {"mass"},
+}
+
+
+@pytest.mark.parametrize("group", sorted(READS))
+def test_every_setting_a_stage_reads_is_in_its_key(tmp_path, group):
+    checkpoint = tmp_path / "checkpoint.npz"
+    checkpoint.write_bytes(b"weights")
+    before = _keys(QUICK, tmp_path, checkpoint)
+    settings = getattr(QUICK, group)
+    for field in dataclasses.fields(settings):
+        value = getattr(settings, field.name)
+        profile = dataclasses.replace(QUICK, **{group: dataclasses.replace(settings, **{field.name: _changed(field.name, value)})})
+        after = _keys(profile, tmp_path, checkpoint)
+        changed = {stage for stage in before if before[stage] != after[stage]}
+        expected = READS[group] if field.metadata.get("in_key", True) else set()
+        assert changed == expected, f"{group}.{field.name}: keys changed {sorted(changed)}, expected {sorted(expected)}"
+
+
+def test_a_stage_key_follows_the_checkpoint_content(tmp_path):
+    checkpoint = tmp_path / "checkpoint.npz"
+    checkpoint.write_bytes(b"weights")
+    before = _keys(QUICK, tmp_path, checkpoint)
+    checkpoint.write_bytes(b"other weights")
+    after = _keys(QUICK, tmp_path, checkpoint)
+    assert {stage for stage in before if before[stage] != after[stage]} == {"pair", "mass"}
+
+
+def test_committed_full_records_match_the_current_settings():
+    """Every committed record is found under its current key: the report reproduces
+    the committed tables without recomputing (tools/rekey_records.py made them so)."""
+    profile, out = grid.PROFILES["full"], ROOT / "results"
+    assert set(evaluate.load_truths(profile, out)) == set(grid.evaluation_scenes(profile))
+    assert [pair for pair, _ in evaluate.load_pairs(profile, out)] == grid.evaluation_pairs(profile)
+    assert all(speed.load_speed(profile, scene, out) is not None for scene in profile.speed.scenes)
+    assert scaling.load_scaling(profile, out) is not None
+    assert len(mass.load_mass(profile, out)) == len(profile.mass.scenes)

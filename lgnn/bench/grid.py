@@ -1,0 +1,257 @@
+"""The benchmark's grid and profiles, declared once.
+
+- `GRID`: LGNN, GNS, LGN and CLNN trained on `TRAINING_SCENE` (chain4; LGNN also on
+  `chain4-varied` and `chain4-drag`, as the paper's appendix), each with the scenes it
+  is evaluated on (CLNN, tied to its system size, on chain4 only). The grid's third
+  axis is the profile's training seeds.
+- `PROFILES["quick"]` (minutes on 2 CPU cores, part of CI: tiny data and training
+  budgets, 3 initial conditions, 0.1 s rollouts, a subset of scenes) and
+  `PROFILES["full"]` (the paper's data, 100 initial conditions per chain scene, 1 s
+  rollouts, every scene).
+
+A `Profile` is the grid's selection (seeds, training and evaluation scenes) and one
+frozen settings dataclass per stage (`TrainSettings`, `EvaluateSettings`,
+`SpeedSettings`, `ScalingSettings`, `MassSettings`). A stage's record key is the digest
+of `settings_key(...)` of every settings group the stage reads (`lgnn.bench.stages`):
+every field enters it, except those declared `NOT_IN_KEY` (how the work is split or
+which records exist, never what a record holds), so no field can be forgotten.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from lgnn.errors import ConfigError
+from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.learn.data import DataConfig
+from lgnn.learn.train import TrainConfig
+
+# The scene every model of the main grid is trained on.
+TRAINING_SCENE = "chain4"
+# The scenes the chain4-trained models are evaluated on, in table order.
+TRANSFER_SCENES = ("chain4", "chain8", "chain16", "chain100", "T1", "T2", "T3")
+# Field metadata of a setting that does not change what a record holds.
+NOT_IN_KEY = {"in_key": False}
+
+
+def settings_key(settings) -> dict:
+    """A settings dataclass as a JSON-able dict of every field not declared `NOT_IN_KEY`
+    (nested settings dataclasses likewise)."""
+    return {
+        field.name: settings_key(value) if dataclasses.is_dataclass(value) else value
+        for field in dataclasses.fields(settings)
+        if field.metadata.get("in_key", True)
+        for value in (getattr(settings, field.name),)
+    }
+
+
+# ---------------------------------------------------------------------------------
+# The grid
+# ---------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class GridEntry:
+    """A model trained on `train_scene`, evaluated on `eval_scenes`."""
+
+    model: str
+    train_scene: str
+    eval_scenes: tuple[str, ...]
+
+
+GRID = (
+    GridEntry("lgnn", TRAINING_SCENE, TRANSFER_SCENES),
+    GridEntry("gns", TRAINING_SCENE, TRANSFER_SCENES),
+    GridEntry("lgn", TRAINING_SCENE, TRANSFER_SCENES),
+    GridEntry("clnn", TRAINING_SCENE, (TRAINING_SCENE,)),
+    GridEntry("lgnn", "chain4-varied", ("chain4-varied",)),
+    GridEntry("lgnn", "chain4-drag", ("chain4-drag",)),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainingJob:
+    model: str
+    scene: str
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.model}-{self.scene}-s{self.seed}"
+
+    @property
+    def label(self) -> str:
+        """The model as tables name it: `lgnn`, or `lgnn (chain4-varied)` off the main training scene."""
+        return self.model if self.scene == TRAINING_SCENE else f"{self.model} ({self.scene})"
+
+
+@dataclasses.dataclass(frozen=True)
+class Pair:
+    """One evaluation: a trained job on a scene."""
+
+    job: TrainingJob
+    scene: str
+
+
+# ---------------------------------------------------------------------------------
+# Settings, one frozen dataclass per stage
+# ---------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainSettings:
+    """Training data (the scene is each job's) and the optimisation budget. A checkpoint
+    is reused when its model, `train.training_key` and data settings match."""
+
+    data: DataConfig
+    train: TrainConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluateSettings:
+    """Rollouts of models and ground truths from the evaluation initial conditions."""
+
+    # Initial conditions per chain scene (T1-T3 have one: their own rest state).
+    initial_conditions: int
+    # Rollouts: RK4 with projection at `dt` for models and the Lagrangian ground truth.
+    duration: float
+    dt: float = 1e-3
+    # Scenes that need a smaller step than `dt`, for models and ground truth alike (the
+    # same integrator for both, SPEC): T2 and T3 start self-stressed, singular
+    # configurations (lgnn.physics) where RK4 at 1e-3 and 5e-4 runs to NaN within
+    # 0.01 s and 1e-4 converges (results/crosscheck.md).
+    scene_dts: tuple[tuple[str, float], ...] = (("T2", 1e-4), ("T3", 1e-4))
+    frame_dt: float = 1e-3
+    # Seed of the evaluation initial conditions (training data use DataConfig.seed = 0).
+    ic_seed: int = 1
+    # Chaos floor: initial positions perturbed by this much.
+    floor_perturbation: float = 1e-4
+    # MuJoCo C reference step (RK4) for the learned-vs-MuJoCo comparison.
+    mujoco_dt: float = 1e-4
+    # Initial conditions per compiled, vmapped rollout call (memory and progress).
+    chunk: int = dataclasses.field(default=25, metadata=NOT_IN_KEY)
+
+    def dt_for(self, scene_name: str) -> float:
+        return dict(self.scene_dts).get(scene_name, self.dt)
+
+    def simulation(self, scene_name: str) -> SimulationConfig:
+        """Rollout settings of models and Lagrangian ground truth on a scene."""
+        return SimulationConfig("rk4", self.dt_for(scene_name), self.frame_dt, self.duration, True)
+
+    def for_scene(self, scene_name: str) -> EvaluateSettings:
+        """The settings a scene's evaluation uses: its own step as `dt`, no other scene's."""
+        return dataclasses.replace(self, dt=self.dt_for(scene_name), scene_dts=())
+
+
+@dataclasses.dataclass(frozen=True)
+class SpeedSettings:
+    """Speed against error: ground-truth engines at several steps and the learned
+    models, single trajectory, against a MuJoCo C reference."""
+
+    # Scenes with a speed record (which records exist, not what each holds).
+    scenes: tuple[str, ...] = dataclasses.field(default=("chain4", "chain16", "chain100", "T1"), metadata=NOT_IN_KEY)
+    # Ground-truth engine steps; the reference runs at a tenth of the smallest.
+    dts: tuple[float, ...] = (1e-3, 1e-4, 1e-5)
+    horizon: float = 0.1
+    # MJX on or off (its CPU compile takes minutes beyond small trees).
+    mjx: bool = True
+    # Learned models timed (None: every one trained on TRAINING_SCENE).
+    models: tuple[str, ...] | None = None
+    # Lagrangian engine runs longer than this many link-steps are skipped (with a row
+    # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
+    max_link_steps: float = 5e5
+
+
+@dataclasses.dataclass(frozen=True)
+class ScalingSettings:
+    """Cost per step against chain length, and batched throughput."""
+
+    # Chains of these many links, single trajectory, `steps` RK4 steps at the evaluation dt.
+    lengths: tuple[int, ...] = (4, 16, 100, 1000)
+    steps: int = 100
+    # Batches of `throughput_batch` initial conditions of each of these scenes against MuJoCo C.
+    throughput_scenes: tuple[str, ...] = ("chain4", "chain16", "chain100", "T1")
+    throughput_batch: int = 100
+
+
+@dataclasses.dataclass(frozen=True)
+class MassSettings:
+    """The learned LGNN mass matrix against the true one."""
+
+    # Scenes analysed (each must be evaluated: the state comes from its ground truth).
+    scenes: tuple[str, ...] = dataclasses.field(default=("chain16", "T1"), metadata=NOT_IN_KEY)
+    # Version of what is derived from the matrices (2: the scale-fitted errors).
+    analysis: int = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class Profile:
+    name: str
+    training: TrainSettings
+    evaluate: EvaluateSettings
+    speed: SpeedSettings = SpeedSettings()
+    scaling: ScalingSettings = ScalingSettings()
+    mass: MassSettings = MassSettings()
+    # Training seeds: the grid's third axis.
+    seeds: tuple[int, ...] = (0,)
+    # Training scenes kept from GRID (None: all).
+    train_scenes: tuple[str, ...] | None = None
+    # Evaluation scenes kept from GRID (None: all of them).
+    scenes: tuple[str, ...] | None = None
+
+
+PROFILES = {
+    "quick": Profile(
+        name="quick",
+        training=TrainSettings(DataConfig(n_trajectories=5, duration=0.5, sample_dt=0.05), TrainConfig(epochs=10, patience=10)),
+        evaluate=EvaluateSettings(initial_conditions=3, duration=0.1, chunk=3),
+        speed=SpeedSettings(scenes=("chain4",), dts=(1e-3,), horizon=0.02, mjx=False, models=("lgnn",)),
+        scaling=ScalingSettings(lengths=(4, 16), steps=10, throughput_scenes=("chain4",), throughput_batch=4),
+        mass=MassSettings(scenes=("chain8",)),
+        # The chain4-trained models on chains only: compiling T1-T3 and the varied/drag
+        # models' own pipelines takes minutes on a small CPU (the full profile has them).
+        train_scenes=(TRAINING_SCENE,),
+        scenes=("chain4", "chain8"),
+    ),
+    "full": Profile(
+        name="full",
+        # The paper's 10 000 epochs do not fit a session; the minutes budget ends training
+        # first (results/README.md states the epochs reached).
+        training=TrainSettings(DataConfig(), TrainConfig(epochs=10_000, minutes=6.5)),
+        evaluate=EvaluateSettings(initial_conditions=100, duration=1.0),
+    ),
+}
+
+
+def get_profile(name: str) -> Profile:
+    if name not in PROFILES:
+        raise ConfigError(f"unknown benchmark profile {name!r} (choose from {', '.join(PROFILES)})")
+    return PROFILES[name]
+
+
+def _entries(profile: Profile) -> list[GridEntry]:
+    return [e for e in GRID if profile.train_scenes is None or e.train_scene in profile.train_scenes]
+
+
+def training_jobs(profile: Profile) -> list[TrainingJob]:
+    return [TrainingJob(e.model, e.train_scene, seed) for e in _entries(profile) for seed in profile.seeds]
+
+
+def evaluation_pairs(profile: Profile) -> list[Pair]:
+    pairs = []
+    for entry in _entries(profile):
+        for seed in profile.seeds:
+            for scene in entry.eval_scenes:
+                if profile.scenes is None or scene in profile.scenes:
+                    pairs.append(Pair(TrainingJob(entry.model, entry.train_scene, seed), scene))
+    return pairs
+
+
+def evaluation_scenes(profile: Profile) -> list[str]:
+    return list(dict.fromkeys(p.scene for p in evaluation_pairs(profile)))
+
+
+def lgnn_job(profile: Profile) -> TrainingJob:
+    """The model whose learned mass matrix and cost against size are measured: LGNN
+    trained on TRAINING_SCENE, first seed."""
+    return TrainingJob("lgnn", TRAINING_SCENE, profile.seeds[0])

@@ -1,0 +1,68 @@
+"""The whole benchmark: train every model of the grid (`lgnn.bench.grid`), evaluate it on
+every scene against both ground truths, measure speed against error, cost against
+size and the learned mass matrix, and write the report (`lgnn.bench.report`).
+
+Stages (`STAGES`, one module each under `lgnn.bench.stages`) are resumable: each
+output is a record written atomically, reused when the settings it was made with
+match, redone otherwise; so stages may run apart, on several machines, and be
+assembled by the report.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from lgnn.bench import report
+from lgnn.bench.grid import Profile, evaluation_pairs, evaluation_scenes, training_jobs
+from lgnn.bench.stages.evaluate import evaluate_pair, evaluate_scene
+from lgnn.bench.stages.mass import mass_matrices
+from lgnn.bench.stages.scaling import scaling
+from lgnn.bench.stages.speed import speed_error
+from lgnn.bench.stages.train import train_job
+from lgnn.bench.store import default_out
+from lgnn.errors import ConfigError
+
+STAGES = ("train", "evaluate", "speed", "scaling", "mass", "report")
+
+
+def run(profile: Profile, out: Path | None = None, stages=STAGES, jobs: list[str] | None = None, scenes: list[str] | None = None,
+        progress: bool = True) -> Path:
+    """Run the chosen stages of the benchmark (all by default), restricted to the named
+    training jobs and evaluation scenes when given; returns the output directory."""
+    out = Path(out) if out is not None else default_out(profile)
+    unknown = sorted(set(stages) - set(STAGES))
+    if unknown:
+        raise ConfigError(f"unknown benchmark stage {unknown[0]!r} (choose from {', '.join(STAGES)})")
+    all_jobs = training_jobs(profile)
+    known = {j.name for j in all_jobs}
+    for name in jobs or ():
+        if name not in known:
+            raise ConfigError(f"unknown training job {name!r} (choose from {', '.join(sorted(known))})")
+    for name in scenes or ():
+        if name not in evaluation_scenes(profile):
+            raise ConfigError(f"scene {name!r} is not evaluated in the {profile.name} profile (choose from {', '.join(evaluation_scenes(profile))})")
+    selected_jobs = [j for j in all_jobs if not jobs or j.name in jobs]
+    selected_scenes = [s for s in evaluation_scenes(profile) if not scenes or s in scenes]
+    out.mkdir(parents=True, exist_ok=True)
+    if "train" in stages:
+        for job in selected_jobs:
+            train_job(profile, job, out, progress)
+    if "evaluate" in stages:
+        for scene in selected_scenes:
+            evaluate_scene(profile, scene, out, progress)
+            for pair in evaluation_pairs(profile):
+                if pair.scene == scene and pair.job in selected_jobs:
+                    evaluate_pair(profile, pair, out, progress)
+    if "speed" in stages:
+        for scene in profile.speed.scenes:
+            if not scenes or scene in scenes:
+                speed_error(profile, scene, out)
+    if "scaling" in stages and not scenes:
+        scaling(profile, out)
+    if "mass" in stages:
+        for scene in profile.mass.scenes:
+            if not scenes or scene in scenes:
+                mass_matrices(profile, scene, out)
+    if "report" in stages:
+        report.write(profile, out)
+    return out

@@ -1,0 +1,240 @@
+"""Evaluation stage: every trained model on every scene, against both ground truths.
+
+`evaluate_scene` writes a scene's ground-truth record: the Lagrangian ground truth
+(RK4 with projection, the same integrator and step as the models), its chaos floor
+(initial positions perturbed by `floor_perturbation`, projected back onto the
+constraints) and MuJoCo C (RK4 at `mujoco_dt`, frames at the same times).
+`evaluate_pair` writes a (model, scene) record: the model's rollouts from the same
+initial conditions. Per frame (t > 0) and initial condition: rollout error
+`||q_hat - q|| / (||q_hat|| + ||q||)` over all node coordinates, energy error (the same
+formula on the scene's true Hamiltonian of both trajectories), and the rollout error
+against MuJoCo's trajectory (`lgnn.metrics`). Errors are clipped to [1e-16, 1] (1 is
+the metric's maximum; 1e-16 keeps an exact match from dominating a geometric mean). A
+rollout *diverges* at the first frame the one divergence rule of `lgnn.metrics` flags
+(non-finite, true energy or a node's reach beyond 10 times what the scene allows), the
+rule that stops every engine; from that frame on its errors count as 1 and the
+divergence time is recorded.
+
+Keys: a ground-truth record depends on the scene's content and the profile's
+`EvaluateSettings` as that scene uses them (`truth_key`); a pair record on that and the
+checkpoint's content (`pair_key`). `load_truths` and `load_pairs` give the report the
+records that match.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn import metrics, physics, records, sharding
+from lgnn.bench import store
+from lgnn.bench.grid import Pair, Profile, evaluation_pairs, evaluation_scenes, settings_key
+from lgnn.bench.store import Layout, log
+from lgnn.bench.timing import batched_rollouts, compiled_rollouts
+from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.errors import ConfigError, SimulationError
+from lgnn.learn import models, train
+from lgnn.scene import Scene, State, get_scene, is_pinned_chain, sample_initial_states, scene_to_dict
+
+# Metrics recorded per frame and initial condition.
+METRICS = ("rollout_error", "energy_error", "rollout_error_vs_mujoco")
+# Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s.
+SNAPSHOT_DT = 0.01
+
+
+def initial_states(profile: Profile, scene: Scene) -> State:
+    """The evaluation initial conditions (C, N, D): `initial_conditions` samples of the
+    paper's chain sampler (seed `ic_seed`), or the scene's own state (C = 1)."""
+    count = profile.evaluate.initial_conditions if is_pinned_chain(scene) else 1
+    states = sample_initial_states(scene, jax.random.PRNGKey(profile.evaluate.ic_seed), count)
+    return State(np.asarray(states.q), np.asarray(states.qd))
+
+
+def truth_key(profile: Profile, scene_name: str) -> str:
+    """Settings a scene's ground-truth record depends on."""
+    return records.digest({"evaluate": settings_key(profile.evaluate.for_scene(scene_name)), "scene": scene_to_dict(get_scene(scene_name))})
+
+
+def pair_key(profile: Profile, pair: Pair, checkpoint: Path) -> str:
+    """Settings a pair's record depends on: its scene's ground truth and the checkpoint's content."""
+    return records.digest({"truth": truth_key(profile, pair.scene), "checkpoint": records.file_digest(checkpoint)})
+
+
+@functools.lru_cache(maxsize=2)
+def _ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> dict:
+    """In-memory ground truth of a scene's evaluation (not stored: large, cheap to redo)."""
+    from lgnn.engines import mujoco as lm
+
+    settings = profile.evaluate
+    scene = get_scene(scene_name)
+    states = initial_states(profile, scene)
+    config = settings.simulation(scene_name)
+    log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s")
+    q, qd, compile_s, run_s = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, states, settings.chunk, f"truth {scene_name}", progress)
+    energy = metrics.true_energies(scene, q, qd)
+    _check_reference(scene, config, "Lagrangian ground truth", q, qd, energy)
+    noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
+    perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
+    # The perturbed runs are not references: one that diverges (T2/T3's perturbed
+    # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
+    q_floor, qd_floor, _, _ = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, settings.chunk, f"floor {scene_name}", progress)
+    mj_config = SimulationConfig("rk4", settings.mujoco_dt, settings.frame_dt, settings.duration, True)
+    start = time.perf_counter()
+    q_mj, qd_mj = lm.rollout(scene, mj_config, states, threads=os.cpu_count() or 1)
+    mujoco_s = time.perf_counter() - start
+    _check_reference(scene, mj_config, "MuJoCo reference", q_mj, qd_mj, metrics.true_energies(scene, q_mj, qd_mj))
+    floor_diverged = _divergence(scene, config, q_floor, qd_floor, metrics.true_energies(scene, q_floor, qd_floor))
+    return dict(q=q, qd=qd, energy=energy, q_floor=q_floor, floor_diverged=floor_diverged, q_mujoco=q_mj, states=states,
+                compile_s=compile_s, run_s=run_s, mujoco_s=mujoco_s)
+
+
+def _metric_frames(diverged: np.ndarray) -> np.ndarray:
+    """Divergence frame indices (C,) shifted to the metric arrays, which exclude t = 0."""
+    return np.where(diverged > 0, diverged - 1, diverged)
+
+
+def _divergence(scene: Scene, config: SimulationConfig, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> np.ndarray:
+    """(C,) first diverged frame of each trajectory (`lgnn.metrics`' one rule), or -1."""
+    return metrics.divergence_frames(scene, np.arange(q.shape[1]) * config.frame_dt, q, qd, energy)
+
+
+def _check_reference(scene: Scene, config: SimulationConfig, what: str, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> None:
+    """A reference trajectory that diverged would turn every error into 1 for every
+    model: stop with one line instead of recording meaningless numbers."""
+    diverged = _divergence(scene, config, q, qd, energy)
+    if (diverged >= 0).any():
+        first = int(np.argmax(diverged >= 0))
+        raise SimulationError(
+            f"{scene.name}: the {what} diverged at t = {diverged[first] * config.frame_dt:g} s (initial condition {first}, "
+            f"RK4 dt {config.dt:g}): give the scene a smaller step (EvaluateSettings.scene_dts)"
+        )
+
+
+def _snapshot(profile: Profile, trajectory: np.ndarray) -> np.ndarray:
+    """IC 0 of a trajectory at every SNAPSHOT_DT s (figures), float32."""
+    stride = max(1, round(SNAPSHOT_DT / profile.evaluate.frame_dt))
+    return np.asarray(trajectory[0, ::stride], np.float32)
+
+
+def _metric_arrays(prefix: str, errors: np.ndarray) -> dict:
+    stats = metrics.error_statistics(errors)
+    return {f"{prefix}/{k}": v for k, v in stats.items()}
+
+
+def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool = True) -> Path:
+    """The ground-truth record of a scene: chaos floor and Lagrangian-vs-MuJoCo errors."""
+    path, key = Layout(out).truth_record(scene_name), truth_key(profile, scene_name)
+    if store.load(path, key) is not None:
+        return path
+    truth = _ground_truth(profile, scene_name, progress)
+    frame_dt = profile.evaluate.frame_dt
+    none = np.full(len(truth["q"]), -1)
+    floor_diverged = truth["floor_diverged"]
+    arrays = {
+        "t": np.arange(1, truth["q"].shape[1]) * frame_dt,
+        **_metric_arrays("chaos_floor", metrics.clean_errors(metrics.relative_error(truth["q_floor"], truth["q"], 2)[:, 1:], _metric_frames(floor_diverged))),
+        "chaos_floor/diverged_at": np.where(floor_diverged >= 0, floor_diverged * frame_dt, np.nan),
+        **_metric_arrays("truth_vs_mujoco", metrics.clean_errors(metrics.relative_error(truth["q"], truth["q_mujoco"], 2)[:, 1:], none)),
+        "snapshot/truth": _snapshot(profile, truth["q"]),
+        "snapshot/mujoco": _snapshot(profile, truth["q_mujoco"]),
+        "mid_state": np.stack([truth["q"][0, truth["q"].shape[1] // 2], truth["qd"][0, truth["qd"].shape[1] // 2]]),
+    }
+    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), compile_s=truth["compile_s"], run_s=truth["run_s"], mujoco_s=truth["mujoco_s"])
+    store.save(path, key, arrays, meta)
+    return path
+
+
+@functools.lru_cache(maxsize=16)
+def _model_accel_factory(checkpoint: Path, digest: str) -> Callable[[Scene], physics.AccelerationFn]:
+    """`scene -> accel` of a checkpoint's best parameters: one object per checkpoint
+    content (`digest`), so compiled rollouts cached per factory are shared by
+    evaluation and timing."""
+    model, params = train.load_model(checkpoint)
+    return lambda scene: models.acceleration_fn(model, params, scene)
+
+
+def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True) -> Path:
+    """The evaluation record of a trained model on a scene (module docstring)."""
+    layout = Layout(out)
+    checkpoint = layout.checkpoint(pair.job)
+    if not checkpoint.exists():
+        raise ConfigError(f"no checkpoint for {pair.job.name} at {checkpoint}: run the training stage first")
+    path, key = layout.pair_record(pair), pair_key(profile, pair, checkpoint)
+    if store.load(path, key) is not None:
+        return path
+    scene = get_scene(pair.scene)
+    config = profile.evaluate.simulation(pair.scene)
+    truth = _ground_truth(profile, pair.scene, progress)
+    log(f"evaluate {pair.job.label} on {pair.scene}: {len(truth['q'])} initial conditions")
+    q, qd, compile_s, run_s = batched_rollouts(
+        scene, config, _model_accel_factory(checkpoint, records.file_digest(checkpoint)), truth["states"], profile.evaluate.chunk,
+        f"{pair.job.label} on {pair.scene}", progress
+    )
+    energy = metrics.true_energies(scene, q, qd)
+    diverged = _divergence(scene, config, q, qd, energy)
+    after_t0 = _metric_frames(diverged)
+    arrays = {
+        "t": np.arange(1, q.shape[1]) * profile.evaluate.frame_dt,
+        **_metric_arrays("rollout_error", metrics.clean_errors(metrics.relative_error(q, truth["q"], 2)[:, 1:], after_t0)),
+        **_metric_arrays("energy_error", metrics.clean_errors(metrics.relative_error(energy, truth["energy"], 0)[:, 1:], after_t0)),
+        **_metric_arrays("rollout_error_vs_mujoco", metrics.clean_errors(metrics.relative_error(q, truth["q_mujoco"], 2)[:, 1:], after_t0)),
+        "diverged_at": np.where(diverged >= 0, diverged * profile.evaluate.frame_dt, np.nan),
+        "snapshot/model": _snapshot(profile, q),
+    }
+    steps = len(q) * config.n_frames * config.steps_per_frame
+    meta = dict(job=pair.job.name, model=pair.job.model, label=pair.job.label, train_scene=pair.job.scene, seed=pair.job.seed,
+                scene=pair.scene, initial_conditions=len(q), compile_s=compile_s, run_s=run_s, steps_per_s=steps / run_s)
+    store.save(path, key, arrays, meta)
+    n_div = int(np.sum(diverged >= 0))
+    log(f"evaluate {pair.job.label} on {pair.scene}: rollout error {metrics.summarise(arrays['rollout_error/per_ic_log'])[0]:.3g}"
+        + (f", {n_div} diverged" if n_div else "") + f" ({run_s:.1f} s + compile {compile_s:.1f} s)")
+    return path
+
+
+def load_truth(profile: Profile, scene_name: str, out: Path) -> tuple[dict, dict] | None:
+    """`(arrays, meta)` of a scene's ground-truth record if it matches the profile, else None."""
+    return store.load(Layout(out).truth_record(scene_name), truth_key(profile, scene_name))
+
+
+def load_pair(profile: Profile, pair: Pair, out: Path) -> tuple[dict, dict] | None:
+    """`(arrays, meta)` of a pair's record if it matches the profile and checkpoint, else None."""
+    layout = Layout(out)
+    checkpoint = layout.checkpoint(pair.job)
+    if not checkpoint.exists():
+        return None
+    return store.load(layout.pair_record(pair), pair_key(profile, pair, checkpoint))
+
+
+def load_truths(profile: Profile, out: Path) -> dict[str, tuple[dict, dict]]:
+    """Ground-truth records by scene, those that exist and match the profile."""
+    found = {scene: load_truth(profile, scene, out) for scene in evaluation_scenes(profile)}
+    return {scene: record for scene, record in found.items() if record is not None}
+
+
+def load_pairs(profile: Profile, out: Path) -> list[tuple[Pair, tuple[dict, dict]]]:
+    """`(pair, (arrays, meta))` of every pair record that exists and matches the profile."""
+    found = [(pair, load_pair(profile, pair, out)) for pair in evaluation_pairs(profile)]
+    return [(pair, record) for pair, record in found if record is not None]
+
+
+def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
+    """`(run, steps)`: a no-argument call running the pair's compiled evaluation rollout
+    on its first chunk of initial conditions (the function `evaluate_pair` used), and
+    the RK4 steps it takes; for pytest-benchmark."""
+    scene = get_scene(pair.scene)
+    states = initial_states(profile, scene)
+    chunk = sharding.padded_size(min(profile.evaluate.chunk, len(states.q)))
+    checkpoint = Layout(out).checkpoint(pair.job)
+    accel_factory = _model_accel_factory(checkpoint, records.file_digest(checkpoint))
+    config = profile.evaluate.simulation(pair.scene)
+    compiled, _ = compiled_rollouts(scene, config, accel_factory, chunk, str(states.q.dtype))
+    q, qd = (jnp.asarray(sharding.pad_batch(a[:chunk], chunk)) for a in states)
+    steps = chunk * config.n_frames * config.steps_per_frame
+    return (lambda: jax.block_until_ready(compiled(q, qd))), steps

@@ -1,0 +1,94 @@
+"""Scaling stage: cost per step against chain length, and batched throughput.
+
+The record (JSON) depends on the profile's `ScalingSettings` and `EvaluateSettings` (the
+step and the initial conditions' seed) and on the content of the LGNN checkpoint timed
+(`scaling_key`); `load_scaling` gives the report the record if it matches.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn import physics, records
+from lgnn.bench import store
+from lgnn.bench.crosscheck import time_compiled, timed_rollout
+from lgnn.bench.grid import Profile, lgnn_job, settings_key
+from lgnn.bench.store import Layout, log
+from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.errors import ConfigError, SceneError, SimulationError
+from lgnn.learn import models, train
+from lgnn.scene import State, chain, get_scene, sample_initial_states
+
+
+def _checkpoint(profile: Profile, out: Path) -> tuple[Path, str | None]:
+    checkpoint = Layout(out).checkpoint(lgnn_job(profile))
+    return checkpoint, records.file_digest(checkpoint) if checkpoint.exists() else None
+
+
+def scaling_key(profile: Profile, out: Path) -> str:
+    """Settings the scaling record depends on (module docstring)."""
+    return records.digest({"scaling": settings_key(profile.scaling), "evaluate": settings_key(profile.evaluate), "lgnn": _checkpoint(profile, out)[1]})
+
+
+def scaling(profile: Profile, out: Path) -> Path:
+    """Record (JSON) of rows `kind, scene, n_links, solver, batch, s_per_step, compile_s, note`:
+    - kind "size": wall seconds per RK4 step at the evaluation dt against chain length
+      (`lengths`), single trajectory from the paper's sampler, for the Lagrangian ground
+      truth, MuJoCo C (its stepping alone) and LGNN trained on chain4;
+    - kind "batch": `throughput_batch` initial conditions of each of `throughput_scenes`
+      at once (batches spread over every local device; MuJoCo C on two threads), for the
+      Lagrangian ground truth and MuJoCo C.
+    Each timing runs `steps` steps after a compile (or warm-up) run kept apart."""
+    settings = profile.scaling
+    checkpoint, digest = _checkpoint(profile, out)
+    path, key = Layout(out).scaling_record, scaling_key(profile, out)
+    if store.load_json(path, key) is not None:
+        return path
+    steps, dt, ic_seed = settings.steps, profile.evaluate.dt, profile.evaluate.ic_seed
+    config = SimulationConfig("rk4", dt, steps * dt, steps * dt, True)
+    model_params = train.load_model(checkpoint) if digest else None
+    rows = []
+    for n in settings.lengths:
+        scene = chain(n)
+        states = sample_initial_states(scene, jax.random.PRNGKey(ic_seed), 1)
+        single = State(np.asarray(states.q), np.asarray(states.qd))
+        factories = {"lagrangian": physics.true_acceleration_fn, "mujoco": None}
+        if model_params is not None:
+            model, params = model_params
+            factories["lgnn"] = lambda s, model=model, params=params: models.acceleration_fn(model, params, s)
+        for solver, factory in factories.items():
+            row = dict(kind="size", scene=scene.name, n_links=n, solver=solver, batch=1, s_per_step=float("nan"), compile_s=float("nan"), note="")
+            if factory is None:
+                try:
+                    compile_s, run_s, _ = timed_rollout("mujoco", scene, config, single)
+                except (ConfigError, SceneError, SimulationError) as err:
+                    row["note"] = f"not run: {err}"
+                    rows.append(row)
+                    log(f"scaling {scene.name} mujoco: {row['note']}")
+                    continue
+            else:
+                # One trajectory, not vmapped (as the speed stage times learned models).
+                run = jax.jit(rollout_fn(scene, config, factory))
+                compile_s, run_s, _ = time_compiled(run, jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
+            rows.append({**row, "s_per_step": run_s / steps, "compile_s": compile_s})
+            log(f"scaling {scene.name} {solver}: {run_s / steps:.3g} s per step (compile {compile_s:.1f} s)")
+    for name in settings.throughput_scenes:
+        scene = get_scene(name)
+        states = sample_initial_states(scene, jax.random.PRNGKey(ic_seed), settings.throughput_batch)
+        batch = State(np.asarray(states.q), np.asarray(states.qd))
+        for solver in ("lagrangian", "mujoco"):
+            compile_s, run_s, _ = timed_rollout(solver, scene, config, batch)
+            rows.append(dict(kind="batch", scene=name, n_links=scene.n_links, solver=solver, batch=settings.throughput_batch,
+                             s_per_step=run_s / steps, compile_s=compile_s, note=""))
+            log(f"throughput {name} {solver} x{settings.throughput_batch}: {settings.throughput_batch * steps / run_s:.3g} steps/s")
+    store.save_json(path, key, rows=rows)
+    return path
+
+
+def load_scaling(profile: Profile, out: Path) -> dict | None:
+    """The scaling record if it matches the profile and checkpoint, else None."""
+    return store.load_json(Layout(out).scaling_record, scaling_key(profile, out))

@@ -1,0 +1,122 @@
+"""Speed-against-error stage: wall time per simulated second (single trajectory,
+compile apart) against rollout error, for the ground-truth engines at several steps
+and for each learned model, against a MuJoCo C reference at a tenth of the smallest step.
+
+A scene's record (JSON) depends on the scene's content, the profile's `SpeedSettings`
+and `EvaluateSettings` (its step, frames and initial conditions) and the content of
+every checkpoint timed (`speed_key`). `speed_rows` gives the report the rows of the
+records that match, as a tidy table.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn import metrics, records
+from lgnn.bench import store
+from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX, time_compiled, timed_rollout
+from lgnn.bench.grid import TRAINING_SCENE, Profile, TrainingJob, settings_key, training_jobs
+from lgnn.bench.stages.evaluate import initial_states
+from lgnn.bench.store import Layout, log
+from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.learn import models, train
+from lgnn.scene import State, get_scene, scene_to_dict
+
+
+def timed_jobs(profile: Profile, scene_name: str, jobs: list[TrainingJob] | None = None) -> list[TrainingJob]:
+    """The learned models timed on a scene: those trained on TRAINING_SCENE (CLNN on
+    its own scene only), restricted to `SpeedSettings.models`."""
+    return [j for j in (jobs or training_jobs(profile)) if j.scene == TRAINING_SCENE and (j.model != "clnn" or scene_name == TRAINING_SCENE)
+            and (profile.speed.models is None or j.model in profile.speed.models)]
+
+
+def _checkpoint_digests(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> dict[str, str]:
+    layout = Layout(out)
+    return {j.name: records.file_digest(layout.checkpoint(j)) for j in timed_jobs(profile, scene_name, jobs) if layout.checkpoint(j).exists()}
+
+
+def speed_key(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> str:
+    """Settings a scene's speed record depends on (module docstring)."""
+    return records.digest({"speed": settings_key(profile.speed), "evaluate": settings_key(profile.evaluate.for_scene(scene_name)),
+                           "scene": scene_to_dict(get_scene(scene_name)), "checkpoints": _checkpoint_digests(profile, scene_name, out, jobs)})
+
+
+def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> Path:
+    """Rows `scene, solver, kind, dt, wall_s_per_sim_s, evaluations_per_sim_s,
+    compile_s, rollout_error, note` (JSON record): every ground-truth engine at each of
+    `SpeedSettings.dts` and every timed model (`timed_jobs`) at the scene's evaluation
+    dt, single trajectory from the scene's first initial condition over `horizon` s,
+    frames every `frame_dt`; error: geometric mean of the rollout error against MuJoCo
+    C at a tenth of the smallest step."""
+    from lgnn.engines import mujoco as lm
+
+    settings = profile.speed
+    scene = get_scene(scene_name)
+    layout = Layout(out)
+    checkpoints = _checkpoint_digests(profile, scene_name, out, jobs)
+    path, key = layout.speed_record(scene_name), speed_key(profile, scene_name, out, jobs)
+    if store.load_json(path, key) is not None:
+        return path
+    states = initial_states(profile, scene)
+    single = State(states.q[:1], states.qd[:1])
+    horizon, frame_dt = settings.horizon, profile.evaluate.frame_dt
+    reference_config = SimulationConfig("rk4", min(settings.dts) / 10, frame_dt, horizon, True)
+    log(f"speed/error {scene_name}: MuJoCo C reference at dt {reference_config.dt:g}")
+    reference = lm.rollout(scene, reference_config, single).q[0]
+    depth = lm.scene_layout(scene).depth
+    rows = []
+
+    def row(solver, kind, dt, **values):
+        base = dict(scene=scene_name, solver=solver, kind=kind, dt=dt, wall_s_per_sim_s=float("nan"), evaluations_per_sim_s=4 / dt,
+                    compile_s=float("nan"), rollout_error=float("nan"), note="")
+        rows.append({**base, **values})
+
+    for engine in ("lagrangian", "mujoco", "mjx"):
+        for dt in settings.dts:
+            if engine == "mjx" and not settings.mjx:
+                row(engine, "engine", dt, note="not run in this profile")
+                continue
+            if engine == "mjx" and depth > MJX_MAX_DEPTH:
+                row(engine, "engine", dt, note=SKIP_MJX.format(depth=depth, limit=MJX_MAX_DEPTH))
+                continue
+            if engine != "mujoco" and horizon / dt * scene.n_links > settings.max_link_steps:
+                row(engine, "engine", dt, note=f"not run: over {settings.max_link_steps:g} link-steps")
+                continue
+            config = SimulationConfig("rk4", dt, frame_dt, horizon, True)
+            compile_s, run_s, q = timed_rollout(engine, scene, config, single)
+            row(engine, "engine", dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference))
+            log(f"speed/error {scene_name} {engine} dt {dt:g}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
+    config = SimulationConfig("rk4", profile.evaluate.dt_for(scene_name), frame_dt, horizon, True)
+    for job in timed_jobs(profile, scene_name, jobs):
+        if job.name not in checkpoints:
+            row(job.label, "learned", config.dt, note="no checkpoint")
+            continue
+        model, params = train.load_model(layout.checkpoint(job))
+        run = jax.jit(rollout_fn(scene, config, lambda s: models.acceleration_fn(model, params, s)))
+        compile_s, run_s, out_state = time_compiled(run, jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
+        q = np.asarray(out_state.q)
+        row(job.label, "learned", config.dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=metrics.gmean_error(q, reference))
+        log(f"speed/error {scene_name} {job.label}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
+    store.save_json(path, key, horizon=horizon, rows=rows)
+    return path
+
+
+def load_speed(profile: Profile, scene_name: str, out: Path) -> dict | None:
+    """A scene's speed record if it matches the profile and checkpoints, else None."""
+    return store.load_json(Layout(out).speed_record(scene_name), speed_key(profile, scene_name, out))
+
+
+def speed_rows(profile: Profile, out: Path) -> list[dict]:
+    """Tidy rows of every matching speed record (`speed_error`'s columns, `horizon_s`
+    and the `commit, versions, device` that made them); a stale record is not reported."""
+    rows = []
+    for scene in profile.speed.scenes:
+        stored = load_speed(profile, scene, out)
+        if stored is not None:
+            env = {k: stored.get("environment", {}).get(k, "unknown") for k in ("commit", "versions", "device")}
+            rows += [{**r, "horizon_s": stored["horizon"], **env} for r in stored["rows"]]
+    return rows

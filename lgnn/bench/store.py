@@ -1,0 +1,100 @@
+"""Where the benchmark's records live, and how a stage reuses them.
+
+Under `<out>/benchmark/`: `checkpoints/<job>.npz` (`lgnn.learn.train`) and `runs/`,
+the stage records; datasets under `<out>/datasets/`. Every record is an `lgnn.records`
+record (arrays) or JSON record whose meta holds the settings `key` it was made with
+(`lgnn.bench.stages`). `load` and `load_json` return a record only if it is whole and
+has the wanted key: an absent or stale one is None (recomputed), a damaged one too,
+with a warning on stderr. Progress goes to stderr (`log`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+from lgnn import records
+from lgnn.bench.grid import Pair, Profile, TrainingJob
+
+# Layout of a stage record's meta; records of another format are recomputed.
+RECORD_FORMAT = 1
+
+
+def log(message: str) -> None:
+    print(f"[benchmark] {message}", file=sys.stderr, flush=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Where a profile's outputs live under `out`."""
+
+    out: Path
+
+    @property
+    def bench(self) -> Path:
+        return self.out / "benchmark"
+
+    def checkpoint(self, job: TrainingJob) -> Path:
+        return self.bench / "checkpoints" / f"{job.name}.npz"
+
+    def pair_record(self, pair: Pair) -> Path:
+        return self.bench / "runs" / pair.job.name / f"{pair.scene}.npz"
+
+    def truth_record(self, scene: str) -> Path:
+        return self.bench / "runs" / "ground-truth" / f"{scene}.npz"
+
+    @property
+    def scaling_record(self) -> Path:
+        return self.bench / "runs" / "scaling.json"
+
+    def speed_record(self, scene: str) -> Path:
+        return self.bench / "runs" / "speed-error" / f"{scene}.json"
+
+    def mass_record(self, scene: str) -> Path:
+        return self.bench / "runs" / "mass-matrix" / f"{scene}.npz"
+
+    @property
+    def datasets(self) -> Path:
+        return self.out / "datasets"
+
+
+def default_out(profile: Profile) -> Path:
+    return Path("results") if profile.name == "full" else Path("results") / profile.name
+
+
+def save(path: Path, key: str, arrays: dict, meta: dict) -> None:
+    """A stage's array record: `arrays` and `meta` with the settings `key`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    records.save(path, arrays, {**meta, "key": key, "format": RECORD_FORMAT})
+
+
+def load(path: Path, key: str | None = None) -> tuple[dict, dict] | None:
+    """`(arrays, meta)` of a valid record with settings `key` (any key if None); None
+    (with a warning for a damaged file) when it is absent, damaged or stale."""
+    if not path.exists():
+        return None
+    try:
+        arrays, meta = records.read(path)
+    except records.RecordError as err:
+        log(f"warning: {err}; recomputing")
+        return None
+    if meta.get("format") != RECORD_FORMAT or (key is not None and meta.get("key") != key):
+        return None
+    return arrays, meta
+
+
+def save_json(path: Path, key: str, **fields) -> None:
+    """A stage's JSON record: the settings `key` and `fields`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    records.save_json(path, key, fields)
+
+
+def load_json(path: Path, key: str) -> dict | None:
+    """The JSON record at `path` if it was made with the settings `key`; None when it is
+    absent, stale or damaged (with a warning)."""
+    try:
+        return records.load_json(path, key)
+    except records.RecordError as err:
+        log(f"warning: {err}; recomputing")
+        return None
