@@ -272,7 +272,7 @@ def test_cli_rejects_verlet_for_mujoco(tmp_path, capsys):
 def test_every_engine_agrees_with_the_lagrangian_engine(name):
     """One interface: every registered engine's batched rollout of chain4 (float64, RK4,
     dt 1e-4, 1 s) has the same shape and the same motion and energy as the Lagrangian
-    engine's (measured: MuJoCo C and MJX within ~1e-12)."""
+    engine.s (measured: MuJoCo C within 4e-14 in positions, 5e-13 in energy)."""
     ours, reference = engine_chain4(name), engine_chain4("lagrangian")
     assert get_engine(name).name == name
     assert ours.q.shape == ours.qd.shape == (3, 1001, 5, 2) and ours.energy.shape == (3, 1001) and ours.t.shape == (1001,)
