@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from lgnn.engines import mjx
 from lgnn.engines import mujoco as lm
 from lgnn.scene import State
 from lgnn.scene import get_scene, sample_initial_states
@@ -34,7 +35,7 @@ def _states(name, batch):
 def test_mujoco_c(benchmark, record_rate, name, batch):
     scene, states = _states(name, batch)
     lm.compile_scene(scene, CONFIG.dt)
-    # MuJoCo's stepping alone (the map to node states is a Python loop, see crosscheck._timed).
+    # MuJoCo's stepping alone (the map to node states is a Python loop, see MujocoEngine.timed_rollout).
     benchmark.pedantic(lm.joint_rollout, args=(scene, CONFIG, states), kwargs={"threads": 2}, rounds=3, warmup_rounds=1)
     record_rate("steps", batch * STEPS, scene=scene.name, batch=batch)
 
@@ -43,7 +44,7 @@ def test_mujoco_c(benchmark, record_rate, name, batch):
 @pytest.mark.parametrize("batch", [1, 100])
 def test_mjx_chain4(benchmark, record_rate, batch):
     scene, states = _states("chain4", batch)
-    run = lm.mjx_runner(scene, CONFIG, "float64")
+    run = mjx.runner(scene, CONFIG, "float64")
     args = (jnp.asarray(states.q), jnp.asarray(states.qd))
     benchmark.pedantic(lambda: jax.block_until_ready(run(*args)), rounds=3, warmup_rounds=1)
     record_rate("steps", batch * STEPS, scene=scene.name, batch=batch)

@@ -6,8 +6,9 @@ The public interface, by lifecycle stage (layers from the bottom; see ARCHITECTU
   `scene_from_dict`, `load_scene_file`, `sample_initial_states`;
 - physics (`lgnn.physics`): Lagrangians, constraints, the constrained Euler-Lagrange
   solve as a function transformer; integration (`lgnn.integrate`): RK4, Verlet, rollouts;
-- engines (`lgnn.engines`): the Lagrangian ground truth `simulate`, `SimulationConfig`,
-  `Trajectory`; MuJoCo C and MJX (`lgnn.engines.mujoco`);
+- engines (`lgnn.engines`): one interface, `get_engine(name).rollout(scene, config,
+  states) -> Trajectory`, for the Lagrangian ground truth (`simulate`,
+  `SimulationConfig`), MuJoCo C and MJX;
 - learned models (`lgnn.learn`): graph features, LGNN, GNS, LGN, CLNN, data, training;
 - the benchmark and its tools (`lgnn.bench`), the command line (`lgnn.cli`).
 
@@ -41,6 +42,7 @@ _PUBLIC = {
     "SimulationConfig": "lgnn.engines.lagrangian",
     "Trajectory": "lgnn.engines.lagrangian",
     "simulate": "lgnn.engines.lagrangian",
+    "get_engine": "lgnn.engines",
 }
 
 __all__ = sorted(_PUBLIC)

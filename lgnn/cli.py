@@ -89,22 +89,16 @@ def _simulation_config(args):
 
 
 def _cmd_simulate(args) -> None:
+    from lgnn.engines import batch_of_one, get_engine
     from lgnn.files import check_writable
-    from lgnn.scene import get_scene
-    from lgnn.engines.lagrangian import simulate
     from lgnn.metrics import energy_drift
+    from lgnn.scene import get_scene
 
     config = _simulation_config(args)
     check_writable(args.out)
+    engine = get_engine(args.engine, dtype=args.dtype, progress=not args.quiet)
     scene = get_scene(args.scene)
-    if args.engine == "lagrangian":
-        trajectory = simulate(scene, config, progress=not args.quiet)
-    elif args.engine in ("mujoco", "mjx"):
-        from lgnn.engines import mujoco as lm
-
-        trajectory = lm.simulate(scene, config, engine=args.engine, dtype=args.dtype)
-    else:
-        raise ConfigError(f"unknown engine {args.engine!r} (choose from: lagrangian, mujoco, mjx)")
+    trajectory = engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0)
     trajectory.save(args.out)
     print(
         f"{scene.name}: {len(trajectory.t)} frames over {config.duration:g} s "
@@ -116,7 +110,7 @@ def _cmd_mjcf(args) -> None:
     from pathlib import Path
 
     from lgnn.files import write_text_atomic
-    from lgnn.engines.mujoco import scene_to_mjcf
+    from lgnn.engines.mjcf import scene_to_mjcf
     from lgnn.scene import BUILTIN_SCENES
 
     out = Path(args.dir)
@@ -138,14 +132,15 @@ def _cmd_mjcf(args) -> None:
 def _cmd_crosscheck(args) -> None:
     from lgnn.bench import crosscheck as cc
     from lgnn.bench.tables import write_table
+    from lgnn.engines import ENGINES
     from lgnn.files import check_writable
     from lgnn.scene import get_scene
 
     command = "lgnn " + " ".join(args.argv)
     check_writable(f"{args.out_dir}/engines_speed_error.md" if args.speed else f"{args.out_dir}/crosscheck.md")
     engines = tuple(args.engines.split(","))
-    if set(engines) - set(cc.ENGINES) or not engines:
-        raise ConfigError(f"--engines: choose from {', '.join(cc.ENGINES)}, got {args.engines!r}")
+    if set(engines) - set(ENGINES) or not engines:
+        raise ConfigError(f"--engines: choose from {', '.join(ENGINES)}, got {args.engines!r}")
     if args.speed:
         rows = cc.speed_error(args.scenes or ["chain4", "chain16", "chain100", "T1"], engines, dts=tuple(args.speed_dts), batches=tuple(args.batch),
                               batch_dts=tuple(args.batch_dts), mjx_max_depth=args.mjx_max_depth, max_steps=args.max_steps, dtype=args.dtype)
@@ -363,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     simulate = commands.add_parser("simulate", help="simulate a scene with a ground-truth engine")
     simulate.add_argument("scene", help="built-in scene name or scene JSON file")
-    simulate.add_argument("--engine", default="lagrangian", help="ground-truth engine: lagrangian (default), mujoco, mjx")
+    simulate.add_argument("--engine", default="lagrangian", help="ground-truth engine: lagrangian (default), mujoco, mjx (lgnn.engines.ENGINES)")
     simulate.add_argument("--dtype", choices=["float64", "float32"], default="float64", help="MJX precision (default float64)")
     _add_simulation_options(simulate)
     simulate.add_argument("--out", required=True, help="output .npz file")

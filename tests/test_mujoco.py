@@ -1,4 +1,5 @@
-"""MuJoCo (C) and MJX against the exact Lagrangian engine, and the maps between them.
+"""MuJoCo (C) and MJX against the exact Lagrangian engine, the maps between them, the
+MJCF rendering, and the one engine interface (`lgnn.engines`).
 
 Tolerances are measured (RK4, dt 1e-4, 1 s): open chains agree to ~1e-13, loops to
 ~9e-8 (loop6, T1; MuJoCo's stiff but soft `connect`), drag to 1.9e-6 (drag held over
@@ -8,6 +9,8 @@ compiled once per session.
 
 import functools
 import json
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -15,9 +18,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from lgnn.engines import mujoco as lm
 from lgnn import physics
 from lgnn.cli import main
+from lgnn.engines import ENGINES, batch_of_one, get_engine, mjcf
+from lgnn.engines import mujoco as lm
+from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.scene import State, scene_from_dict, scene_to_dict
 from lgnn.scene import BUILTIN_SCENES, chain, get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
@@ -76,13 +81,13 @@ def max_violation(s, q):
 
 
 def test_layout_spanning_tree():
-    assert [b.closes_loop for b in lm.scene_layout(scene("chain4")).bodies] == [False] * 4
-    loop = lm.scene_layout(scene("loop6"))
+    assert [b.closes_loop for b in mjcf.scene_layout(scene("chain4")).bodies] == [False] * 4
+    loop = mjcf.scene_layout(scene("loop6"))
     assert sum(b.closes_loop for b in loop.bodies) == 1 and len(loop.bodies) == 6
-    free = lm.scene_layout(scene("free"))
+    free = mjcf.scene_layout(scene("free"))
     assert [b.free_root for b in free.bodies].count(True) == 1 and sum(b.closes_loop for b in free.bodies) == 1
     t3 = get_scene("T3")
-    layout = lm.scene_layout(t3)
+    layout = mjcf.scene_layout(t3)
     pinned = set(t3.pinned)
     assert len(layout.bodies) + len(layout.static_links) == t3.n_links
     assert all(set(t3.edges[e]) <= pinned for e in layout.static_links)
@@ -145,7 +150,7 @@ def test_mjcf_files_match_rendering():
     for name, entry in BUILTIN_SCENES.items():
         path = root / f"{name}.xml"
         assert path.exists(), f"{path} missing: run `python -m lgnn.cli mjcf`"
-        assert path.read_text() == lm.scene_to_mjcf(entry.build()), f"{path} drifted: run `python -m lgnn.cli mjcf`"
+        assert path.read_text() == mjcf.scene_to_mjcf(entry.build()), f"{path} drifted: run `python -m lgnn.cli mjcf`"
         mujoco.MjModel.from_xml_path(str(path))
 
 
@@ -213,17 +218,20 @@ def test_rollout_batch_equals_single():
 # --------------------------------------------------------------------- MJX
 
 
-@pytest.fixture(scope="session")
-def mjx_chain4():
-    """MJX float64 trajectories of chain4 from 3 initial states (compiled once: ~35 s)."""
-    s = scene("chain4")
-    states = sample_initial_states(s, jax.random.key(4), 3)
-    states = State(np.asarray(states.q), np.asarray(states.qd))
-    return states, lm.mjx_rollout(s, ONE_SECOND, states)
+def chain4_states():
+    states = sample_initial_states(scene("chain4"), jax.random.key(4), 3)
+    return State(np.asarray(states.q), np.asarray(states.qd))
 
 
-def test_mjx_float64_agrees_with_mujoco_c(mjx_chain4):
-    states, ours = mjx_chain4
+@functools.cache
+def engine_chain4(name):
+    """`name`'s float64 rollout of chain4 from 3 initial states over 1 s (MJX compiles
+    once: ~35 s)."""
+    return get_engine(name).rollout(scene("chain4"), ONE_SECOND, chain4_states())
+
+
+def test_mjx_float64_agrees_with_mujoco_c():
+    states, ours = chain4_states(), engine_chain4("mjx")
     reference = lm.rollout(scene("chain4"), ONE_SECOND, states)
     err = np.max(np.abs(ours.q - reference.q))
     assert err <= 1e-8, err
@@ -255,3 +263,65 @@ def test_user_scene_through_all_engines(tmp_path):
 def test_cli_rejects_verlet_for_mujoco(tmp_path, capsys):
     code = main(["simulate", "chain4", "--engine", "mujoco", "--integrator", "verlet", "--out", str(tmp_path / "x.npz")])
     assert code == 2 and "RK4 only" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------- the engine interface
+
+
+@pytest.mark.parametrize("name", list(ENGINES))
+def test_every_engine_agrees_with_the_lagrangian_engine(name):
+    """One interface: every registered engine's batched rollout of chain4 (float64, RK4,
+    dt 1e-4, 1 s) has the same shape and the same motion and energy as the Lagrangian
+    engine.s (measured: MuJoCo C within 4e-14 in positions, 5e-13 in energy)."""
+    ours, reference = engine_chain4(name), engine_chain4("lagrangian")
+    assert get_engine(name).name == name
+    assert ours.q.shape == ours.qd.shape == (3, 1001, 5, 2) and ours.energy.shape == (3, 1001) and ours.t.shape == (1001,)
+    np.testing.assert_array_equal(ours.t, reference.t)
+    assert np.max(np.abs(ours.q - reference.q)) <= 1e-10
+    assert np.max(np.abs(ours.energy - reference.energy)) <= 1e-10
+    member = ours.member(1)
+    np.testing.assert_array_equal(member.q, ours.q[1])
+    assert member.energy.shape == (1001,)
+
+
+def test_mujoco_engine_is_the_c_rollout_with_energies():
+    """The engine adds energies and checks to `mujoco.rollout`, and changes no number."""
+    s, config = scene("T1"), SimulationConfig(dt=1e-4, duration=0.05)
+    states = batch_of_one(s.initial_state)
+    traj = get_engine("mujoco").rollout(s, config, states)
+    nodes = lm.rollout(s, config, states)
+    np.testing.assert_array_equal(traj.q, nodes.q)
+    np.testing.assert_array_equal(traj.qd, nodes.qd)
+    assert traj.metadata["engine"]["name"] == "mujoco" and traj.metadata["engine"]["dtype"] == "float64"
+
+
+def test_get_engine_unknown_name_is_one_line():
+    with pytest.raises(ConfigError) as info:
+        get_engine("bullet")
+    message = str(info.value)
+    assert "\n" not in message and "'bullet'" in message and all(name in message for name in ENGINES)
+    with pytest.raises(ConfigError, match="float16"):
+        get_engine("mjx", dtype="float16")
+
+
+def test_importing_the_engines_does_not_import_mujoco():
+    script = "import sys, lgnn.engines; print(sorted(m for m in ('mujoco', 'mujoco.mjx') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_nesting_limit_is_measured_and_refused_in_one_line(monkeypatch):
+    """MuJoCo's XML parser takes `MAX_BODY_DEPTH` nested bodies and not one more; deeper
+    trees are refused before rendering (a `SceneError`), and the MuJoCo engine reports
+    them as a run it cannot make (a `SimulationError`, a row of the stability report)."""
+    mujoco.MjModel.from_xml_string(mjcf.scene_to_mjcf(chain(mjcf.MAX_BODY_DEPTH)))
+    deep = chain(mjcf.MAX_BODY_DEPTH + 1)
+    with monkeypatch.context() as patch:
+        patch.setattr(mjcf, "MAX_BODY_DEPTH", 10**6)
+        with pytest.raises(ValueError, match="XML parse error"):
+            mujoco.MjModel.from_xml_string(mjcf.scene_to_mjcf(deep))
+    with pytest.raises(SceneError, match="too deep"):
+        mjcf.scene_to_mjcf(deep)
+    with pytest.raises(SimulationError, match="too deep") as info:
+        lm.compile_scene(deep)
+    assert "\n" not in str(info.value)

@@ -13,10 +13,11 @@ frames before it), or `silent` (finished without complaint but outside the case'
 tolerances: a failure nobody was told about). Two kinds of case:
 
 - rollouts (`kind="rollout"`): integrate `duration` seconds with an engine
-  (`lagrangian`, `mujoco`, or a learned model `gns-untrained` / `gns-bad` loaded
-  from a checkpoint file, as `lgnn rollout` does). `energy_drift` is
-  `max |E - E0| / |E0|` of the true energy, `max_constraint_violation` the largest
-  link-length or pin error over the frames (`physics.constraint_violation`).
+  (`lagrangian`, `mujoco`: `lgnn.engines.get_engine`; or a learned model
+  `gns-untrained` / `gns-bad` loaded from a checkpoint file, as `lgnn rollout` does).
+  `energy_drift` and `max_constraint_violation` are `lgnn.metrics`' (the true energy's
+  largest change over an energy scale; the largest link-length or pin error over the
+  frames).
 - accelerations (`kind="acceleration"`): at the scene's initial state, the exact
   accelerations must be unique and correct: `accel_error` is their largest
   difference from an independent reference (the constant-mass Lagrangian, which
@@ -29,7 +30,7 @@ tolerances: a failure nobody was told about). Two kinds of case:
 `step_cost(n)` measures the ground truth's seconds per RK4 step on an n-link chain
 (compile excluded) and `cost_rows` fits the log-log exponent. `write_report` writes
 the markdown and CSV (atomically, with the command, commit, machine and versions).
-The library never calls `jit` on its own behalf except through `simulate` and these
+The library never calls `jit` on its own behalf except through the engines and these
 measurement helpers, which are entry points.
 """
 
@@ -47,11 +48,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import metrics, physics
-from lgnn.bench.crosscheck import time_compiled
 from lgnn.errors import SimulationError
 from lgnn.scene import Scene, scene_from_dict
 from lgnn.scene import chain, get_scene
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory, rollout_fn, simulate
+from lgnn.engines import batch_of_one, get_engine
+from lgnn.engines.lagrangian import SimulationConfig, Trajectory, rollout_fn
+from lgnn.engines.timing import time_compiled
 
 STATUSES = ("ok", "detected", "silent")
 COLUMNS = (
@@ -75,7 +77,8 @@ class Case:
     name: str
     # A scene of the catalogue (`lgnn.scene`: built-in or hard case) or a scene file.
     scene: str
-    # "lagrangian", "mujoco", "gns-untrained" or "gns-bad" (BAD_MODEL_SCALE).
+    # An engine of `lgnn.engines.ENGINES`, or a learned model: "gns-untrained" or
+    # "gns-bad" (BAD_MODEL_SCALE).
     engine: str = "lagrangian"
     # "rollout" or "acceleration" (module docstring).
     kind: str = "rollout"
@@ -175,12 +178,6 @@ def bad_model_checkpoint(path: str | Path, scene: Scene, scale: float) -> Path:
 
 def _trajectory(case: Case, scene: Scene) -> Trajectory:
     config = case.simulation
-    if case.engine == "lagrangian":
-        return simulate(scene, config)
-    if case.engine == "mujoco":
-        from lgnn.engines import mujoco as lm
-
-        return lm.simulate(scene, config)
     if case.engine in ("gns-untrained", "gns-bad"):
         from lgnn.learn import models, train
 
@@ -188,7 +185,7 @@ def _trajectory(case: Case, scene: Scene) -> Trajectory:
             path = bad_model_checkpoint(Path(tmp) / "gns.npz", scene, 1.0 if case.engine == "gns-untrained" else BAD_MODEL_SCALE)
             model, params = train.load_model(path)
         return models.rollout(model, params, scene, config)
-    raise ValueError(f"unknown engine {case.engine!r}")
+    return get_engine(case.engine).rollout(scene, config, batch_of_one(scene.initial_state)).member(0)
 
 
 def _run_rollout(case: Case, scene: Scene) -> dict:

@@ -5,7 +5,7 @@ acceleration factory, batch size, dtype), sharded over every local device
 (`lgnn.sharding`), and says how long the compile took; `batched_rollouts` runs it over
 any number of initial conditions in chunks of that size (the last padded, so one
 compile serves all) and times the runs apart from the compile. Single-trajectory
-timings (`time_compiled`, `timed_rollout`) are `lgnn.bench.crosscheck`'s.
+timings are `lgnn.engines.timing.time_compiled` and `Engine.timed_rollout`.
 """
 
 from __future__ import annotations

@@ -1,6 +1,83 @@
-"""Engines: everything that turns a scene and initial states into a `Trajectory`.
+"""Engines: one interface from a scene and a batch of initial states to a `Trajectory`.
 
-- `lagrangian`: the exact constrained Lagrangian engine (`simulate`, `rollout_fn`),
-  `SimulationConfig`, `Trajectory`;
-- `mujoco`: MJCF rendering, MuJoCo C and MJX (the only module that imports mujoco).
+An `Engine` has a `name`, the precision it computes in (`dtype`), and
+
+- `rollout(scene, config, states) -> Trajectory`: initial states `q`, `qd` (B, N, D)
+  integrated for `config.duration` (a `SimulationConfig`); the trajectory's `q`, `qd`
+  are (B, F+1, N, D) and `energy` (B, F+1) lgnn's exact energy, frame 0 the initial
+  state (`Trajectory.member(b)` is one of them). It raises `SimulationError` at the
+  first non-finite or exploding frame (`lgnn.metrics.ExplosionBounds`), carrying the
+  failing state's frames before it;
+- `timed_rollout(scene, config, states) -> (compile_s, run_s, q)`: the same run timed
+  with one-off costs (compilation, model building) apart, `q` (B, F+1, N, D).
+
+`get_engine(name, dtype=..., progress=...)` returns one from the registry `ENGINES`:
+
+- "lagrangian" (`lagrangian.LagrangianEngine`): the exact constrained Lagrangian
+  engine (`simulate`, `rollout_fn`), with `SimulationConfig` and `Trajectory`;
+- "mujoco" (`mujoco.MujocoEngine`): MuJoCo C on the scene's MJCF (`mjcf`), float64;
+- "mjx" (`mjx.MjxEngine`): MJX on the same model, float64 or float32.
+
+`dtype` is the precision of the JAX computations an engine has a choice over (MJX;
+the Lagrangian engine's timed batch); MuJoCo C and `simulate` are float64, and
+`Engine.dtype` says what the engine uses. `mujoco` is imported on first use of a
+MuJoCo engine, never by importing this package. To add an engine: a class with these
+members in its own module, and one entry in `ENGINES`.
 """
+
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import numpy as np
+
+from lgnn.engines.lagrangian import DTYPES, LagrangianEngine, SimulationConfig, Trajectory
+from lgnn.errors import ConfigError
+from lgnn.scene import Scene, State
+
+
+class Engine(Protocol):
+    """What every engine answers (module docstring)."""
+
+    name: str
+    dtype: str
+
+    def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory: ...
+
+    def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]: ...
+
+
+def _lagrangian(dtype: str, progress: bool) -> Engine:
+    return LagrangianEngine(dtype=dtype, progress=progress)
+
+
+def _mujoco(dtype: str, progress: bool) -> Engine:
+    from lgnn.engines.mujoco import MujocoEngine
+
+    return MujocoEngine()
+
+
+def _mjx(dtype: str, progress: bool) -> Engine:
+    from lgnn.engines.mjx import MjxEngine
+
+    return MjxEngine(dtype=dtype)
+
+
+# Name -> factory(dtype, progress). The MuJoCo factories import their module (and so
+# `mujoco`) when called.
+ENGINES: dict[str, Callable[[str, bool], Engine]] = {"lagrangian": _lagrangian, "mujoco": _mujoco, "mjx": _mjx}
+
+
+def get_engine(name: str, *, dtype: str = "float64", progress: bool = False) -> Engine:
+    """The engine `name` (a key of `ENGINES`) computing in `dtype` where it has a choice;
+    `progress` shows progress bars where the engine has them (the Lagrangian engine's)."""
+    if name not in ENGINES:
+        raise ConfigError(f"unknown engine {name!r} (choose from {', '.join(ENGINES)})")
+    if dtype not in DTYPES:
+        raise ConfigError(f"unknown dtype {dtype!r} (choose from {', '.join(DTYPES)})")
+    return ENGINES[name](dtype, progress)
+
+
+def batch_of_one(state: State) -> State:
+    """`state` (N, D) as a batch of one initial state (1, N, D), for `Engine.rollout`."""
+    return State(np.asarray(state.q)[None], np.asarray(state.qd)[None])

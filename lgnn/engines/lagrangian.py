@@ -5,8 +5,9 @@ from its initial state and returns a `Trajectory` (NumPy): `t` (F,), `q` and `qd
 (F, N, D), `energy` (F,), frame 0 being the initial state. Work is done in jitted
 chunks of frames so long runs show progress, and a run stops at the first non-finite
 or exploding frame (`lgnn.metrics.ExplosionBounds`) with a `SimulationError` that names its
-time and carries the frames before it; a NaN trajectory is never returned. Other
-engines (MuJoCo, learned models) return the same type.
+time and carries the frames before it; a NaN trajectory is never returned.
+`LagrangianEngine` is the `lgnn.engines.Engine` on top: batches of initial states, and
+compiled timing. Other engines (MuJoCo, learned models) return the same type.
 """
 
 from __future__ import annotations
@@ -17,13 +18,14 @@ import json
 import math
 import os
 import zipfile
-from typing import Callable
+from typing import Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn import physics
+from lgnn import physics, sharding
+from lgnn.engines.timing import time_compiled
 from lgnn.files import atomic_path
 from lgnn.metrics import ExplosionBounds
 from lgnn.errors import ConfigError, SceneError, SimulationError
@@ -31,6 +33,8 @@ from lgnn.integrate import INTEGRATORS, Integrator, advance, rollout
 from lgnn.scene import Scene, State, scene_to_dict
 
 NPZ_KEYS = ("t", "q", "qd", "energy")
+# Precisions an engine can be asked to compute in (`lgnn.engines.get_engine`).
+DTYPES = ("float64", "float32")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,13 +76,21 @@ class SimulationConfig:
 
 @dataclasses.dataclass(frozen=True)
 class Trajectory:
-    """A simulated or predicted trajectory (NumPy arrays), frame 0 the initial state."""
+    """A simulated or predicted trajectory (NumPy arrays), frame 0 the initial state:
+    `t` (F,), `q`, `qd` (F, N, D), `energy` (F,); an engine's `rollout` returns a batch,
+    `q`, `qd` (B, F, N, D) and `energy` (B, F), whose `member(b)` is one trajectory."""
 
     t: np.ndarray
     q: np.ndarray
     qd: np.ndarray
     energy: np.ndarray
     metadata: dict = dataclasses.field(default_factory=dict)
+
+    def member(self, index: int) -> "Trajectory":
+        """Trajectory `index` of a batch (B, F, N, D)."""
+        if np.ndim(self.q) != 4:
+            raise ValueError(f"member() of a batch (B, F, N, D), got q of shape {np.shape(self.q)}")
+        return Trajectory(self.t, self.q[index], self.qd[index], self.energy[index], self.metadata)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the `.npz` layout (`t, q, qd, energy` + a JSON `metadata` string), atomically."""
@@ -210,3 +222,32 @@ def _progress_bar(total: int, label: str, enabled: bool):
     from tqdm.auto import tqdm
 
     return tqdm(total=total, desc=label, unit="frame", disable=not enabled, leave=False)
+
+
+@dataclasses.dataclass(frozen=True)
+class LagrangianEngine:
+    """The exact Lagrangian engine as an `lgnn.engines.Engine`.
+
+    `rollout` runs `simulate` on each initial state (float64, in chunks, a progress
+    bar per state if `progress`); `timed_rollout` times the batch as one compiled,
+    `vmap`ped `rollout_fn` in `dtype`, spread over every local device."""
+
+    name: ClassVar[str] = "lagrangian"
+    dtype: str = "float64"
+    progress: bool = False
+
+    def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
+        """`Trajectory` of initial states (B, N, D): q, qd (B, F+1, N, D), energy (B, F+1)."""
+        runs = [simulate(scene, config, State(q, qd), progress=self.progress) for q, qd in zip(states.q, states.qd)]
+        q, qd, energy = (np.stack([getattr(run, field) for run in runs]) for field in ("q", "qd", "energy"))
+        return Trajectory(runs[0].t, q, qd, energy, runs[0].metadata)
+
+    def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
+        """`(compile_s, run_s, q (B, F+1, N, D))` of the compiled batch (`time_compiled`)."""
+        batch = len(states.q)
+        factory = physics.vectorised_true_acceleration_fn if batch > 1 else physics.true_acceleration_fn
+        rollouts = jax.vmap(rollout_fn(scene, config, factory))
+        # A batch is spread over every local device (`sharding`; on one device this is plain `jit`).
+        run = sharding.batch_jit(rollouts) if batch % sharding.device_count() == 0 else jax.jit(rollouts)
+        compile_s, run_s, (q, _) = time_compiled(run, jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype))
+        return compile_s, run_s, np.asarray(q, np.float64)

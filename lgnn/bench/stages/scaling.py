@@ -15,7 +15,8 @@ import numpy as np
 
 from lgnn import physics, records
 from lgnn.bench import store
-from lgnn.bench.crosscheck import time_compiled, timed_rollout
+from lgnn.engines import get_engine
+from lgnn.engines.timing import time_compiled
 from lgnn.bench.grid import Profile, lgnn_job, settings_key
 from lgnn.bench.store import Layout, log
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
@@ -64,7 +65,7 @@ def scaling(profile: Profile, out: Path) -> Path:
             row = dict(kind="size", scene=scene.name, n_links=n, solver=solver, batch=1, s_per_step=float("nan"), compile_s=float("nan"), note="")
             if factory is None:
                 try:
-                    compile_s, run_s, _ = timed_rollout("mujoco", scene, config, single)
+                    compile_s, run_s, _ = get_engine("mujoco").timed_rollout(scene, config, single)
                 except (ConfigError, SceneError, SimulationError) as err:
                     row["note"] = f"not run: {err}"
                     rows.append(row)
@@ -81,7 +82,7 @@ def scaling(profile: Profile, out: Path) -> Path:
         states = sample_initial_states(scene, jax.random.PRNGKey(ic_seed), settings.throughput_batch)
         batch = State(np.asarray(states.q), np.asarray(states.qd))
         for solver in ("lagrangian", "mujoco"):
-            compile_s, run_s, _ = timed_rollout(solver, scene, config, batch)
+            compile_s, run_s, _ = get_engine(solver).timed_rollout(scene, config, batch)
             rows.append(dict(kind="batch", scene=name, n_links=scene.n_links, solver=solver, batch=settings.throughput_batch,
                              s_per_step=run_s / steps, compile_s=compile_s, note=""))
             log(f"throughput {name} {solver} x{settings.throughput_batch}: {settings.throughput_batch * steps / run_s:.3g} steps/s")

@@ -18,7 +18,9 @@ import numpy as np
 
 from lgnn import metrics, records
 from lgnn.bench import store
-from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX, time_compiled, timed_rollout
+from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX
+from lgnn.engines import get_engine
+from lgnn.engines.timing import time_compiled
 from lgnn.bench.grid import TRAINING_SCENE, Profile, TrainingJob, settings_key, training_jobs
 from lgnn.bench.stages.evaluate import initial_states
 from lgnn.bench.store import Layout, log
@@ -87,7 +89,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
                 row(engine, "engine", dt, note=f"not run: over {settings.max_link_steps:g} link-steps")
                 continue
             config = SimulationConfig("rk4", dt, frame_dt, horizon, True)
-            compile_s, run_s, q = timed_rollout(engine, scene, config, single)
+            compile_s, run_s, q = get_engine(engine).timed_rollout(scene, config, single)
             row(engine, "engine", dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference))
             log(f"speed/error {scene_name} {engine} dt {dt:g}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     config = SimulationConfig("rk4", profile.evaluate.dt_for(scene_name), frame_dt, horizon, True)

@@ -1,0 +1,249 @@
+"""MJCF rendering of a scene: pure Python, no `import mujoco` (`lgnn.engines.mujoco`
+compiles the text; `lgnn mjcf` writes the built-in scenes' files into mjcf/).
+
+- `scene_layout(scene)` is the scene's spanning tree: every link is a body hinged at
+  one of its end nodes (axis z, normal to the plane). The tree grows breadth-first
+  from the pinned nodes (world-fixed); a component without pins gets a free planar
+  root (slide x, slide y, hinge z). A link whose far node is already in the tree
+  still becomes a body (it has mass) and closes its loop with a two-site `connect`
+  equality from its tip to that node. Links between two pinned nodes never move and
+  get no body.
+- `scene_to_mjcf(scene, dt)` renders the MJCF text: explicit `<inertial>` (the link's
+  mass at the rod's centre, the scene's moment of inertia about z), contacts off,
+  gravity `(0, -g, 0)`, a site `node{k}` on every node, RK4. Loop equalities are made
+  stiff with `solref` of `SOLREF_STEPS` time steps and `solimp` near 1, so the MJCF
+  depends on `dt`. Numbers are written as the shortest text that reads back to the
+  same double, so the model reproduces the scene exactly (MuJoCo C agrees with the
+  Lagrangian engine to ~1e-13 on open chains).
+- Nesting: one `<body>` per tree level, and MuJoCo's XML parser (tinyxml2) refuses
+  elements nested deeper than 500, so a tree deeper than `MAX_BODY_DEPTH` (496
+  bodies, measured: chain496 compiles, chain497 is "XML parse error 18") cannot be
+  rendered; `scene_to_mjcf` refuses it with a `SceneError`.
+
+Why a small string writer and not `mujoco.MjSpec` (issue 12 asked; measured on
+mujoco 4.0.0, 2-core CPU): MjSpec builds and compiles chain1000 (4.0 s) but not
+chain1024 ("depth limit exceeded in signature computation": its own limit is 1023
+bodies), so it moves the nesting limit rather than lifting it; and its `to_xml`
+writes 6 significant digits with no option for more (chain4's rendered positions off
+by 4e-7), so the files in mjcf/ would no longer reproduce the scene, or the engine
+and the files would come from two different writers. The string writer is the same
+length, exact, and one path for both. MuJoCo C on chain1000 would also cost ~0.45 s
+per RK4 step (dense nv = 1000; the Lagrangian engine ~3 ms, results/stability.md).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+
+import numpy as np
+
+from lgnn.errors import ConfigError, SceneError
+from lgnn.scene import Scene
+
+# Loop-closure stiffness: MuJoCo's constraint time constant in time steps (2 is the
+# smallest MuJoCo accepts without clamping) and an impedance near 1 (nearly hard
+# constraint). Measured on a closed 4-link loop: 5e-10 agreement with an exact solver.
+SOLREF_STEPS = 2.0
+SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
+# Constraint solver: equality-only problems are quadratic, so Newton converges in one
+# or two iterations; the tolerance only stops it at round-off.
+SOLVER_TOLERANCE = 1e-14
+SOLVER_ITERATIONS = 20
+# Drawing sizes (viewer only, no physics): capsule and site radius per unit length.
+GEOM_RADIUS = 0.03
+SITE_RADIUS = 0.04
+# Deepest body tree MuJoCo's XML parser accepts: its element depth limit (500) less
+# <mujoco>, <worldbody> and the innermost body's children (measured, module docstring).
+MAX_BODY_DEPTH = 496
+
+
+@dataclasses.dataclass(frozen=True)
+class LinkBody:
+    """One MuJoCo body: scene link `link` hinged at node `base`, far end at node `tip`.
+
+    `parent` indexes `Layout.bodies` (-1: world). `free_root` bodies carry a planar
+    free joint; `closes_loop` bodies end at a node owned by another body (or a pin)
+    and are tied to it by a `connect` equality.
+    """
+
+    link: int
+    base: int
+    tip: int
+    parent: int
+    free_root: bool = False
+    closes_loop: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Spanning tree of a scene. `bodies` are in tree order (parents first);
+    `node_body[k]` is the body carrying node k's site (-1: world, for pins);
+    `static_links` join two pins and have no body."""
+
+    bodies: tuple[LinkBody, ...]
+    node_body: tuple[int, ...]
+    static_links: tuple[int, ...]
+
+    @property
+    def depth(self) -> int:
+        """Longest chain of bodies from the world (what MJX compile time grows with)."""
+        depth = []
+        for body in self.bodies:
+            depth.append(1 + (depth[body.parent] if body.parent >= 0 else 0))
+        return max(depth, default=0)
+
+
+def scene_layout(scene: Scene) -> Layout:
+    """Breadth-first spanning tree rooted at the pinned nodes (see module docstring)."""
+    if scene.dim != 2:
+        raise ConfigError(f"{scene.name}: the MuJoCo engines support planar (2D) scenes only, got {scene.dim}D")
+    adjacency = [[] for _ in range(scene.n_nodes)]
+    for e, (i, j) in enumerate(scene.edges):
+        adjacency[i].append((e, j))
+        adjacency[j].append((e, i))
+    pinned = set(scene.pinned)
+    static = tuple(e for e, (i, j) in enumerate(scene.edges) if i in pinned and j in pinned)
+    used = set(static)
+    node_body: list[int | None] = [None] * scene.n_nodes
+    bodies: list[LinkBody] = []
+
+    def grow(queue: collections.deque) -> None:
+        while queue:
+            a = queue.popleft()
+            for e, b in adjacency[a]:
+                if e in used:
+                    continue
+                used.add(e)
+                closes = node_body[b] is not None
+                bodies.append(LinkBody(e, a, b, node_body[a], closes_loop=closes))
+                if not closes:
+                    node_body[b] = len(bodies) - 1
+                    queue.append(b)
+
+    for p in scene.pinned:
+        node_body[p] = -1
+    grow(collections.deque(scene.pinned))
+    for root in range(scene.n_nodes):
+        if node_body[root] is not None:
+            continue
+        # An unpinned component: its first link carries the planar free joint and
+        # owns both of its nodes (the root sits at the body's origin).
+        e, b = adjacency[root][0]
+        used.add(e)
+        bodies.append(LinkBody(e, root, b, -1, free_root=True))
+        node_body[root] = node_body[b] = len(bodies) - 1
+        grow(collections.deque([root, b]))
+    return Layout(tuple(bodies), tuple(node_body), static)
+
+
+def _num(x) -> str:
+    # Shortest repr that round-trips: the MJCF reproduces the scene exactly.
+    x = float(x)
+    return "0" if x == 0 else repr(x)
+
+
+def _vec(*xs) -> str:
+    return " ".join(_num(x) for x in xs)
+
+
+def scene_to_mjcf(scene: Scene, dt: float = 1e-4) -> str:
+    """The MJCF text of `scene` for time step `dt` (module docstring)."""
+    layout = scene_layout(scene)
+    if layout.depth > MAX_BODY_DEPTH:
+        raise SceneError(
+            f"{scene.name}: spanning tree of depth {layout.depth} is too deep to render as nested MJCF bodies "
+            f"(MuJoCo parses at most {MAX_BODY_DEPTH})"
+        )
+    nodes = np.asarray(scene.nodes, np.float64)
+    scale = float(np.median(scene.lengths))
+    children = collections.defaultdict(list)
+    for k, body in enumerate(layout.bodies):
+        children[body.parent].append(k)
+    sites = collections.defaultdict(list)
+    for k, owner in enumerate(layout.node_body):
+        sites[owner].append(k)
+    site_size = f"{SITE_RADIUS * scale:.3g}"
+
+    def origin(index: int) -> np.ndarray:
+        return nodes[layout.bodies[index].base] if index >= 0 else np.zeros(2)
+
+    def node_sites(index: int, indent: str) -> list[str]:
+        o = origin(index)
+        return [
+            f'{indent}<site name="node{k}" pos="{_vec(*(nodes[k] - o), 0)}" size="{site_size}"/>' for k in sites[index]
+        ]
+
+    def body_xml(index: int, indent: str) -> list[str]:
+        body = layout.bodies[index]
+        e = body.link
+        pos = nodes[body.base] - origin(body.parent)
+        tip = nodes[body.tip] - nodes[body.base]
+        mass, inertia = float(scene.masses[e]), float(scene.inertias[e])
+        # Only Izz acts on a planar hinge; Ixx = Iyy = Izz satisfies MuJoCo's triangle
+        # inequality. A zero inertia (a point-mass rod) is raised to a negligible floor
+        # because MuJoCo rejects zero principal moments.
+        inertia = max(inertia, 1e-12 * mass * float(scene.lengths[e]) ** 2)
+        inner = indent + "  "
+        lines = [f'{indent}<body name="link{e}" pos="{_vec(*pos, 0)}">']
+        if body.free_root:
+            lines.append(f'{inner}<joint name="link{e}_x" type="slide" axis="1 0 0"/>')
+            lines.append(f'{inner}<joint name="link{e}_y" type="slide" axis="0 1 0"/>')
+        lines.append(f'{inner}<joint name="link{e}_hinge" type="hinge" axis="0 0 1"/>')
+        lines.append(f'{inner}<inertial pos="{_vec(*(tip / 2), 0)}" mass="{_num(mass)}" diaginertia="{_vec(inertia, inertia, inertia)}"/>')
+        lines.append(
+            f'{inner}<geom name="link{e}" type="capsule" fromto="0 0 0 {_vec(*tip, 0)}" '
+            f'size="{GEOM_RADIUS * scale:.3g}" rgba="{_link_color(scene.link_types[e])}"/>'
+        )
+        if body.closes_loop:
+            lines.append(f'{inner}<site name="link{e}_tip" pos="{_vec(*tip, 0)}" size="{site_size}" rgba="1 0 0 1"/>')
+        lines += node_sites(index, inner)
+        for child in children[index]:
+            lines += body_xml(child, inner)
+        lines.append(f"{indent}</body>")
+        return lines
+
+    solref = f"{_num(SOLREF_STEPS * dt)} 1"
+    solimp = _vec(*SOLIMP)
+    lines = [
+        f'<mujoco model="{scene.name}">',
+        f"  <!-- Rendered by lgnn.engines.mjcf.scene_to_mjcf from scene {scene.name!r} "
+        f"({scene.n_nodes} nodes, {scene.n_links} links, pins {list(scene.pinned)}); dt {dt:g}. -->",
+    ]
+    if layout.static_links:
+        lines.append(f"  <!-- Links {list(layout.static_links)} join two pins: they never move and have no body. -->")
+    if scene.drag:
+        lines.append(f"  <!-- Drag {scene.drag:g} on link centre velocities is applied by lgnn (xfrc_applied), not modelled here. -->")
+    lines += [
+        '  <compiler angle="radian" autolimits="true"/>',
+        f'  <option timestep="{_num(dt)}" integrator="RK4" gravity="0 {_num(-float(scene.gravity))} 0" '
+        f'solver="Newton" tolerance="{_num(SOLVER_TOLERANCE)}" iterations="{SOLVER_ITERATIONS}" jacobian="dense">',
+        '    <flag contact="disable"/>',
+        "  </option>",
+        '  <default><geom contype="0" conaffinity="0"/></default>',
+        "  <worldbody>",
+        f'    <light pos="0 0 {10 * scale:.3g}" dir="0 0 -1"/>',
+        # A camera facing the plane of motion (the viewer's default assumes z up).
+        f'    <camera name="front" pos="{" ".join(f"{x:.3g}" for x in nodes.mean(0))} {2 * max(np.ptp(nodes, 0).max(), scale):.3g}" xyaxes="1 0 0 0 1 0"/>',
+    ]
+    lines += node_sites(-1, "    ")
+    for child in children[-1]:
+        lines += body_xml(child, "    ")
+    lines.append("  </worldbody>")
+    loops = [body for body in layout.bodies if body.closes_loop]
+    if loops:
+        lines.append("  <equality>")
+        for body in loops:
+            lines.append(
+                f'    <connect name="loop{body.link}" site1="link{body.link}_tip" site2="node{body.tip}" '
+                f'solref="{solref}" solimp="{solimp}"/>'
+            )
+        lines.append("  </equality>")
+    lines.append("</mujoco>")
+    return "\n".join(lines) + "\n"
+
+
+def _link_color(link_type: str) -> str:
+    return "0.8 0.3 0.2 1" if link_type == "rod" else "0.2 0.4 0.8 1"
+
+

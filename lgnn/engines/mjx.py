@@ -1,0 +1,132 @@
+"""MJX: MuJoCo's JAX engine on the scene's MuJoCo model (`lgnn.engines.mujoco`).
+
+`runner(scene, config, dtype)` is the compiled, `vmap`ped rollout from initial node
+states (B, N, 2) to node trajectories (B, F+1, N, 2): node states map to MJX's
+`(qpos, qvel)` with MuJoCo C's state map, and back through MJX's kinematics (site
+positions, and their velocities as a `jvp`). Drag is applied as in MuJoCo C
+(`xfrc_applied` at link centres, held over a step). `MjxEngine` is the
+`lgnn.engines.Engine` on top. MJX compiles slowly on CPU (~35 s for chain4, minutes
+beyond 16 links), so `runner` is cached.
+
+`dtype` float32 runs with JAX's x64 off (`precision`); float64 needs it on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import time
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn.engines.lagrangian import DTYPES, SimulationConfig, Trajectory
+from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, state_to_qpos_qvel
+from lgnn.engines.timing import time_compiled
+from lgnn.errors import ConfigError, SimulationError
+from lgnn.scene import Scene, State
+
+
+@functools.lru_cache(maxsize=16)
+def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64"):
+    """Compiled-on-first-call `run(q0, qd0) -> (q, qd)`: MJX trajectories, `vmap`ped
+    over initial node states (B, N, 2) -> (B, F+1, N, 2). Cached on the scene's
+    content, config and dtype, so compilation (slow on CPU) happens once per process.
+    Call it inside `precision(dtype)`."""
+    from mujoco import mjx
+
+    check_rk4(config)
+    if dtype not in DTYPES:
+        raise ConfigError(f"MJX dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+    if dtype == "float64" and not jax.config.jax_enable_x64:
+        raise ConfigError("MJX float64 needs jax_enable_x64 (the CLI and tests enable it)")
+    compiled = compile_scene(scene, config.dt)
+    if dtype == "float32":
+        # Traced under `precision` (x64 off), the index arrays would be converted to
+        # int32 once, and JAX reuses that conversion for the same NumPy objects in later
+        # float64 traces (MuJoCo C's state map then failed with int32 + int64): give
+        # this runner its own copies.
+        compiled = dataclasses.replace(compiled, **{f.name: getattr(compiled, f.name).copy() for f in dataclasses.fields(compiled)
+                                                    if isinstance(getattr(compiled, f.name), np.ndarray)})
+    dt_ = jnp.dtype(dtype)
+
+    def cast(tree):
+        return jax.tree.map(lambda x: x.astype(dt_) if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.floating) else x, tree)
+
+    mx = cast(mjx.put_model(compiled.model))
+    d0 = cast(mjx.make_data(mx))
+    sites = jnp.asarray(compiled.node_site)
+    bodies = jnp.asarray(compiled.body_id)
+    drag = float(scene.drag)
+
+    def positions(qpos, which):
+        d = mjx.kinematics(mx, d0.replace(qpos=qpos))
+        return d.site_xpos[sites, :2] if which == "sites" else d.xipos[bodies]
+
+    def to_nodes(qpos, qvel):
+        # qpos derivative = qvel for hinge and slide joints: site velocity is a jvp.
+        return jax.jvp(lambda p: positions(p, "sites"), (qpos,), (qvel,))
+
+    def step(d):
+        if drag:
+            _, v_cm = jax.jvp(lambda p: positions(p, "com"), (d.qpos,), (d.qvel,))
+            d = d.replace(xfrc_applied=d.xfrc_applied.at[bodies, :3].set(-drag * v_cm))
+        return mjx.step(mx, d)
+
+    def one(q0, qd0):
+        qpos, qvel = state_to_qpos_qvel(compiled, q0.astype(dt_), qd0.astype(dt_))
+        d = d0.replace(qpos=qpos, qvel=qvel)
+
+        def frame(d, _):
+            d = jax.lax.fori_loop(0, config.steps_per_frame, lambda _, d: step(d), d)
+            return d, to_nodes(d.qpos, d.qvel)
+
+        _, (q, qd) = jax.lax.scan(frame, d, None, length=config.n_frames)
+        q_first, qd_first = to_nodes(qpos, qvel)
+        return jnp.concatenate([q_first[None], q]), jnp.concatenate([qd_first[None], qd])
+
+    return jax.jit(jax.vmap(one))
+
+
+def precision(dtype: str):
+    """Context to trace and run a `runner` of `dtype` in: float32 runs need x64 off,
+    since MJX builds float64 constants under x64 (its RK4 tableau, for one) that would
+    promote the float32 state and break its scans."""
+    return jax.enable_x64(False) if dtype == "float32" else contextlib.nullcontext()
+
+
+def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = "float64") -> State:
+    """MJX node trajectories (B, F+1, N, 2) from initial node states (B, N, 2)."""
+    run = runner(scene, config, dtype)
+    with precision(dtype):
+        q, qd = run(jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
+    q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
+    if not (np.isfinite(q).all() and np.isfinite(qd).all()):
+        raise SimulationError(f"{scene.name}: MJX state became non-finite (dt = {config.dt:g}, {dtype}); try a smaller dt")
+    return State(q, qd)
+
+
+@dataclasses.dataclass(frozen=True)
+class MjxEngine:
+    """MJX as an `lgnn.engines.Engine`, computing in `dtype`."""
+
+    name: ClassVar[str] = "mjx"
+    dtype: str = "float64"
+
+    def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
+        """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)
+        (lgnn's exact energy in float64 of the node states; MJX has none)."""
+        start = time.perf_counter()
+        nodes = rollout(scene, config, states, self.dtype)
+        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start)
+        return checked_trajectory(scene, config, nodes, metadata, self.name)
+
+    def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
+        """`(compile_s, run_s, q (B, F+1, N, 2))` of the compiled runner (`time_compiled`)."""
+        run = runner(scene, config, self.dtype)
+        with precision(self.dtype):
+            compile_s, run_s, (q, _) = time_compiled(run, jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype))
+        return compile_s, run_s, np.asarray(q, np.float64)
