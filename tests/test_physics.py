@@ -1,12 +1,14 @@
 """Physics of the constrained Lagrangian: energies, mass matrices, invariances, the solve."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from lgnn import physics
-from lgnn.scene import is_pinned_chain, scene_from_dict
+from lgnn.scene import is_pinned_chain, scene_from_dict, scene_to_json
 from lgnn.scene import chain, get_scene, sample_initial_states
 from lgnn.scene.catalogue import double_pinned_chain, free_triangle, pendulum, pinned_triangle
 
@@ -83,7 +85,7 @@ def test_constant_mass_lagrangian_gives_same_accelerations(scene_fn):
     """The singular rod mass matrix and its regular on-manifold equivalent give the same
     constrained accelerations: the KKT solve is insensitive to M's null directions.
     (Regular configurations only: at T2/T3's self-stressed rest state the acceleration-
-    level equations are not unique, see physics.py.)"""
+    level equations are not unique, see lgnn/physics/dynamics.py.)"""
     scene = scene_fn()
     q, qd = random_state(scene, seed=2)
     exact = jax.jit(physics.acceleration_fn(scene, physics.lagrangian_fn(scene)))(q, qd)
@@ -284,7 +286,7 @@ def test_structured_solvers_match_the_generic_solve(name):
 
 def test_auto_solver_keeps_the_generic_solve_for_self_stressed_scenes():
     """T2's accelerations at rest are defined by the regularised KKT solve of the exact
-    mass matrix (physics.py), which "auto" must keep; the constant-mass Schur solve
+    mass matrix (lgnn/physics/dynamics.py), which "auto" must keep; the constant-mass Schur solve
     gives different (equally admissible) ones there."""
     scene = get_scene("T2")
     q, qd = jnp.asarray(scene.nodes), jnp.asarray(scene.velocities)
@@ -318,8 +320,9 @@ def test_constraint_jacobian_and_its_derivative_match_autodiff(name):
     constraints = physics.Constraints(scene)
     q, qd = random_state(scene, seed=6)
     x, v = constraints.restrict(q), constraints.restrict(qd) + 0.3
-    np.testing.assert_allclose(constraints.jacobian(x), jax.jacfwd(constraints.residual)(x), atol=1e-14)
-    second = jax.jvp(lambda y: jax.jvp(constraints.residual, (y,), (v,))[1], (x,), (v,))[1]
+    residual = lambda y: constraints.link_residual(constraints.embed(y))  # noqa: E731
+    np.testing.assert_allclose(constraints.jacobian(x), jax.jacfwd(residual)(x), atol=1e-14)
+    second = jax.jvp(lambda y: jax.jvp(residual, (y,), (v,))[1], (x,), (v,))[1]
     np.testing.assert_allclose(constraints.jacobian_dot_v(x, v), second, atol=1e-13)
 
 
@@ -327,8 +330,8 @@ def test_constraint_jacobian_and_its_derivative_match_autodiff(name):
 def test_link_gram_solve_matches_dense_normal_equations(name, tridiagonal):
     """`A A^T` from the link pairs (tridiagonal for chains) equals the dense product."""
     scene = STRUCTURED_SCENES[name]()
-    constraints = physics.Constraints(scene)
-    gram = physics._LinkGram(constraints)
+    system = physics.prepare(scene)
+    constraints, gram = system.constraints, system.gram
     assert gram.tridiagonal == tridiagonal
     q, _ = random_state(scene, seed=7)
     jac = constraints.jacobian(constraints.restrict(q))
@@ -365,4 +368,60 @@ def test_local_mass_solve_matches_the_dense_solve(name):
 def test_local_mass_colouring_needs_three_colours_for_any_chain():
     for n in (4, 40, 400):
         scene = chain(n)
-        assert physics._LocalMass(scene, physics.Constraints(scene)).n_colours == 3
+        assert physics.prepare(scene).local_mass.n_colours == 3
+
+
+# ---------------------------------------------------------------------------------
+# The static System and the one refinement routine
+# ---------------------------------------------------------------------------------
+
+
+def test_prepare_is_cached_by_scene_content():
+    """Equal scenes built separately share one System; any change of content gives
+    another. Static parts are built on first use only."""
+    first, second = chain(7), chain(7)
+    assert first is not second
+    system = physics.prepare(first)
+    assert physics.prepare(second) is system
+    assert physics.prepare(scene_from_dict(json.loads(scene_to_json(first)))) is system
+    assert physics.prepare(chain(8)) is not system
+    assert physics.prepare(first.replace(masses=2 * first.masses)) is not system
+    fresh = physics.prepare(chain(7).replace(gravity=np.asarray(3.25)))
+    assert not {"constraints", "gram", "local_mass", "regular_mass", "schur_inverse"} & set(vars(fresh))
+    assert fresh.constraints is physics.prepare(chain(7).replace(gravity=np.asarray(3.25))).constraints
+
+
+def test_factories_build_the_static_data_once(monkeypatch):
+    """Every factory takes its constraints from `prepare`: building accelerations and
+    projections of one scene again and again makes one `Constraints`."""
+    built = []
+    original = physics.system.Constraints
+    monkeypatch.setattr(physics.system, "Constraints", lambda scene: built.append(scene) or original(scene))
+    scene = chain(5).replace(gravity=np.asarray(4.75))
+    for solver in ("auto", "generic", "schur", "chain"):
+        physics.true_acceleration_fn(scene, solver)
+    physics.acceleration_fn(chain(5).replace(gravity=np.asarray(4.75)), physics.lagrangian_fn(scene), local_mass=True)
+    physics.projection_fn(scene)
+    assert len(built) == 1
+
+
+def test_refine_improves_a_badly_conditioned_solve():
+    """A Cholesky factor of `S + eps I` (eps = 1e-9, the solvers' regularisation) solves
+    `S x = r` badly when S has eigenvalues near eps (here down to 1e-6): each `refine`
+    step divides the residual by ~sigma_min / eps = 1e3, and three steps reach
+    round-off. Zero steps leave the solution as it is."""
+    rng = np.random.default_rng(12)
+    basis, _ = np.linalg.qr(rng.normal(size=(8, 8)))
+    matrix = jnp.asarray(basis @ np.diag(np.logspace(0, -6, 8)) @ basis.T)
+    rhs = jnp.asarray(rng.normal(size=8))
+    factor = jax.scipy.linalg.cho_factor(matrix + 1e-9 * jnp.eye(8))
+    solve = lambda r: jax.scipy.linalg.cho_solve(factor, r)  # noqa: E731
+    residual = lambda x: rhs - matrix @ x  # noqa: E731
+    start = solve(rhs)
+    np.testing.assert_array_equal(physics.refine(solve, residual, start, 0), start)
+    norms = [float(jnp.linalg.norm(residual(physics.refine(solve, residual, start, steps)))) for steps in range(4)]
+    assert norms[0] > 1e-4
+    assert norms[1] < 2e-3 * norms[0] and norms[2] < 2e-3 * norms[1]
+    assert norms[3] < 1e-7 * norms[0]
+    exact = np.linalg.solve(np.asarray(matrix), np.asarray(rhs))
+    np.testing.assert_allclose(physics.refine(solve, residual, start, 3), exact, atol=1e-10 * np.abs(exact).max())

@@ -282,14 +282,7 @@ def lagrangian_fn(config: ModelConfig, params: dict, scene: Scene) -> physics.La
 def _learned_drag_fn(config: ModelConfig, params: dict, scene: Scene):
     if "drag" not in params:
         return None
-    coefficient = params["drag"][edge_type_indices(scene, config.vocabulary)][:, None]
-    i, j = scene.edge_index.T
-
-    def force(q, qd):
-        half = -0.25 * coefficient * (qd[i] + qd[j])
-        return jnp.zeros_like(qd).at[i].add(half).at[j].add(half)
-
-    return force
+    return physics.drag_force_fn(scene, params["drag"][edge_type_indices(scene, config.vocabulary)])
 
 
 def acceleration_fn(config: ModelConfig, params: dict, scene: Scene) -> physics.AccelerationFn:

@@ -1,0 +1,172 @@
+"""The link-length constraints of a scene, over its free coordinates.
+
+Contract: `Constraints(scene)` holds static NumPy data (which coordinates are free,
+which links are kept as independent rows) and pure JAX functions of positions and
+velocities. Functions named `link_*` take node arrays (N, D); the others take free
+coordinates `x, v` (F,). Rows are `Phi_k = (|q_i - q_j|^2 - l^2) / 2l` for the kept
+links k = (i, j): scaled by 1/l, so Jacobian rows are unit vectors and links of very
+different lengths are equally well conditioned.
+
+Pins are exact: pinned nodes are not unknowns (`embed` puts them at their pins), so no
+pin rows exist. Redundant rows (a link between two pinned nodes, an over-braced truss)
+are dropped once per scene by a rank-revealing (column-pivoted) QR of the Jacobian at
+a random *generic* configuration, so exactly the structurally redundant rows go; the
+kept rows span the same constraint manifold. A structure can still lose rank at
+particular configurations (a self-stressed tensegrity at rest, a rope pulled exactly
+taut): `self_stresses` counts those dependencies at the scene's initial configuration
+(an SVD, computed on first use).
+
+`constraint_violation` and `velocity_constraint_violation` measure a state against
+*every* link and pin, dropped rows included.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+
+from lgnn.scene import Scene
+
+Array = jax.Array
+
+# Relative size of a pivot of the constraint Jacobian's QR below which its row is
+# redundant (the Jacobian rows are unit vectors, so this is an absolute angle scale).
+RANK_TOLERANCE = 1e-9
+
+
+class Constraints:
+    """The scene's independent link-length constraints over the free coordinates.
+
+    Attributes (all static NumPy): `shape` (N, D); `free` indices into the flattened
+    (N*D) coordinates of the free (unpinned) nodes, `free_mask` (N, D) the same as a
+    mask; `links` the link indices kept as constraint rows, `redundant` the others
+    (both found on first use, as is `self_stresses`).
+    """
+
+    def __init__(self, scene: Scene):
+        n, d = scene.n_nodes, scene.dim
+        free_mask = np.ones((n, d), bool)
+        free_mask[list(scene.pinned)] = False
+        self.shape = (n, d)
+        self.free_mask = free_mask
+        self.free = np.flatnonzero(free_mask.ravel())
+        self.pin_positions = np.asarray(scene.nodes, np.float64).copy()
+        pinned = set(scene.pinned)
+        candidate = np.asarray(
+            [k for k, (a, b) in enumerate(scene.edges) if not (a in pinned and b in pinned)], dtype=np.int64
+        )
+        self.lengths_all = np.asarray(scene.lengths, np.float64)
+        self.edge_index = scene.edge_index
+        self._candidate = candidate
+
+    @functools.cached_property
+    def links(self) -> np.ndarray:
+        """Indices of the links kept as rows: those independent at a random generic
+        configuration (structural rank), by a column-pivoted QR."""
+        candidate = self._candidate
+        if len(candidate) == 0:
+            return candidate
+        generic = np.random.default_rng(0).normal(size=self.pin_positions.shape)
+        jac = self._jacobian_np(candidate, generic)
+        _, r, pivots = scipy.linalg.qr(jac.T, mode="economic", pivoting=True)
+        diag = np.abs(np.diag(r))
+        rank = int(np.sum(diag > RANK_TOLERANCE * max(diag[0], 1.0)))
+        return np.sort(candidate[pivots[:rank]])
+
+    @functools.cached_property
+    def redundant(self) -> np.ndarray:
+        """Indices of the links dropped as redundant (the complement of `links`)."""
+        return np.setdiff1d(np.arange(len(self.lengths_all)), self.links)
+
+    @functools.cached_property
+    def self_stresses(self) -> int:
+        """Dependencies among the kept rows at the scene's initial configuration: 0 for a
+        regular configuration, > 0 for a self-stressed (singular) one such as T2 at rest."""
+        if self.n_rows == 0:
+            return 0
+        singular_values = np.linalg.svd(self._jacobian_np(self.links, self.pin_positions), compute_uv=False)
+        return int(np.sum(singular_values < RANK_TOLERANCE * singular_values[0]))
+
+    def _jacobian_np(self, links: np.ndarray, q: np.ndarray) -> np.ndarray:
+        i, j = self.edge_index[links].T
+        rows = np.zeros((len(links), *self.shape))
+        unit = (q[i] - q[j]) / self.lengths_all[links, None]
+        rows[np.arange(len(links)), i] = unit
+        rows[np.arange(len(links)), j] = -unit
+        return rows.reshape(len(links), -1)[:, self.free]
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.links)
+
+    def embed(self, x: Array) -> Array:
+        """Free coordinates (F,) -> positions (N, D) with pinned nodes at their pins."""
+        full = jnp.asarray(self.pin_positions, x.dtype).ravel().at[self.free].set(x)
+        return full.reshape(self.shape)
+
+    def embed_velocity(self, v: Array) -> Array:
+        """Free velocities (F,) -> node velocities (N, D), zero at the pins."""
+        return jnp.zeros(self.shape[0] * self.shape[1], v.dtype).at[self.free].set(v).reshape(self.shape)
+
+    def restrict(self, full: Array) -> Array:
+        """(N, D) -> free coordinates (F,)."""
+        return full.reshape(-1)[self.free]
+
+    def link_residual(self, q: Array) -> Array:
+        """Phi (K,) at node positions `q` (N, D): `(|dq|^2 - l^2) / 2l` per kept link,
+        zero on the manifold."""
+        i, j = self.edge_index[self.links].T
+        length = jnp.asarray(self.lengths_all[self.links], q.dtype)
+        dq = q[i] - q[j]
+        return (jnp.sum(dq * dq, -1) - length**2) / (2 * length)
+
+    def link_speed_terms(self, qd: Array) -> Array:
+        """`Adot v` at node velocities `qd` (N, D): `|dv|^2 / l` per kept link."""
+        i, j = self.edge_index[self.links].T
+        dv = qd[i] - qd[j]
+        return jnp.sum(dv * dv, -1) / jnp.asarray(self.lengths_all[self.links], qd.dtype)
+
+    def link_directions(self, q: Array) -> Array:
+        """(K, D) `(q_i - q_j) / l` of the kept links at positions `q` (N, D): the
+        nonzero blocks of the Jacobian (row k is `+u_k` at node i, `-u_k` at node j)."""
+        i, j = self.edge_index[self.links].T
+        return (q[i] - q[j]) / jnp.asarray(self.lengths_all[self.links, None], q.dtype)
+
+    def jacobian(self, x: Array) -> Array:
+        """A(x) = dPhi/dx (K, F), assembled from the link directions (tested against AD)."""
+        i, j = self.edge_index[self.links].T
+        u = self.link_directions(self.embed(x))
+        rows = jnp.arange(self.n_rows)
+        full = jnp.zeros((self.n_rows, *self.shape), x.dtype).at[rows, i].set(u).at[rows, j].add(-u)
+        return full.reshape(self.n_rows, -1)[:, self.free]
+
+    def jacobian_dot_v(self, x: Array, v: Array) -> Array:
+        """`Adot v` (K,): the second directional derivative of Phi along v, which for
+        `Phi = (|dq|^2 - l^2) / 2l` is `|dv|^2 / l` (tested against AD)."""
+        return self.link_speed_terms(self.embed_velocity(v))
+
+
+def constraint_violation(scene: Scene, q: Array) -> Array:
+    """Max absolute error of link lengths and pin positions at positions `q` (N, D)."""
+    i, j = scene.edge_index.T
+    stretch = jnp.abs(jnp.linalg.norm(q[i] - q[j], axis=-1) - jnp.asarray(scene.lengths))
+    worst = jnp.max(stretch)
+    if scene.pinned:
+        pins = np.asarray(scene.pinned)
+        worst = jnp.maximum(worst, jnp.max(jnp.abs(q[pins] - jnp.asarray(scene.nodes[pins]))))
+    return worst
+
+
+def velocity_constraint_violation(scene: Scene, q: Array, qd: Array) -> Array:
+    """Max absolute rate of change of link lengths (and pin velocity) at (q, qd)."""
+    i, j = scene.edge_index.T
+    dq = q[i] - q[j]
+    rate = jnp.abs(jnp.sum(dq * (qd[i] - qd[j]), -1)) / jnp.linalg.norm(dq, axis=-1)
+    worst = jnp.max(rate)
+    if scene.pinned:
+        worst = jnp.maximum(worst, jnp.max(jnp.abs(qd[np.asarray(scene.pinned)])))
+    return worst

@@ -1,0 +1,142 @@
+"""Energies and forces of a scene's rods in Cartesian node coordinates.
+
+Contract: each function takes a concrete `Scene` and returns (or is) a pure function of
+node arrays `q, qd` of shape (N, D); per-link quantities have shape (E,). Gravity acts
+along -y. Nothing here builds constraints or solves anything: these are the inputs of
+the constrained Euler-Lagrange transformer (`dynamics.acceleration_fn`).
+
+A rod with ends at `q_i, q_j` has its centre of mass at the midpoint, mass `m`,
+moment of inertia `I` about its centre, so `T = 1/2 m |v_cm|^2 + 1/2 I omega^2` and
+`V = m g y_cm`. Its mass matrix `d2T/dqd2` is singular along the rod (stretching costs
+no kinetic energy), which the solver handles (`dynamics`); `constant_mass_lagrangian_fn`
+is the regular on-manifold equivalent the structured solvers factor once.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn.scene import Scene
+
+Array = jax.Array
+LagrangianFn = Callable[[Array, Array], Array]
+ForceFn = Callable[[Array, Array], Array]
+EnergyFn = Callable[[Array, Array], Array]
+
+
+def _link_kinematics(scene: Scene, q: Array, qd: Array):
+    i, j = scene.edge_index.T
+    dq = q[i] - q[j]
+    dqd = qd[i] - qd[j]
+    v_cm = 0.5 * (qd[i] + qd[j])
+    return dq, dqd, v_cm
+
+
+def angular_speed_squared(dq: Array, dqd: Array) -> Array:
+    """omega^2 of rods with axis `dq` and end-velocity difference `dqd` (..., D).
+
+    `|dq x dqd|^2 / |dq|^4`, written with Lagrange's identity
+    `|a x b|^2 = |a|^2 |b|^2 - (a.b)^2` so it holds in 2D and 3D alike.
+    """
+    dq2 = jnp.sum(dq * dq, -1)
+    cross2 = dq2 * jnp.sum(dqd * dqd, -1) - jnp.sum(dq * dqd, -1) ** 2
+    return cross2 / dq2**2
+
+
+def kinetic_energy_per_link(scene: Scene, q: Array, qd: Array) -> Array:
+    """(E,) exact rod kinetic energy `1/2 m |v_cm|^2 + 1/2 I omega^2`."""
+    dq, dqd, v_cm = _link_kinematics(scene, q, qd)
+    m, inertia = jnp.asarray(scene.masses), jnp.asarray(scene.inertias)
+    return 0.5 * m * jnp.sum(v_cm * v_cm, -1) + 0.5 * inertia * angular_speed_squared(dq, dqd)
+
+
+def potential_energy_per_link(scene: Scene, q: Array) -> Array:
+    """(E,) gravitational energy `m g y_cm` (gravity along -y)."""
+    i, j = scene.edge_index.T
+    y_cm = 0.5 * (q[i, 1] + q[j, 1])
+    return jnp.asarray(scene.masses) * jnp.asarray(scene.gravity) * y_cm
+
+
+def lagrangian_fn(scene: Scene) -> LagrangianFn:
+    """The exact Lagrangian `L(q, qd) = T - V` of the scene's rods."""
+
+    def lagrangian(q, qd):
+        return jnp.sum(kinetic_energy_per_link(scene, q, qd)) - jnp.sum(potential_energy_per_link(scene, q))
+
+    return lagrangian
+
+
+def constant_mass_lagrangian_fn(scene: Scene) -> LagrangianFn:
+    """A Lagrangian equal to `lagrangian_fn` on the constraint manifold, with a constant,
+    positive definite mass matrix: `1/2 m |v_cm|^2 + 1/2 (I / l^2) |dqd|^2 - V`.
+
+    On the manifold `dq . dqd = 0` and `|dq| = l`, so `omega^2 = |dqd|^2 / l^2`; both give
+    the same trajectories (tested). Used to cross-check the singular-`M` handling.
+    """
+    m, inertia, length = (jnp.asarray(a) for a in (scene.masses, scene.inertias, scene.lengths))
+
+    def lagrangian(q, qd):
+        _, dqd, v_cm = _link_kinematics(scene, q, qd)
+        kinetic = 0.5 * m * jnp.sum(v_cm * v_cm, -1) + 0.5 * inertia / length**2 * jnp.sum(dqd * dqd, -1)
+        return jnp.sum(kinetic) - jnp.sum(potential_energy_per_link(scene, q))
+
+    return lagrangian
+
+
+def constant_node_mass(scene: Scene) -> np.ndarray:
+    """(N*D, N*D) the constant mass matrix of `constant_mass_lagrangian_fn`, assembled
+    from per-link blocks: a rod with ends a, b adds `m/4 + I/l^2` to the (a, a) and
+    (b, b) blocks and `m/4 - I/l^2` to (a, b) and (b, a), times the D x D identity."""
+    n, d = scene.n_nodes, scene.dim
+    mass = np.zeros((n, n))
+    same = np.asarray(scene.masses) / 4 + np.asarray(scene.inertias) / np.asarray(scene.lengths) ** 2
+    cross = np.asarray(scene.masses) / 4 - np.asarray(scene.inertias) / np.asarray(scene.lengths) ** 2
+    a, b = scene.edge_index.T
+    np.add.at(mass, (a, a), same)
+    np.add.at(mass, (b, b), same)
+    np.add.at(mass, (a, b), cross)
+    np.add.at(mass, (b, a), cross)
+    return np.kron(mass, np.eye(d))
+
+
+def energy_fn(scene: Scene) -> EnergyFn:
+    """The exact Hamiltonian `H(q, qd) = T + V` of the scene."""
+
+    def energy(q, qd):
+        return jnp.sum(kinetic_energy_per_link(scene, q, qd)) + jnp.sum(potential_energy_per_link(scene, q))
+
+    return energy
+
+
+def hamiltonian_fn(lagrangian: LagrangianFn) -> EnergyFn:
+    """`H = qd . dL/dqd - L` of any Lagrangian (for learned models)."""
+
+    def hamiltonian(q, qd):
+        value, momentum_dot_qd = jax.jvp(lambda v: lagrangian(q, v), (qd,), (qd,))
+        return momentum_dot_qd - value
+
+    return hamiltonian
+
+
+def drag_force_fn(scene: Scene, coefficients: Array | None = None) -> ForceFn | None:
+    """Linear drag: each link feels `-c * v_cm`, split equally between its two nodes.
+
+    `coefficients` (E,) gives each link its own `c` (a learned drag); by default every
+    link has the scene's `drag`, and the result is `None` when that is zero, so no drag
+    term is built at all. Returns `force(q, qd) -> (N, D)`.
+    """
+    if coefficients is None and scene.drag == 0:
+        return None
+    # Each end gets half of `-c v_cm`, and `v_cm` is half the ends' velocity sum.
+    scale = -0.25 * (scene.drag if coefficients is None else coefficients[:, None])
+    i, j = scene.edge_index.T
+
+    def force(q, qd):
+        half = scale * (qd[i] + qd[j])
+        return jnp.zeros_like(qd).at[i].add(half).at[j].add(half)
+
+    return force
