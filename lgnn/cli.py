@@ -218,12 +218,12 @@ def _cmd_rollout(args) -> None:
 
 
 def _add_train_parser(commands) -> None:
-    from lgnn.learn.models import MODEL_NAMES
+    from lgnn.learn.models import model_names
     from lgnn.learn.train import TrainConfig
 
     default = TrainConfig()
     parser = commands.add_parser("train", help="train a learned model on ground-truth data")
-    parser.add_argument("--model", required=True, choices=MODEL_NAMES)
+    parser.add_argument("--model", required=True, choices=model_names())
     parser.add_argument("--scene", default="chain4", help="training scene (built-in name or JSON file)")
     parser.add_argument("--epochs", type=int, default=default.epochs, help="epoch budget (paper: 10000)")
     parser.add_argument("--minutes", type=_positive_float, default=None, help="wall-clock budget (checked after each epoch)")

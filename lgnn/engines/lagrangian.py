@@ -144,20 +144,26 @@ def _integrator(scene: Scene, config: SimulationConfig, accel_factory: Callable)
 
 
 @functools.lru_cache(maxsize=32)
-def _chunk_runner(scene: Scene, config: SimulationConfig, accel_factory: Callable):
-    """Compiled `init(state) -> (carry, energy)` and `run(carry, n_frames) -> (carry,
-    frames, energies)`, cached per scene object (scenes hash by identity) and settings."""
-    integrator = _integrator(scene, config, accel_factory)
+def _chunk_runner(scene: Scene, config: SimulationConfig, accel_factory: Callable, with_params: bool):
+    """Compiled `init(state, params) -> (carry, energy)` and `run(carry, params,
+    n_frames) -> (carry, frames, energies)`, cached per scene content, settings and
+    factory; `params` (None unless `with_params`) is an argument, not a constant."""
+    project = physics.projection_fn(scene)
+    fixed = None if with_params else config.integrator_for(accel_factory(scene), project)
+
+    def integrator(params) -> Integrator:
+        return config.integrator_for(accel_factory(scene, params), project) if with_params else fixed
+
     energy = jax.vmap(physics.energy_fn(scene))
 
     @jax.jit
-    def init(state):
-        carry = integrator.init_fn(state)
+    def init(state, params):
+        carry = integrator(params).init_fn(state)
         return carry, energy(carry.state.q[None], carry.state.qd[None])
 
-    @functools.partial(jax.jit, static_argnums=1)
-    def run(carry, n_frames):
-        carry, frames = advance(integrator, carry, n_frames, config.steps_per_frame)
+    @functools.partial(jax.jit, static_argnums=2)
+    def run(carry, params, n_frames):
+        carry, frames = advance(integrator(params), carry, n_frames, config.steps_per_frame)
         return carry, frames, energy(frames.q, frames.qd)
 
     return init, run
@@ -168,7 +174,8 @@ def simulate(
     config: SimulationConfig = SimulationConfig(),
     state: State | None = None,
     *,
-    accel_factory: Callable[[Scene], physics.AccelerationFn] = physics.true_acceleration_fn,
+    accel_factory: Callable[..., physics.AccelerationFn] = physics.true_acceleration_fn,
+    params=None,
     chunk_frames: int = 100,
     progress: bool = False,
     hint: str = "try a smaller dt",
@@ -176,13 +183,16 @@ def simulate(
     """Integrate from `state` (default: the scene's initial state) for `config.duration`.
 
     `accel_factory(scene) -> accel` selects the dynamics (ground truth by default; a
-    learned model's factory gives its rollout). Raises `SimulationError` at the first
-    non-finite or exploding frame (`ExplosionBounds`), naming its time (`err.time`) and
-    carrying the frames before it (`err.trajectory`); `hint` ends its message.
+    learned model's factory gives its rollout). With `params`, the factory is called as
+    `accel_factory(scene, params)` and the params are an argument of the compiled run:
+    a factory equal for equal models (`learn.models.AccelerationFactory`) compiles once
+    whatever the params. Raises `SimulationError` at the first non-finite or exploding
+    frame (`ExplosionBounds`), naming its time (`err.time`) and carrying the frames
+    before it (`err.trajectory`); `hint` ends its message.
     """
     state = check_state(scene, scene.initial_state if state is None else state)
-    init, run = _chunk_runner(scene, config, accel_factory)
-    carry, initial_energy = init(State(jnp.asarray(state.q), jnp.asarray(state.qd)))
+    init, run = _chunk_runner(scene, config, accel_factory, params is not None)
+    carry, initial_energy = init(State(jnp.asarray(state.q), jnp.asarray(state.qd)), params)
     qs, qds, energies = [np.asarray(state.q)[None]], [np.asarray(state.qd)[None]], [np.asarray(initial_energy)]
     bounds = ExplosionBounds.of(scene, state, float(initial_energy[0]))
     metadata = {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config)}
@@ -191,7 +201,7 @@ def simulate(
     try:
         while done < config.n_frames:
             count = min(chunk_frames, config.n_frames - done)
-            carry, frames, chunk_energy = run(carry, count)
+            carry, frames, chunk_energy = run(carry, params, count)
             q, qd, chunk_energy = np.asarray(frames.q), np.asarray(frames.qd), np.asarray(chunk_energy)
             t = (done + 1 + np.arange(count)) * config.frame_dt
             violation = bounds.first_violation(t, q, qd, chunk_energy)

@@ -31,7 +31,7 @@ import numpy as np
 from lgnn import physics, sharding
 from lgnn import records
 from lgnn.errors import ConfigError
-from lgnn.scene import Scene, scene_from_dict, scene_to_dict, scene_to_json
+from lgnn.scene import Scene, scene_to_dict
 from lgnn.scene import get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 
@@ -103,7 +103,7 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
     from tqdm.auto import tqdm
 
     scene = get_scene(config.scene)
-    run, targets = _compiled(scene_to_json(scene), config.simulation)
+    run, targets = _compiled(scene, config.simulation)
     initial = sample_initial_states(scene, jax.random.PRNGKey(config.seed), config.n_trajectories)
     initial_q, initial_qd = np.asarray(initial.q), np.asarray(initial.qd)
     # One batch shape for every call (the last batch padded): one compile, sharded over
@@ -132,10 +132,9 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
 
 
 @functools.lru_cache(maxsize=8)
-def _compiled(scene_json: str, sim: SimulationConfig):
+def _compiled(scene: Scene, sim: SimulationConfig):
     """Jitted, vmapped trajectory and target functions, cached per scene content and
     settings (regenerating a cache in the same process does not recompile)."""
-    scene = scene_from_dict(json.loads(scene_json))
     run = sharding.batch_jit(jax.vmap(rollout_fn(scene, sim, physics.vectorised_true_acceleration_fn)))
     return run, sharding.batch_jit(jax.vmap(physics.vectorised_true_acceleration_fn(scene)))
 

@@ -1,16 +1,22 @@
-"""Learned dynamics: LGNN and the baselines GNS, LGN and CLNN.
+"""Learned dynamics: LGNN and the baselines GNS, LGN and CLNN, in a registry of models.
 
-A model is a `ModelConfig` (its architecture, the edge-type vocabulary and, for CLNN,
-the system size; stored in checkpoints) and a params pytree (nested dicts of arrays):
+A model is a `ModelConfig` (its registered name, architecture, the edge-type vocabulary
+and, for CLNN, the system size; stored in checkpoints) and a params pytree (nested
+dicts of arrays):
 
     params = init(key, config)
     accel = acceleration_fn(config, params, scene)      # accel(q, qd) -> qdd, (N, D)
 
-Every Lagrangian model (LGNN, LGN, CLNN) goes through `physics.acceleration_fn`, the
-very same constrained Euler-Lagrange solve as the ground truth; GNS predicts node
+Each name maps to a `ModelSpec` (`register`, `get_spec`, `model_names`): its init, its
+output (a Lagrangian or accelerations), its default sizes, whether it is tied to one
+system size. Adding a model is one `register(ModelSpec(...))`; nothing else compares
+names. Every Lagrangian model (LGNN, LGN, CLNN) goes through `physics.acceleration_fn`,
+the very same constrained Euler-Lagrange solve as the ground truth; GNS predicts node
 accelerations directly (pinned nodes, a known boundary condition, get zero). Rollouts
-use the ground truth's integrators: `simulate(scene, config, state,
-accel_factory=lambda s: acceleration_fn(model, params, s))`.
+(`rollout`) use the ground truth's engine and integrators with the params as an
+argument of the compiled run: `simulate(scene, config, state,
+accel_factory=AccelerationFactory(model), params=params)`, compiled once per scene,
+settings and model config.
 
 Architectures (paper section 3 and appendix):
 - LGNN: two graph networks, for T (node velocities; edge type one-hot and `w = dq x
@@ -43,27 +49,87 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics
+from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
 from lgnn.errors import ConfigError
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
 from lgnn.scene import Scene
 
-MODEL_NAMES = ("lgnn", "gns", "lgn", "clnn")
-LAGRANGIAN_MODELS = ("lgnn", "lgn", "clnn")
-# Paper appendix: (embedding size, hidden units, hidden layers) of each model's MLPs.
-PAPER_SIZES = {"lgnn": (5, 10, 1), "gns": (8, 128, 1), "lgn": (8, 128, 1), "clnn": (0, 128, 2)}
-# Message-passing layers when not given: LGNN's per-edge variant (the true per-link
-# energies need nothing more, and it is the authors' code); two layers let GNS and LGN
-# nodes see their neighbours' neighbours (the paper does not give this number).
-DEFAULT_MESSAGE_PASSING = {"lgnn": 0, "gns": 2, "lgn": 2, "clnn": 0}
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """What the library needs to know about one model, registered under its name.
+
+    A model outputs either a Lagrangian or accelerations, so exactly one of
+    `lagrangian` and `acceleration` is given:
+    - `lagrangian(config, params, scene) -> L(q, qd)`: the model's Lagrangian, which
+      `acceleration_fn` sends through the constrained Euler-Lagrange solve (with a
+      learned per-link drag when `config.drag`);
+    - `acceleration(config, params, scene) -> accel(q, qd) -> qdd` (N, D): direct
+      predictions (zero at pinned nodes).
+    """
+
+    # The name `ModelConfig.name` and checkpoints refer to it by.
+    name: str
+    # `init(key, config) -> params`, the model's own parameters (drag is added by `init`).
+    init: Callable
+    lagrangian: Callable | None = None
+    acceleration: Callable | None = None
+    # `apply(config, params, graph)`: the raw output on one graph (None: no graph).
+    apply: Callable | None = None
+    # Embedding size and MLP hidden units when the config leaves them unset (the
+    # paper's appendix; hidden layers are fixed by `init`).
+    latent: int = 0
+    hidden: int = 0
+    # Message-passing layers when the config leaves them unset.
+    message_passing: int = 0
+    # Tied to the training system's size (a fixed-length input): refuses other sizes.
+    fixed_size: bool = False
+    # `local_mass(config) -> bool`: whether `d2L/dqd2` couples only linked nodes, so
+    # the Euler-Lagrange solve may use that structure (`physics.acceleration_fn`).
+    local_mass: Callable = lambda config: False
+
+    def __post_init__(self):
+        if (self.lagrangian is None) == (self.acceleration is None):
+            raise ConfigError(f"model {self.name!r}: give exactly one of a Lagrangian and an acceleration")
+
+    @property
+    def is_lagrangian(self) -> bool:
+        return self.lagrangian is not None
+
+
+_REGISTRY: dict[str, ModelSpec] = {}
+
+
+def register(spec: ModelSpec) -> ModelSpec:
+    """Make `spec` available as `ModelConfig(spec.name)`. Registering the same spec
+    again does nothing; another spec under a taken name is a `ConfigError` (compiled
+    functions are cached per config, so a name must keep its meaning)."""
+    known = _REGISTRY.get(spec.name)
+    if known is not None and known is not spec:
+        raise ConfigError(f"model {spec.name!r} is already registered")
+    _REGISTRY[spec.name] = spec
+    return spec
+
+
+def get_spec(name: str) -> ModelSpec:
+    """The registered spec of `name`; `ConfigError` (one line, the choices) if none."""
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise ConfigError(f"unknown model {name!r} (choose from {', '.join(model_names())})") from None
+
+
+def model_names() -> tuple[str, ...]:
+    """Registered model names, built-ins first."""
+    return tuple(_REGISTRY)
 
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
-    # One of MODEL_NAMES.
+    # A registered model name (`model_names()`).
     name: str = "lgnn"
-    # Message-passing layers L (None: DEFAULT_MESSAGE_PASSING of the model).
+    # Message-passing layers L (None: the model's default, `ModelSpec.message_passing`).
     message_passing: int | None = None
-    # Embedding size and MLP hidden units (None: the paper's, PAPER_SIZES).
+    # Embedding size and MLP hidden units (None: the paper's, `ModelSpec.latent/hidden`).
     latent: int | None = None
     hidden: int | None = None
     # Edge-type vocabulary fixed at training time (graphs.edge_type_indices).
@@ -75,16 +141,18 @@ class ModelConfig:
     dim: int = 2
 
     def __post_init__(self):
-        if self.name not in MODEL_NAMES:
-            raise ConfigError(f"unknown model {self.name!r} (choose from {', '.join(MODEL_NAMES)})")
+        spec = self.spec
         if self.message_passing is None:
-            object.__setattr__(self, "message_passing", DEFAULT_MESSAGE_PASSING[self.name])
-        latent, hidden, _ = PAPER_SIZES[self.name]
-        object.__setattr__(self, "latent", self.latent or latent)
-        object.__setattr__(self, "hidden", self.hidden or hidden)
+            object.__setattr__(self, "message_passing", spec.message_passing)
+        object.__setattr__(self, "latent", self.latent or spec.latent)
+        object.__setattr__(self, "hidden", self.hidden or spec.hidden)
         object.__setattr__(self, "vocabulary", tuple(self.vocabulary))
         if self.message_passing < 0:
             raise ConfigError(f"message-passing layers must be >= 0, got {self.message_passing}")
+
+    @property
+    def spec(self) -> ModelSpec:
+        return get_spec(self.name)
 
     @classmethod
     def for_scene(cls, name: str, scene: Scene, **overrides) -> "ModelConfig":
@@ -108,9 +176,9 @@ def check_compatible(config: ModelConfig, scene: Scene) -> None:
     """Raise `ConfigError` if the model cannot run on `scene` (size, dimension, types)."""
     if scene.dim != config.dim:
         raise ConfigError(f"model {config.name} was trained in {config.dim}D, scene {scene.name!r} is {scene.dim}D")
-    if config.name == "clnn" and scene.n_nodes != config.n_nodes:
+    if config.spec.fixed_size and scene.n_nodes != config.n_nodes:
         raise ConfigError(
-            f"clnn is tied to its training system size ({config.n_nodes} nodes); scene {scene.name!r} has {scene.n_nodes}"
+            f"{config.name} is tied to its training system size ({config.n_nodes} nodes); scene {scene.name!r} has {scene.n_nodes}"
         )
     edge_type_indices(scene, config.vocabulary)
 
@@ -191,46 +259,27 @@ def _apply_graph_net(params: dict, node_x, edge_x, senders, receivers):
 
 
 # ---------------------------------------------------------------------------------
-# init / apply
+# The built-in models
 # ---------------------------------------------------------------------------------
 
 
-def init(key, config: ModelConfig) -> dict:
-    """Fresh parameters of `config`'s model (float64 under x64)."""
-    k_types, d = len(config.vocabulary), config.dim
-    w_dim = 1 if d == 2 else d
+def _feature_sizes(config: ModelConfig) -> tuple[int, int, int]:
+    """(edge types K, dimension D, size W of `w = dq x dqd`: 1 in 2D, D in 3D)."""
+    d = config.dim
+    return len(config.vocabulary), d, 1 if d == 2 else d
+
+
+def _init_lgnn(key, config: ModelConfig) -> dict:
+    k_types, d, w_dim = _feature_sizes(config)
     latent, hidden, layers = config.latent, config.hidden, config.message_passing
     keys = jax.random.split(key, 3)
-    if config.name == "lgnn":
-        params = {
-            "kinetic": _init_graph_net(keys[0], d, k_types + w_dim, latent, hidden, layers),
-            "potential": _init_graph_net(keys[1], d, k_types + d, latent, hidden, layers),
-        }
-        params["kinetic"]["readout"] = _mlp(jax.random.fold_in(keys[0], 1), (latent, hidden, 1))
-        params["potential"]["readout"] = _mlp(jax.random.fold_in(keys[1], 1), (latent, hidden, 1))
-    elif config.name in ("gns", "lgn"):
-        params = {"net": _init_graph_net(keys[0], 2 * d, k_types + d + w_dim, latent, hidden, layers)}
-        out = (latent, hidden, d) if config.name == "gns" else (2 * latent, hidden, 1)
-        params["readout"] = _mlp(keys[1], out)
-    else:
-        n_in = 2 * config.n_nodes * d
-        params = {"mlp": _mlp(keys[0], (n_in, hidden, hidden, 1))}
-    if config.drag and config.name in LAGRANGIAN_MODELS:
-        params["drag"] = jnp.zeros(k_types)
+    params = {
+        "kinetic": _init_graph_net(keys[0], d, k_types + w_dim, latent, hidden, layers),
+        "potential": _init_graph_net(keys[1], d, k_types + d, latent, hidden, layers),
+    }
+    params["kinetic"]["readout"] = _mlp(jax.random.fold_in(keys[0], 1), (latent, hidden, 1))
+    params["potential"]["readout"] = _mlp(jax.random.fold_in(keys[1], 1), (latent, hidden, 1))
     return params
-
-
-def lgnn_lagrangian_fn(scene: Scene, vocabulary, edge_energies: Callable) -> physics.LagrangianFn:
-    """LGNN's read-out as a Lagrangian: `edge_energies(graph) -> (T, V)`, each (2E,) one
-    value per directed edge, is averaged over each link's two orientations and summed:
-    `L = sum_links (T - V)`. The learned model plugs its networks in here; the tests plug
-    in the exact per-link energies to show the pipeline is the physics pipeline."""
-
-    def lagrangian(q, qd):
-        kinetic, potential = edge_energies(graph_from_state(scene, q, qd, vocabulary))
-        return 0.5 * jnp.sum(kinetic - potential)
-
-    return lagrangian
 
 
 def _lgnn_edge_energies(params: dict):
@@ -248,35 +297,119 @@ def _lgnn_edge_energies(params: dict):
     return energies
 
 
-def _graph_net_outputs(config: ModelConfig, params: dict, graph):
+def lgnn_lagrangian_fn(scene: Scene, vocabulary, edge_energies: Callable) -> physics.LagrangianFn:
+    """LGNN's read-out as a Lagrangian: `edge_energies(graph) -> (T, V)`, each (2E,) one
+    value per directed edge, is averaged over each link's two orientations and summed:
+    `L = sum_links (T - V)`. The learned model plugs its networks in here; the tests plug
+    in the exact per-link energies to show the pipeline is the physics pipeline."""
+
+    def lagrangian(q, qd):
+        kinetic, potential = edge_energies(graph_from_state(scene, q, qd, vocabulary))
+        return 0.5 * jnp.sum(kinetic - potential)
+
+    return lagrangian
+
+
+def _init_graph_model(key, config: ModelConfig, readout: tuple[int, ...]) -> dict:
+    """GNS and LGN: one graph network on node `(q, qd)` and edge `(type, dq, w)`."""
+    k_types, d, w_dim = _feature_sizes(config)
+    keys = jax.random.split(key, 3)
+    return {
+        "net": _init_graph_net(keys[0], 2 * d, k_types + d + w_dim, config.latent, config.hidden, config.message_passing),
+        "readout": _mlp(keys[1], readout),
+    }
+
+
+def _graph_net_outputs(params: dict, graph):
     nodes, edges = graph.nodes, graph.edges
     node_x = jnp.concatenate([nodes["q"], nodes["qd"]], -1)
     edge_x = jnp.concatenate([edges["type"], edges["dq"], edges["w"]], -1)
     return _apply_graph_net(params["net"], node_x, edge_x, graph.senders, graph.receivers)
 
 
+def _apply_gns(config: ModelConfig, params: dict, graph):
+    h, _ = _graph_net_outputs(params, graph)
+    return _apply_mlp(params["readout"], h)
+
+
+def _gns_acceleration(config: ModelConfig, params: dict, scene: Scene) -> physics.AccelerationFn:
+    free = np.ones((scene.n_nodes, 1))
+    free[list(scene.pinned)] = 0.0
+
+    def accel(q, qd):
+        return _apply_gns(config, params, graph_from_state(scene, q, qd, config.vocabulary)) * free
+
+    return accel
+
+
+def _apply_lgn(config: ModelConfig, params: dict, graph):
+    h, e = _graph_net_outputs(params, graph)
+    pooled = jnp.concatenate([jnp.sum(h, 0), jnp.sum(e, 0)])
+    return _apply_mlp(params["readout"], pooled)[0]
+
+
+def _lgn_lagrangian(config: ModelConfig, params: dict, scene: Scene) -> physics.LagrangianFn:
+    return lambda q, qd: _apply_lgn(config, params, graph_from_state(scene, q, qd, config.vocabulary))
+
+
+def _init_clnn(key, config: ModelConfig) -> dict:
+    keys = jax.random.split(key, 3)
+    return {"mlp": _mlp(keys[0], (2 * config.n_nodes * config.dim, config.hidden, config.hidden, 1))}
+
+
+def _clnn_lagrangian(config: ModelConfig, params: dict, scene: Scene) -> physics.LagrangianFn:
+    return lambda q, qd: _apply_mlp(params["mlp"], jnp.concatenate([q.reshape(-1), qd.reshape(-1)]))[0]
+
+
+# Sizes are the paper appendix's; message-passing layers when not given: LGNN's
+# per-edge variant (the true per-link energies need nothing more, and it is the
+# authors' code); two layers let GNS and LGN nodes see their neighbours' neighbours
+# (the paper does not give this number).
+register(ModelSpec(
+    "lgnn", _init_lgnn, apply=lambda config, params, graph: _lgnn_edge_energies(params)(graph),
+    lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_edge_energies(params)),
+    latent=5, hidden=10, message_passing=0,
+    # Without message passing a link's energy depends on its own two nodes only.
+    local_mass=lambda config: config.message_passing == 0,
+))
+register(ModelSpec(
+    "gns", lambda key, config: _init_graph_model(key, config, (config.latent, config.hidden, config.dim)),
+    apply=_apply_gns, acceleration=_gns_acceleration, latent=8, hidden=128, message_passing=2,
+))
+register(ModelSpec(
+    "lgn", lambda key, config: _init_graph_model(key, config, (2 * config.latent, config.hidden, 1)),
+    apply=_apply_lgn, lagrangian=_lgn_lagrangian, latent=8, hidden=128, message_passing=2,
+))
+register(ModelSpec("clnn", _init_clnn, lagrangian=_clnn_lagrangian, hidden=128, fixed_size=True))
+
+
+# ---------------------------------------------------------------------------------
+# Any registered model
+# ---------------------------------------------------------------------------------
+
+
+def init(key, config: ModelConfig) -> dict:
+    """Fresh parameters of `config`'s model (float64 under x64)."""
+    params = config.spec.init(key, config)
+    if config.drag and config.spec.is_lagrangian:
+        params["drag"] = jnp.zeros(len(config.vocabulary))
+    return params
+
+
 def apply(config: ModelConfig, params: dict, graph):
     """The model's output on one graph: LGNN `(T, V)` per directed edge, LGN the global
     Lagrangian (), GNS node accelerations (N, D). CLNN has no graph: use `lagrangian_fn`."""
-    if config.name == "lgnn":
-        return _lgnn_edge_energies(params)(graph)
-    h, e = _graph_net_outputs(config, params, graph)
-    if config.name == "gns":
-        return _apply_mlp(params["readout"], h)
-    pooled = jnp.concatenate([jnp.sum(h, 0), jnp.sum(e, 0)])
-    return _apply_mlp(params["readout"], pooled)[0]
+    if config.spec.apply is None:
+        raise ConfigError(f"model {config.name} does not work on graphs")
+    return config.spec.apply(config, params, graph)
 
 
 def lagrangian_fn(config: ModelConfig, params: dict, scene: Scene) -> physics.LagrangianFn:
     """The learned `L(q, qd)` of a Lagrangian model on `scene`."""
     check_compatible(config, scene)
-    if config.name == "lgnn":
-        return lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_edge_energies(params))
-    if config.name == "lgn":
-        return lambda q, qd: apply(config, params, graph_from_state(scene, q, qd, config.vocabulary))
-    if config.name == "clnn":
-        return lambda q, qd: _apply_mlp(params["mlp"], jnp.concatenate([q.reshape(-1), qd.reshape(-1)]))[0]
-    raise ConfigError(f"model {config.name} has no Lagrangian")
+    if not config.spec.is_lagrangian:
+        raise ConfigError(f"model {config.name} has no Lagrangian")
+    return config.spec.lagrangian(config, params, scene)
 
 
 def _learned_drag_fn(config: ModelConfig, params: dict, scene: Scene):
@@ -288,40 +421,45 @@ def _learned_drag_fn(config: ModelConfig, params: dict, scene: Scene):
 def acceleration_fn(config: ModelConfig, params: dict, scene: Scene) -> physics.AccelerationFn:
     """`accel(q, qd) -> qdd` (N, D) of the model on `scene` (any size for graph models)."""
     check_compatible(config, scene)
-    if config.name == "gns":
-        free = np.ones((scene.n_nodes, 1))
-        free[list(scene.pinned)] = 0.0
-
-        def accel(q, qd):
-            return apply(config, params, graph_from_state(scene, q, qd, config.vocabulary)) * free
-
-        return accel
-    # LGNN without message passing sums per-link energies of each link's own two nodes,
-    # so its mass matrix couples only linked nodes: the solve can use that structure.
-    local_mass = config.name == "lgnn" and config.message_passing == 0
-    return physics.acceleration_fn(scene, lagrangian_fn(config, params, scene), _learned_drag_fn(config, params, scene), local_mass=local_mass)
+    spec = config.spec
+    if not spec.is_lagrangian:
+        return spec.acceleration(config, params, scene)
+    lagrangian = lagrangian_fn(config, params, scene)
+    return physics.acceleration_fn(scene, lagrangian, _learned_drag_fn(config, params, scene), local_mass=spec.local_mass(config))
 
 
 def mass_matrix_fn(config: ModelConfig, params: dict, scene: Scene):
     """`M(q, qd) = d2L/dqd2` (N*D, N*D) of a Lagrangian model: the paper's learned mass matrix."""
-    if config.name not in LAGRANGIAN_MODELS:
+    if not config.spec.is_lagrangian:
         raise ConfigError(f"model {config.name} predicts accelerations directly and has no mass matrix")
     return physics.mass_matrix_fn(lagrangian_fn(config, params, scene))
 
 
-def rollout(config: ModelConfig, params: dict, scene: Scene, simulation=None, state=None, *, progress: bool = False):
-    """The model's predicted `Trajectory` of `scene` from `state` (default: the scene's
-    own), through the ground truth's integrators (`simulate.simulate`); its `energy` is
-    the scene's true Hamiltonian of the predicted states. A prediction that becomes
-    non-finite or explodes stops with `SimulationError` naming the time."""
-    from lgnn.engines.lagrangian import SimulationConfig, simulate
+@dataclasses.dataclass(frozen=True)
+class AccelerationFactory:
+    """`factory(scene, params) -> accel`: `acceleration_fn` of one model config as a
+    value equal for equal configs, so a rollout (`simulate(..., accel_factory=factory,
+    params=params)`) compiles once per scene, simulation settings and model config and
+    takes the params as an argument."""
 
+    config: ModelConfig
+
+    def __call__(self, scene: Scene, params) -> physics.AccelerationFn:
+        return acceleration_fn(self.config, params, scene)
+
+
+def rollout(config: ModelConfig, params: dict, scene: Scene, simulation: SimulationConfig | None = None, state=None, *, progress: bool = False) -> Trajectory:
+    """The model's predicted `Trajectory` of `scene` from `state` (default: the scene's
+    own), through the ground truth's integrators (`engines.lagrangian.simulate`); its
+    `energy` is the scene's true Hamiltonian of the predicted states. A prediction that
+    becomes non-finite or explodes stops with `SimulationError` naming the time."""
     check_compatible(config, scene)
     trajectory = simulate(
         scene,
         simulation or SimulationConfig(),
         state,
-        accel_factory=lambda s: acceleration_fn(config, params, s),
+        accel_factory=AccelerationFactory(config),
+        params=params,
         progress=progress,
         hint=f"the {config.name} model's predicted dynamics diverge (its rollout stops there)",
     )

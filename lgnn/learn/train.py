@@ -104,8 +104,8 @@ def loss_fn(model: models.ModelConfig, scene: Scene):
 
 @functools.lru_cache(maxsize=16)
 def _epoch_fn(model, scene, config: TrainConfig):
-    """The jitted epoch, cached per (model, scene object, optimisation settings) so that
-    resuming or re-running in one process does not recompile."""
+    """The jitted epoch, cached per (model, scene, optimisation settings), all keyed on
+    content, so that resuming or re-running in one process does not recompile."""
     loss = loss_fn(model, scene)
     opt = optimizer(config)
 
