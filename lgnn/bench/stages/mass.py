@@ -54,7 +54,7 @@ def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob
     coords = (free[:, None] * scene.dim + np.arange(scene.dim)).reshape(-1)
     true_m = np.asarray(physics.mass_matrix_fn(physics.lagrangian_fn(scene))(q, qd))[np.ix_(coords, coords)]
     learned_m = np.asarray(jax.jit(models.mass_matrix_fn(model, params, scene))(q, qd))[np.ix_(coords, coords)]
-    constraints = physics.Constraints(scene)
+    constraints = physics.prepare(scene).constraints
     jac = np.asarray(constraints.jacobian(constraints.restrict(q)))
     projector = np.eye(len(coords)) - jac.T @ np.linalg.pinv(jac @ jac.T) @ jac  # analysis only, not dynamics
     tangent_true, tangent_learned = projector @ true_m @ projector, projector @ learned_m @ projector
