@@ -325,3 +325,19 @@ def test_nesting_limit_is_measured_and_refused_in_one_line(monkeypatch):
     with pytest.raises(SimulationError, match="too deep") as info:
         lm.compile_scene(deep)
     assert "\n" not in str(info.value)
+
+
+def test_only_the_mujoco_engines_import_mujoco():
+    """MuJoCo stays behind the engine interface: no other module of lgnn imports it
+    (deferred imports included)."""
+    import ast
+    from pathlib import Path
+
+    package = Path(__file__).resolve().parents[1] / "lgnn"
+    importers = set()
+    for path in package.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else []
+            if any(name == "mujoco" or name.startswith("mujoco.") for name in names):
+                importers.add(path.relative_to(package).as_posix())
+    assert importers == {"engines/mujoco.py", "engines/mjx.py"}

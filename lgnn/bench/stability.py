@@ -49,7 +49,7 @@ import numpy as np
 
 from lgnn import metrics, physics
 from lgnn.errors import SimulationError
-from lgnn.scene import Scene, scene_from_dict
+from lgnn.scene import Scene
 from lgnn.scene import chain, get_scene
 from lgnn.engines import batch_of_one, get_engine
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory, rollout_fn

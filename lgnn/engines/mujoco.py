@@ -53,7 +53,8 @@ class Compiled:
     `hinge` (B,) qpos/qvel address of each body's hinge; `parent` (B,) parent body
     (B: the world, a row of zeros appended); `base`, `tip` (B,) nodes; `rest_angle`
     (B,) link direction in the rendered pose; `root_body`, `root_x` (R,) free roots
-    and the address of their x slide (y follows); `node_site` (N,) site ids.
+    and the address of their x slide (y follows); `node_site` (N,) site ids;
+    `body_id` (B,) body ids.
     """
 
     scene: Scene
