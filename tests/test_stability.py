@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from lgnn.learn import data, models, train
@@ -414,6 +414,10 @@ def test_random_scenes_accelerate_finitely_keep_constraints_and_conserve_energy(
     data_.pop("velocities", None)
     data_["pinned"] = sorted(set(data_["pinned"]) | {0})  # something holds it: no free fall for 0.05 s
     scene = scene_from_dict(data_)
+    # A link run pulled straight between two pins is self-stressed: its constraint
+    # Jacobian loses rank and holds only to the regularisation's 1e-6 (the hard cases
+    # above test those scenes with their own tolerances).
+    assume(physics.prepare(scene).constraints.self_stresses == 0)
 
     @jax.jit
     def run(q, qd):
