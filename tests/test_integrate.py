@@ -88,7 +88,7 @@ def test_every_builtin_scene_runs(name):
     trajectory = simulate(scene, SimulationConfig("rk4", dt=1e-4, frame_dt=1e-2, duration=0.1))
     assert np.all(np.isfinite(trajectory.q)) and np.all(np.isfinite(trajectory.energy))
     # singular (self-stressed) starts are held less tightly: the projection's shift
-    # trades exactness along the self-stress for stability (physics.py)
+    # trades exactness along the self-stress for stability (lgnn/physics/projection.py)
     tolerance = 1e-8 if physics.Constraints(scene).self_stresses else 1e-10
     assert float(physics.constraint_violation(scene, trajectory.q[-1])) < tolerance
     displacement = np.max(np.abs(trajectory.q[-1] - trajectory.q[0]))
