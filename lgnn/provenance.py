@@ -40,6 +40,9 @@ def _version(package: str) -> str:
         return "absent"
 
 
+# Installed versions do not change within a process, and reading package metadata takes
+# tens of milliseconds: every record (a checkpoint each epoch) states them.
+@functools.cache
 def versions() -> str:
     """`python 3.12.3, jax 0.10.2, ...` of the packages a result depends on."""
     from lgnn import __version__

@@ -211,7 +211,7 @@ def _plot_mass_matrices(records, path: Path) -> bool:
     return True
 
 
-def _plot_snapshots(profile: Profile, out: Path, scene: str, truths: dict, pairs: list, path: Path) -> bool:
+def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
     import matplotlib.pyplot as plt
 
     if scene not in truths:
@@ -537,8 +537,8 @@ def write(profile: Profile, out: Path) -> Path:
         ("error_vs_time_T1_T2_T3.png", lambda p: _plot_error_vs_time(curves, ["T1", "T2", "T3"], p, "Error against time: T1-T3 (trained on chain4)")),
         ("error_vs_time_varied_drag.png", lambda p: _plot_error_vs_time(curves, ["chain4-varied", "chain4-drag"], p, "Error against time: varied links, drag (trained on each)")),
         ("mass_matrix.png", lambda p: _plot_mass_matrices(mass_records, p)),
-        ("snapshots_chain8.png", lambda p: _plot_snapshots(profile, out, "chain8", truths, pairs, p)),
-        ("snapshots_T1.png", lambda p: _plot_snapshots(profile, out, "T1", truths, pairs, p)),
+        ("snapshots_chain8.png", lambda p: _plot_snapshots("chain8", truths, pairs, p)),
+        ("snapshots_T1.png", lambda p: _plot_snapshots("T1", truths, pairs, p)),
         ("speed_error.png", lambda p: _plot_speed_error(speed_rows, p)),
     ]
     for name, plot in plots:
