@@ -54,6 +54,7 @@ from lgnn.errors import ConfigError
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
 from lgnn.scene import Scene
 
+
 @dataclasses.dataclass(frozen=True)
 class ModelSpec:
     """What the library needs to know about one model, registered under its name.
