@@ -73,6 +73,24 @@ def test_cheating_model_reproduces_ground_truth():
     assert predicted.metadata["model"]["name"] == "cheat"
 
 
+def test_a_model_is_an_engine_like_the_ground_truth():
+    """`ModelEngine` answers the engine interface: the cheating model's batched rollout
+    and timed rollout equal the Lagrangian engine's."""
+    from lgnn.engines import batch_of_one, get_engine
+
+    models.register(CHEAT)
+    scene = get_scene("chain4")
+    config = models.ModelConfig("cheat")
+    engine = models.ModelEngine(config, models.init(jax.random.PRNGKey(0), config))
+    states = batch_of_one(scene.initial_state)
+    truth = get_engine("lagrangian").rollout(scene, SHORT, states)
+    predicted = engine.rollout(scene, SHORT, states)
+    assert engine.name == "cheat" and predicted.q.shape == truth.q.shape
+    np.testing.assert_array_equal(predicted.q, truth.q)
+    _, _, timed_q = engine.timed_rollout(scene, SHORT, states)
+    np.testing.assert_allclose(timed_q, truth.q, atol=1e-12)
+
+
 def test_rollouts_with_other_params_compile_once():
     """A model's rollout is compiled once per (scene, settings, config); params are an
     argument, and each rollout gives its own params' trajectory."""

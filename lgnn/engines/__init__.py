@@ -18,6 +18,10 @@ An `Engine` has a `name`, the precision it computes in (`dtype`), and
 - "mujoco" (`mujoco.MujocoEngine`): MuJoCo C on the scene's MJCF (`mjcf`), float64;
 - "mjx" (`mjx.MjxEngine`): MJX on the same model, float64 or float32.
 
+A learned model answers the same interface as `lgnn.learn.models.ModelEngine(config,
+params)` (e.g. `ModelEngine(*load_model(checkpoint))`); it is not in `ENGINES`
+because models live in a layer above the engines.
+
 `dtype` is the precision of the JAX computations an engine has a choice over (MJX;
 the Lagrangian engine's timed batch); MuJoCo C and `simulate` are float64, and
 `Engine.dtype` says what the engine uses. `mujoco` is imported on first use of a

@@ -49,10 +49,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
+from lgnn.engines.lagrangian import SimulationConfig, Trajectory, rollout_fn, simulate
+from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
-from lgnn.scene import Scene
+from lgnn.scene import Scene, State
 
 
 @dataclasses.dataclass(frozen=True)
@@ -465,3 +466,35 @@ def rollout(config: ModelConfig, params: dict, scene: Scene, simulation: Simulat
         hint=f"the {config.name} model's predicted dynamics diverge (its rollout stops there)",
     )
     return dataclasses.replace(trajectory, metadata={**trajectory.metadata, "model": config.to_dict()})
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ModelEngine:
+    """A learned model as an `lgnn.engines.Engine`: the same `rollout(scene, config,
+    states) -> Trajectory` and `timed_rollout` as the ground-truth engines, so
+    cross-checks and tools treat a model like any other engine. Its trajectories'
+    `energy` is the scene's true Hamiltonian of the predicted states."""
+
+    config: ModelConfig
+    params: dict
+    dtype: str = "float64"
+    progress: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
+        """Predicted trajectories from initial states (B, N, D): q, qd (B, F+1, N, D), energy (B, F+1)."""
+        runs = [rollout(self.config, self.params, scene, config, State(q, qd), progress=self.progress) for q, qd in zip(states.q, states.qd)]
+        q, qd, energy = (np.stack([getattr(run, field) for run in runs]) for field in ("q", "qd", "energy"))
+        return Trajectory(runs[0].t, q, qd, energy, runs[0].metadata)
+
+    def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
+        """`(compile_s, run_s, q (B, F+1, N, D))` of the batch as one compiled, vmapped run."""
+        check_compatible(self.config, scene)
+        factory = AccelerationFactory(self.config)
+        run = jax.jit(lambda params, q, qd: jax.vmap(rollout_fn(scene, config, lambda s: factory(s, params)))(q, qd))
+        params = jax.tree.map(lambda leaf: jnp.asarray(leaf, self.dtype), self.params)
+        compile_s, run_s, (q, _) = time_compiled(run, params, jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype))
+        return compile_s, run_s, np.asarray(q, np.float64)
