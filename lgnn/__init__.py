@@ -4,13 +4,21 @@ The public interface, by lifecycle stage (layers from the bottom; see ARCHITECTU
 - set-up: `configure()` (float64, thread counts, XLA flags), to call first;
 - scenes (`lgnn.scene`): `Scene`, `State`, `get_scene`, `BUILTIN_SCENES`,
   `scene_from_dict`, `load_scene_file`, `sample_initial_states`;
-- physics (`lgnn.physics`): Lagrangians, constraints, the constrained Euler-Lagrange
-  solve as a function transformer; integration (`lgnn.integrate`): RK4, Verlet, rollouts;
+- physics (`lgnn.physics`): `prepare(scene) -> System` (everything static about a
+  scene, computed once and cached by content), Lagrangians, constraints, the
+  constrained Euler-Lagrange solve as a function transformer; integration
+  (`lgnn.integrate`): RK4, Verlet, rollouts;
+- metrics (`lgnn.metrics`): one definition each of energy drift, divergence,
+  constraint violation, rollout and energy error and their statistics;
 - engines (`lgnn.engines`): one interface, `get_engine(name).rollout(scene, config,
   states) -> Trajectory`, for the Lagrangian ground truth (`simulate`,
-  `SimulationConfig`), MuJoCo C and MJX;
-- learned models (`lgnn.learn`): graph features, LGNN, GNS, LGN, CLNN, data, training;
-- the benchmark and its tools (`lgnn.bench`), the command line (`lgnn.cli`).
+  `SimulationConfig`), MuJoCo C and MJX (MJCF rendered by `lgnn.engines.mjcf`);
+- learned models (`lgnn.learn`): graph features, a model registry (LGNN, GNS, LGN,
+  CLNN), data, training; a model as an engine (`lgnn.learn.models.ModelEngine`);
+- records (`lgnn.records`): the one on-disk format of datasets, checkpoints and
+  benchmark records (arrays, JSON meta, checksum, provenance);
+- the benchmark (`lgnn.bench`: grid, stages, report, crosscheck, stability), the
+  command line (`lgnn.cli`).
 
 `import lgnn` loads nothing heavy and changes nothing outside the package (no
 environment variable, no JAX setting): the names below are imported on first use, and
@@ -43,6 +51,7 @@ _PUBLIC = {
     "Trajectory": "lgnn.engines.lagrangian",
     "simulate": "lgnn.engines.lagrangian",
     "get_engine": "lgnn.engines",
+    "energy_drift": "lgnn.metrics",
 }
 
 __all__ = sorted(_PUBLIC)
