@@ -117,7 +117,7 @@ def test_rollouts_with_other_params_compile_once():
 @pytest.mark.parametrize("name", ["chain4-varied", "chain4-drag", "T1"])
 def test_lgnn_machinery_with_true_edge_energies_is_the_ground_truth(name):
     # T1, not T2/T3: those start at a singular (self-stressed) configuration where
-    # round-off differences between equal Lagrangians are amplified (lgnn/physics.py).
+    # round-off differences between equal Lagrangians are amplified (lgnn/physics/solvers.py).
     scene = get_scene(name)
     vocabulary = tuple(sorted(set(scene.link_types)))
     lagrangian = models.lgnn_lagrangian_fn(scene, vocabulary, _true_edge_energies(scene))

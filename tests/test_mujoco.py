@@ -184,7 +184,7 @@ def test_mujoco_keeps_singular_loops_closed(name):
 @pytest.mark.parametrize(("name", "tolerance"), [("T2", 5e-4), ("T3", 2e-2)])
 def test_singular_loops_agree_with_lagrangian_as_far_as_the_model_allows(name, tolerance):
     """T2 and T3 start self-stressed (taut straight ropes between pins: a singular
-    constraint Jacobian, physics.py). There the inextensible model is singular: a rope
+    constraint Jacobian, lgnn/physics/constraints.py). There the inextensible model is singular: a rope
     that stretches by e sags by ~sqrt(e l), so MuJoCo's soft `connect` (e ~ 4e-7) sags
     ~2e-4 where the exact engine (e ~ 1e-9) sags ~4e-5. T2 is prestress-stable: both
     keep it at rest to that level. T3 is partly free; over 0.1 s both move ~4e-2 and
