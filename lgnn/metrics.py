@@ -16,9 +16,15 @@
   Far enough that no correct run, however inaccurate, gets there; close enough to stop
   a diverging run long before overflow. Engines stop at the first such frame; the
   benchmark scores every frame from it on as the metric's maximum.
-- `relative_error`, `clean_errors`, `error_statistics`, `summarise`, `gmean_error`:
-  the benchmark's rollout and energy errors `||a - b|| / (||a|| + ||b||)` and their
-  geometric-mean statistics with intervals.
+- `relative_error`, `node_rms_error`, `clean_errors`, `score_rollouts`,
+  `rest_rollouts`, `error_statistics`, `summarise`, `gmean_error`: the benchmark's
+  errors and their geometric-mean statistics with intervals. The paper's rollout and
+  energy errors `||a - b|| / (||a|| + ||b||)` are normalised by the whole state, so they
+  shrink as a structure grows; the per-node RMS position error `sqrt(mean over nodes
+  |q_hat - q|^2)` (in lengths) does not. A diverged frame counts as each metric's
+  maximum from its divergence on (1 for the relative errors, `diverged_node_error` for
+  the RMS error); the rest baseline (`rest_rollouts`, the initial state held) is scored
+  like any model.
 - `max_constraint_violation`: the largest link-length or pin error over frames.
 
 Arrays are NumPy; `q`, `qd` are (..., F, N, D) and energies (..., F) with frame 0 the
@@ -153,13 +159,60 @@ def relative_error(a: np.ndarray, b: np.ndarray, trailing: int) -> np.ndarray:
         return diff / scale
 
 
-def clean_errors(errors: np.ndarray, diverged: np.ndarray) -> np.ndarray:
+def node_rms_error(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-node RMS position error `sqrt(mean over nodes |a - b|^2)` of positions
+    (..., N, D) -> (...), in the scene's length unit."""
+    return np.sqrt(np.mean(np.sum((np.asarray(a) - np.asarray(b)) ** 2, axis=-1), axis=-1))
+
+
+def diverged_node_error(scene: Scene, q0: np.ndarray) -> float:
+    """What a diverged frame's per-node RMS error counts as, and its cap: the distance
+    `EXPLOSION_FACTOR * structure_size` at which the divergence rule calls a node lost."""
+    return EXPLOSION_FACTOR * structure_size(scene, q0)
+
+
+def clean_errors(errors: np.ndarray, diverged: np.ndarray, maximum: float | np.ndarray = 1.0) -> np.ndarray:
     """Errors (C, F) with every frame from divergence (`diverged` (C,) frame indices
-    into these errors, -1 for none) on set to 1, clipped to [ERROR_FLOOR, 1]."""
+    into these errors, -1 for none) on, and every non-finite one, set to `maximum` (a
+    scalar or one per trajectory (C,): 1 for the relative errors); clipped to
+    [ERROR_FLOOR * maximum, maximum]."""
+    maximum = np.broadcast_to(np.asarray(maximum, np.float64), (errors.shape[0],))[:, None]
     frames = np.arange(errors.shape[1])
     after = (diverged[:, None] >= 0) & (frames[None] >= diverged[:, None])
-    errors = np.where(after | ~np.isfinite(errors), 1.0, errors)
-    return np.clip(errors, ERROR_FLOOR, 1.0)
+    with np.errstate(invalid="ignore"):
+        errors = np.where(after | ~np.isfinite(errors), maximum, errors)
+    return np.clip(errors, ERROR_FLOOR * maximum, maximum)
+
+
+# The per-frame metrics `score_rollouts` gives, in table order.
+ROLLOUT_METRICS = ("rollout_error", "energy_error", "node_rms_error")
+
+
+def score_rollouts(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference_q: np.ndarray,
+                   reference_energy: np.ndarray) -> tuple[dict, np.ndarray]:
+    """The benchmark's scores of predicted trajectories `q`, `qd` (C, F, N, D) at times
+    `t` (F,), frame 0 their initial states, against reference positions (C, F, N, D) and
+    true energies (C, F): `({metric: clean errors (C, F - 1) over frames t > 0 for each
+    of ROLLOUT_METRICS}, diverged (C,))`, `diverged` the first diverged frame of each
+    prediction (`divergence_frames`, an index into `t`) or -1. From that frame on every
+    error counts as its maximum (`clean_errors`)."""
+    q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
+    energy = true_energies(scene, q, qd)
+    diverged = divergence_frames(scene, t, q, qd, energy)
+    node_cap = np.array([diverged_node_error(scene, q0) for q0 in q[:, 0]])
+    scores = {
+        "rollout_error": clean_errors(relative_error(q, reference_q, 2), diverged),
+        "energy_error": clean_errors(relative_error(energy, reference_energy, 0), diverged),
+        "node_rms_error": clean_errors(node_rms_error(q, reference_q), diverged, node_cap),
+    }
+    return {name: errors[:, 1:] for name, errors in scores.items()}, diverged
+
+
+def rest_rollouts(q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rest baseline's prediction of trajectories (C, F, N, D): every frame the
+    initial state `(q[:, 0], qd[:, 0])`, held. Scored against the truth its errors are
+    the truth's own displacement from its start."""
+    return tuple(np.broadcast_to(np.asarray(a)[:, :1], np.shape(a)) for a in (q, qd))
 
 
 def error_statistics(errors: np.ndarray) -> dict:

@@ -80,3 +80,63 @@ def test_errors_are_clipped_and_count_as_one_after_divergence():
     assert clean.tolist() == [[metrics.ERROR_FLOOR, 1e-3, 1.0], [1e-3, 1.0, 1e-3]]
     a = np.ones((2, 3, 2))
     assert np.allclose(metrics.relative_error(a, -a, 2), 1.0) and np.allclose(metrics.relative_error(a, a, 2), 0.0)
+
+
+def test_a_maximum_per_trajectory_replaces_frames_from_divergence_and_bounds_the_rest():
+    errors = np.array([[0.0, 3.0, 50.0], [2.0, np.inf, 2.0]])
+    clean = metrics.clean_errors(errors, np.array([-1, 2]), maximum=np.array([10.0, 20.0]))
+    assert clean.tolist() == [[10.0 * metrics.ERROR_FLOOR, 3.0, 10.0], [2.0, 20.0, 20.0]]
+
+
+def test_node_rms_error_is_the_root_mean_square_distance_over_nodes():
+    a = np.zeros((2, 3, 2))
+    b = a.copy()
+    b[1, 0] = [3.0, 4.0]  # one node of three 5 away at the second frame
+    np.testing.assert_allclose(metrics.node_rms_error(a, b), [0.0, np.sqrt(25 / 3)], rtol=1e-15)
+
+
+def _chain4_truth():
+    scene = get_scene("chain4")
+    traj = simulate(scene, SimulationConfig(dt=1e-3, duration=0.05, frame_dt=5e-3), progress=False)
+    q, qd, energy = (np.stack([np.asarray(a)] * 2) for a in (traj.q, traj.qd, traj.energy))
+    return scene, np.asarray(traj.t), q, qd, energy
+
+
+def test_a_diverged_rollout_scores_each_metric_maximum_from_its_divergence_frame_on():
+    """Two hand-made predictions of the same truth, 1e-3 off along x at every node; the
+    second also flung 2 x 10 sizes away from frame 6 on: identical scores before frame 6,
+    each metric's maximum from it on (the frame the one divergence rule flags)."""
+    scene, t, q, qd, energy = _chain4_truth()
+    predicted = q.copy()
+    predicted[..., 0] += 1e-3
+    size = metrics.structure_size(scene, q[0, 0])
+    predicted[1, 6:] += 2 * metrics.EXPLOSION_FACTOR * size
+    scores, diverged = metrics.score_rollouts(scene, t, predicted, qd, q, energy)
+    assert diverged.tolist() == [-1, 6]
+    assert set(scores) == set(metrics.ROLLOUT_METRICS)
+    for name, errors in scores.items():
+        assert errors.shape == (2, len(t) - 1), name
+        np.testing.assert_array_equal(errors[1, :5], errors[0, :5])  # frames 1..5: t > 0, before divergence
+    np.testing.assert_allclose(scores["node_rms_error"][0], 1e-3, rtol=1e-9)
+    expected = np.linalg.norm(predicted[0] - q[0], axis=(-1, -2)) / (np.linalg.norm(predicted[0], axis=(-1, -2)) + np.linalg.norm(q[0], axis=(-1, -2)))
+    np.testing.assert_allclose(scores["rollout_error"][0], expected[1:], rtol=1e-12)
+    assert (scores["rollout_error"][1, 5:] == 1.0).all() and (scores["energy_error"][1, 5:] == 1.0).all()
+    assert (scores["node_rms_error"][1, 5:] == metrics.diverged_node_error(scene, predicted[1, 0])).all()
+    assert metrics.diverged_node_error(scene, predicted[1, 0]) == metrics.EXPLOSION_FACTOR * size
+
+
+def test_the_rest_baseline_scores_exactly_the_truths_displacement_from_its_start():
+    scene, t, q, qd, energy = _chain4_truth()
+    rest_q, rest_qd = metrics.rest_rollouts(q, qd)
+    assert (rest_q == q[:, :1]).all() and (rest_qd == qd[:, :1]).all() and rest_q.shape == q.shape
+    scores, diverged = metrics.score_rollouts(scene, t, rest_q, rest_qd, q, energy)
+    assert diverged.tolist() == [-1, -1]
+    q0, later = q[0, 0], q[0, 1:]
+    displacement = [np.sqrt(np.mean([np.sum((node - node0) ** 2) for node, node0 in zip(frame, q0)])) for frame in later]
+    np.testing.assert_allclose(scores["node_rms_error"][0], displacement, rtol=1e-12)
+    relative = [np.linalg.norm(frame - q0) / (np.linalg.norm(frame) + np.linalg.norm(q0)) for frame in later]
+    np.testing.assert_allclose(scores["rollout_error"][0], relative, rtol=1e-12)
+    e = energy[0]
+    np.testing.assert_allclose(scores["energy_error"][0], np.maximum(np.abs(e[1:] - e[0]) / (np.abs(e[1:]) + np.abs(e[0])), metrics.ERROR_FLOOR), rtol=1e-9)
+    # Released from rest, the chain falls: after 0.05 s its nodes have moved by millimetres.
+    assert 1e-4 < displacement[-1] < 0.05

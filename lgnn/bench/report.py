@@ -5,11 +5,15 @@ functions only (nothing is computed here but statistics of them).
 Files under `<out>` (`results/` for the full profile, `results/quick/` for the quick):
 
 - `benchmark/summary.csv`: `scene, model, seed, metric, statistic, value` plus
-  `commit, versions, device` of the run that made each number. Metrics:
-  `rollout_error`, `energy_error`, `rollout_error_vs_mujoco`, and per scene the
-  ground truth's `chaos_floor` and `truth_vs_mujoco`; statistics: `gmean` (over frames
-  t > 0 and initial conditions), `ci_low`/`ci_high` (bootstrap 95% over initial
-  conditions), `initial_conditions`, `diverged` (count), `first_divergence_s`.
+  `commit, versions, device` of the run that made each number. Models: the learned
+  ones and `rest` (the rest baseline, from the ground-truth records); metrics:
+  `rollout_error`, `energy_error`, `rollout_error_vs_mujoco`, `node_rms_error`, and per
+  scene the ground truth's `chaos_floor`, `chaos_floor_node_rms_error` and
+  `truth_vs_mujoco`; statistics: `gmean` (over frames t > 0 and initial conditions),
+  `ci_low`/`ci_high` (bootstrap 95% over initial conditions), `initial_conditions`,
+  `diverged` (count), `first_divergence_s`, and for `node_rms_error`
+  `chaos_floor_ratio`. A chaos floor whose perturbed run diverged has no `gmean` or
+  interval; a record without a metric (written before it existed) has no row for it.
 - `benchmark/curves.csv`: the same metrics per frame (every 0.01 s): geometric mean
   over initial conditions with a normal-approximation 95% band (`t` column).
 - `benchmark/speed_error.csv`, `.md`: wall time per simulated second against rollout
@@ -33,6 +37,7 @@ from lgnn import metrics
 from lgnn.bench.grid import TRAINING_SCENE, TRANSFER_SCENES, Profile, evaluation_scenes
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
+from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
@@ -42,7 +47,11 @@ from lgnn.files import atomic_path, write_text_atomic
 from lgnn.scene import get_scene
 
 MODEL_ORDER = ("lgnn", "gns", "lgn", "clnn")
-COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3"}
+COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5"}
+# The rest baseline's model name in the tables (the initial state held).
+REST = "rest"
+# The chaos floor's metrics: its rollout error (first name kept) and per-node RMS error.
+FLOOR, FLOOR_RMS = "chaos_floor", "chaos_floor_node_rms_error"
 CURVE_STEP_S = 0.01
 MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale", "scaled_percent_error", "scaled_tangent_percent_error")
 
@@ -52,10 +61,14 @@ def _env_columns(meta: dict) -> dict:
     return {k: env.get(k, "unknown") for k in ("commit", "versions", "device")}
 
 
-def _summary_rows(scene, model, seed, metric, arrays, meta, prefix, diverged=None):
-    value, low, high = metrics.summarise(arrays[f"{prefix}/per_ic_log"])
+def _summary_rows(scene, model, seed, metric, arrays, meta, prefix, diverged=None, value=True):
+    """Tidy rows of one record's metric: its statistics, the divergence count and time
+    if `diverged` (seconds per initial condition, NaN for none) is given, and no value
+    or interval when `value` is false (a chaos floor whose perturbed run diverged)."""
+    gmean, low, high = metrics.summarise(arrays[f"{prefix}/per_ic_log"])
     base = dict(scene=scene, model=model, seed=seed, metric=metric, **_env_columns(meta))
-    stats = {"gmean": value, "ci_low": low, "ci_high": high, "initial_conditions": len(arrays[f"{prefix}/per_ic_log"])}
+    stats = {"gmean": gmean, "ci_low": low, "ci_high": high} if value else {}
+    stats["initial_conditions"] = len(arrays[f"{prefix}/per_ic_log"])
     if diverged is not None:
         stats["diverged"] = int(np.sum(np.isfinite(diverged)))
         stats["first_divergence_s"] = float(np.nanmin(diverged)) if np.isfinite(diverged).any() else float("nan")
@@ -74,19 +87,41 @@ def _curve_rows(scene, model, seed, metric, arrays, meta, prefix):
     return rows
 
 
+def _floor_diverged(arrays: dict) -> bool:
+    return bool(np.isfinite(arrays.get("chaos_floor/diverged_at", np.nan)).any())
+
+
 def tables(truths: dict, pairs: list):
-    """`(summary, curves)` DataFrames from the ground-truth and pair records (module docstring)."""
+    """`(summary, curves)` DataFrames from the ground-truth and pair records (module
+    docstring). A metric a record lacks (written before it existed) has no rows; a chaos
+    floor whose perturbed run diverged has no value, interval or curve."""
     import pandas as pd
 
     summary, curves = [], []
+    floor_rms = {}
     for scene, (arrays, meta) in truths.items():
-        for metric in ("chaos_floor", "truth_vs_mujoco"):
-            summary += _summary_rows(scene, "ground truth", 0, metric, arrays, meta, metric, arrays.get(f"{metric}/diverged_at"))
-            curves += _curve_rows(scene, "ground truth", 0, metric, arrays, meta, metric)
-    for pair, (arrays, meta) in pairs:
+        diverged_at, floor_ok = arrays.get("chaos_floor/diverged_at"), not _floor_diverged(arrays)
+        for metric, prefix, diverged in ((FLOOR, FLOOR, diverged_at), (FLOOR_RMS, f"{FLOOR}/node_rms_error", diverged_at),
+                                         ("truth_vs_mujoco", "truth_vs_mujoco", arrays.get("truth_vs_mujoco/diverged_at"))):
+            if f"{prefix}/per_ic_log" not in arrays:
+                continue
+            is_floor = metric != "truth_vs_mujoco"
+            summary += _summary_rows(scene, "ground truth", 0, metric, arrays, meta, prefix, diverged, value=floor_ok or not is_floor)
+            if floor_ok or not is_floor:
+                curves += _curve_rows(scene, "ground truth", 0, metric, arrays, meta, prefix)
+        if floor_ok and f"{FLOOR}/node_rms_error/per_ic_log" in arrays:
+            floor_rms[scene] = metrics.summarise(arrays[f"{FLOOR}/node_rms_error/per_ic_log"])[0]
+    rows = [(scene, REST, 0, arrays, meta, f"{REST_PREFIX}/", arrays.get(f"{REST_PREFIX}/diverged_at")) for scene, (arrays, meta) in truths.items()]
+    rows += [(pair.scene, pair.job.label, pair.job.seed, arrays, meta, "", arrays["diverged_at"]) for pair, (arrays, meta) in pairs]
+    for scene, model, seed, arrays, meta, prefix, diverged in rows:
         for metric in METRICS:
-            summary += _summary_rows(pair.scene, pair.job.label, pair.job.seed, metric, arrays, meta, metric, arrays["diverged_at"])
-            curves += _curve_rows(pair.scene, pair.job.label, pair.job.seed, metric, arrays, meta, metric)
+            if f"{prefix}{metric}/per_ic_log" not in arrays:
+                continue
+            summary += _summary_rows(scene, model, seed, metric, arrays, meta, prefix + metric, diverged)
+            curves += _curve_rows(scene, model, seed, metric, arrays, meta, prefix + metric)
+            if metric == "node_rms_error" and scene in floor_rms:
+                ratio = metrics.summarise(arrays[f"{prefix}{metric}/per_ic_log"])[0] / floor_rms[scene]
+                summary.append(dict(scene=scene, model=model, seed=seed, metric=metric, **_env_columns(meta), statistic="chaos_floor_ratio", value=ratio))
     return pd.DataFrame(summary), pd.DataFrame(curves)
 
 
@@ -100,32 +135,59 @@ def _interval(row: dict) -> str:
         text += f" [{_fmt(row['ci_low'])}, {_fmt(row['ci_high'])}]"
     if math.isfinite(row.get("diverged", float("nan"))) and row["diverged"] > 0:
         text += f" ({int(row['diverged'])} diverged, first at {row['first_divergence_s']:.3g} s)"
+    if math.isfinite(row.get("chaos_floor_ratio", float("nan"))):
+        text += f", {row['chaos_floor_ratio']:.3g}x floor"
     return text
 
 
+def _truth_cell(row: dict, truth_metric: str) -> str:
+    """A scene-level reference: its value and any divergence, without an interval; a
+    chaos floor whose perturbed run diverged is no floor, and says so instead."""
+    if truth_metric in (FLOOR, FLOOR_RMS) and row.get("diverged", 0) > 0:
+        return f"diverged ({int(row['diverged'])} of {int(row['initial_conditions'])} perturbed runs, first at {row['first_divergence_s']:.3g} s)"
+    return _interval({k: v for k, v in row.items() if k != "ci_low"})
+
+
+# Scene-level columns beside each metric's table: the chaos floor is a position error
+# (it has no place beside energy errors), and the rollout error also shows how far the
+# two ground truths are apart.
+TRUTH_COLUMNS = {
+    "rollout_error": (FLOOR, "truth_vs_mujoco"),
+    "energy_error": (),
+    "rollout_error_vs_mujoco": (FLOOR,),
+    "node_rms_error": (FLOOR_RMS,),
+}
+TRUTH_NAMES = {FLOOR: "chaos floor", FLOOR_RMS: "chaos floor", "truth_vs_mujoco": "Lagrangian vs MuJoCo"}
+
+
 def summary_markdown(summary, metric: str) -> str:
-    """A markdown table: scene rows, model columns, `gmean [95% interval]` cells, and
-    the scene's chaos floor (and, for the rollout error, Lagrangian-vs-MuJoCo) beside."""
+    """A markdown table: scene rows, model columns (the rest baseline last), `gmean
+    [95% interval]` cells, and the scene's chaos floor (and, for the rollout error,
+    Lagrangian-vs-MuJoCo) beside. A record that exists but lacks the metric (written
+    before it was computed) shows "not computed", never a number."""
     if summary.empty:
         return "(no results)\n"
     wide = summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
-    models = [m for m in wide["model"].unique() if m != "ground truth"]
+    models = [m for m in wide["model"].unique() if m not in ("ground truth", REST)]
     models.sort(key=lambda m: (MODEL_ORDER.index(m.split()[0]) if m.split()[0] in MODEL_ORDER else 9, m))
+    models.append(REST)
     scenes = [s for s in TRANSFER_SCENES + ("chain4-varied", "chain4-drag") if s in set(wide["scene"])]
-    # The chaos floor is a position error: it has no place beside energy errors.
-    floors = [] if metric == "energy_error" else ["chaos_floor"]
-    truth_metrics = floors + (["truth_vs_mujoco"] if metric == "rollout_error" else [])
-    extra = [{"chaos_floor": "chaos floor", "truth_vs_mujoco": "Lagrangian vs MuJoCo"}[m] for m in truth_metrics]
+    # Which records exist: a model with any metric on a scene; the rest baseline and
+    # the scene-level columns wherever the scene's ground-truth record does.
+    present = {(scene, "ground truth" if model == REST else model) for scene, model in zip(wide["scene"], wide["model"])}
+    truth_metrics = TRUTH_COLUMNS[metric]
+    extra = [TRUTH_NAMES[m] for m in truth_metrics]
     lines = ["| scene | " + " | ".join(models + extra) + " |", "|---" * (len(models) + len(extra) + 1) + "|"]
     for scene in scenes:
         cells = []
         for model in models:
             match = wide[(wide.scene == scene) & (wide.model == model) & (wide.metric == metric)]
-            cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "")
+            record = (scene, "ground truth" if model == REST else model) in present
+            cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "not computed" if record else "")
         for truth_metric in truth_metrics:
             match = wide[(wide.scene == scene) & (wide.model == "ground truth") & (wide.metric == truth_metric)]
-            # The value and any divergence, without an interval (a scene-level reference).
-            cells.append(_interval({k: v for k, v in match.iloc[0].to_dict().items() if k != "ci_low"}) if len(match) else "")
+            cells.append(_truth_cell(match.iloc[0].to_dict(), truth_metric) if len(match) else
+                         "not computed" if (scene, "ground truth") in present else "")
         lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -343,6 +405,12 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         f"errors clipped to [{metrics.ERROR_FLOOR:g}, 1]; a rollout counts as diverged at the first frame whose state is non-finite, "
         f"whose true energy is {metrics.EXPLOSION_FACTOR:g} energy scales from the initial one, or where a node moved {metrics.EXPLOSION_FACTOR:g} "
         "structure sizes (plus a free fall's reach) from its start (`lgnn.metrics`, the rule that stops every engine): error 1 from then on, and the cell says when.",
+        "- Per-node RMS position error `sqrt(mean over nodes |q_hat - q|^2)` (length units), beside the paper's normalised error, which "
+        "shrinks as a structure grows: the same statistics; a diverged frame counts as the divergence rule's reach "
+        f"({metrics.EXPLOSION_FACTOR:g} structure sizes), which also caps it; `Nx floor` is its ratio to the chaos floor's RMS error on the scene.",
+        "- `rest`: the rest baseline, the initial state held (`lgnn.metrics.rest_rollouts`), scored like a model: its errors are the truth's own "
+        "displacement from its start, the bar any model must clear. The chaos floor is not given (\"diverged\") on a scene where a "
+        "perturbed run diverged: it is then no floor. \"not computed\": a record written before that metric existed.",
         "",
         "## Training",
         "",
@@ -351,6 +419,9 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "## Rollout error against the Lagrangian ground truth",
         "",
         summary_markdown(summary, "rollout_error"),
+        "## Per-node RMS position error against the Lagrangian ground truth",
+        "",
+        summary_markdown(summary, "node_rms_error"),
         "## Energy error",
         "",
         summary_markdown(summary, "energy_error"),

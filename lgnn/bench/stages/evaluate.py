@@ -3,17 +3,21 @@
 `evaluate_scene` writes a scene's ground-truth record: the Lagrangian ground truth
 (RK4 with projection, the same integrator and step as the models), its chaos floor
 (initial positions perturbed by `floor_perturbation`, projected back onto the
-constraints) and MuJoCo C (RK4 at `mujoco_dt`, frames at the same times).
+constraints), MuJoCo C (RK4 at `mujoco_dt`, frames at the same times), and the rest
+baseline (the initial state held: `lgnn.metrics.rest_rollouts`), scored as a model is.
 `evaluate_pair` writes a (model, scene) record: the model's rollouts from the same
-initial conditions. Per frame (t > 0) and initial condition: rollout error
-`||q_hat - q|| / (||q_hat|| + ||q||)` over all node coordinates, energy error (the same
-formula on the scene's true Hamiltonian of both trajectories), and the rollout error
-against MuJoCo's trajectory (`lgnn.metrics`). Errors are clipped to [1e-16, 1] (1 is
-the metric's maximum; 1e-16 keeps an exact match from dominating a geometric mean). A
-rollout *diverges* at the first frame the one divergence rule of `lgnn.metrics` flags
-(non-finite, true energy or a node's reach beyond 10 times what the scene allows), the
-rule that stops every engine; from that frame on its errors count as 1 and the
-divergence time is recorded.
+initial conditions. Per frame (t > 0) and initial condition (`lgnn.metrics.
+score_rollouts`): rollout error `||q_hat - q|| / (||q_hat|| + ||q||)` over all node
+coordinates, energy error (the same formula on the scene's true Hamiltonian of both
+trajectories), per-node RMS position error `sqrt(mean over nodes |q_hat - q|^2)`, and
+the rollout error against MuJoCo's trajectory. The relative errors are clipped to
+[1e-16, 1] (1 is their maximum; 1e-16 keeps an exact match from dominating a geometric
+mean). A rollout *diverges* at the first frame the one divergence rule of
+`lgnn.metrics` flags (non-finite, true energy or a node's reach beyond 10 times what
+the scene allows), the rule that stops every engine; from that frame on its errors
+count as their maximum (1; for the RMS error the divergence rule's reach) and the
+divergence time is recorded. The chaos floor's divergence is recorded the same way
+(the report then gives no floor).
 
 Keys: a ground-truth record depends on the scene's content and the profile's
 `EvaluateSettings` as that scene uses them (`truth_key`); a pair record on that and the
@@ -43,8 +47,16 @@ from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models, train
 from lgnn.scene import Scene, State, get_scene, is_pinned_chain, sample_initial_states, scene_to_dict
 
-# Metrics recorded per frame and initial condition.
-METRICS = ("rollout_error", "energy_error", "rollout_error_vs_mujoco")
+# Metrics recorded per frame and initial condition, for a model and the rest baseline.
+METRICS = ("rollout_error", "energy_error", "rollout_error_vs_mujoco", "node_rms_error")
+# What the chaos floor records (a position error only: energy is not its business).
+FLOOR_METRICS = ("rollout_error", "node_rms_error")
+# Where the ground-truth record keeps the rest baseline's arrays: `rest/<metric>/...`.
+REST = "rest"
+# Arrays that records written before the rest baseline and the RMS error lack: such a
+# record is still read by the report ("not computed") but recomputed by the stage.
+_TRUTH_NEEDS = (f"{REST}/node_rms_error/per_ic_log", "chaos_floor/node_rms_error/per_ic_log")
+_PAIR_NEEDS = ("node_rms_error/per_ic_log",)
 # Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s.
 SNAPSHOT_DT = 0.01
 
@@ -68,8 +80,11 @@ def pair_key(profile: Profile, pair: Pair, checkpoint: Path) -> str:
 
 
 @functools.lru_cache(maxsize=2)
-def _ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> dict:
-    """In-memory ground truth of a scene's evaluation (not stored: large, cheap to redo)."""
+def ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> dict:
+    """In-memory ground truth of a scene's evaluation (not stored: large, cheap to
+    redo): `q`, `qd` (C, F, N, D) and true `energy` (C, F) of the Lagrangian ground truth,
+    the chaos floor's `q_floor`, `qd_floor` (scored, divergence included, by
+    `evaluate_scene`), MuJoCo's `q_mujoco`, the initial `states` and timings."""
     from lgnn.engines import mujoco as lm
 
     settings = profile.evaluate
@@ -90,14 +105,8 @@ def _ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> d
     q_mj, qd_mj = lm.rollout(scene, mj_config, states, threads=os.cpu_count() or 1)
     mujoco_s = time.perf_counter() - start
     _check_reference(scene, mj_config, "MuJoCo reference", q_mj, qd_mj, metrics.true_energies(scene, q_mj, qd_mj))
-    floor_diverged = _divergence(scene, config, q_floor, qd_floor, metrics.true_energies(scene, q_floor, qd_floor))
-    return dict(q=q, qd=qd, energy=energy, q_floor=q_floor, floor_diverged=floor_diverged, q_mujoco=q_mj, states=states,
+    return dict(q=q, qd=qd, energy=energy, q_floor=q_floor, qd_floor=qd_floor, q_mujoco=q_mj, states=states,
                 compile_s=compile_s, run_s=run_s, mujoco_s=mujoco_s)
-
-
-def _metric_frames(diverged: np.ndarray) -> np.ndarray:
-    """Divergence frame indices (C,) shifted to the metric arrays, which exclude t = 0."""
-    return np.where(diverged > 0, diverged - 1, diverged)
 
 
 def _divergence(scene: Scene, config: SimulationConfig, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> np.ndarray:
@@ -128,20 +137,39 @@ def _metric_arrays(prefix: str, errors: np.ndarray) -> dict:
     return {f"{prefix}/{k}": v for k, v in stats.items()}
 
 
+def _scores(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth: dict) -> tuple[dict, np.ndarray]:
+    """`({metric: clean errors (C, F - 1)} for every metric of METRICS, diverged (C,))`
+    of trajectories `q`, `qd` (C, F, N, D) against the scene's ground truth."""
+    t = np.arange(q.shape[1]) * profile.evaluate.frame_dt
+    scores, diverged = metrics.score_rollouts(scene, t, q, qd, truth["q"], truth["energy"])
+    scores["rollout_error_vs_mujoco"] = metrics.clean_errors(metrics.relative_error(q, truth["q_mujoco"], 2), diverged)[:, 1:]
+    return scores, diverged
+
+
+def _has(record: tuple[dict, dict] | None, names: tuple[str, ...]) -> bool:
+    return record is not None and all(name in record[0] for name in names)
+
+
 def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool = True) -> Path:
     """The ground-truth record of a scene: chaos floor and Lagrangian-vs-MuJoCo errors."""
     path, key = Layout(out).truth_record(scene_name), truth_key(profile, scene_name)
-    if store.load(path, key) is not None:
+    if _has(store.load(path, key), _TRUTH_NEEDS):
         return path
-    truth = _ground_truth(profile, scene_name, progress)
+    truth = ground_truth(profile, scene_name, progress)
+    scene = get_scene(scene_name)
     frame_dt = profile.evaluate.frame_dt
     none = np.full(len(truth["q"]), -1)
-    floor_diverged = truth["floor_diverged"]
+    floor, floor_diverged = _scores(profile, scene, truth["q_floor"], truth["qd_floor"], truth)
+    rest, rest_diverged = _scores(profile, scene, *metrics.rest_rollouts(truth["q"], truth["qd"]), truth)
     arrays = {
         "t": np.arange(1, truth["q"].shape[1]) * frame_dt,
-        **_metric_arrays("chaos_floor", metrics.clean_errors(metrics.relative_error(truth["q_floor"], truth["q"], 2)[:, 1:], _metric_frames(floor_diverged))),
+        # The chaos floor's rollout error keeps its first name (`chaos_floor/gmean`, ...).
+        **_metric_arrays("chaos_floor", floor["rollout_error"]),
+        **_metric_arrays("chaos_floor/node_rms_error", floor["node_rms_error"]),
         "chaos_floor/diverged_at": np.where(floor_diverged >= 0, floor_diverged * frame_dt, np.nan),
-        **_metric_arrays("truth_vs_mujoco", metrics.clean_errors(metrics.relative_error(truth["q"], truth["q_mujoco"], 2)[:, 1:], none)),
+        **{k: v for metric in METRICS for k, v in _metric_arrays(f"{REST}/{metric}", rest[metric]).items()},
+        f"{REST}/diverged_at": np.where(rest_diverged >= 0, rest_diverged * frame_dt, np.nan),
+        **_metric_arrays("truth_vs_mujoco", metrics.clean_errors(metrics.relative_error(truth["q"], truth["q_mujoco"], 2), none)[:, 1:]),
         "snapshot/truth": _snapshot(profile, truth["q"]),
         "snapshot/mujoco": _snapshot(profile, truth["q_mujoco"]),
         "mid_state": np.stack([truth["q"][0, truth["q"].shape[1] // 2], truth["qd"][0, truth["qd"].shape[1] // 2]]),
@@ -167,24 +195,20 @@ def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True
     if not checkpoint.exists():
         raise ConfigError(f"no checkpoint for {pair.job.name} at {checkpoint}: run the training stage first")
     path, key = layout.pair_record(pair), pair_key(profile, pair, checkpoint)
-    if store.load(path, key) is not None:
+    if _has(store.load(path, key), _PAIR_NEEDS):
         return path
     scene = get_scene(pair.scene)
     config = profile.evaluate.simulation(pair.scene)
-    truth = _ground_truth(profile, pair.scene, progress)
+    truth = ground_truth(profile, pair.scene, progress)
     log(f"evaluate {pair.job.label} on {pair.scene}: {len(truth['q'])} initial conditions")
     q, qd, compile_s, run_s = batched_rollouts(
         scene, config, _model_accel_factory(checkpoint, records.file_digest(checkpoint)), truth["states"], profile.evaluate.chunk,
         f"{pair.job.label} on {pair.scene}", progress
     )
-    energy = metrics.true_energies(scene, q, qd)
-    diverged = _divergence(scene, config, q, qd, energy)
-    after_t0 = _metric_frames(diverged)
+    scores, diverged = _scores(profile, scene, q, qd, truth)
     arrays = {
         "t": np.arange(1, q.shape[1]) * profile.evaluate.frame_dt,
-        **_metric_arrays("rollout_error", metrics.clean_errors(metrics.relative_error(q, truth["q"], 2)[:, 1:], after_t0)),
-        **_metric_arrays("energy_error", metrics.clean_errors(metrics.relative_error(energy, truth["energy"], 0)[:, 1:], after_t0)),
-        **_metric_arrays("rollout_error_vs_mujoco", metrics.clean_errors(metrics.relative_error(q, truth["q_mujoco"], 2)[:, 1:], after_t0)),
+        **{k: v for metric in METRICS for k, v in _metric_arrays(metric, scores[metric]).items()},
         "diverged_at": np.where(diverged >= 0, diverged * profile.evaluate.frame_dt, np.nan),
         "snapshot/model": _snapshot(profile, q),
     }
