@@ -32,6 +32,38 @@ def test_mass_matrix_symmetric_positive_semidefinite(name):
     assert eigenvalues.min() > -1e-10 * eigenvalues.max()
 
 
+def test_mass_matrix_of_a_pendulum_is_the_rods_at_its_angle():
+    """A rod of mass m, inertia I = m l^2 / 12 about its centre, at angle a from the
+    vertical: over its two ends' velocities `M = m/4 [[1, 1], [1, 1]] (x) 1 + I/l^2
+    [[1, -1], [-1, 1]] (x) t t^T`, t the unit normal to the rod (v_cm = mean of the
+    ends' velocities, omega = t . (v_1 - v_0) / l)."""
+    length, mass, angle = 1.7, 2.3, 0.4
+    scene = pendulum(angle, length, mass)
+    mass_m = np.asarray(physics.mass_matrix_fn(physics.lagrangian_fn(scene))(jnp.asarray(scene.nodes), jnp.zeros((2, 2))))
+    normal = np.array([np.cos(angle), np.sin(angle)])
+    expected = mass / 4 * np.kron(np.ones((2, 2)), np.eye(2)) + mass / 12 * np.kron([[1, -1], [-1, 1]], np.outer(normal, normal))
+    np.testing.assert_allclose(mass_m, expected, rtol=1e-13, atol=1e-15)
+
+
+def test_mass_matrix_of_an_l_shaped_double_pendulum():
+    """Unit rods (m = 1, I = 1/12): one hanging from the pin, one horizontal from its
+    end. The free nodes' blocks, by hand: node 1 sees both rods, `(1/4 + 1/4) 1 + 1/12
+    (e_x e_x^T + e_y e_y^T) = 7/12 1`; the pair couples through the second rod only,
+    `1/4 1 - 1/12 e_y e_y^T`; node 2, `1/4 1 + 1/12 e_y e_y^T`."""
+    scene = scene_from_dict({
+        "name": "double-pendulum", "nodes": [[0, 0], [0, -1], [1, -1]], "pinned": [0],
+        "links": [{"nodes": [0, 1], "mass": 1.0, "inertia": 1 / 12}, {"nodes": [1, 2], "mass": 1.0, "inertia": 1 / 12}],
+    })
+    mass_m = np.asarray(physics.mass_matrix_fn(physics.lagrangian_fn(scene))(jnp.asarray(scene.nodes), jnp.zeros((3, 2))))
+    expected = np.array([
+        [7 / 12, 0, 1 / 4, 0],
+        [0, 7 / 12, 0, 1 / 6],
+        [1 / 4, 0, 1 / 4, 0],
+        [0, 1 / 6, 0, 1 / 3],
+    ])
+    np.testing.assert_allclose(mass_m[2:, 2:], expected, rtol=1e-13, atol=1e-15)
+
+
 def test_kinetic_energy_is_quadratic_form_of_mass_matrix():
     scene = get_scene("chain4-varied")
     q, qd = random_state(scene, seed=3)
