@@ -12,6 +12,7 @@ chain4, one evaluation rollout chunk per model, with the functions the stages
 compiled (compile time is kept apart, in the records).
 """
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ from lgnn.bench import grid, store
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.bench.stages import train as train_stage
-from lgnn.learn import train
+from lgnn.learn import data, train
 from lgnn.scene import get_scene
 
 QUICK, FULL = grid.PROFILES["quick"], grid.PROFILES["full"]
@@ -36,6 +37,13 @@ TRUTH_AGREEMENT_DEFAULT = 1e-6
 # perturbed self-stressed states need dt <= 2.5e-5 (EvaluateSettings.scene_dts). The record
 # must then say when, rather than hold a floor.
 FLOOR_DIVERGES = {"T2", "T3"}
+# Training learns: the best validation MSE is at most this fraction of the untrained
+# model's on the same validation states (the quick profile takes 30 Adam steps).
+LEARNS = 0.75
+# Models whose quick-profile training does not learn yet (issue 13, item 1: LGNN's
+# validation MSE goes 205 untrained -> 509, 11864, 798, 2759, 31783, ... -> 399 in its 10
+# epochs). Strict: the test fails once it learns, so the entry is removed then.
+DOES_NOT_LEARN_YET = {"lgnn"}
 
 
 @pytest.fixture(scope="session")
@@ -71,16 +79,24 @@ def pytest_generate_tests(metafunc):
         metafunc.parametrize("mass_scene", profile.mass.scenes)
 
 
-def test_training(benchmark, record_rate, profile, out, job):
+def test_training(benchmark, record_rate, request, profile, out, job):
     path = train_stage.train_job(profile, job, out)
     state, meta = train.load_checkpoint(path)
     assert np.isfinite(state.best_val) and state.epoch >= 1
-    # The loss fell: the best validation error is below the first epoch's.
-    assert state.best_val <= state.history[0][2]
     run_epoch, steps = train_stage.timed_epoch_fn(profile, job, out)
     run_epoch()  # compiled already if this process trained; otherwise compile before timing
     benchmark.pedantic(run_epoch, rounds=3, iterations=1)
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
+    # Training learns: far below the untrained model (same initial parameters) on the
+    # same validation states. (Below its own first epoch would hold by construction.)
+    scene, (model, _) = get_scene(job.scene), train.load_model(path)
+    dataset = data.load_or_generate(dataclasses.replace(profile.training.data, scene=job.scene), store.Layout(out).datasets)
+    val = tuple(a[dataset.val] for a in (dataset.q, dataset.qd, dataset.qdd))
+    untrained = train.initial_state(model, dataclasses.replace(profile.training.train, seed=job.seed)).params
+    untrained_val = train.evaluate_fn(model, scene)(untrained, *val)
+    if job.model in DOES_NOT_LEARN_YET and profile is QUICK:
+        request.applymarker(pytest.mark.xfail(reason="issue 13 item 1: LGNN's early training blows up", strict=True))
+    assert state.best_val < LEARNS * untrained_val, f"best validation MSE {state.best_val:.3g}, untrained {untrained_val:.3g}"
 
 
 def test_ground_truth(profile, out, eval_scene):
@@ -94,16 +110,30 @@ def test_ground_truth(profile, out, eval_scene):
     else:
         assert not floor_diverged and 0 < floor < 1e-2, f"chaos floor {floor:.3g}"
     assert agreement < TRUTH_AGREEMENT.get(eval_scene, TRUTH_AGREEMENT_DEFAULT), f"Lagrangian vs MuJoCo {agreement:.3g}"
+    count = arrays["chaos_floor/per_ic_log"].shape[0]
+    assert arrays["chaos_floor/node_rms_error/per_ic_log"].shape == (count,)
+    for metric in evaluate.METRICS:
+        assert arrays[f"{evaluate.REST}/{metric}/per_ic_log"].shape == (count,), f"rest baseline's {metric}"
+    if profile is QUICK:  # (the full profile's ground truth takes minutes to redo)
+        # The rest baseline's errors are the truth's own displacement from its start,
+        # computed here independently of lgnn.metrics.
+        q = evaluate.ground_truth(profile, eval_scene, True)["q"]
+        logs = np.log(np.sqrt(np.mean(np.sum((q[:, 1:] - q[:, :1]) ** 2, axis=-1), axis=-1)))  # (C, F - 1)
+        np.testing.assert_allclose(arrays[f"{evaluate.REST}/node_rms_error/per_ic_log"], logs.mean(axis=1), rtol=1e-12)
+        np.testing.assert_allclose(arrays[f"{evaluate.REST}/node_rms_error/gmean"], np.exp(logs.mean(axis=0)), rtol=1e-12)
 
 
 def test_evaluation(profile, out, pair):
     arrays, meta = store.load(evaluate.evaluate_pair(profile, pair, out))
     count = len(evaluate.initial_states(profile, get_scene(pair.scene)).q)
     for metric in evaluate.METRICS:
-        assert arrays[f"{metric}/per_ic_log"].shape == (count,)
-        gmean = arrays[f"{metric}/gmean"]
-        assert np.all((gmean >= metrics.ERROR_FLOOR) & (gmean <= 1.0)), "errors are clipped to [1e-16, 1], never NaN"
+        assert arrays[f"{metric}/per_ic_log"].shape == (count,), metric
+        assert arrays[f"{metric}/gmean"].shape == arrays["t"].shape, metric
     assert arrays["diverged_at"].shape == (count,)
+    if pair.scene not in TRUTH_AGREEMENT:
+        # Where the two ground truths agree to 1e-6 or better, a model's error against
+        # each is the same (triangle inequality): the MuJoCo frames are aligned in time.
+        np.testing.assert_allclose(arrays["rollout_error_vs_mujoco/gmean"], arrays["rollout_error/gmean"], rtol=1e-3)
 
 
 def test_rollout_speed(benchmark, record_rate, profile, out, timed_pair):
@@ -135,11 +165,44 @@ def test_scaling(profile, out):
     assert all(np.isfinite(r["s_per_step"]) and r["s_per_step"] > 0 for r in rows)
 
 
+def _rod_mass_matrix(scene, q: np.ndarray) -> np.ndarray:
+    """The closed-form mass matrix (N*D, N*D) of a 2D scene's rods at positions `q`:
+    each rod adds `m/4 [[1, 1], [1, 1]] (x) 1 + I/l^2 [[1, -1], [-1, 1]] (x) t t^T` on its
+    ends, `t` its unit normal (tests/test_physics.py checks the formula by hand)."""
+    n, dim = q.shape
+    full = np.zeros((n * dim, n * dim))
+    for (i, j), m, inertia in zip(np.asarray(scene.edge_index), scene.masses, scene.inertias):
+        rod = q[i] - q[j]
+        normal = np.array([-rod[1], rod[0]]) / np.linalg.norm(rod)
+        block = m / 4 * np.kron(np.ones((2, 2)), np.eye(dim)) + inertia / (rod @ rod) * np.kron([[1, -1], [-1, 1]], np.outer(normal, normal))
+        idx = np.concatenate([np.arange(i * dim, (i + 1) * dim), np.arange(j * dim, (j + 1) * dim)])
+        full[np.ix_(idx, idx)] += block
+    return full
+
+
 def test_mass_matrix(profile, out, mass_scene):
     arrays, meta = store.load(mass.mass_matrices(profile, mass_scene, out))
-    true_m = arrays["true"]
-    np.testing.assert_allclose(true_m, true_m.T, atol=1e-12)
-    assert np.isfinite(arrays["learned"]).all() and np.isfinite(meta["percent_error"])
+    scene = get_scene(mass_scene)
+    free = np.setdiff1d(np.arange(scene.n_nodes), scene.pinned)
+    coords = (free[:, None] * scene.dim + np.arange(scene.dim)).reshape(-1)
+    # The true matrix is the rods' closed form at the state the stage analysed.
+    q = evaluate.load_truth(profile, mass_scene, out)[0]["mid_state"][0]
+    np.testing.assert_allclose(arrays["true"], _rod_mass_matrix(scene, q)[np.ix_(coords, coords)], rtol=1e-12, atol=1e-14)
+    # The learned matrix is banded: nodes farther apart in the graph than one link plus
+    # two message-passing hops from each end share no energy term (LGNN's default,
+    # no message passing: linked pairs only), so their block is zero to round-off.
+    model, _ = train.load_model(store.Layout(out).checkpoint(grid.lgnn_job(profile)))
+    hops = np.full((scene.n_nodes, scene.n_nodes), scene.n_nodes)
+    np.fill_diagonal(hops, 0)
+    for i, j in np.asarray(scene.edge_index):
+        hops[i, j] = hops[j, i] = 1
+    for k in range(scene.n_nodes):  # Floyd-Warshall: graph distances
+        hops = np.minimum(hops, hops[:, k:k + 1] + hops[k:k + 1, :])
+    far = np.kron(hops[np.ix_(free, free)] > 2 * model.message_passing + 1, np.ones((scene.dim, scene.dim), bool))
+    learned = arrays["learned"]
+    assert far.any() and np.isfinite(learned).all()
+    assert np.max(np.abs(learned[far])) <= 1e-12 * np.max(np.abs(learned)), "coupling between unlinked nodes"
+    assert np.max(np.abs(learned[~far])) > 0
 
 
 def test_report(profile, out):
