@@ -20,6 +20,11 @@ per step size:
   difference, flagged, where they do not shrink at a sane, steady order
   (`not-converged`: the raw difference is then a lower bound on the error) or a run
   diverged (`diverged`);
+- `relative_difference`, `relative_estimate`: the same in the benchmark's metric
+  (`lgnn.metrics.relative_error` of all node positions, max over frames), the estimate
+  scaled from the difference by the same factor, to set beside the models' errors;
+- `displacement`: the largest distance of a node from its initial position over the
+  run (on a structure whose exact motion is rest, the reference's error itself);
 - `energy_drift`: `lgnn.metrics.energy_drift` of the run (max |E - E0| / energy
   scale), `energy_change`: its signed last-frame change (E(T) - E0) / energy scale
   (a loss at every step size is a dissipative scheme, not round-off).
@@ -43,7 +48,7 @@ from lgnn.errors import SimulationError
 from lgnn.scene import Scene, is_pinned_chain
 
 COLUMNS = ("scene", "integrator", "horizon", "dt", "steps", "difference", "order", "error_estimate", "verdict",
-           "energy_drift", "energy_change", "wall_s", "note")
+           "relative_difference", "relative_estimate", "displacement", "energy_drift", "energy_change", "wall_s", "note")
 VERDICTS = ("asymptotic", "low-order", "round-off", "resolved", "unassessed", "not-converged", "diverged")
 # Verdicts whose error estimate a reader can trust as an estimate (not a lower bound).
 TRUSTED = ("asymptotic", "low-order", "round-off", "resolved")
@@ -132,6 +137,12 @@ def _node_distance(a: Trajectory, b: Trajectory) -> float:
     return float(np.max(np.linalg.norm(a.q - b.q, axis=-1)))
 
 
+def _relative_difference(a: Trajectory, b: Trajectory) -> float:
+    if a is None or b is None:
+        return math.nan
+    return float(np.max(metrics.relative_error(a.q, b.q, 2)[1:]))
+
+
 def reference_convergence(scene: Scene, config: SimulationConfig, halvings: int = 3,
                           log: Callable[[str], None] = lambda line: None) -> list[dict]:
     """Rows (module docstring) of `halvings + 1` runs from the scene's initial state at
@@ -153,14 +164,18 @@ def reference_convergence(scene: Scene, config: SimulationConfig, halvings: int 
         scale = metrics.energy_scale(scene, scene.initial_state)
         drift = metrics.energy_drift(scene, trajectory) if trajectory is not None else math.nan
         change = float(trajectory.energy[-1] - trajectory.energy[0]) / scale if trajectory is not None else math.nan
+        displacement = float(np.max(np.linalg.norm(trajectory.q - trajectory.q[0], axis=-1))) if trajectory is not None else math.nan
         rows.append(dict(scene=scene.name, integrator=config.integrator, horizon=config.duration, dt=run_config.dt, steps=steps,
-                         energy_drift=drift, energy_change=change, wall_s=wall, note=note))
+                         displacement=displacement, energy_drift=drift, energy_change=change, wall_s=wall, note=note))
         log(f"{scene.name} dt {run_config.dt:.4g}: {steps} steps in {wall:.1f} s, energy drift {drift:.2e}{' ' + note if note else ''}")
     differences = [_node_distance(a, b) for a, b in zip(runs, runs[1:])]
     floors = [roundoff_floor(scene, row["steps"]) for row in rows[1:]]
     assessments = assess(differences, floors, INTEGRATOR_ORDERS[config.integrator])
-    for row, d, a in zip(rows, differences + [math.nan], assessments + [None]):
-        row.update(difference=d, order=a.order if a else math.nan, error_estimate=a.error_estimate if a else math.nan,
+    relative = [_relative_difference(a, b) for a, b in zip(runs, runs[1:])] + [math.nan]
+    for row, d, r, a in zip(rows, differences + [math.nan], relative, assessments + [None]):
+        estimate = a.error_estimate if a else math.nan
+        row.update(difference=d, order=a.order if a else math.nan, error_estimate=estimate, relative_difference=r,
+                   relative_estimate=r * estimate / d if d > 0 else math.nan,
                    verdict=a.verdict if a else "", note="; ".join(n for n in (row["note"], a.note if a else "") if n))
     return rows
 
@@ -175,7 +190,8 @@ def summary(rows: Sequence[dict]) -> list[str]:
         seen.add(row["scene"])
         bound = "" if row["verdict"] in TRUSTED else " (a lower bound)"
         lines.append(f"{row['scene']}: error of the reference at dt {row['dt']:g} over {row['horizon']:g} s ~ "
-                     f"{row['error_estimate']:.2g}{bound}, observed order {row['order']:.2f}: {row['verdict']}")
+                     f"{row['error_estimate']:.2g}{bound} (relative {row['relative_estimate']:.2g}), observed order {row['order']:.2f}: "
+                     f"{row['verdict']}")
     return lines
 
 
@@ -189,6 +205,9 @@ NOTES = (
     "still Richardson); round-off = the difference is at round-off (3 eps x size x sqrt(steps)); resolved = the next "
     "difference is; unassessed = no order to judge by; not-converged = the differences do not shrink at a sane, steady "
     "order: error_estimate is the raw difference, a lower bound; diverged = a run stopped (lgnn.metrics divergence rule)",
+    "relative_difference, relative_estimate: the same in the benchmark's metric (||a - b|| / (||a|| + ||b||) over all "
+    "nodes, max over frames), to compare with the models' rollout errors",
+    "displacement = max node distance from the initial state over the run",
     "energy_drift = max |E - E0| / energy scale (lgnn.metrics.energy_drift); energy_change = (E(T) - E0) / energy scale, signed",
 )
 
