@@ -185,9 +185,11 @@ def _cmd_convergence(args) -> None:
     from lgnn.bench import convergence
     from lgnn.bench.grid import get_profile
     from lgnn.files import check_writable
+    from lgnn.provenance import environment
     from lgnn.scene import BUILTIN_SCENES, get_scene
 
     check_writable(f"{args.out_dir}/convergence.md")
+    environment()  # the commit the run starts at, before any edit during a long run
     evaluate = get_profile("full").evaluate
     log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     rows = []

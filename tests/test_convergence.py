@@ -69,3 +69,19 @@ def test_assess(differences, verdicts):
             assert a.error_estimate == d  # the raw difference, a lower bound
         if a.verdict == "asymptotic" and math.isfinite(a.order):
             assert a.error_estimate == pytest.approx(d / 15, rel=0.05)
+
+
+def test_rigidity_of_the_structures():
+    """T2 is prestress-stable (one self-stress, ropes in tension and the rod in
+    compression, definite on all its flexes): rigid, its exact motion is rest. T3 is
+    singular too, with flexes no self-stress resists (a mechanism that can move). A
+    chain is regular: no self-stress, every flex free."""
+    t2 = convergence.rigidity(get_scene("T2"))
+    assert (t2.self_stresses, t2.unresisted, t2.prestress_stable) == (1, 0, True) and t2.flexes > 30
+    t3 = convergence.rigidity(get_scene("T3"))
+    assert t3.self_stresses == 4 and 0 < t3.unresisted < t3.flexes
+    chain = convergence.rigidity(get_scene("chain4"))
+    assert (chain.flexes, chain.self_stresses, chain.unresisted) == (4, 0, 4) and chain.describe() == ""
+    # A rope pulled exactly taut between two pins: one self-stress, rigid.
+    taut = convergence.rigidity(get_scene("taut4-exact"))
+    assert (taut.self_stresses, taut.unresisted, taut.prestress_stable) == (1, 0, True)

@@ -131,6 +131,77 @@ def assess(differences: Sequence[float], floors: Sequence[float], integrator_ord
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class Rigidity:
+    """First- and second-order rigidity of a scene at its initial configuration.
+
+    `flexes`: motions of the free nodes that keep every link length to first order
+    (the null space of the constraint Jacobian); `self_stresses`: link tensions in
+    equilibrium with no load (its left null space), where the inextensible model is
+    singular; `unresisted`: flexes that no self-stress resists at second order (`v`
+    with `V^T Omega(w) V v = 0` for every self-stress `w`, `Omega` the stress matrix):
+    a mechanism that can move. `prestress_stable`: a single self-stress whose stress
+    matrix is definite on every flex, which makes the structure rigid (the only motion
+    of the inextensible model is rest, whatever the load); None where several
+    self-stresses leave it undecided.
+    """
+
+    flexes: int
+    self_stresses: int
+    unresisted: int
+    prestress_stable: bool | None
+
+    def describe(self) -> str:
+        if self.self_stresses == 0:
+            return ""
+        text = (f"singular at rest: {self.self_stresses} self-stress(es), {self.flexes} first-order flexes of which "
+                f"{self.unresisted} no self-stress resists")
+        if self.prestress_stable:
+            text += "; prestress-stable, so rigid: the exact motion of the inextensible model is rest and the displacement is the reference's error"
+        return text
+
+
+def rigidity(scene: Scene) -> Rigidity:
+    """`Rigidity` of `scene` at its initial configuration (NumPy SVDs; free nodes only,
+    links between two pinned nodes left out)."""
+    import scipy.linalg
+
+    q, (n, d) = np.asarray(scene.nodes, np.float64), (scene.n_nodes, scene.dim)
+    pinned = set(scene.pinned)
+    free = np.flatnonzero(np.repeat([k not in pinned for k in range(n)], d))
+    links = [(int(i), int(j)) for i, j in scene.edge_index if not (i in pinned and j in pinned)]
+    jac, stress_basis = np.zeros((len(links), n * d)), []
+    for row, (i, j) in enumerate(links):
+        unit = (q[i] - q[j]) / np.linalg.norm(q[i] - q[j])
+        jac[row, i * d:(i + 1) * d] += unit
+        jac[row, j * d:(j + 1) * d] -= unit
+    jac = jac[:, free]
+    flexes = scipy.linalg.null_space(jac)
+    stresses = scipy.linalg.null_space(jac.T)
+
+    def stress_matrix(w):
+        omega = np.zeros((n, n))
+        for wk, (i, j) in zip(w, links):
+            coefficient = wk / np.linalg.norm(q[i] - q[j])
+            omega[i, i] += coefficient
+            omega[j, j] += coefficient
+            omega[i, j] -= coefficient
+            omega[j, i] -= coefficient
+        return flexes.T @ np.kron(omega, np.eye(d))[np.ix_(free, free)] @ flexes
+
+    blocks = [stress_matrix(w) for w in stresses.T]
+    if not blocks or flexes.shape[1] == 0:
+        return Rigidity(flexes.shape[1], stresses.shape[1], flexes.shape[1] if not blocks else 0, None)
+    singular_values = np.linalg.svd(np.vstack(blocks), compute_uv=False)
+    unresisted = int(np.sum(singular_values < 1e-9 * singular_values.max()))
+    stable = None
+    if len(blocks) == 1:
+        eigenvalues = np.linalg.eigvalsh(blocks[0])
+        scale = np.abs(eigenvalues).max()
+        stable = bool(eigenvalues.min() > 1e-9 * scale or eigenvalues.max() < -1e-9 * scale)
+    return Rigidity(flexes.shape[1], stresses.shape[1], unresisted, stable)
+
+
 def _node_distance(a: Trajectory, b: Trajectory) -> float:
     if a is None or b is None:
         return math.nan
@@ -168,6 +239,7 @@ def reference_convergence(scene: Scene, config: SimulationConfig, halvings: int 
         rows.append(dict(scene=scene.name, integrator=config.integrator, horizon=config.duration, dt=run_config.dt, steps=steps,
                          displacement=displacement, energy_drift=drift, energy_change=change, wall_s=wall, note=note))
         log(f"{scene.name} dt {run_config.dt:.4g}: {steps} steps in {wall:.1f} s, energy drift {drift:.2e}{' ' + note if note else ''}")
+    rows[0]["note"] = "; ".join(n for n in (rigidity(scene).describe(), rows[0]["note"]) if n)
     differences = [_node_distance(a, b) for a, b in zip(runs, runs[1:])]
     floors = [roundoff_floor(scene, row["steps"]) for row in rows[1:]]
     assessments = assess(differences, floors, INTEGRATOR_ORDERS[config.integrator])
@@ -180,6 +252,15 @@ def reference_convergence(scene: Scene, config: SimulationConfig, halvings: int 
     return rows
 
 
+def _ranking(row: dict) -> str:
+    if "prestress-stable" in row["note"]:
+        return (f"; NOT RANKABLE as dynamics: the exact motion is rest, so a model that never moves is exact, and the reference "
+                f"itself moves {row['displacement']:.2g} from rest")
+    if row["verdict"] not in TRUSTED:
+        return "; NOT RANKABLE: the reference's error at the benchmark's step is unknown (only bounded below)"
+    return ""
+
+
 def summary(rows: Sequence[dict]) -> list[str]:
     """One line per scene: the estimated error and verdict of its first (coarsest: the
     benchmark's) step."""
@@ -189,9 +270,10 @@ def summary(rows: Sequence[dict]) -> list[str]:
             continue
         seen.add(row["scene"])
         bound = "" if row["verdict"] in TRUSTED else " (a lower bound)"
-        lines.append(f"{row['scene']}: error of the reference at dt {row['dt']:g} over {row['horizon']:g} s ~ "
+        singular = f" ({row['note'].split(';')[0]})" if row["note"].startswith("singular") else ""
+        lines.append(f"{row['scene']}{singular}: error of the reference at dt {row['dt']:g} over {row['horizon']:g} s ~ "
                      f"{row['error_estimate']:.2g}{bound} (relative {row['relative_estimate']:.2g}), observed order {row['order']:.2f}: "
-                     f"{row['verdict']}")
+                     f"{row['verdict']}{_ranking(row)}")
     return lines
 
 
