@@ -4,6 +4,8 @@ as the module says."""
 
 import math
 
+import numpy as np
+
 import pytest
 
 from lgnn.bench import convergence
@@ -85,3 +87,20 @@ def test_rigidity_of_the_structures():
     # A rope pulled exactly taut between two pins: one self-stress, rigid.
     taut = convergence.rigidity(get_scene("taut4-exact"))
     assert (taut.self_stresses, taut.unresisted, taut.prestress_stable) == (1, 0, True)
+
+
+@pytest.mark.parametrize("name", ["T2", "T3"])
+def test_slackened_structure_is_regular(name):
+    """The slackened T2/T3 (catalogue.slackened): ropes 0.1 % longer, rods unchanged, the
+    start on the new lengths, a few centimetres from the taut one, and no self-stress
+    (so the inextensible model is regular there; results/convergence.md: order 4)."""
+    from lgnn.scene.catalogue import ROPE_SLACK
+
+    taut, slack = get_scene(name), get_scene(f"{name}-slack")
+    ropes = np.array([t == "link" for t in taut.link_types])
+    np.testing.assert_allclose(slack.lengths[ropes], taut.lengths[ropes] * (1 + ROPE_SLACK), rtol=1e-14)
+    np.testing.assert_array_equal(slack.lengths[~ropes], taut.lengths[~ropes])
+    i, j = slack.edge_index.T
+    np.testing.assert_allclose(np.linalg.norm(slack.nodes[i] - slack.nodes[j], axis=-1), slack.lengths, rtol=0, atol=1e-12)
+    assert 1e-3 < np.max(np.abs(slack.nodes - taut.nodes)) < 0.1
+    assert convergence.rigidity(slack).self_stresses == 0
