@@ -193,7 +193,7 @@ def _cmd_convergence(args) -> None:
     evaluate = get_profile("full").evaluate
     log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     rows = []
-    for name in args.scenes or list(BUILTIN_SCENES):
+    for name in args.scenes or list(BUILTIN_SCENES) + list(convergence.PROPOSED_SCENES):
         scene = get_scene(name)
         config = evaluate.simulation(scene.name)
         horizon = args.horizon or convergence.default_horizon(scene)
@@ -207,7 +207,7 @@ def _cmd_convergence(args) -> None:
 
 def _add_convergence_parser(commands) -> None:
     parser = commands.add_parser("convergence", help="measure the Lagrangian reference's convergence in dt on each scene")
-    parser.add_argument("scenes", nargs="*", help="built-in names or scene files (default: every built-in scene)")
+    parser.add_argument("scenes", nargs="*", help="built-in names or scene files (default: every built-in scene, then T2-slack and T3-slack)")
     parser.add_argument("--halvings", type=_positive_int, default=3, help="runs at dt, dt/2, ..., dt/2^halvings (default 3)")
     parser.add_argument("--dt", type=_positive_float, default=None, help="coarsest step (default: the full benchmark's step for the scene)")
     parser.add_argument("--horizon", type=_positive_float, default=None,
