@@ -181,6 +181,43 @@ def _add_mujoco_commands(commands) -> None:
     check.set_defaults(run=_cmd_crosscheck)
 
 
+def _cmd_convergence(args) -> None:
+    from lgnn.bench import convergence
+    from lgnn.bench.grid import get_profile
+    from lgnn.files import check_writable
+    from lgnn.provenance import environment
+    from lgnn.scene import BUILTIN_SCENES, get_scene
+
+    check_writable(f"{args.out_dir}/convergence.md")
+    environment()  # the commit the run starts at, before any edit during a long run
+    evaluate = get_profile("full").evaluate
+    log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
+    rows = []
+    for name in args.scenes or list(BUILTIN_SCENES) + list(convergence.PROPOSED_SCENES):
+        scene = get_scene(name)
+        config = evaluate.simulation(scene.name)
+        horizon = args.horizon or convergence.default_horizon(scene)
+        config = dataclasses.replace(config, dt=args.dt or config.dt, frame_dt=args.frame_dt, duration=horizon)
+        rows += convergence.reference_convergence(scene, config, args.halvings, log=log)
+    command = "lgnn " + " ".join(args.argv)
+    convergence.write_report(rows, f"{args.out_dir}/convergence.csv", f"{args.out_dir}/convergence.md", command)
+    print("\n".join(convergence.summary(rows)))
+    print(f"wrote {args.out_dir}/convergence.csv and .md")
+
+
+def _add_convergence_parser(commands) -> None:
+    parser = commands.add_parser("convergence", help="measure the Lagrangian reference's convergence in dt on each scene")
+    parser.add_argument("scenes", nargs="*", help="built-in names or scene files (default: every built-in scene, then T2-slack and T3-slack)")
+    parser.add_argument("--halvings", type=_positive_int, default=3, help="runs at dt, dt/2, ..., dt/2^halvings (default 3)")
+    parser.add_argument("--dt", type=_positive_float, default=None, help="coarsest step (default: the full benchmark's step for the scene)")
+    parser.add_argument("--horizon", type=_positive_float, default=None,
+                        help="simulated seconds (default: 1 s, 0.1 s on chain100 and the self-stressed or large scenes)")
+    parser.add_argument("--frame-dt", type=_positive_float, default=1e-3, help="frames compared every this many seconds (default 1e-3)")
+    parser.add_argument("--out-dir", default="results", help="output directory (default: results)")
+    parser.add_argument("--quiet", action="store_true", help="no per-run lines")
+    parser.set_defaults(run=_cmd_convergence)
+
+
 def _cmd_train(args) -> None:
     from pathlib import Path
 
@@ -368,6 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train_parser(commands)
     _add_benchmark_parser(commands)
     _add_stability_parser(commands)
+    _add_convergence_parser(commands)
     return parser
 
 

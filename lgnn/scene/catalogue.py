@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.errors import SceneError
-from lgnn.scene.schema import Scene, State, is_pinned_chain, load_scene_file, scene_from_dict
+from lgnn.scene.schema import Scene, State, is_pinned_chain, load_scene_file, scene_from_dict, scene_to_dict
 
 # Paper's chain sampler (authors' code): each link hangs at (0, -1) rotated by an
 # independent angle in [-15, 15] degrees, then the whole chain is rotated by +45
@@ -259,6 +259,44 @@ def double_pinned_chain(n_links: int = 4, sag: float = 0.5):
     )
 
 
+# Slack of the ropes of the slackened structures (a fraction of each rope link's length).
+ROPE_SLACK = 1e-3
+
+
+def slackened(scene: Scene, slack: float = ROPE_SLACK, seed: int = 0) -> Scene:
+    """`scene` with every rope link (type "link") `1 + slack` times longer, started from
+    a configuration that satisfies the new lengths: each free node lowered by
+    `sqrt(slack)` times a uniform factor in [0.5, 1] (seeded; generic, so no rope stays
+    straight), then Gauss-Newton (minimum-norm steps) back onto the lengths.
+
+    T2 and T3 start with straight ropes between pins: self-stressed, singular for the
+    inextensible model, whose reference does not converge in dt there
+    (`lgnn.bench.convergence`). With a little slack they hang off that singular
+    configuration (no self-stress) and their reference converges at RK4's order. Masses
+    and inertias are kept."""
+    data = scene_to_dict(scene)
+    lengths = np.array([link["length"] * (1 + slack if link["type"] == "link" else 1.0) for link in data["links"]])
+    edges, q = scene.edge_index, np.array(scene.nodes, np.float64)
+    free = np.ones(len(q), bool)
+    free[list(scene.pinned)] = False
+    q[free, 1] -= math.sqrt(slack) * np.random.default_rng(seed).uniform(0.5, 1.0, free.sum())
+    rows = np.arange(len(edges))
+    for _ in range(50):
+        r = q[edges[:, 0]] - q[edges[:, 1]]
+        phi = (np.sum(r * r, axis=1) - lengths**2) / (2 * lengths)
+        if np.max(np.abs(phi)) < 1e-15:
+            break
+        jac = np.zeros((len(edges), len(q), 2))
+        jac[rows, edges[:, 0]] = r / lengths[:, None]
+        jac[rows, edges[:, 1]] = -r / lengths[:, None]
+        q[free] += np.linalg.lstsq(jac[:, free].reshape(len(edges), -1), -phi, rcond=None)[0].reshape(-1, 2)
+    else:
+        raise SceneError(f"{scene.name}: no configuration found with the ropes {slack:g} slack")
+    for link, length in zip(data["links"], lengths):
+        link["length"] = float(length)
+    return scene_from_dict({**data, "name": f"{scene.name}-slack", "nodes": q.tolist()})
+
+
 HARD_SCENES: dict[str, BuiltinScene] = {
     entry.name: entry
     for entry in [
@@ -270,6 +308,8 @@ HARD_SCENES: dict[str, BuiltinScene] = {
         BuiltinScene("pendulum", "one rod pinned at one end, released at 0.3 rad", pendulum),
         BuiltinScene("free-triangle", "an unpinned spinning triangle (a free rigid body)", free_triangle),
         BuiltinScene("double-pinned", "4 links hanging between two pins (a loop through the ground)", double_pinned_chain),
+        BuiltinScene("T2-slack", "T2 with its ropes 0.1 % slack, hanging off the self-stressed start", lambda: slackened(paper_structure("T2"))),
+        BuiltinScene("T3-slack", "T3 with its ropes 0.1 % slack, hanging off the self-stressed start", lambda: slackened(paper_structure("T3"))),
     ]
 }
 
