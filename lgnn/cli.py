@@ -263,7 +263,7 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--model", required=True, choices=model_names())
     parser.add_argument("--scene", default="chain4", help="training scene (built-in name or JSON file)")
     parser.add_argument("--epochs", type=int, default=default.epochs, help="epoch budget (paper: 10000)")
-    parser.add_argument("--minutes", type=_positive_float, default=None, help="wall-clock budget (checked after each epoch)")
+    parser.add_argument("--minutes", type=_positive_float, default=None, help="optional wall-clock cap (checked after each epoch); the budget is --epochs")
     parser.add_argument("--patience", type=int, default=default.patience, help="early stopping: epochs without improvement")
     parser.add_argument("--lr", type=_positive_float, default=default.learning_rate)
     parser.add_argument("--batch-size", type=int, default=default.batch_size)

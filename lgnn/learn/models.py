@@ -281,7 +281,30 @@ def _init_lgnn(key, config: ModelConfig) -> dict:
     }
     params["kinetic"]["readout"] = _mlp(jax.random.fold_in(keys[0], 1), (latent, hidden, 1))
     params["potential"]["readout"] = _mlp(jax.random.fold_in(keys[1], 1), (latent, hidden, 1))
+    params["kinetic"] = _convex_start(params["kinetic"])
     return params
+
+
+def _convex_start(net: dict) -> dict:
+    """The kinetic network with every weight after the embeddings made non-negative.
+
+    Why: with the paper's random initialisation the learned mass matrix `d2T/dqd2` is
+    indefinite on the constraint tangent space (chain4, seeds 0-2: 45-100 % of the
+    training states, smallest |eigenvalue| ~1e-3 of the largest), so the Euler-Lagrange
+    solve returns accelerations up to 4e4 (targets are O(10)), gradient norms reach 1e9,
+    and Adam's first epochs swing by orders of magnitude (issue 13). Here each node's
+    embedding `squareplus(qd_i W + b)` is strictly convex in `qd_i` (squareplus is
+    convex; W has rank D), the edge embedding is convex in `qd` (`w` is linear in it),
+    and sums and squareplus with non-negative weights keep convexity: the initial `T`
+    is strictly convex in the velocities, so its mass matrix is positive definite
+    everywhere, on the tangent space included, for any number of message-passing
+    layers. Only the starting point changes (same architecture, same parameter
+    shapes; training may move weights below zero)."""
+
+    embeddings = {k: net[k] for k in ("node_embed", "edge_embed")}
+    rest = {k: v for k, v in net.items() if k not in embeddings}
+    nonnegative = jax.tree_util.tree_map_with_path(lambda path, leaf: jnp.abs(leaf) if path[-1].key == "w" else leaf, rest)
+    return {**embeddings, **nonnegative}
 
 
 def _lgnn_edge_energies(params: dict):
