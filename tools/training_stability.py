@@ -8,8 +8,10 @@ rollout error of the best parameters over 1 s of chain4 from the scene's own sta
 `lgnn.engines.lagrangian.simulate`; RK4 with projection at dt 1e-3 for both, as the
 benchmark's evaluation).
 
-    python tools/training_stability.py --seeds 0 1 2 --epochs 200
-    python tools/training_stability.py --seeds 0 --epochs 10 --legacy-optimiser
+    PYTHONPATH=. python tools/training_stability.py --seeds 0 1 2 --epochs 200
+    PYTHONPATH=. python tools/training_stability.py --seeds 0 --epochs 10 --legacy-optimiser
+
+(`PYTHONPATH=.`: this checkout's lgnn, not an editable install elsewhere.)
 
 `--legacy-optimiser`: the paper's plain Adam (no warm-up, decay or clipping).
 """
