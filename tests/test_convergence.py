@@ -40,7 +40,7 @@ def test_flags_a_bad_step(chain4_rows):
     row = chain4_rows[0]
     assert row["verdict"] == "diverged" and row["verdict"] not in convergence.TRUSTED
     assert math.isnan(row["error_estimate"]) and "exploded" in row["note"]
-    assert convergence.summary(chain4_rows)[0].endswith("diverged")
+    assert convergence.summary(chain4_rows)[0].endswith("diverged; NOT RANKABLE: a reference run diverged")
 
 
 FLOORS = [1e-14] * 4

@@ -259,6 +259,8 @@ def _ranking(row: dict) -> str:
     if "prestress-stable" in row["note"]:
         return (f"; NOT RANKABLE as dynamics: the exact motion is rest, so a model that never moves is exact, and the reference "
                 f"itself moves {row['displacement']:.2g} from rest")
+    if row["verdict"] == "diverged":
+        return "; NOT RANKABLE: a reference run diverged"
     if row["verdict"] not in TRUSTED:
         return "; NOT RANKABLE: the reference's error at the benchmark's step is unknown (only bounded below)"
     return ""
