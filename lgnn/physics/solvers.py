@@ -6,7 +6,7 @@ and `refine`s the solution against the exact system, which recovers the exact so
 (to round-off) wherever that exists and bounds it where it does not.
 
 - `solve_kkt`: the dense saddle-point system `[[M, A^T], [A, 0]] [a; lam] = [f; r]`
-  by LU, `-eps I` in the lower block. Nonsingular whenever `A` has full row rank and
+  by LU, `M` equilibrated by its mean diagonal and `-eps I` in the lower block. Nonsingular whenever `A` has full row rank and
   `M` is positive definite on the null space of `A`, so a singular rod mass matrix
   is no obstacle.
 - `regularised_spd_solve`: a symmetric positive semidefinite system (a Schur complement
@@ -86,7 +86,8 @@ def solve_kkt(mass: Array, jac: Array, force: Array, accel_rhs: Array) -> Array:
 
 def regularised_spd_solve(matrix: Array, rhs: Array) -> Array:
     """Cholesky solve of `(S + eps I) x = r`, refined against `S x = r`: exact at regular
-    configurations, bounded near singular ones (as `solve_kkt`). `matrix` (K, K)."""
+    configurations, bounded near singular ones (as `solve_kkt`). `eps` is relative to
+    `trace(S)/K`, so `c S` gives `x / c` for any c (scale-free). `matrix` (K, K)."""
     k = matrix.shape[0]
     eps = KKT_REGULARISATION * jnp.trace(matrix) / k
     solve = functools.partial(jax.scipy.linalg.cho_solve, jax.scipy.linalg.cho_factor(matrix + eps * jnp.eye(k, dtype=matrix.dtype)))
