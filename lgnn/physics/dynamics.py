@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
-from lgnn.physics.solvers import KKT_REFINEMENT_STEPS, KKT_REGULARISATION, chain_kkt_solve, regularised_spd_solve, solve_kkt
+from lgnn.physics.solvers import chain_kkt_solve, regularised_spd_solve, solve_kkt
 from lgnn.physics.system import System, prepare
 from lgnn.scene import Scene
 
@@ -93,8 +93,7 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
             if chain_solve:
                 diagonal, upper = local.chain_blocks(products)
                 u = constraints.link_directions(q)
-                xdd = chain_kkt_solve(diagonal, upper, u, rhs.reshape(-1, 2), -constraints.jacobian_dot_v(x, v),
-                                      KKT_REGULARISATION * jnp.trace(diagonal, axis1=1, axis2=2).mean() / 2, KKT_REFINEMENT_STEPS)
+                xdd = chain_kkt_solve(diagonal, upper, u, rhs.reshape(-1, 2), -constraints.jacobian_dot_v(x, v), regularised=True)
                 return constraints.embed_velocity(xdd.reshape(-1))
             mass = local.dense(products)
         xdd = solve_kkt(mass, constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))

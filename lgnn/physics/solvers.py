@@ -6,7 +6,7 @@ and `refine`s the solution against the exact system, which recovers the exact so
 (to round-off) wherever that exists and bounds it where it does not.
 
 - `solve_kkt`: the dense saddle-point system `[[M, A^T], [A, 0]] [a; lam] = [f; r]`
-  by LU, `-eps I` in the lower block. Nonsingular whenever `A` has full row rank and
+  by LU, `M` equilibrated by its mean diagonal and `-eps I` in the lower block. Nonsingular whenever `A` has full row rank and
   `M` is positive definite on the null space of `A`, so a singular rod mass matrix
   is no obstacle.
 - `regularised_spd_solve`: a symmetric positive semidefinite system (a Schur complement
@@ -30,12 +30,21 @@ from lgnn.physics.constraints import Constraints
 
 Array = jax.Array
 
-# Regularisation of the solves relative to the mass scale, and refinement steps.
-# With 1e-9, three refinement steps reach round-off on every built-in scene (the
-# contraction per step is ~eps / sigma_min(A M^-1 A^T)); at singular configurations
-# it bounds the multipliers like a very stiff rod (measured on T2: smaller eps
-# makes no difference to the motion, larger lets the structure sag visibly).
-KKT_REGULARISATION = 1e-9
+# Regularisation of the solves, relative to the scale of the multipliers' system, and
+# refinement steps. Every solve regularises in units it is invariant to, so that a
+# Lagrangian scaled by any factor (it is defined only up to one; a learned one is
+# ~1/10 of the true scale) gets the same dynamics (tests/test_physics.py): the Schur
+# complement `S` by `eps = KKT_REGULARISATION * trace(S)/K`; the KKT system after
+# equilibrating `M` by its mean diagonal `s` (`solve_kkt`), a compliance
+# `eps = KKT_REGULARISATION / s` in the constraint rows (unit vectors, so
+# `A M^-1 A^T ~ 1/s`). Three refinement steps reach round-off on every built-in scene
+# (the contraction per step is ~eps / sigma_min(A M^-1 A^T)). At singular
+# configurations it bounds the multipliers like a very stiff rod, and there the motion
+# depends on it: 3e-10 is about what the exact T2 and T3 had when eps was `1e-9 s`
+# (2.7e-10 and 2.8e-10 in these units; their 0.1 s references move by 1.3e-6 and
+# 6e-5, T3's error in dt being ~1.5e-3), while from 2.5e-10 down T2's reference
+# becomes non-finite within 0.003 s and 1e-9 moves T3 by 1.3e-3 (issue 13).
+KKT_REGULARISATION = 3e-10
 KKT_REFINEMENT_STEPS = 3
 
 
@@ -57,21 +66,28 @@ def refine(solve: Callable[[Array], Array], residual: Callable[[Array], Array], 
 def solve_kkt(mass: Array, jac: Array, force: Array, accel_rhs: Array) -> Array:
     """Solve `[[M, A^T], [A, 0]] [a; lam] = [force; accel_rhs]` for `a` (F,): LU of the
     regularised matrix (`-eps I` in the lower block), refined against the exact one.
-    `mass` (F, F), `jac` (K, F), `force` (F,), `accel_rhs` (K,)."""
+    `mass` (F, F), `jac` (K, F), `force` (F,), `accel_rhs` (K,).
+
+    The system is first equilibrated by the mass scale `s = trace(M)/F`: `[[M/s, A^T],
+    [A, 0]] [a; lam/s] = [force/s; accel_rhs]` has the same accelerations, and neither
+    it nor its regularisation (`KKT_REGULARISATION` in these units) changes when the
+    Lagrangian, hence `M`, `force` and `lam`, is multiplied by a constant."""
     n, k = mass.shape[0], jac.shape[0]
     if k == 0:
         return jnp.linalg.solve(mass, force)
-    eps = KKT_REGULARISATION * jnp.trace(mass) / n
+    scale = jnp.trace(mass) / n
     zeros = jnp.zeros((k, k), mass.dtype)
-    kkt = jnp.block([[mass, jac.T], [jac, zeros]])
-    solve = functools.partial(jax.scipy.linalg.lu_solve, jax.scipy.linalg.lu_factor(kkt.at[n:, n:].set(-eps * jnp.eye(k, dtype=mass.dtype))))
-    rhs = jnp.concatenate([force, accel_rhs])
+    kkt = jnp.block([[mass / scale, jac.T], [jac, zeros]])
+    regularised = kkt.at[n:, n:].set(-KKT_REGULARISATION * jnp.eye(k, dtype=mass.dtype))
+    solve = functools.partial(jax.scipy.linalg.lu_solve, jax.scipy.linalg.lu_factor(regularised))
+    rhs = jnp.concatenate([force / scale, accel_rhs])
     return refine(solve, lambda solution: rhs - kkt @ solution, solve(rhs), KKT_REFINEMENT_STEPS)[:n]
 
 
 def regularised_spd_solve(matrix: Array, rhs: Array) -> Array:
     """Cholesky solve of `(S + eps I) x = r`, refined against `S x = r`: exact at regular
-    configurations, bounded near singular ones (as `solve_kkt`). `matrix` (K, K)."""
+    configurations, bounded near singular ones (as `solve_kkt`). `eps` is relative to
+    `trace(S)/K`, so `c S` gives `x / c` for any c (scale-free). `matrix` (K, K)."""
     k = matrix.shape[0]
     eps = KKT_REGULARISATION * jnp.trace(matrix) / k
     solve = functools.partial(jax.scipy.linalg.cho_solve, jax.scipy.linalg.cho_factor(matrix + eps * jnp.eye(k, dtype=matrix.dtype)))
@@ -94,8 +110,8 @@ def _inverse_3x3(m: Array) -> Array:
     return adjugate / (a * cofactor[0] + b * cofactor[1] + c * cofactor[2])
 
 
-def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs: Array, link_rhs: Array,
-                    eps: Array | float = 0.0, refinement_steps: int = 0) -> Array:
+def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs: Array, link_rhs: Array, *,
+                    regularised: bool = False) -> Array:
     """Solve the KKT system of a planar chain pinned at node 0 in time linear in n.
 
     Block b (b = 0..n-1) holds node b+1's acceleration and link b's multiplier. Link b
@@ -105,11 +121,18 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
     block-tridiagonal with 3 x 3 blocks: diagonal `D_b = [[M_b+1,b+1, -u_b], [-u_b^T,
     -eps]]`, above it `U_b = [[M_b+1,b+2, u_b+1], [0, 0]]`. Eliminating from the free
     end (`D~_b = D_b - U_b D~_b+1^-1 U_b^T`, the articulated inertia of the chain beyond
-    node b+1) and substituting back from the pin are two `lax.scan`s; with `eps > 0`
-    each refinement step against the exact (`eps = 0`) system costs two more.
+    node b+1) and substituting back from the pin are two `lax.scan`s. As in
+    `solve_kkt`, the mass blocks and node forces are equilibrated by the mass scale (the
+    mean diagonal of M), so the solve is the same for any multiple of the Lagrangian;
+    `regularised` sets `eps = KKT_REGULARISATION` in these units and refines against
+    the exact (`eps = 0`) system with `KKT_REFINEMENT_STEPS` steps, each costing two
+    more scans; without it `eps = 0` (a pinned chain's rows are independent).
     `node_rhs` (n, 2), `link_rhs` (n,). Returns the node accelerations (n, 2).
     """
     n, dtype = u.shape[0], u.dtype
+    scale = jnp.trace(diagonal_mass, axis1=1, axis2=2).mean() / 2
+    diagonal_mass, upper_mass, node_rhs = diagonal_mass / scale, upper_mass / scale, node_rhs / scale
+    eps = KKT_REGULARISATION if regularised else 0.0
 
     def blocks(eps_value):
         diagonal = jnp.zeros((n, 3, 3), dtype).at[:, :2, :2].set(diagonal_mass).at[:, :2, 2].set(-u).at[:, 2, :2].set(-u)
@@ -147,7 +170,7 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
     _, (inverses, weights, reduced) = jax.lax.scan(eliminate, (last_inverse, rhs[-1]), (diagonal[:-1], upper, rhs[:-1]), reverse=True)
     inverses = jnp.concatenate([inverses, last_inverse[None]])
     solution = back_substitute(inverses, jnp.concatenate([reduced, rhs[-1:]]))
-    if not refinement_steps:
+    if not regularised:
         return solution[:, :2]
     exact = blocks(0.0)
 
@@ -162,7 +185,7 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
         _, reduced = jax.lax.scan(reduce, residual[-1], (weights, residual[:-1]), reverse=True)
         return back_substitute(inverses, jnp.concatenate([reduced, residual[-1:]]))
 
-    return refine(solve, residual, solution, refinement_steps)[:, :2]
+    return refine(solve, residual, solution, KKT_REFINEMENT_STEPS)[:, :2]
 
 
 class LinkGram:
