@@ -95,7 +95,7 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     untrained = train.initial_state(model, dataclasses.replace(profile.training.train, seed=job.seed)).params
     untrained_val = train.evaluate_fn(model, scene)(untrained, *val)
     if job.model in DOES_NOT_LEARN_YET and profile is QUICK:
-        request.applymarker(pytest.mark.xfail(reason="issue 13 item 1: LGNN's early training blows up", strict=True))
+        request.applymarker(pytest.mark.xfail(reason="issue 13 item 1: LGNN no longer blows up but learns too slowly for the quick profile's 40 steps (22.8 vs 25.3 untrained)", strict=True))
     assert state.best_val < LEARNS * untrained_val, f"best validation MSE {state.best_val:.3g}, untrained {untrained_val:.3g}"
 
 
@@ -131,9 +131,13 @@ def test_evaluation(profile, out, pair):
         assert arrays[f"{metric}/gmean"].shape == arrays["t"].shape, metric
     assert arrays["diverged_at"].shape == (count,)
     if pair.scene not in TRUTH_AGREEMENT:
-        # Where the two ground truths agree to 1e-6 or better, a model's error against
-        # each is the same (triangle inequality): the MuJoCo frames are aligned in time.
-        np.testing.assert_allclose(arrays["rollout_error_vs_mujoco/gmean"], arrays["rollout_error/gmean"], rtol=1e-3)
+        # Where the two ground truths agree far better than any model, a model's error
+        # against each differs by at most about twice their distance (triangle
+        # inequality), frame by frame: the MuJoCo frames are aligned in time.
+        truth = evaluate.load_truth(profile, pair.scene, out)[0]
+        distance = np.fmax(truth["truth_vs_mujoco/high"], truth["truth_vs_mujoco/gmean"])  # (high is NaN for one IC)
+        lagrangian, mujoco = arrays["rollout_error/gmean"], arrays["rollout_error_vs_mujoco/gmean"]
+        assert np.all(np.abs(mujoco - lagrangian) <= 1e-3 * lagrangian + 10 * distance)
 
 
 def test_rollout_speed(benchmark, record_rate, profile, out, timed_pair):

@@ -248,7 +248,10 @@ def test_jit_equals_eager():
     scene = get_scene("chain4-drag")
     q, qd = random_state(scene, seed=8)
     accel = physics.true_acceleration_fn(scene)
-    np.testing.assert_allclose(jax.jit(accel)(q, qd), accel(q, qd), rtol=1e-13, atol=1e-14)
+    eager = accel(q, qd)
+    # Round-off differs between fused and eager kernels: bound it relative to the
+    # accelerations' scale (~g), not per element (a near-zero component has none).
+    np.testing.assert_allclose(jax.jit(accel)(q, qd), eager, rtol=1e-13, atol=1e-13 * float(jnp.max(jnp.abs(eager))))
 
 
 def test_vmap_equals_map():

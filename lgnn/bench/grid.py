@@ -203,7 +203,12 @@ class Profile:
 PROFILES = {
     "quick": Profile(
         name="quick",
-        training=TrainSettings(DataConfig(n_trajectories=5, duration=0.5, sample_dt=0.05), TrainConfig(epochs=10, patience=10)),
+        # 40 Adam steps in all: a warm-up of a few steps (the default 1000 would leave
+        # the rate at 4 % of its peak throughout).
+        training=TrainSettings(
+            DataConfig(n_trajectories=5, duration=0.5, sample_dt=0.05),
+            TrainConfig(epochs=10, patience=10, warmup_steps=8),
+        ),
         evaluate=EvaluateSettings(initial_conditions=3, duration=0.1, chunk=3),
         speed=SpeedSettings(scenes=("chain4",), dts=(1e-3,), horizon=0.02, mjx=False, models=("lgnn",)),
         scaling=ScalingSettings(lengths=(4, 16), steps=10, throughput_scenes=("chain4",), throughput_batch=4),
