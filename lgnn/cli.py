@@ -290,6 +290,72 @@ def _add_train_parser(commands) -> None:
     rollout.set_defaults(run=_cmd_rollout)
 
 
+def _cmd_evaluate(args) -> None:
+    from pathlib import Path
+
+    from lgnn.bench import evaluation
+    from lgnn.files import check_writable
+    from lgnn.learn.train import load_model
+    from lgnn.scene import get_scene
+
+    config = _simulation_config(args)
+    out = Path(args.out_dir)
+    check_writable(out / "evaluate_summary.md")
+    model, params = load_model(args.model)
+    scored, written = [], []
+    for name in args.scenes:
+        scene = get_scene(name)
+        states = evaluation.initial_states(scene, args.initial_conditions, args.seed)
+        scene_scores, trajectories = evaluation.evaluate_model(model, params, scene, config, states, progress=not args.quiet)
+        scored += scene_scores
+        for engine, trajectory in trajectories.items():
+            path = out / f"{scene.name}_{engine}.npz"
+            trajectory.save(path)
+            written.append(path)
+    command = "lgnn " + " ".join(args.argv)
+    header = (command, f"model {model.name} ({args.model}); {config.integrator} dt {config.dt:g}, frames every {config.frame_dt:g} s, "
+              f"{config.duration:g} s; initial conditions: " + ("the scene's own" if args.initial_conditions == 1 else
+              f"{args.initial_conditions} sampled (seed {args.seed})"))
+    written = evaluation.write_outputs(scored, out, "evaluate", f"Evaluation of {args.model}", header) + written
+    print(evaluation.format_summary(evaluation.summary_rows(scored)))
+    print(f"wrote {', '.join(map(str, written))} (trajectories: initial condition 0)")
+
+
+def _cmd_compare(args) -> None:
+    from lgnn.bench import evaluation
+    from lgnn.files import check_writable
+
+    if args.out_dir:
+        check_writable(f"{args.out_dir}/compare_summary.md")
+    scored, notes = evaluation.compare_trajectories([args.reference, args.other])
+    for note in notes:
+        print(f"note: {note}")
+    print(evaluation.format_summary(evaluation.summary_rows([scored])))
+    if args.out_dir:
+        written = evaluation.write_outputs([scored], args.out_dir, "compare", f"{args.other} against {args.reference}",
+                                           ["lgnn " + " ".join(args.argv)], notes)
+        print(f"wrote {', '.join(map(str, written))}")
+
+
+def _add_evaluation_parsers(commands) -> None:
+    evaluate = commands.add_parser("evaluate", help="score a checkpoint against the Lagrangian engine and MuJoCo on any scenes")
+    evaluate.add_argument("scenes", nargs="+", metavar="SCENE", help="built-in scene names or scene JSON files")
+    evaluate.add_argument("--model", required=True, help="checkpoint written by lgnn train or lgnn benchmark")
+    evaluate.add_argument("--initial-conditions", type=_positive_int, default=1,
+                          help="1: the scene's own state (default); N: N sampled ones (the paper's chain sampler, else projected perturbations)")
+    evaluate.add_argument("--seed", type=int, default=0, help="seed of the sampled initial conditions")
+    _add_simulation_options(evaluate)
+    evaluate.add_argument("--out-dir", required=True, help="writes evaluate_frames.csv, evaluate_summary.csv/.md and SCENE_{model,lagrangian,mujoco}.npz")
+    evaluate.add_argument("--quiet", action="store_true", help="no progress bars")
+    evaluate.set_defaults(run=_cmd_evaluate)
+
+    compare = commands.add_parser("compare", help="the benchmark's metrics of one trajectory file against another")
+    compare.add_argument("reference", help="reference trajectory .npz (lgnn simulate / rollout / evaluate)")
+    compare.add_argument("other", help="trajectory .npz scored against the reference")
+    compare.add_argument("--out-dir", help="also write compare_frames.csv and compare_summary.csv/.md here")
+    compare.set_defaults(run=_cmd_compare)
+
+
 def _cmd_checkpoint(args) -> None:
     from lgnn.learn import train
 
@@ -403,6 +469,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.set_defaults(run=_cmd_simulate)
     _add_mujoco_commands(commands)
     _add_train_parser(commands)
+    _add_evaluation_parsers(commands)
     _add_benchmark_parser(commands)
     _add_stability_parser(commands)
     _add_convergence_parser(commands)

@@ -18,7 +18,9 @@ One module per idea, from the bottom up:
 - `dynamics`: the Euler-Lagrange transformer `acceleration_fn(scene, lagrangian,
   force_fn)` (true and learned Lagrangians go through the same solve) and the
   ground-truth `true_acceleration_fn`;
-- `projection`: `projection_fn`, back onto the constraint manifold after a step.
+- `projection`: `projection_fn`, back onto the constraint manifold after a step;
+- `sampling`: `sample_states`, initial conditions of any scene consistent with its
+  constraints (the paper's chain sampler, or projected random perturbations).
 """
 
 from lgnn.physics.constraints import Constraints, constraint_violation, velocity_constraint_violation
@@ -43,6 +45,7 @@ from lgnn.physics.energies import (
     potential_energy_per_link,
 )
 from lgnn.physics.projection import projection_fn
+from lgnn.physics.sampling import PerturbationScales, perturbed_states, sample_states
 from lgnn.physics.solvers import refine
 from lgnn.physics.system import System, prepare
 
@@ -51,6 +54,7 @@ __all__ = [
     "Constraints",
     "ForceFn",
     "LagrangianFn",
+    "PerturbationScales",
     "System",
     "acceleration_fn",
     "angular_speed_squared",
@@ -64,9 +68,11 @@ __all__ = [
     "lagrangian_fn",
     "mass_matrix_fn",
     "potential_energy_per_link",
+    "perturbed_states",
     "prepare",
     "projection_fn",
     "refine",
+    "sample_states",
     "true_acceleration_fn",
     "vectorised_true_acceleration_fn",
     "velocity_constraint_violation",
