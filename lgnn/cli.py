@@ -337,6 +337,20 @@ def _cmd_compare(args) -> None:
         print(f"wrote {', '.join(map(str, written))}")
 
 
+def _cmd_animate(args) -> None:
+    from lgnn.bench import viz
+
+    frames = viz.animate(args.files, args.out, fps=args.fps, speed=args.speed)
+    print(f"wrote {args.out} ({frames} frames at {args.fps:g} per second)")
+
+
+def _cmd_plot(args) -> None:
+    from lgnn.bench import viz
+
+    viz.plot(args.files, args.out)
+    print(f"wrote {args.out}")
+
+
 def _add_evaluation_parsers(commands) -> None:
     evaluate = commands.add_parser("evaluate", help="score a checkpoint against the Lagrangian engine and MuJoCo on any scenes")
     evaluate.add_argument("scenes", nargs="+", metavar="SCENE", help="built-in scene names or scene JSON files")
@@ -354,6 +368,18 @@ def _add_evaluation_parsers(commands) -> None:
     compare.add_argument("other", help="trajectory .npz scored against the reference")
     compare.add_argument("--out-dir", help="also write compare_frames.csv and compare_summary.csv/.md here")
     compare.set_defaults(run=_cmd_compare)
+
+    animate = commands.add_parser("animate", help="animate trajectory files over each other (the first underneath)")
+    animate.add_argument("files", nargs="+", metavar="FILE", help="trajectory .npz files of one scene, the reference (ground truth) first")
+    animate.add_argument("--out", required=True, help="output .gif (Pillow) or .mp4 (needs ffmpeg)")
+    animate.add_argument("--fps", type=_positive_float, default=30.0, help="animation frames per second (default 30)")
+    animate.add_argument("--speed", type=_positive_float, default=1.0, help="simulated seconds per second of animation (default 1)")
+    animate.set_defaults(run=_cmd_animate)
+
+    plot = commands.add_parser("plot", help="per-node error against the first file and energy, against time")
+    plot.add_argument("files", nargs="+", metavar="FILE", help="trajectory .npz files of one scene, the reference first")
+    plot.add_argument("--out", required=True, help="output figure (.png, .pdf, .svg)")
+    plot.set_defaults(run=_cmd_plot)
 
 
 def _cmd_checkpoint(args) -> None:
