@@ -109,7 +109,9 @@ def animate(paths, out: str | os.PathLike, fps: float = FPS, speed: float = SPEE
         lines[0].set_label(label(path, trajectory))
         rods.append(lines)
     pins = axes.plot(*points[0][0, list(scene.pinned)].T.reshape(2, -1), "k^", markersize=9, zorder=10, label="pinned node")[0]
-    axes.legend(loc="upper right", fontsize=7)
+    # Below the axes: inside them, long file names would cover the time stamp or the motion.
+    axes.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=7)
+    figure.subplots_adjust(bottom=0.25)
     stamp = axes.text(0.03, 0.96, "", transform=axes.transAxes, va="top", family="monospace")
 
     def draw(frame: int):
