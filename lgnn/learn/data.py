@@ -31,6 +31,7 @@ import numpy as np
 from lgnn import physics, sharding
 from lgnn import records
 from lgnn.errors import ConfigError
+from lgnn.runtime import in_float64
 from lgnn.scene import Scene, scene_to_dict
 from lgnn.scene import get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
@@ -98,6 +99,7 @@ class Dataset(NamedTuple):
     val: np.ndarray
 
 
+@in_float64
 def generate(config: DataConfig, progress: bool = False) -> Dataset:
     """Integrate the trajectories and compute exact accelerations (module docstring)."""
     from tqdm.auto import tqdm

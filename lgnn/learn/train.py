@@ -47,6 +47,7 @@ from lgnn.learn import models
 from lgnn import records
 from lgnn.learn.data import DataConfig, Dataset
 from lgnn.errors import CheckpointError, ConfigError
+from lgnn.runtime import in_float64
 from lgnn.scene import Scene
 
 CHECKPOINT_FORMAT = 1
@@ -206,6 +207,7 @@ def initial_state(model: models.ModelConfig, config: TrainConfig) -> TrainState:
     return TrainState(params, optimizer(config).init(params), params, float("inf"), -1, 0, [], 0.0)
 
 
+@in_float64
 def train(
     model: models.ModelConfig,
     config: TrainConfig,
@@ -315,6 +317,7 @@ def _restore(path, template, arrays: dict, prefix: str):
     return jax.tree.unflatten(treedef, restored)
 
 
+@in_float64  # parameters restored in the precision they were trained in
 def load_checkpoint(path) -> tuple[TrainState, dict]:
     """The training state and metadata of a checkpoint; `CheckpointError` if unusable."""
     meta, arrays = _read(path)
@@ -338,9 +341,23 @@ def check_resumable(path, model: models.ModelConfig, config: TrainConfig) -> tup
     `CheckpointError` (one line) if it is unusable or was written with other settings.
     Entry points call it before generating data, so a wrong `--resume` fails at once."""
     state, saved = load_checkpoint(path)
-    if saved["model"] != model.to_dict() or saved["train"] != training_key(config):
-        raise CheckpointError(f"{path}: cannot resume: it was written with other model or training settings")
+    differences = settings_differences(saved["model"], model.to_dict(), "model") + settings_differences(saved["train"], training_key(config), "train")
+    if differences:
+        raise CheckpointError(f"{path}: cannot resume: it was written with other settings ({'; '.join(differences)})")
     return state, saved
+
+
+def settings_differences(saved: dict, wanted: dict, prefix: str) -> list[str]:
+    """`"prefix.key: saved X, now Y"` for each setting that differs between two flat-ish
+    settings dicts (nested dicts are compared by key too), in key order."""
+    lines = []
+    for key in sorted(set(saved) | set(wanted)):
+        old, new = saved.get(key), wanted.get(key)
+        if isinstance(old, dict) and isinstance(new, dict):
+            lines += settings_differences(old, new, f"{prefix}.{key}")
+        elif old != new:
+            lines.append(f"{prefix}.{key}: checkpoint {old!r}, now {new!r}")
+    return lines
 
 
 def load_model(path) -> tuple[models.ModelConfig, dict]:
