@@ -2,7 +2,7 @@
 scene, measure speed against error and write the report (`lgnn.bench.stages`,
 `lgnn.bench.run`, `lgnn.bench.report`).
 
-    pytest bench/test_benchmark.py               # quick profile -> results/quick/
+    pytest bench/test_benchmark.py               # quick profile -> lgnn-out/quick/
     pytest bench/test_benchmark.py --benchmark   # full profile  -> results/
 
 Tests run in file order (train, ground truth, evaluation, speed, scaling, mass matrix, report)

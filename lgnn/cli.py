@@ -133,10 +133,11 @@ def _cmd_crosscheck(args) -> None:
     from lgnn.bench import crosscheck as cc
     from lgnn.bench.tables import write_table
     from lgnn.engines import ENGINES
-    from lgnn.files import check_writable
+    from lgnn.files import check_writable, out_dir
     from lgnn.scene import get_scene
 
     command = "lgnn " + " ".join(args.argv)
+    args.out_dir = out_dir(args.out_dir)
     check_writable(f"{args.out_dir}/engines_speed_error.md" if args.speed else f"{args.out_dir}/crosscheck.md")
     engines = tuple(args.engines.split(","))
     if set(engines) - set(ENGINES) or not engines:
@@ -152,8 +153,10 @@ def _cmd_crosscheck(args) -> None:
         config = _simulation_config(args)
         rows = []
         for name in args.scenes or ["chain4", "chain8", "chain16", "T1", "T2", "T3"]:
-            rows += cc.crosscheck(get_scene(name), config, engines, args.mjx_max_depth)
-            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == name))
+            scene = get_scene(name)
+            rows += cc.crosscheck(scene, config, engines, args.mjx_max_depth)
+            # Rows name the scene, not the argument (a scene file's path).
+            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == scene.name))
         columns = ["scene", "engine", "metric", "value", "note"]
         notes = [f"RK4, dt {config.dt:g}, {config.duration:g} s, float64; MuJoCo loops: connect, solref 2 dt, solimp 0.9999"]
         stem, title = "crosscheck", "Cross-check of the ground-truth engines"
@@ -176,7 +179,7 @@ def _add_mujoco_commands(commands) -> None:
     check.add_argument("--batch-dts", type=float, nargs="+", default=[1e-4], help="--speed: steps of the batched runs (default 1e-4)")
     check.add_argument("--max-steps", type=int, default=25_000, help="--speed: skip JAX runs over 16x this many link-steps")
     check.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="--speed: precision of the JAX engines")
-    check.add_argument("--out-dir", default="results", help="output directory (default: results)")
+    check.add_argument("--out-dir", default=None, help="output directory (default: ./lgnn-out; the committed tables are results/)")
     _add_simulation_options(check)
     check.set_defaults(run=_cmd_crosscheck)
 
@@ -184,10 +187,11 @@ def _add_mujoco_commands(commands) -> None:
 def _cmd_convergence(args) -> None:
     from lgnn.bench import convergence
     from lgnn.bench.grid import get_profile
-    from lgnn.files import check_writable
+    from lgnn.files import check_writable, out_dir
     from lgnn.provenance import environment
     from lgnn.scene import BUILTIN_SCENES, get_scene
 
+    args.out_dir = out_dir(args.out_dir)
     check_writable(f"{args.out_dir}/convergence.md")
     environment()  # the commit the run starts at, before any edit during a long run
     evaluate = get_profile("full").evaluate
@@ -213,7 +217,7 @@ def _add_convergence_parser(commands) -> None:
     parser.add_argument("--horizon", type=_positive_float, default=None,
                         help="simulated seconds (default: 1 s, 0.1 s on chain100 and the self-stressed or large scenes)")
     parser.add_argument("--frame-dt", type=_positive_float, default=1e-3, help="frames compared every this many seconds (default 1e-3)")
-    parser.add_argument("--out-dir", default="results", help="output directory (default: results)")
+    parser.add_argument("--out-dir", default=None, help="output directory (default: ./lgnn-out; the committed tables are results/)")
     parser.add_argument("--quiet", action="store_true", help="no per-run lines")
     parser.set_defaults(run=_cmd_convergence)
 
@@ -232,9 +236,10 @@ def _cmd_train(args) -> None:
     config = train.TrainConfig(args.lr, args.batch_size, args.epochs, args.minutes, args.patience, args.seed)
     if args.resume and Path(args.out).exists():
         train.check_resumable(args.out, model, config)  # before minutes of data generation
-    dataset = data.load_or_generate(data_config, args.cache_dir, progress=not args.quiet)
+    cache = args.cache_dir or data.default_cache_dir()
+    dataset = data.load_or_generate(data_config, cache, progress=not args.quiet)
     state = train.train(model, config, dataset, scene, out=args.out, data_config=data_config, resume=args.resume, progress=not args.quiet)
-    print(f"{args.model} on {scene.name}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out}")
+    print(f"{args.model} on {scene.name}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out} (data cached in {cache})")
 
 
 def _cmd_rollout(args) -> None:
@@ -270,7 +275,7 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--message-passing", type=int, default=None, help="message-passing layers (default: the model's)")
     parser.add_argument("--trajectories", type=int, default=100, help="training trajectories (paper: 100)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--cache-dir", default="results/datasets", help="training data cache")
+    parser.add_argument("--cache-dir", default=None, help="training data cache (default: datasets/ in $LGNN_CACHE, else $XDG_CACHE_HOME/lgnn, else ~/.cache/lgnn)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
     parser.add_argument("--out", required=True, help="checkpoint file (.npz), written after every epoch")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -313,15 +318,18 @@ def _cmd_benchmark(args) -> None:
 
     from lgnn.bench import grid
     from lgnn.bench.run import STAGES, run
+    from lgnn.bench.store import default_out
 
     profile = grid.get_profile("full" if args.full else "quick")
     if args.chunk is not None:
         # Not an evaluation setting (records stay valid): only how many rollouts share a call.
         profile = dataclasses.replace(profile, evaluate=dataclasses.replace(profile.evaluate, chunk=args.chunk))
     stages = STAGES if args.stage == "all" else (args.stage,)
+    print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet)
     if "report" in stages:
         print((out / "README.md").read_text())
+    print(f"wrote {out}/")
 
 
 def _add_benchmark_parser(commands) -> None:
@@ -332,7 +340,7 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--stage", default="all", choices=("all",) + STAGES, help="run one stage (default: all, resuming finished work)")
     parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")
     parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")
-    parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, results/quick/ otherwise)")
+    parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, the committed run it resumes and updates; ./lgnn-out/quick/ otherwise)")
     parser.add_argument("--chunk", type=_positive_int, default=None, help="initial conditions per compiled rollout call (default 25; a GPU wants 100)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_benchmark)
@@ -340,9 +348,9 @@ def _add_benchmark_parser(commands) -> None:
 
 def _cmd_stability(args) -> None:
     from lgnn.bench import stability
-    from lgnn.files import check_writable
+    from lgnn.files import check_writable, out_dir
 
-    out = check_writable(args.out)
+    out = check_writable(args.out or out_dir(None) / "stability.md")
     if out.suffix != ".md":
         raise ConfigError(f"--out must be a .md file (the CSV is written beside it), got {out}")
     settings = stability.StabilitySettings(
@@ -369,7 +377,7 @@ def _add_stability_parser(commands) -> None:
 
     default = StabilitySettings()
     parser = commands.add_parser("stability", help="run the hard cases (long, large, near-singular, learned) and write a report")
-    parser.add_argument("--out", default="results/stability.md", help="markdown report; the CSV goes beside it (default: results/stability.md)")
+    parser.add_argument("--out", default=None, help="markdown report; the CSV goes beside it (default: ./lgnn-out/stability.md; the committed one is results/stability.md)")
     for name in ("long_horizon", "large_step_horizon", "chain1000_horizon", "model_horizon", "singular_horizon"):
         parser.add_argument(f"--{name.replace('_', '-')}", type=_positive_float, default=getattr(default, name),
                             help=f"simulated seconds (default {getattr(default, name):g})")

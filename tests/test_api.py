@@ -35,3 +35,17 @@ def test_readme_example_is_float64_without_configure():
     assert drift < 1e-10 and distance < 1e-9, out.stdout
     assert lines[-1] == "global-x64 False"
 
+
+
+def test_caches_go_to_the_user_cache_not_the_working_directory(monkeypatch, tmp_path):
+    from lgnn.files import user_cache_dir
+    from lgnn.learn.data import default_cache_dir
+
+    monkeypatch.delenv("LGNN_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert default_cache_dir() == tmp_path / "xdg" / "lgnn" / "datasets"
+    monkeypatch.setenv("LGNN_CACHE", str(tmp_path / "mine"))
+    assert user_cache_dir() == tmp_path / "mine"
+    monkeypatch.delenv("LGNN_CACHE")
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    assert user_cache_dir() == Path.home() / ".cache" / "lgnn"

@@ -92,3 +92,24 @@ def test_simulation_failure_leaves_no_file(capsys, tmp_path):
     else:
         assert code == 2 and ("non-finite" in err or "exploded" in err) and "t =" in err
         assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_crosscheck_of_a_scene_file_writes_beside_the_user_and_summarises(capsys, tmp_path, monkeypatch):
+    """Not told where to write, a report goes to ./lgnn-out (never the repository's
+    results/), the console shows each engine's lines for a scene file too (they are
+    filtered on the scene's name, not the path) and says where it wrote; a `|` inside a
+    markdown cell is escaped, so every table row keeps its columns."""
+    import re
+
+    from lgnn.scene import get_scene, scene_to_json
+
+    monkeypatch.chdir(tmp_path)
+    scene_file = tmp_path / "mine.json"
+    scene_file.write_text(scene_to_json(get_scene("chain4")).replace('"chain4"', '"mine"'))
+    code, out, err = run(capsys, "crosscheck", str(scene_file), "--engines", "lagrangian,mujoco", "--dt", "1e-3", "--frame-dt", "1e-2", "--duration", "0.02")
+    assert code == 0, err
+    assert "mine     lagrangian" in out and "lagrangian~mujoco" in out
+    assert "wrote lgnn-out/crosscheck.csv" in out
+    table = [line for line in (tmp_path / "lgnn-out" / "crosscheck.md").read_text().splitlines() if line.startswith("| ")]
+    assert len(table) > 2 and any("\\|E-E0\\|" in line for line in table)
+    assert {len(re.findall(r"(?<!\\)\|", line)) for line in table} == {6}  # 5 columns

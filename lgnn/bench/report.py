@@ -2,7 +2,7 @@
 the records the stages wrote (`lgnn.bench.stages`), read through their public `load_*`
 functions only (nothing is computed here but statistics of them).
 
-Files under `<out>` (`results/` for the full profile, `results/quick/` for the quick):
+Files under `<out>` (`results/` for the full profile, `lgnn-out/quick/` for the quick):
 
 - `benchmark/summary.csv`: `scene, model, seed, metric, statistic, value` plus
   `commit, versions, device` of the run that made each number. Models: the learned
