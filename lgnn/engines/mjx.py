@@ -14,8 +14,10 @@ entered here whatever the global setting).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import io
 import time
 from typing import ClassVar
 
@@ -37,7 +39,10 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64"):
     over initial node states (B, N, 2) -> (B, F+1, N, 2). Cached on the scene's
     content, config and dtype, so compilation (slow on CPU) happens once per process.
     Call it inside `lgnn.runtime.precision(dtype)`."""
-    from mujoco import mjx
+    with contextlib.redirect_stdout(io.StringIO()):
+        # MJX prints "Failed to import mujoco_warp: ..." on import without the optional
+        # `warp` package, which lgnn does not use.
+        from mujoco import mjx
 
     check_rk4(config)
     if dtype not in DTYPES:

@@ -373,3 +373,35 @@ def seconds_to_reach(state: TrainState, target: float) -> float | None:
         if len(entry) >= 4 and entry[2] <= target:
             return float(entry[3])
     return None
+
+
+def physics_differences(meta: dict, scene: Scene) -> list[str]:
+    """How `scene`'s physical parameters differ from the scene a checkpoint was trained
+    on (gravity, drag, the link masses and inertias; the number and shape of links may
+    differ, that is generalisation): one phrase each, empty when they agree or when the
+    training scene is unknown or no longer loadable (a moved scene file)."""
+    from lgnn.errors import SceneError
+    from lgnn.scene import get_scene
+
+    source = (meta.get("data") or {}).get("scene")
+    try:
+        trained = get_scene(source) if source else None
+    except SceneError:
+        return []
+    if trained is None:
+        return []
+    differences = []
+    if not np.allclose(trained.gravity, scene.gravity):
+        differences.append(f"gravity {np.asarray(scene.gravity).tolist()} (trained on {np.asarray(trained.gravity).tolist()})")
+    if not np.isclose(trained.drag, scene.drag):
+        differences.append(f"drag {scene.drag:g} (trained on {trained.drag:g})")
+    for name in ("masses", "inertias"):
+        values, trained_values = (np.unique(np.round(getattr(s, name), 12)) for s in (scene, trained))
+        if values.shape != trained_values.shape or not np.allclose(values, trained_values):
+            differences.append(f"link {name} {_values(values)} (trained on {_values(trained_values)})")
+    return differences
+
+
+def _values(values: np.ndarray) -> str:
+    shown = ", ".join(f"{v:g}" for v in values[:4])
+    return f"{{{shown}{', ...' if len(values) > 4 else ''}}}"
