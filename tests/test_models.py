@@ -450,3 +450,13 @@ def test_lgnn_structured_solve_matches_the_dense_solve(name):
     dense = np.asarray(jax.jit(physics.acceleration_fn(scene, lagrangian))(q, qd))
     structured = np.asarray(jax.jit(models.acceleration_fn(config, params, scene))(q, qd))
     np.testing.assert_allclose(structured, dense, atol=1e-9 * (1 + np.abs(dense).max()))
+
+
+def test_physics_differences_from_the_training_scene():
+    """A rollout on a scene with other gravity, drag or link masses is flagged; a longer
+    chain of the same links (generalisation) is not."""
+    meta = {"data": {"scene": "chain4"}}
+    assert train.physics_differences(meta, get_scene("chain8")) == []
+    assert any(d.startswith("drag") for d in train.physics_differences(meta, get_scene("chain4-drag")))
+    assert any(d.startswith("link masses") for d in train.physics_differences(meta, get_scene("chain4-varied")))
+    assert train.physics_differences({"data": None}, get_scene("chain4-varied")) == []
