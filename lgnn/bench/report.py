@@ -397,6 +397,13 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
     return lines
 
 
+# Heads a non-full profile's report (and the console, which prints the report).
+QUICK_WARNING = ("**Not results.** This profile checks that the pipeline runs: its training budgets are tiny and it has few initial "
+                 "conditions, so the ranking of the models means nothing, and its timings (single runs on a shared machine) vary "
+                 "several-fold between runs (a Lagrangian/MuJoCo ratio of 3.05 in one run, 0.41 in the next). "
+                 "Numbers: `lgnn benchmark --full`, or the committed `results/`.")
+
+
 def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str]) -> str:
     from lgnn.provenance import environment
 
@@ -411,6 +418,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "Each number's own commit, versions and device are columns of `benchmark/summary.csv` (the stages may run on different machines): "
         + "; ".join(envs) + ".",
         "",
+        *([QUICK_WARNING, ""] if p.name != "full" else []),
         "## Settings",
         "",
         f"- Training: {t.data.n_trajectories} trajectories of {t.data.duration:g} s, a state every {t.data.sample_dt:g} s (75:25 split), "
