@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from lgnn import records
+from lgnn.files import DEFAULT_OUT
 from lgnn.bench.grid import Pair, Profile, TrainingJob
 
 # Layout of a stage record's meta; records of another format are recomputed.
@@ -60,7 +61,9 @@ class Layout:
 
 
 def default_out(profile: Profile) -> Path:
-    return Path("results") if profile.name == "full" else Path("results") / profile.name
+    """The full profile's records are the repository's committed `results/` (a run
+    resumes and updates them); any other profile writes under `lgnn.files.DEFAULT_OUT`."""
+    return Path("results") if profile.name == "full" else DEFAULT_OUT / profile.name
 
 
 def save(path: Path, key: str, arrays: dict, meta: dict) -> None:

@@ -8,7 +8,8 @@ positions, and their velocities as a `jvp`). Drag is applied as in MuJoCo C
 `lgnn.engines.Engine` on top. MJX compiles slowly on CPU (~35 s for chain4, minutes
 beyond 16 links), so `runner` is cached.
 
-`dtype` float32 runs with JAX's x64 off (`precision`); float64 needs it on.
+`dtype` float32 runs with JAX's x64 off, float64 with it on (`lgnn.runtime.precision`,
+entered here whatever the global setting).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import io
 import time
 from typing import ClassVar
 
@@ -27,6 +29,7 @@ from lgnn.engines.lagrangian import DTYPES, SimulationConfig, Trajectory
 from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, state_to_qpos_qvel
 from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError, SimulationError
+from lgnn.runtime import precision
 from lgnn.scene import Scene, State
 
 
@@ -35,8 +38,11 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64"):
     """Compiled-on-first-call `run(q0, qd0) -> (q, qd)`: MJX trajectories, `vmap`ped
     over initial node states (B, N, 2) -> (B, F+1, N, 2). Cached on the scene's
     content, config and dtype, so compilation (slow on CPU) happens once per process.
-    Call it inside `precision(dtype)`."""
-    from mujoco import mjx
+    Call it inside `lgnn.runtime.precision(dtype)`."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        # MJX prints "Failed to import mujoco_warp: ..." on import without the optional
+        # `warp` package, which lgnn does not use.
+        from mujoco import mjx
 
     check_rk4(config)
     if dtype not in DTYPES:
@@ -91,17 +97,12 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64"):
     return jax.jit(jax.vmap(one))
 
 
-def precision(dtype: str):
-    """Context to trace and run a `runner` of `dtype` in: float32 runs need x64 off,
-    since MJX builds float64 constants under x64 (its RK4 tableau, for one) that would
-    promote the float32 state and break its scans."""
-    return jax.enable_x64(False) if dtype == "float32" else contextlib.nullcontext()
-
-
 def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = "float64") -> State:
     """MJX node trajectories (B, F+1, N, 2) from initial node states (B, N, 2)."""
-    run = runner(scene, config, dtype)
+    # float32 needs x64 off: MJX builds float64 constants under x64 (its RK4 tableau,
+    # for one) that would promote the float32 state and break its scans.
     with precision(dtype):
+        run = runner(scene, config, dtype)
         q, qd = run(jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
     if not (np.isfinite(q).all() and np.isfinite(qd).all()):
@@ -126,7 +127,7 @@ class MjxEngine:
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, 2))` of the compiled runner (`time_compiled`)."""
-        run = runner(scene, config, self.dtype)
         with precision(self.dtype):
+            run = runner(scene, config, self.dtype)
             compile_s, run_s, (q, _) = time_compiled(run, jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype))
         return compile_s, run_s, np.asarray(q, np.float64)

@@ -23,7 +23,7 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import jax
 import numpy as np
@@ -31,6 +31,8 @@ import numpy as np
 from lgnn import physics, sharding
 from lgnn import records
 from lgnn.errors import ConfigError
+from lgnn.files import user_cache_dir
+from lgnn.runtime import in_float64
 from lgnn.scene import Scene, scene_to_dict
 from lgnn.scene import get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
@@ -98,6 +100,7 @@ class Dataset(NamedTuple):
     val: np.ndarray
 
 
+@in_float64
 def generate(config: DataConfig, progress: bool = False) -> Dataset:
     """Integrate the trajectories and compute exact accelerations (module docstring)."""
     from tqdm.auto import tqdm
@@ -163,9 +166,18 @@ def load(config: DataConfig, path: str | os.PathLike) -> Dataset:
     return Dataset(**arrays)
 
 
-def load_or_generate(config: DataConfig, cache_dir: str | os.PathLike | None = "results/datasets", progress: bool = False) -> Dataset:
+def default_cache_dir() -> Path:
+    """Where datasets are cached unless told otherwise: `datasets/` in the user's lgnn
+    cache (`lgnn.files.user_cache_dir`), whatever the working directory."""
+    return user_cache_dir() / "datasets"
+
+
+def load_or_generate(config: DataConfig, cache_dir: str | os.PathLike | None | Literal["default"] = "default", progress: bool = False) -> Dataset:
     """The cached dataset of `config`, generating (and caching) it when absent, corrupt
-    or stale. `cache_dir=None` disables the cache."""
+    or stale. The cache is `cache_dir` ("default": `default_cache_dir()`); `None`
+    disables it."""
+    if cache_dir == "default":
+        cache_dir = default_cache_dir()
     if cache_dir is None:
         return generate(config, progress)
     path = cache_path(config, cache_dir)

@@ -53,6 +53,7 @@ from lgnn.engines.lagrangian import SimulationConfig, Trajectory, rollout_fn, si
 from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
+from lgnn.runtime import precision
 from lgnn.scene import Scene, State
 
 
@@ -516,6 +517,10 @@ class ModelEngine:
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, D))` of the batch as one compiled, vmapped run."""
         check_compatible(self.config, scene)
+        with precision(self.dtype):
+            return self._timed_rollout(scene, config, states)
+
+    def _timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         factory = AccelerationFactory(self.config)
         run = jax.jit(lambda params, q, qd: jax.vmap(rollout_fn(scene, config, lambda s: factory(s, params)))(q, qd))
         params = jax.tree.map(lambda leaf: jnp.asarray(leaf, self.dtype), self.params)
