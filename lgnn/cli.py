@@ -314,22 +314,29 @@ def _cmd_benchmark(args) -> None:
     from lgnn.bench import grid
     from lgnn.bench.run import STAGES, run
 
-    profile = grid.get_profile("full" if args.full else "quick")
-    if args.chunk is not None:
-        # Not an evaluation setting (records stay valid): only how many rollouts share a call.
-        profile = dataclasses.replace(profile, evaluate=dataclasses.replace(profile.evaluate, chunk=args.chunk))
-    stages = STAGES if args.stage == "all" else (args.stage,)
+    if sum(map(bool, (args.full, args.profile, args.config))) > 1:
+        raise ConfigError("give one of --config, --profile and --full")
+    overrides = list(args.set or ()) + ([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])
+    # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
+    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
+    stages = None if args.stage is None else STAGES if args.stage == "all" else (args.stage,)
     out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet)
-    if "report" in stages:
+    if "report" in (stages or profile.stages or STAGES):
         print((out / "README.md").read_text())
 
 
 def _add_benchmark_parser(commands) -> None:
+    from lgnn.bench import grid
     from lgnn.bench.run import STAGES
 
     parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
     parser.add_argument("--full", action="store_true", help="the full profile (default: the quick one, minutes on a laptop)")
-    parser.add_argument("--stage", default="all", choices=("all",) + STAGES, help="run one stage (default: all, resuming finished work)")
+    parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
+    parser.add_argument("--config", help="a benchmark config file (TOML; README, 'Benchmark configs')")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2] (repeatable)")
+    parser.add_argument("--stage", default=None, choices=("all",) + STAGES,
+                        help="run one stage (default: the config's stages, else all, resuming finished work)")
     parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")
     parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")
     parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, results/quick/ otherwise)")
