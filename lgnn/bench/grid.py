@@ -217,8 +217,9 @@ PROFILE_NAMES = ("quick", "full")
 def load_profile(source: str | os.PathLike, overrides=()) -> Profile:
     """A profile from a shipped name (`quick`, `full`) or a TOML config file, with
     `KEY=VALUE` overrides (`lgnn.bench.settings`; an unknown key is a one-line
-    `ConfigError` naming it). The file's keys are `Profile`'s fields: `name` (default:
-    the file's stem), `seeds`, `train_scenes`, `scenes`, `stages`, `[[grid]]` entries
+    `ConfigError` naming it). A config file starts from the shipped profile its
+    `profile` key names (default `quick`) and sets `Profile`'s fields over it: `name`
+    (default: the file's stem), `seeds`, `train_scenes`, `scenes`, `stages`, `[[grid]]` entries
     (default: `GRID`), and one table per settings group (`[training.data]`,
     `[training.train]`, `[evaluate]`, `[speed]`, `[scaling]`, `[mass]`). Scene files
     and `file.py:attribute` model references are relative to the config's directory;
@@ -226,13 +227,19 @@ def load_profile(source: str | os.PathLike, overrides=()) -> Profile:
     (`lgnn.learn.models.load_spec`) and the grid names it by its spec's name."""
     from lgnn.bench import settings
 
+    def shipped(name: str) -> dict:
+        return tomllib.loads(resources.files("lgnn.bench").joinpath(f"profiles/{name}.toml").read_text())
+
     if str(source) in PROFILE_NAMES:
-        data, base, stem = tomllib.loads(resources.files("lgnn.bench").joinpath(f"profiles/{source}.toml").read_text()), None, str(source)
+        data, base = shipped(str(source)), None
     else:
         path = Path(source)
-        data, base, stem = settings.read_toml(path), path.resolve().parent, path.stem
-    data = settings.apply_overrides({"name": stem, **data}, overrides)
-    return _resolved(settings.build(Profile, data), base)
+        data, base = settings.read_toml(path), path.resolve().parent
+        profile = data.pop("profile", "quick")
+        if profile not in PROFILE_NAMES:
+            raise ConfigError(f"{path}: profile {profile!r} is not a shipped profile (choose from {', '.join(PROFILE_NAMES)})")
+        data = settings.merged({**shipped(profile), "name": path.stem}, data)
+    return _resolved(settings.build(Profile, settings.apply_overrides(data, overrides)), base)
 
 
 def _resolved(profile: Profile, base: Path | None) -> Profile:

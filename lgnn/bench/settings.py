@@ -129,6 +129,14 @@ def apply_overrides(data: dict, overrides) -> dict:
     return data
 
 
+def merged(base: dict, data: dict) -> dict:
+    """`base` with `data`'s values set over it, table by table (a config on top of a profile)."""
+    out = _copy(base)
+    for key, value in data.items():
+        out[key] = merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else _copy(value)
+    return out
+
+
 def _copy(data):
     if isinstance(data, dict):
         return {k: _copy(v) for k, v in data.items()}
