@@ -345,6 +345,34 @@ def _add_benchmark_parser(commands) -> None:
     parser.set_defaults(run=_cmd_benchmark)
 
 
+def _cmd_dataset_export(args) -> None:
+    from lgnn.bench import grid
+    from lgnn.bench.dataset import export_scene
+    from lgnn.files import check_writable
+
+    check_writable(args.out)
+    profile = grid.load_profile(args.config or args.profile, args.set or ())
+    shapes = export_scene(profile, args.scene, args.out, args.cache_dir, progress=not args.quiet)
+    print(f"{args.scene}: {shapes['q'][0]} states ({shapes['train'][0]} train, {shapes['val'][0]} validation), "
+          f"{shapes['eval_q0'][0]} evaluation initial conditions ({profile.name} profile); wrote {args.out}")
+
+
+def _add_dataset_parser(commands) -> None:
+    from lgnn.bench import grid
+
+    parser = commands.add_parser("dataset", help="training and evaluation data for other frameworks")
+    sub = parser.add_subparsers(dest="dataset_command", required=True, metavar="SUBCOMMAND")
+    export = sub.add_parser("export", help="write a scene's training data and evaluation initial conditions (.npz or .h5; README 'Exported datasets')")
+    export.add_argument("--scene", required=True, help="built-in scene name or scene JSON file")
+    export.add_argument("--out", required=True, help="output file: .npz, or .h5 (needs h5py: pip install 'lgnn[hdf5]')")
+    export.add_argument("--profile", choices=grid.PROFILE_NAMES, default="full", help="data and evaluation settings (default: full, the paper's)")
+    export.add_argument("--config", help="a benchmark config file instead of --profile")
+    export.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting, e.g. training.data.n_trajectories=10")
+    export.add_argument("--cache-dir", default="results/datasets", help="training data cache")
+    export.add_argument("--quiet", action="store_true", help="no progress bar")
+    export.set_defaults(run=_cmd_dataset_export)
+
+
 def _cmd_stability(args) -> None:
     from lgnn.bench import stability
     from lgnn.files import check_writable
@@ -411,6 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mujoco_commands(commands)
     _add_train_parser(commands)
     _add_benchmark_parser(commands)
+    _add_dataset_parser(commands)
     _add_stability_parser(commands)
     _add_convergence_parser(commands)
     return parser
