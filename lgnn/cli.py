@@ -460,30 +460,66 @@ def _cmd_benchmark(args) -> None:
     from lgnn.bench.run import STAGES, run
     from lgnn.bench.store import default_out
 
-    profile = grid.get_profile("full" if args.full else "quick")
-    if args.chunk is not None:
-        # Not an evaluation setting (records stay valid): only how many rollouts share a call.
-        profile = dataclasses.replace(profile, evaluate=dataclasses.replace(profile.evaluate, chunk=args.chunk))
-    stages = STAGES if args.stage == "all" else (args.stage,)
+    if sum(map(bool, (args.full, args.profile, args.config))) > 1:
+        raise ConfigError("give one of --config, --profile and --full")
+    overrides = list(args.set or ()) + ([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])
+    # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
+    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
+    stages = None if args.stage is None else STAGES if args.stage == "all" else (args.stage,)
     print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet)
-    if "report" in stages:
+    if "report" in (stages or profile.stages or STAGES):
         print((out / "README.md").read_text())
     print(f"wrote {out}/")
 
 
 def _add_benchmark_parser(commands) -> None:
+    from lgnn.bench import grid
     from lgnn.bench.run import STAGES
 
     parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
     parser.add_argument("--full", action="store_true", help="the full profile (default: the quick one, minutes on a laptop)")
-    parser.add_argument("--stage", default="all", choices=("all",) + STAGES, help="run one stage (default: all, resuming finished work)")
+    parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
+    parser.add_argument("--config", help="a benchmark config file (TOML; README, 'Benchmark configs')")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2] (repeatable)")
+    parser.add_argument("--stage", default=None, choices=("all",) + STAGES,
+                        help="run one stage (default: the config's stages, else all, resuming finished work)")
     parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")
     parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")
     parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, the committed run it resumes and updates; ./lgnn-out/quick/ otherwise)")
     parser.add_argument("--chunk", type=_positive_int, default=None, help="initial conditions per compiled rollout call (default 25; a GPU wants 100)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_benchmark)
+
+
+def _cmd_dataset_export(args) -> None:
+    from lgnn.bench import grid
+    from lgnn.bench.dataset import export_scene
+    from lgnn.files import check_writable
+    from lgnn.learn import data
+
+    check_writable(args.out)
+    profile = grid.load_profile(args.config or args.profile, args.set or ())
+    shapes = export_scene(profile, args.scene, args.out, args.cache_dir or data.default_cache_dir(), progress=not args.quiet)
+    print(f"{args.scene}: {shapes['q'][0]} states ({shapes['train'][0]} train, {shapes['val'][0]} validation), "
+          f"{shapes['eval_q0'][0]} evaluation initial conditions ({profile.name} profile); wrote {args.out}")
+
+
+def _add_dataset_parser(commands) -> None:
+    from lgnn.bench import grid
+
+    parser = commands.add_parser("dataset", help="training and evaluation data for other frameworks")
+    sub = parser.add_subparsers(dest="dataset_command", required=True, metavar="SUBCOMMAND")
+    export = sub.add_parser("export", help="write a scene's training data and evaluation initial conditions (.npz or .h5; README 'Exported datasets')")
+    export.add_argument("--scene", required=True, help="built-in scene name or scene JSON file")
+    export.add_argument("--out", required=True, help="output file: .npz, or .h5 (needs h5py: pip install 'lgnn[hdf5]')")
+    export.add_argument("--profile", choices=grid.PROFILE_NAMES, default="full", help="data and evaluation settings (default: full, the paper's)")
+    export.add_argument("--config", help="a benchmark config file instead of --profile")
+    export.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting, e.g. training.data.n_trajectories=10")
+    export.add_argument("--cache-dir", default=None, help="training data cache (default: as lgnn train's)")
+    export.add_argument("--quiet", action="store_true", help="no progress bar")
+    export.set_defaults(run=_cmd_dataset_export)
 
 
 def _cmd_stability(args) -> None:
@@ -556,6 +592,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train_parser(commands)
     _add_evaluation_parsers(commands)
     _add_benchmark_parser(commands)
+    _add_dataset_parser(commands)
     _add_stability_parser(commands)
     _add_convergence_parser(commands)
     return parser

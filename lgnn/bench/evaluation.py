@@ -189,8 +189,6 @@ def write_outputs(scored: list[Scored], out_dir: str | os.PathLike, stem: str, t
 def initial_states(scene: Scene, count: int, seed: int) -> State:
     """The scene's own state (count 1) or `count` sampled initial conditions
     (`lgnn.physics.sample_states` with `seed`), (count, N, D)."""
-    import jax
-
     if count == 1:
         return State(np.asarray(scene.nodes, np.float64)[None], np.asarray(scene.velocities, np.float64)[None])
-    return physics.sample_states(scene, jax.random.PRNGKey(seed), count)
+    return physics.sample_states(scene, count, seed)

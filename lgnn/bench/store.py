@@ -37,13 +37,13 @@ class Layout:
         return self.out / "benchmark"
 
     def checkpoint(self, job: TrainingJob) -> Path:
-        return self.bench / "checkpoints" / f"{job.name}.npz"
+        return self.bench / "checkpoints" / f"{file_name(job.name)}.npz"
 
     def pair_record(self, pair: Pair) -> Path:
-        return self.bench / "runs" / pair.job.name / f"{pair.scene}.npz"
+        return self.bench / "runs" / file_name(pair.job.name) / f"{file_name(pair.scene)}.npz"
 
     def truth_record(self, scene: str) -> Path:
-        return self.bench / "runs" / "ground-truth" / f"{scene}.npz"
+        return self.bench / "runs" / "ground-truth" / f"{file_name(scene)}.npz"
 
     @property
     def scaling_record(self) -> Path:
@@ -58,6 +58,17 @@ class Layout:
     @property
     def datasets(self) -> Path:
         return self.out / "datasets"
+
+
+def file_name(name: str) -> str:
+    """A job or scene name as one file name: built-in names as they are; a name holding
+    a scene file's path (a user's config) with its separators replaced and a digest of
+    the path appended, so records stay under `out` and two files of one name in
+    different directories do not share records."""
+    if all(c.isalnum() or c in "-_." for c in name) and not name.startswith("."):
+        return name
+    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in name)[-48:].lstrip("_")
+    return f"{safe}-{records.digest(name)[:8]}"
 
 
 def default_out(profile: Profile) -> Path:

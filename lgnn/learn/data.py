@@ -1,9 +1,9 @@
 """Training data from the ground truth, cached on disk.
 
 Paper text (SPEC): 100 trajectories of the scene from the paper's chain sampler
-(`sample_initial_states`), each 1 s with a state every 0.01 s (100 states, t = 0 ..
-0.99 s), 10 000 states in all, split at random 75:25 into training and validation
-states. Trajectories are integrated with the ground-truth engine's RK4 at dt 1e-4 with
+(`physics.initial_states`; a user's scene gets `physics.sample_initial_conditions`),
+each 1 s with a state every 0.01 s (100 states, t = 0 .. 0.99 s), 10 000 states in
+all, split at random 75:25 into training and validation states. Trajectories are integrated with the ground-truth engine's RK4 at dt 1e-4 with
 projection onto the constraints. The targets are the exact accelerations
 `physics.true_acceleration_fn(scene)` at the saved states (the paper's code used a
 central finite difference of the positions, whose O(dt^2) error we avoid).
@@ -34,7 +34,7 @@ from lgnn.errors import ConfigError
 from lgnn.files import user_cache_dir
 from lgnn.runtime import in_float64
 from lgnn.scene import Scene, scene_to_dict
-from lgnn.scene import get_scene, sample_initial_states
+from lgnn.scene import get_scene
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 
 # 2: an `lgnn.records` record (1: its own layout and checksum); part of the key, so
@@ -107,8 +107,7 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
 
     scene = get_scene(config.scene)
     run, targets = _compiled(scene, config.simulation)
-    initial = sample_initial_states(scene, jax.random.PRNGKey(config.seed), config.n_trajectories)
-    initial_q, initial_qd = np.asarray(initial.q), np.asarray(initial.qd)
+    initial_q, initial_qd = physics.initial_states(scene, config.n_trajectories, config.seed)
     # One batch shape for every call (the last batch padded): one compile, sharded over
     # every local device.
     size = sharding.padded_size(min(config.chunk, config.n_trajectories))

@@ -291,6 +291,9 @@ def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: 
         "history": state.history,
         "elapsed_s": state.elapsed_s,
     }
+    if models.model_source(model.name):
+        # A model defined outside lgnn: where its code is, for the error that asks for it.
+        meta["model_source"] = models.model_source(model.name)
     records.save(path, arrays, meta)
 
 
@@ -321,6 +324,11 @@ def _restore(path, template, arrays: dict, prefix: str):
 def load_checkpoint(path) -> tuple[TrainState, dict]:
     """The training state and metadata of a checkpoint; `CheckpointError` if unusable."""
     meta, arrays = _read(path)
+    source = meta.get("model_source")
+    if source and meta["model"].get("name") not in models.model_names():
+        # Never imported from a file's say-so: loading code is the user's decision.
+        raise CheckpointError(f"{path}: model {meta['model'].get('name')!r} is defined outside lgnn ({source}): load it first "
+                              "(lgnn.learn.models.load_spec, or the config's model reference)")
     try:
         model = models.ModelConfig.from_dict(meta["model"])
         config = TrainConfig(**{**LEGACY_OPTIMISATION, **meta["train_config"]})
