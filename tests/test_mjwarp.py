@@ -77,7 +77,7 @@ def test_timed_rollout_is_the_rollout():
     scene, states = get_scene("chain4"), chain4_states()
     engine = get_engine("mjwarp")
     compile_s, run_s, q = engine.timed_rollout(scene, SHORT, states)
-    nodes, _, _ = mjwarp.rollout(scene, SHORT, states)
+    nodes = mjwarp.rollout(scene, SHORT, states)
     assert compile_s >= 0 and run_s > 0
     np.testing.assert_array_equal(q, nodes.q)
 

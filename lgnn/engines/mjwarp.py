@@ -42,6 +42,7 @@ import numpy as np
 
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory
 from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, state_to_qpos_qvel
+from lgnn.engines.timing import time_runs
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.scene import Scene, State
 
@@ -128,9 +129,9 @@ class Runner:
             self.compile_s = time.perf_counter() - start
         return self.compile_s
 
-    def run(self, qpos: np.ndarray, qvel: np.ndarray) -> float:
+    def run(self, qpos: np.ndarray, qvel: np.ndarray) -> None:
         """Step the B worlds from `qpos` (B, nq), `qvel` (B, nv) through every frame,
-        keeping each frame's state on the device; returns the stepping's seconds."""
+        keeping each frame's state on the device; returns when the device is done."""
         wp, mjw, _ = _modules()
         self.prepare()
         with wp.ScopedDevice(self.device):
@@ -139,8 +140,6 @@ class Runner:
             wp.copy(self.data.qvel, wp.array(np.asarray(qvel, np.float32), dtype=wp.float32))
             wp.copy(self.qpos_frames[0], self.data.qpos)
             wp.copy(self.qvel_frames[0], self.data.qvel)
-            wp.synchronize_device(self.device)
-            start = time.perf_counter()
             for f in range(1, self.config.n_frames + 1):
                 if self.graph is not None:
                     wp.capture_launch(self.graph)
@@ -149,7 +148,6 @@ class Runner:
                 wp.copy(self.qpos_frames[f], self.data.qpos)
                 wp.copy(self.qvel_frames[f], self.data.qvel)
             wp.synchronize_device(self.device)
-            return time.perf_counter() - start
 
     def nodes(self, frames=None) -> State:
         """Node states (B, len(frames), N, 2) (float64) of the last `run`'s `frames`
@@ -211,16 +209,12 @@ def initial_qpos_qvel(compiled, states: State) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
 
 
-def rollout(scene: Scene, config: SimulationConfig, states: State, form: str = DEFAULT_FORM, device: str | None = None,
-            frames=None) -> tuple[State, float, float]:
-    """`(nodes, compile_s, run_s)`: node trajectories (B, F+1, N, 2) (or the given
-    `frames` only) from initial node states (B, N, 2), the one-off compile seconds and
-    the stepping's seconds. Non-finite states are returned as they are."""
+def rollout(scene: Scene, config: SimulationConfig, states: State, form: str = DEFAULT_FORM, device: str | None = None) -> State:
+    """Node trajectories (B, F+1, N, 2) (float64 of MuJoCo Warp's float32) from initial
+    node states (B, N, 2). Non-finite states are returned as they are."""
     run = runner(scene, config, len(states.q), form, device)
-    compile_s = run.prepare()
-    qpos, qvel = initial_qpos_qvel(run.compiled, states)
-    run_s = run.run(qpos, qvel)
-    return run.nodes(frames), compile_s, run_s
+    run.run(*initial_qpos_qvel(run.compiled, states))
+    return run.nodes()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -238,7 +232,7 @@ class MjwarpEngine:
         (lgnn's exact energy of the node states); stopped at the first non-finite or
         exploding frame like every engine."""
         start = time.perf_counter()
-        nodes, _, _ = rollout(scene, config, states, self.form, self.device)
+        nodes = rollout(scene, config, states, self.form, self.device)
         metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start)
         metadata["engine"].update(form=self.form, mujoco_warp=versions())
         if not (np.isfinite(nodes.q).all() and np.isfinite(nodes.qd).all()):
