@@ -386,12 +386,12 @@ def _cmd_gpu_truth(args) -> None:
 
     settings = gpu_truth.GpuTruthSettings(tuple(args.scenes), tuple(args.batches), tuple(args.engines), args.steps, args.dt,
                                           args.repeats, args.form, args.seed)
-    check_writable(f"{args.out}/gpu_truth_{settings.scenes[0]}.md")
+    check_writable(f"{args.out}/gpu_truth_{settings.scenes[0]}{args.suffix}.md")
     scenes = [get_scene(name) for name in settings.scenes]  # every name checked before any run
     log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     for scene in scenes:
         rows = gpu_truth.measure(scene, settings, log=log)
-        print(f"wrote {gpu_truth.write(rows, args.out, scene.name, 'lgnn ' + ' '.join(args.argv), settings)} and .csv")
+        print(f"wrote {gpu_truth.write(rows, args.out, scene.name + args.suffix, 'lgnn ' + ' '.join(args.argv), settings)} and .csv")
 
 
 def _add_gpu_truth_parser(commands) -> None:
@@ -408,7 +408,8 @@ def _add_gpu_truth_parser(commands) -> None:
     parser.add_argument("--repeats", type=_positive_int, default=default.repeats, help="timed runs per engine and batch (the spread)")
     parser.add_argument("--form", default=default.form, help="MJCF form of the MuJoCo engines (default nested)")
     parser.add_argument("--seed", type=int, default=default.seed, help="initial states' seed")
-    parser.add_argument("--out", required=True, help="output directory: gpu_truth_<scene>.csv and .md")
+    parser.add_argument("--out", required=True, help="output directory: gpu_truth_<scene><suffix>.csv and .md")
+    parser.add_argument("--suffix", default="", help="appended to the file names (e.g. _mjx for a call of its own)")
     parser.add_argument("--quiet", action="store_true", help="no per-run lines")
     parser.set_defaults(run=_cmd_gpu_truth)
 

@@ -200,9 +200,10 @@ NOTES = (
 )
 
 
-def write(rows: list[dict], out_dir, scene: str, command: str, settings: GpuTruthSettings) -> str:
-    """`gpu_truth_<scene>.csv` and `.md` in `out_dir`; returns the markdown path."""
-    stem = f"{out_dir}/gpu_truth_{scene}"
+def write(rows: list[dict], out_dir, name: str, command: str, settings: GpuTruthSettings) -> str:
+    """`gpu_truth_<name>.csv` and `.md` in `out_dir` (`name`: the scene's, and a suffix
+    where one scene's engines are split over calls); returns the markdown path."""
+    stem = f"{out_dir}/gpu_truth_{name}"
     notes = NOTES + (f"settings: steps {settings.steps}, dt {settings.dt:g}, repeats {settings.repeats}, form {settings.form}, seed {settings.seed}",)
-    write_table(rows, COLUMNS, f"{stem}.csv", f"{stem}.md", f"GPU ground truth: {scene}", header(command), notes)
+    write_table(rows, COLUMNS, f"{stem}.csv", f"{stem}.md", f"GPU ground truth: {name}", header(command), notes)
     return f"{stem}.md"
