@@ -244,11 +244,10 @@ class MjwarpEngine:
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, 2))`: compile is the kernels' compilation
         (and graph capture) when the runner was built (as `lgnn.bench.timing` reports a
-        cached compile); run is the stepping alone, after one untimed run (as
-        `lgnn.engines.timing.time_compiled`); `q` may be non-finite."""
+        cached compile); run is the stepping alone, after one untimed run
+        (`lgnn.engines.timing.time_runs`); `q` may be non-finite."""
         run = runner(scene, config, len(states.q), self.form, self.device)
         compile_s = run.prepare()
         qpos, qvel = initial_qpos_qvel(run.compiled, states)
-        run.run(qpos, qvel)
-        run_s = run.run(qpos, qvel)
+        (run_s,), _ = time_runs(lambda: run.run(qpos, qvel))
         return compile_s, run_s, run.nodes().q
