@@ -564,6 +564,41 @@ def _add_stability_parser(commands) -> None:
     parser.set_defaults(run=_cmd_stability)
 
 
+def _cmd_gpu_truth(args) -> None:
+    from lgnn.bench import gpu_truth
+    from lgnn.files import check_writable
+    from lgnn.scene import get_scene
+
+    settings = gpu_truth.GpuTruthSettings(tuple(args.scenes), tuple(args.batches), tuple(args.engines), args.steps, args.dt,
+                                          args.repeats, args.form, args.seed)
+    check_writable(f"{args.out}/gpu_truth_{settings.scenes[0]}{args.suffix}.md")
+    scenes = [get_scene(name) for name in settings.scenes]  # every name checked before any run
+    log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
+    for scene in scenes:
+        rows = gpu_truth.measure(scene, settings, log=log)
+        print(f"wrote {gpu_truth.write(rows, args.out, scene.name + args.suffix, 'lgnn ' + ' '.join(args.argv), settings)} and .csv")
+
+
+def _add_gpu_truth_parser(commands) -> None:
+    from lgnn.bench.gpu_truth import GpuTruthSettings
+
+    default = GpuTruthSettings()
+    parser = commands.add_parser("gpu-truth", help="time every ground-truth engine on batches of one scene and its error against float64")
+    parser.add_argument("--scenes", nargs="+", default=list(default.scenes), help="built-in names or scene files (a table each)")
+    parser.add_argument("--batches", type=_positive_int, nargs="+", default=list(default.batches), help="batch sizes")
+    parser.add_argument("--engines", nargs="+", default=list(default.engines),
+                        help="name:dtype besides the float64 Lagrangian reference (default: %(default)s)")
+    parser.add_argument("--steps", type=_positive_int, default=default.steps, help="RK4 steps; the error is after the last")
+    parser.add_argument("--dt", type=_positive_float, default=default.dt, help="integration step (s)")
+    parser.add_argument("--repeats", type=_positive_int, default=default.repeats, help="timed runs per engine and batch (the spread)")
+    parser.add_argument("--form", default=default.form, help="MJCF form of the MuJoCo engines (default nested)")
+    parser.add_argument("--seed", type=int, default=default.seed, help="initial states' seed")
+    parser.add_argument("--out", required=True, help="output directory: gpu_truth_<scene><suffix>.csv and .md")
+    parser.add_argument("--suffix", default="", help="appended to the file names (e.g. _mjx for a call of its own)")
+    parser.add_argument("--quiet", action="store_true", help="no per-run lines")
+    parser.set_defaults(run=_cmd_gpu_truth)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from lgnn.engines import ENGINES
 
@@ -595,6 +630,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_dataset_parser(commands)
     _add_stability_parser(commands)
     _add_convergence_parser(commands)
+    _add_gpu_truth_parser(commands)
     return parser
 
 

@@ -16,7 +16,10 @@ An `Engine` has a `name`, the precision it computes in (`dtype`), and
 - "lagrangian" (`lagrangian.LagrangianEngine`): the exact constrained Lagrangian
   engine (`simulate`, `rollout_fn`), with `SimulationConfig` and `Trajectory`;
 - "mujoco" (`mujoco.MujocoEngine`): MuJoCo C on the scene's MJCF (`mjcf`), float64;
-- "mjx" (`mjx.MjxEngine`): MJX on the same model, float64 or float32.
+- "mjx" (`mjx.MjxEngine`): MJX on the same model, float64 or float32;
+- "mjwarp" (`mjwarp.MjwarpEngine`): MuJoCo Warp on the same model, many worlds at
+  once, float32 only, GPU or Warp's CPU backend; an optional extra (`lgnn[mjwarp]`),
+  a one-line `ConfigError` when it is not installed.
 
 A learned model answers the same interface as `lgnn.learn.models.ModelEngine(config,
 params)` (e.g. `ModelEngine(*load_model(checkpoint))`); it is not in `ENGINES`
@@ -67,9 +70,15 @@ def _mjx(dtype: str, progress: bool) -> Engine:
     return MjxEngine(dtype=dtype)
 
 
+def _mjwarp(dtype: str, progress: bool) -> Engine:
+    from lgnn.engines.mjwarp import MjwarpEngine
+
+    return MjwarpEngine()
+
+
 # Name -> factory(dtype, progress). The MuJoCo factories import their module (and so
 # `mujoco`) when called.
-ENGINES: dict[str, Callable[[str, bool], Engine]] = {"lagrangian": _lagrangian, "mujoco": _mujoco, "mjx": _mjx}
+ENGINES: dict[str, Callable[[str, bool], Engine]] = {"lagrangian": _lagrangian, "mujoco": _mujoco, "mjx": _mjx, "mjwarp": _mjwarp}
 
 
 def get_engine(name: str, *, dtype: str = "float64", progress: bool = False) -> Engine:
