@@ -332,10 +332,10 @@ def slackened(scene: Scene, slack: float = ROPE_SLACK, seed: int = 0) -> Scene:
         phi = (np.sum(r * r, axis=1) - lengths**2) / (2 * lengths)
         if np.max(np.abs(phi)) < 1e-15:
             break
-        jac = np.zeros((len(edges), len(q), 2))
+        jac = np.zeros((len(edges), *q.shape))
         jac[rows, edges[:, 0]] = r / lengths[:, None]
         jac[rows, edges[:, 1]] = -r / lengths[:, None]
-        q[free] += np.linalg.lstsq(jac[:, free].reshape(len(edges), -1), -phi, rcond=None)[0].reshape(-1, 2)
+        q[free] += np.linalg.lstsq(jac[:, free].reshape(len(edges), -1), -phi, rcond=None)[0].reshape(-1, q.shape[1])
     else:
         raise SceneError(f"{scene.name}: no configuration found with the ropes {slack:g} slack")
     for link, length in zip(data["links"], lengths):
