@@ -58,10 +58,12 @@ def _positive_int(text: str) -> int:
 
 
 def _cmd_scenes(args) -> None:
-    from lgnn.scene import BUILTIN_SCENES, HARD_SCENES
+    from lgnn.scene import BUILTIN_SCENES, HARD_SCENES, SPATIAL_SCENES
 
-    width = max(map(len, {**BUILTIN_SCENES, **HARD_SCENES}))
-    for title, catalogue in (("built-in scenes", BUILTIN_SCENES), ("hard cases (lgnn stability, tests)", HARD_SCENES)):
+    width = max(map(len, {**BUILTIN_SCENES, **HARD_SCENES, **SPATIAL_SCENES}))
+    groups = (("built-in scenes", BUILTIN_SCENES), ("hard cases (lgnn stability, tests)", HARD_SCENES),
+              ("spatial (3D) scenes: Lagrangian engine only so far", SPATIAL_SCENES))
+    for title, catalogue in groups:
         print(f"# {title}")
         for entry in catalogue.values():
             scene = entry.build()

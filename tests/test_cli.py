@@ -19,7 +19,9 @@ def run(capsys, *argv):
 def test_scenes_lists_every_builtin(capsys):
     code, out, _ = run(capsys, "scenes")
     assert code == 0
-    for name in BUILTIN_SCENES:
+    from lgnn.scene import SPATIAL_SCENES
+
+    for name in (*BUILTIN_SCENES, *SPATIAL_SCENES):
         assert name in out
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from lgnn.errors import SceneError
 from lgnn.scene import Scene, load_scene_file, scene_from_dict, scene_to_dict, scene_to_json
-from lgnn.scene import BUILTIN_SCENES, get_scene
+from lgnn.scene import BUILTIN_SCENES, SPATIAL_SCENES, get_scene
 
 
 def valid():
@@ -37,7 +37,7 @@ def test_valid_scene_loads_with_defaults():
     np.testing.assert_allclose(scene.lengths, [1.0, 1.0])
 
 
-@pytest.mark.parametrize("name", list(BUILTIN_SCENES))
+@pytest.mark.parametrize("name", [*BUILTIN_SCENES, *SPATIAL_SCENES])
 def test_json_round_trip_is_exact(name, tmp_path):
     scene = get_scene(name)
     path = tmp_path / f"{name}.json"
@@ -49,9 +49,34 @@ def test_json_round_trip_is_exact(name, tmp_path):
     assert (again.edges, again.pinned, again.link_types, again.drag) == (scene.edges, scene.pinned, scene.link_types, scene.drag)
 
 
-def mutate(path, value):
-    """A copy of the valid scene with the entry at `path` (keys/indices) set, or deleted if value is DELETE."""
-    data = json.loads(json.dumps(valid()))
+def valid3d():
+    """`valid()` in 3D: the same links turned about the y axis (so every coordinate is
+    used), gravity along -y as in 2D."""
+    data = valid()
+    for field in ("nodes", "velocities"):
+        data[field] = [[0.6 * x, y, 0.8 * x] for x, y in data[field]]
+    return data
+
+
+def lift(path, value):
+    """A mutation of `valid()` as one of `valid3d()`: points in nodes and velocities get
+    a z = 0 (the 2D values that break a rule break it in 3D too)."""
+    is_point = lambda v: isinstance(v, list) and all(isinstance(c, (int, float)) for c in v)  # noqa: E731
+    if path[0] not in ("nodes", "velocities") or not isinstance(value, list):
+        return value
+    if is_point(value) and len(path) == 2:
+        return [*value, 0.0]
+    if all(is_point(point) for point in value):
+        return [[*point, 0.0] for point in value]
+    return value
+
+
+def mutate(path, value, dim=2):
+    """A copy of the valid scene (in `dim` dimensions) with the entry at `path`
+    (keys/indices) set, or deleted if value is DELETE."""
+    data = json.loads(json.dumps(valid() if dim == 2 else valid3d()))
+    if dim == 3:
+        value = lift(path, value)
     target = data
     for key in path[:-1]:
         target = target[key]
@@ -100,10 +125,46 @@ BAD_SCENES = [
 ]
 
 
+@pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize(("path", "value", "words"), BAD_SCENES, ids=[f"{'.'.join(map(str, p))}" for p, _, _ in BAD_SCENES])
-def test_every_schema_violation_is_one_clear_line(path, value, words):
+def test_every_schema_violation_is_one_clear_line(path, value, words, dim):
+    """Every rule holds with the same message in 3D (`lift` adds a z to the bad points;
+    a first node of 3 coordinates becomes one of 4 among 3D nodes)."""
+    if dim == 3 and words[-1] == "expected 2 coordinates, got 3":
+        words = [words[0], "expected 3 coordinates, got 4"]
     with pytest.raises(SceneError) as info:
-        scene_from_dict(mutate(path, value))
+        scene_from_dict(mutate(path, value, dim))
+    message = str(info.value)
+    assert "\n" not in message
+    for word in words:
+        assert word in message, message
+
+
+def test_a_spatial_scene_loads_with_three_coordinates():
+    scene = scene_from_dict(valid3d())
+    assert scene.dim == 3 and scene.nodes.shape == scene.velocities.shape == (3, 3)
+    np.testing.assert_allclose(scene.lengths, [1.0, 1.0])
+    data = valid3d()
+    del data["velocities"]
+    np.testing.assert_array_equal(scene_from_dict(data).velocities, np.zeros((3, 3)))
+    assert scene_from_dict(valid()).dim == 2
+
+
+@pytest.mark.parametrize(
+    ("field", "points", "words"),
+    [
+        # The scene's dimension is what most points have; the odd one is named.
+        ("nodes", [[0.0, 0.0, 0.0], [0.6, -0.8], [1.6, -0.8, 0.0]], ["nodes[1]", "expected 3 coordinates, got 2", "3D throughout"]),
+        ("velocities", [[0.0, 0.0, 0.0], [0.0, 0.0], [0.0, 0.0]], ["velocities[0]", "expected 2 coordinates, got 3", "2D throughout"]),
+        ("nodes", [[0.0, 0.0, 0.0, 0.0], [0.6, -0.8, 0.0, 0.0], [1.6, -0.8, 0.0, 0.0]], ["nodes[0]", "2 (planar) or 3 (spatial)", "got 4"]),
+        ("nodes", [[0.0], [0.6], [1.6]], ["nodes[0]", "2 (planar) or 3 (spatial)", "got 1"]),
+    ],
+)
+def test_a_scene_is_2d_or_3d_throughout(field, points, words):
+    data = valid()
+    data[field] = points
+    with pytest.raises(SceneError) as info:
+        scene_from_dict(data)
     message = str(info.value)
     assert "\n" not in message and "np." not in message  # numbers as numbers, not reprs
     for word in words:

@@ -93,7 +93,7 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
             if chain_solve:
                 diagonal, upper = local.chain_blocks(products)
                 u = constraints.link_directions(q)
-                xdd = chain_kkt_solve(diagonal, upper, u, rhs.reshape(-1, 2), -constraints.jacobian_dot_v(x, v), regularised=True)
+                xdd = chain_kkt_solve(diagonal, upper, u, rhs.reshape(-1, constraints.shape[1]), -constraints.jacobian_dot_v(x, v), regularised=True)
                 return constraints.embed_velocity(xdd.reshape(-1))
             mass = local.dense(products)
         xdd = solve_kkt(mass, constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
@@ -195,7 +195,7 @@ def _schur_acceleration_fn(system: System) -> AccelerationFn:
 
 def _chain_acceleration_fn(system: System) -> AccelerationFn:
     """The "chain" solver of `true_acceleration_fn`: the constant-mass equations of a
-    planar chain pinned at node 0 by `solvers.chain_kkt_solve`, in time linear in its
+    chain pinned at node 0 (2D or 3D) by `solvers.chain_kkt_solve`, in time linear in its
     length. A pinned chain's constraint rows are always independent (every link is
     kept, in order), so no regularisation is needed."""
     constraints = system.constraints
@@ -207,6 +207,6 @@ def _chain_acceleration_fn(system: System) -> AccelerationFn:
         # Link rows: `A a = -Adot v`.
         accel_nodes = chain_kkt_solve(jnp.asarray(diagonal_mass, dtype), jnp.asarray(upper_mass, dtype), constraints.link_directions(q),
                                       forces(q, qd)[1:], -constraints.link_speed_terms(qd))
-        return jnp.concatenate([jnp.zeros((1, 2), dtype), accel_nodes])
+        return jnp.concatenate([jnp.zeros((1, accel_nodes.shape[1]), dtype), accel_nodes])
 
     return accel

@@ -6,8 +6,12 @@ along -y. Nothing here builds constraints or solves anything: these are the inpu
 the constrained Euler-Lagrange transformer (`dynamics.acceleration_fn`).
 
 A rod with ends at `q_i, q_j` has its centre of mass at the midpoint, mass `m`,
-moment of inertia `I` about its centre, so `T = 1/2 m |v_cm|^2 + 1/2 I omega^2` and
-`V = m g y_cm`. Its mass matrix `d2T/dqd2` is singular along the rod (stretching costs
+moment of inertia `I` about its centre, so `T = 1/2 m |v_cm|^2 + 1/2 I |omega_perp|^2`
+and `V = m g y_cm`, in 2D and 3D alike (D = 2 or 3). In 3D a thin rod's spin about its
+own axis is invisible to its two end nodes and no force here excites it, so only the
+angular velocity perpendicular to the rod enters: `omega_perp = dq x dqd / |dq|^2`,
+and for a rod of fixed length `|omega_perp|^2 l^2 = |dqd|^2`, so everything built on
+the node description (the constant on-manifold mass, the solvers) carries over. Its mass matrix `d2T/dqd2` is singular along the rod (stretching costs
 no kinetic energy), which the solver handles (`dynamics`); `constant_mass_lagrangian_fn`
 is the regular on-manifold equivalent the structured solvers factor once.
 """
@@ -37,7 +41,8 @@ def _link_kinematics(scene: Scene, q: Array, qd: Array):
 
 
 def angular_speed_squared(dq: Array, dqd: Array) -> Array:
-    """omega^2 of rods with axis `dq` and end-velocity difference `dqd` (..., D).
+    """|omega_perp|^2 of rods with axis `dq` and end-velocity difference `dqd` (..., D):
+    in 2D the rod's omega^2, in 3D its angular velocity perpendicular to the rod.
 
     `|dq x dqd|^2 / |dq|^4`, written with Lagrange's identity
     `|a x b|^2 = |a|^2 |b|^2 - (a.b)^2` so it holds in 2D and 3D alike.
@@ -48,7 +53,7 @@ def angular_speed_squared(dq: Array, dqd: Array) -> Array:
 
 
 def kinetic_energy_per_link(scene: Scene, q: Array, qd: Array) -> Array:
-    """(E,) exact rod kinetic energy `1/2 m |v_cm|^2 + 1/2 I omega^2`."""
+    """(E,) exact rod kinetic energy `1/2 m |v_cm|^2 + 1/2 I |omega_perp|^2`."""
     dq, dqd, v_cm = _link_kinematics(scene, q, qd)
     m, inertia = jnp.asarray(scene.masses), jnp.asarray(scene.inertias)
     return 0.5 * m * jnp.sum(v_cm * v_cm, -1) + 0.5 * inertia * angular_speed_squared(dq, dqd)

@@ -57,12 +57,12 @@ class LocalMass:
         for a, near in enumerate(neighbours):
             adjacent[a, list(near)] = True
         self.coupled = adjacent[np.ix_(node_of, node_of)]
-        # A chain pinned at node 0 has free coordinates 2b + i for node b + 1, so its
-        # block (b, i, j) is row 2b + i of the product of column 2b + j's seed.
-        chain_nodes = (len(constraints.free) // 2) if d == 2 else 0
-        block, row, column = np.meshgrid(np.arange(chain_nodes), np.arange(2), np.arange(2), indexing="ij")
-        self.diagonal_rows = 2 * block + row
-        self.diagonal_seeds = self.seed_of[2 * block + column]
+        # A chain pinned at node 0 has free coordinates Db + i for node b + 1, so its
+        # block (b, i, j) is row Db + i of the product of column Db + j's seed.
+        chain_nodes = len(constraints.free) // d
+        block, row, column = np.meshgrid(np.arange(chain_nodes), np.arange(d), np.arange(d), indexing="ij")
+        self.diagonal_rows = d * block + row
+        self.diagonal_seeds = self.seed_of[d * block + column]
         self.upper_rows = self.diagonal_rows[:-1]
         self.upper_seeds = self.diagonal_seeds[1:]
 
@@ -75,5 +75,5 @@ class LocalMass:
         return jnp.where(self.coupled, products[self.seed_of[None, :], np.arange(products.shape[1])[:, None]], 0.0)
 
     def chain_blocks(self, products: Array) -> tuple[Array, Array]:
-        """(n, 2, 2) diagonal and (n-1, 2, 2) upper (node b with b+1) blocks of a chain."""
+        """(n, D, D) diagonal and (n-1, D, D) upper (node b with b+1) blocks of a chain."""
         return products[self.diagonal_seeds, self.diagonal_rows], products[self.upper_seeds, self.upper_rows]

@@ -94,10 +94,10 @@ class System:
 
     @functools.cached_property
     def chain_mass_blocks(self) -> tuple[np.ndarray, np.ndarray]:
-        """(n, 2, 2) diagonal blocks (nodes 1..n) and (n-1, 2, 2) upper blocks (node b
+        """(n, D, D) diagonal blocks (nodes 1..n) and (n-1, D, D) upper blocks (node b
         with b+1) of the constant node mass of a chain of n links pinned at node 0."""
-        n = self.scene.n_links
-        node_mass = constant_node_mass(self.scene).reshape(n + 1, 2, n + 1, 2)
+        n, d = self.scene.n_links, self.scene.dim
+        node_mass = constant_node_mass(self.scene).reshape(n + 1, d, n + 1, d)
         return node_mass[np.arange(1, n + 1), :, np.arange(1, n + 1), :], node_mass[np.arange(1, n), :, np.arange(2, n + 1), :]
 
     @functools.cached_property
@@ -130,7 +130,7 @@ class System:
         if not self.regular_mass:
             raise ValueError(f"{scene.name}: the constant mass matrix is singular; use the generic solver")
         if requested == "chain" and not self.is_pinned_chain:
-            raise ValueError(f"{scene.name}: the chain solver needs a planar chain pinned at node 0")
+            raise ValueError(f"{scene.name}: the chain solver needs a chain pinned at node 0")
         return requested
 
 

@@ -3,7 +3,7 @@
 - `schema`: `Scene` (a frozen pytree), `State`, JSON reading, writing and validation;
 - `catalogue`: the one catalogue of scenes: the built-in scenes of the paper
   (`BUILTIN_SCENES`), the hard cases and small physics-test scenes (`HARD_SCENES`),
-  and the initial-condition sampler.
+  the spatial (3D) scenes (`SPATIAL_SCENES`), and the initial-condition samplers.
 
 Everything above this package takes a `Scene`; nothing here imports anything of lgnn
 but `lgnn.errors`.
@@ -22,6 +22,7 @@ from lgnn.scene.schema import (
 from lgnn.scene.catalogue import (
     BUILTIN_SCENES,
     HARD_SCENES,
+    SPATIAL_SCENES,
     BuiltinScene,
     chain,
     chain4_drag,
@@ -30,12 +31,16 @@ from lgnn.scene.catalogue import (
     get_scene,
     is_catalogue_scene,
     double_pinned_chain,
+    embedded_in_3d,
     folded_chain,
     free_triangle,
     paper_structure,
     pendulum,
     pinned_triangle,
     sample_initial_states,
+    spatial_chain,
+    spatial_chain_state,
+    spatial_net,
     taut_chain,
 )
 
@@ -43,6 +48,7 @@ __all__ = [
     "BUILTIN_SCENES",
     "BuiltinScene",
     "HARD_SCENES",
+    "SPATIAL_SCENES",
     "Scene",
     "State",
     "chain",
@@ -51,6 +57,7 @@ __all__ = [
     "chain_positions",
     "check_scene",
     "double_pinned_chain",
+    "embedded_in_3d",
     "folded_chain",
     "free_triangle",
     "get_scene",
@@ -61,6 +68,9 @@ __all__ = [
     "pendulum",
     "pinned_triangle",
     "sample_initial_states",
+    "spatial_chain",
+    "spatial_chain_state",
+    "spatial_net",
     "scene_from_dict",
     "scene_to_dict",
     "scene_to_json",

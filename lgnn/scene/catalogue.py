@@ -1,5 +1,6 @@
 """The one catalogue of scenes: the built-ins of the paper, the hard cases, small test
-scenes, and the initial-condition sampler.
+scenes, the spatial (3D) scenes (`SPATIAL_SCENES`, a group of their own until the
+MuJoCo engines and the benchmark take 3D), and the initial-condition samplers.
 
 Each built-in is constructed by one function from a seed; `get_scene(name_or_path)`
 resolves a built-in or hard-case name or a user's scene JSON file.
@@ -36,6 +37,12 @@ from lgnn.scene.schema import Scene, State, is_pinned_chain, load_scene_file, sc
 CHAIN_LINK_ANGLE = np.deg2rad(15.0)
 CHAIN_ROTATION = np.deg2rad(45.0)
 PAPER_GRAVITY = 10.0
+# The 3D chain sampler: each link tilted from -y by a polar angle uniform in [0, 45]
+# degrees (the 2D sampler's 45 degree swing) towards a uniform random azimuth, turning
+# at a rate uniform in [0, 2] rad/s (below the unit pendulum's sqrt(g / l) ~ 3.2) about
+# a uniformly random axis perpendicular to it.
+SPATIAL_CHAIN_CONE = np.deg2rad(45.0)
+SPATIAL_CHAIN_SPIN = 2.0
 PAPER_DRAG = 0.01
 
 # The varied-property 4-link chain (paper appendix; the fifth listed mass is unused).
@@ -56,18 +63,57 @@ def chain_positions(lengths, angles, rotation: float = CHAIN_ROTATION):
     return xp.concatenate([xp.zeros((1, 2), steps.dtype), xp.cumsum(steps, axis=0)], axis=0)
 
 
+def spatial_chain_state(lengths, polar, azimuth, spin_direction, spin):
+    """Node positions and velocities, each (n+1, 3), of a chain hanging from the origin.
+
+    Link k points along -y tilted by `polar[k]` towards the azimuth `azimuth[k]` (in the
+    x-z plane, from +x towards +z). It turns at `spin[k]` rad/s (relative to link k-1)
+    about an axis perpendicular to it, at the angle `spin_direction[k]` from the
+    direction of increasing tilt: no spin about its own axis (the node description
+    cannot see it), and every link length stationary (`dq . dqd = 0` exactly). Works
+    on NumPy or JAX arrays (so it can be vmapped); radians throughout.
+    """
+    xp = jnp if isinstance(polar, jax.Array) else np
+    sin_p, cos_p, sin_a, cos_a = xp.sin(polar), xp.cos(polar), xp.sin(azimuth), xp.cos(azimuth)
+    direction = xp.stack([sin_p * cos_a, -cos_p, sin_p * sin_a], axis=-1)
+    # The unit vectors of increasing tilt and of increasing azimuth: with `direction`
+    # an orthonormal frame, so the spin axis is perpendicular to the link.
+    tilting = xp.stack([cos_p * cos_a, sin_p, cos_p * sin_a], axis=-1)
+    turning = xp.stack([-sin_a, xp.zeros_like(sin_a), cos_a], axis=-1)
+    axis = xp.cos(spin_direction)[:, None] * tilting + xp.sin(spin_direction)[:, None] * turning
+    steps = lengths[:, None] * direction
+    step_velocities = xp.cross(spin[:, None] * axis, steps)
+    origin = xp.zeros((1, 3), steps.dtype)
+    return (xp.concatenate([origin, xp.cumsum(steps, axis=0)], axis=0),
+            xp.concatenate([origin, xp.cumsum(step_velocities, axis=0)], axis=0))
+
+
+def _spatial_chain_angles(uniform, n_links: int):
+    """Polar angle, azimuth, spin direction and spin of each of `n_links` links from
+    `uniform(low, high) -> (n_links,)` draws: the 3D chain sampler's distribution."""
+    return (uniform(0.0, SPATIAL_CHAIN_CONE), uniform(0.0, 2 * np.pi), uniform(0.0, 2 * np.pi),
+            uniform(0.0, SPATIAL_CHAIN_SPIN))
+
+
 def sample_initial_states(scene: Scene, key: jax.Array, count: int) -> State:
     """`count` initial states (q, qd) each (count, N, D), for evaluation and training data.
 
-    Chains pinned at node 0 use the paper's sampler (random link angles, released
-    from rest, pin kept at the scene's pin position); every other scene has one
-    initial condition, its own, repeated.
+    Planar chains pinned at node 0 use the paper's sampler (random link angles,
+    released from rest), spatial ones the 3D chain sampler (links in a cone about -y
+    with random azimuths and spins perpendicular to them, `spatial_chain_state`), the
+    pin kept at the scene's pin position; every other scene has one initial condition,
+    its own, repeated.
     """
     if not is_pinned_chain(scene):
         q = np.broadcast_to(scene.nodes, (count, *scene.nodes.shape))
         qd = np.broadcast_to(scene.velocities, q.shape)
         return State(jnp.asarray(q), jnp.asarray(qd))
     lengths = jnp.asarray(scene.lengths)
+    if scene.dim == 3:
+        keys = iter(jax.random.split(key, 4))
+        uniform = lambda low, high: jax.random.uniform(next(keys), (count, scene.n_links), lengths.dtype, low, high)  # noqa: E731
+        q, qd = jax.vmap(lambda *angles: spatial_chain_state(lengths, *angles))(*_spatial_chain_angles(uniform, scene.n_links))
+        return State(q + jnp.asarray(scene.nodes[0]), qd)
     angles = jax.random.uniform(key, (count, scene.n_links), lengths.dtype, -CHAIN_LINK_ANGLE, CHAIN_LINK_ANGLE)
     q = jax.vmap(lambda a: chain_positions(lengths, a))(angles) + jnp.asarray(scene.nodes[0])
     return State(q, jnp.zeros_like(q))
@@ -286,10 +332,10 @@ def slackened(scene: Scene, slack: float = ROPE_SLACK, seed: int = 0) -> Scene:
         phi = (np.sum(r * r, axis=1) - lengths**2) / (2 * lengths)
         if np.max(np.abs(phi)) < 1e-15:
             break
-        jac = np.zeros((len(edges), len(q), 2))
+        jac = np.zeros((len(edges), *q.shape))
         jac[rows, edges[:, 0]] = r / lengths[:, None]
         jac[rows, edges[:, 1]] = -r / lengths[:, None]
-        q[free] += np.linalg.lstsq(jac[:, free].reshape(len(edges), -1), -phi, rcond=None)[0].reshape(-1, 2)
+        q[free] += np.linalg.lstsq(jac[:, free].reshape(len(edges), -1), -phi, rcond=None)[0].reshape(-1, q.shape[1])
     else:
         raise SceneError(f"{scene.name}: no configuration found with the ropes {slack:g} slack")
     for link, length in zip(data["links"], lengths):
@@ -317,19 +363,95 @@ HARD_SCENES: dict[str, BuiltinScene] = {
 def is_catalogue_scene(scene: Scene) -> bool:
     """Whether `scene` is a built-in or hard-case scene (by content, not by name alone:
     a user's file may reuse a name)."""
-    for catalogue in (BUILTIN_SCENES, HARD_SCENES):
+    for catalogue in (BUILTIN_SCENES, HARD_SCENES, SPATIAL_SCENES):
         if scene.name in catalogue:
             return catalogue[scene.name].build() == scene
     return False
 
 
+# ---------------------------------------------------------------------------------
+# Spatial (3D) scenes: a group of their own, since the MuJoCo engines, `mjcf/` and the
+# benchmark grid (which iterate `BUILTIN_SCENES`) are planar so far
+# ---------------------------------------------------------------------------------
+
+
+def spatial_chain(n_links: int, seed: int = 0, name: str | None = None) -> Scene:
+    """n unit links (l = 1, m = 1, I = 1/12) in 3D, node 0 pinned at the origin, started
+    by the 3D chain sampler (`spatial_chain_state`) with `seed`: hanging in a cone about
+    -y, turning perpendicular to the links."""
+    if n_links < 1:
+        raise SceneError(f"spatial chain: need at least one link, got {n_links}")
+    rng = np.random.default_rng(seed)
+    lengths = np.ones(n_links)
+    nodes, velocities = spatial_chain_state(lengths, *_spatial_chain_angles(lambda low, high: rng.uniform(low, high, n_links), n_links))
+    return scene_from_dict({
+        "name": name or f"chain{n_links}-3d", "gravity": PAPER_GRAVITY, "nodes": nodes.tolist(), "velocities": velocities.tolist(),
+        "pinned": [0], "links": [{"nodes": [k, k + 1], "mass": 1.0, "inertia": 1 / 12, "length": 1.0} for k in range(n_links)],
+    })
+
+
+def spatial_net(rows: int = 4, columns: int = 4, seed: int = 0) -> Scene:
+    """A square net of `rows` x `columns` nodes joined by links to their grid neighbours
+    (closed loops everywhere), hung from its two top corners, released from rest.
+
+    It starts as a curved sheet: rows go down and away in z, the top edge sags between
+    the pins (no straight rope run between pins, which would be self-stressed, T2/T3),
+    and every node is moved by up to 5 % of the spacing (seeded), so the start is a
+    generic, regular configuration. Link lengths are the initial distances (each about
+    1), masses 1 and inertias `l^2 / 12` (uniform rods)."""
+    if rows < 2 or columns < 2:
+        raise SceneError(f"spatial net: need at least 2 x 2 nodes, got {rows} x {columns}")
+    r, c = np.meshgrid(np.arange(rows), np.arange(columns), indexing="ij")
+    across = np.sin(np.pi * c / (columns - 1))
+    nodes = np.stack([c, -0.8 * r - 0.4 * across, 0.6 * r + 0.3 * across * np.sin(np.pi * r / (rows - 1))], -1).astype(np.float64)
+    nodes += 0.05 * np.random.default_rng(seed).uniform(-1.0, 1.0, nodes.shape)
+    top_corners = [(0, 0), (0, columns - 1)]
+    for corner in top_corners:
+        nodes[corner] = [corner[1], 0.0, 0.0]
+    index = lambda row, column: row * columns + column  # noqa: E731
+    edges = [(index(a, b), index(a, b + 1)) for a in range(rows) for b in range(columns - 1)]
+    edges += [(index(a, b), index(a + 1, b)) for a in range(rows - 1) for b in range(columns)]
+    flat = nodes.reshape(-1, 3)
+    links = []
+    for i, j in edges:
+        length = math.hypot(*(float(x) for x in flat[i] - flat[j]))
+        links.append({"nodes": [i, j], "mass": 1.0, "inertia": length**2 / 12})
+    return scene_from_dict({
+        "name": f"net{rows}x{columns}-3d", "gravity": PAPER_GRAVITY, "nodes": flat.tolist(),
+        "pinned": [index(*corner) for corner in top_corners], "links": links,
+    })
+
+
+def embedded_in_3d(scene: Scene) -> Scene:
+    """A planar scene as a spatial one at z = 0 (gravity along -y in both): the same
+    motion, exactly (tested to round-off)."""
+    if scene.dim != 2:
+        raise SceneError(f"{scene.name}: only a planar scene can be embedded in 3D, got {scene.dim}D")
+    pad = lambda points: np.concatenate([points, np.zeros((len(points), 1))], axis=1).tolist()  # noqa: E731
+    data = scene_to_dict(scene)
+    return scene_from_dict({**data, "name": f"{scene.name}-z0", "nodes": pad(scene.nodes), "velocities": pad(scene.velocities)})
+
+
+SPATIAL_SCENES: dict[str, BuiltinScene] = {
+    entry.name: entry
+    for entry in [
+        BuiltinScene("chain4-3d", "4 unit links in 3D pinned at one end, turning in a cone about -y", lambda: spatial_chain(4)),
+        BuiltinScene("chain8-3d", "8 unit links in 3D pinned at one end", lambda: spatial_chain(8)),
+        BuiltinScene("chain16-3d", "16 unit links in 3D pinned at one end", lambda: spatial_chain(16)),
+        BuiltinScene("chain100-3d", "100 unit links in 3D pinned at one end", lambda: spatial_chain(100)),
+        BuiltinScene("net4x4-3d", "a 4 x 4 net of links (9 closed loops) hung from two corners", spatial_net),
+    ]
+}
+
+
 def get_scene(name_or_path: str) -> Scene:
-    """A built-in or hard-case scene by name, or a user's scene JSON file by path."""
-    for catalogue in (BUILTIN_SCENES, HARD_SCENES):
+    """A built-in, hard-case or spatial scene by name, or a user's scene JSON file by path."""
+    for catalogue in (BUILTIN_SCENES, HARD_SCENES, SPATIAL_SCENES):
         if name_or_path in catalogue:
             return catalogue[name_or_path].build()
     if name_or_path.endswith(".json") or Path(name_or_path).exists():
         return load_scene_file(name_or_path)
     raise SceneError(
-        f"unknown scene {name_or_path!r}: not a built-in ({', '.join(BUILTIN_SCENES)}), a hard case ({', '.join(HARD_SCENES)}) nor a .json file"
+        f"unknown scene {name_or_path!r}: not a built-in ({', '.join(BUILTIN_SCENES)}), a hard case ({', '.join(HARD_SCENES)}), "
+        f"a spatial scene ({', '.join(SPATIAL_SCENES)}) nor a .json file"
     )

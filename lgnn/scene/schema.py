@@ -1,10 +1,11 @@
-"""The scene: one immutable description of a planar articulated structure.
+"""The scene: one immutable description of an articulated structure, planar or spatial.
 
 A scene is a graph. Nodes are joints with Cartesian positions; links (edges) are
 uniform rigid rods between two nodes with a rest length, a mass, a physical moment
 of inertia about the rod's centre, and a type label. Some nodes are pinned (fixed in
-space at their initial position). Gravity acts along -y; an optional linear drag
-acts on each link's centre velocity.
+space at their initial position). Gravity acts along -y in 2D and 3D alike (so a
+planar scene embedded at z = 0 moves exactly as the planar one); an optional linear
+drag acts on each link's centre velocity. A scene is 2D or 3D throughout (`dim`).
 
 `Scene` is a frozen dataclass registered as a JAX pytree, equal to (and hashing like)
 any scene of the same content (`content_key`), so caches key on content:
@@ -19,8 +20,8 @@ computations convert them.
 Scene files are JSON with exactly this schema (other tools depend on it):
 
     {"name": str, "gravity": float (magnitude along -y, default 10),
-     "drag": float (default 0), "nodes": [[x, y], ...],
-     "velocities": [[vx, vy], ...] (optional, default rest),
+     "drag": float (default 0), "nodes": [[x, y], ...] or [[x, y, z], ...],
+     "velocities": [[vx, vy], ...] or [[vx, vy, vz], ...] (optional, default rest),
      "pinned": [node, ...],
      "links": [{"nodes": [i, j], "mass": float, "inertia": float,
                 "length": float (optional, default the initial distance),
@@ -61,6 +62,9 @@ DEFAULT_LINK_TYPE = "link"
 # square lengths, so beyond this float64 overflows (1e300 coordinates used to load,
 # with lengths inf - inf = NaN slipping past the length check, and fail at step 1).
 MAX_MAGNITUDE = 1e30
+# A scene is planar (2) or spatial (3) throughout: every node and velocity has that
+# many coordinates. Gravity acts along -y in both.
+DIMENSIONS = (2, 3)
 
 
 class State(NamedTuple):
@@ -96,6 +100,7 @@ class Scene:
 
     @property
     def dim(self) -> int:
+        """2 (planar) or 3 (spatial): the coordinates of every node."""
         return self.nodes.shape[-1]
 
     @property
@@ -159,10 +164,10 @@ jax.tree_util.register_dataclass(
 _TOP_KEYS = {"name", "gravity", "drag", "nodes", "velocities", "pinned", "links"}
 _REQUIRED_TOP = {"name", "nodes", "pinned", "links"}
 def is_pinned_chain(scene: Scene) -> bool:
-    """True for a planar path 0-1-...-n pinned at node 0 only: the scenes the chain
-    sampler applies to, and whose constraint system physics solves in linear time."""
+    """True for a path 0-1-...-n pinned at node 0 only, in 2D or 3D: the scenes the chain
+    samplers apply to, and whose constraint system physics solves in linear time."""
     n = scene.n_nodes - 1
-    return scene.pinned == (0,) and scene.edges == tuple((k, k + 1) for k in range(n)) and scene.dim == 2
+    return scene.pinned == (0,) and scene.edges == tuple((k, k + 1) for k in range(n))
 
 
 _LINK_KEYS = {"nodes", "mass", "inertia", "length", "type"}
@@ -199,19 +204,25 @@ def _short(value) -> str:
 
 
 def _points(value, field: str, dim: int | None) -> np.ndarray:
+    """(N, dim) points of `field`; with `dim` None the scene's dimension is the number of
+    coordinates most points have (2 or 3), so a single odd point is the one named."""
     if not isinstance(value, list):
-        raise _fail(field, f"expected a list of [x, y] points, got {type(value).__name__}")
+        raise _fail(field, f"expected a list of [x, y] or [x, y, z] points, got {type(value).__name__}")
     rows = []
     for k, point in enumerate(value):
         if not isinstance(point, list):
-            raise _fail(f"{field}[{k}]", f"expected [x, y], got {_short(point)}")
+            raise _fail(f"{field}[{k}]", f"expected [x, y] or [x, y, z], got {_short(point)}")
         rows.append([_number(c, f"{field}[{k}]") for c in point])
-    dims = {len(r) for r in rows}
     if dim is None:
-        dim = 2
-    if dims - {dim}:
-        bad = next(k for k, r in enumerate(rows) if len(r) != dim)
-        raise _fail(f"{field}[{bad}]", f"expected {dim} coordinates, got {len(rows[bad])}")
+        counts = [len(r) for r in rows]
+        # Ties go to the first point's count; an empty list keeps the planar default.
+        dim = max(counts, key=counts.count) if counts else 2
+        if dim not in DIMENSIONS:
+            first = counts.index(dim)
+            raise _fail(f"{field}[{first}]", f"expected 2 (planar) or 3 (spatial) coordinates, got {dim}")
+    bad = next((k for k, r in enumerate(rows) if len(r) != dim), None)
+    if bad is not None:
+        raise _fail(f"{field}[{bad}]", f"expected {dim} coordinates, got {len(rows[bad])} (a scene is {dim}D throughout)")
     return np.asarray(rows, dtype=np.float64).reshape(len(rows), dim)
 
 
