@@ -546,3 +546,33 @@ def test_lgnn_structured_solve_matches_the_dense_solve(name):
     dense = np.asarray(jax.jit(physics.acceleration_fn(scene, lagrangian))(q, qd))
     structured = np.asarray(jax.jit(models.acceleration_fn(config, params, scene))(q, qd))
     np.testing.assert_allclose(structured, dense, atol=1e-9 * (1 + np.abs(dense).max()))
+
+
+def test_seeds_trained_together_equal_separate_runs(tiny_dataset, tmp_path):
+    """One vmapped program for two seeds gives each seed's own run, to round-off
+    (params, losses, checkpoints), and resumes from seeds at different epochs."""
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene("lgnn", scene)
+    configs = [train.TrainConfig(epochs=2, warmup_steps=10, seed=seed) for seed in (0, 1)]
+    alone = [train.train(model, config, tiny_dataset, scene) for config in configs]
+    outs = [tmp_path / "s0.npz", tmp_path / "s1.npz"]
+    train.train(model, dataclasses.replace(configs[0], epochs=1), tiny_dataset, scene, out=outs[0])  # seed 0 one epoch ahead
+    together = train.train_seeds(model, configs, tiny_dataset, scene, outs=outs, resume=True)
+    for one, both, out in zip(alone, together, outs):
+        assert both.epoch == 2 and train.load_checkpoint(out)[0].epoch == 2
+        np.testing.assert_allclose([h[1:3] for h in both.history], [h[1:3] for h in one.history], rtol=1e-9)
+        for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(both.params)):
+            np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
+    assert not np.allclose(together[0].history[-1][2], together[1].history[-1][2])
+    with pytest.raises(ConfigError, match="but the seed"):
+        train.train_seeds(model, [configs[0], dataclasses.replace(configs[1], learning_rate=1e-2)], tiny_dataset, scene)
+
+
+def test_plateau_rule_stops_when_the_best_stops_improving_by_a_fraction():
+    config = train.TrainConfig(patience=2, min_improvement=0.01)
+    val = [10.0, 5.0, 4.98, 4.96, 4.95]  # gains of < 1 % after epoch 2
+    history = [(e, 0.0, v, 0.0) for e, v in enumerate(val, 1)]
+    state = train.TrainState({}, (), {}, min(val), 5, 5, history)
+    assert train.last_improvement(state, config) == 2 and train.finished(state, config)
+    assert not train.finished(state, dataclasses.replace(config, min_improvement=0.0))  # best at 5
+    assert not train.finished(state._replace(epoch=4, history=history[:4]), config)
