@@ -99,3 +99,19 @@ def test_the_committed_full_records_render_with_the_new_columns_not_computed():
     row = _row(report.summary_markdown(summary, "rollout_error"), "chain4")
     assert row["lgnn"].startswith("5.09e-05") and row["chaos floor"] == "1.10e-05"
     assert _row(report.summary_markdown(summary, "rollout_error"), "T2")["chaos floor"].startswith("diverged (1 of 1")
+
+
+def test_several_seeds_give_one_cell_over_seeds_and_initial_conditions():
+    """Two seeds (errors 1e-3 and 1e-4 on every IC): the cell is their geometric mean
+    over seeds and ICs, 3.16e-4, with an interval spanning the seeds; one seed alone
+    would be a zero-width interval. Each seed keeps its own rows in the CSV."""
+    pairs = []
+    for seed, value in ((0, 1e-3), (1, 1e-4)):
+        arrays = {"t": T, "diverged_at": np.array([np.nan, 0.5 if seed else np.nan])}
+        for metric in evaluate.METRICS:
+            arrays.update(_metric(metric, [value, value]))
+        pairs.append((grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, seed), "chain4"), (arrays, {})))
+    summary, _ = report.tables({"chain4": _truth(True, False)}, pairs)
+    cell = _row(report.summary_markdown(summary, "rollout_error"), "chain4")["lgnn"]
+    assert cell.startswith("3.16e-04 [1.00e-04, 1.00e-03] (1 diverged, first at 0.5 s) (2 seeds)"), cell
+    assert set(summary[summary.model == "lgnn"].seed) == {0, 1, report.ALL_SEEDS}

@@ -14,6 +14,10 @@ Files under `<out>` (`results/` for the full profile, `results/quick/` for the q
   `diverged` (count), `first_divergence_s`, and for `node_rms_error`
   `chaos_floor_ratio`. A chaos floor whose perturbed run diverged has no `gmean` or
   interval; a record without a metric (written before it existed) has no row for it.
+  A model trained with several seeds also has rows with `seed` -1 (`ALL_SEEDS`): the
+  geometric mean over seeds and initial conditions with a two-level bootstrap interval
+  (`lgnn.metrics.summarise_seeds`), `seeds`, and the summed divergences; the markdown
+  tables show these.
 - `benchmark/curves.csv`: the same metrics per frame (every 0.01 s): geometric mean
   over initial conditions with a normal-approximation 95% band (`t` column).
 - `benchmark/speed_error.csv`, `.md`: wall time per simulated second against rollout
@@ -53,6 +57,8 @@ REST = "rest"
 # The chaos floor's metrics: its rollout error (first name kept) and per-node RMS error.
 FLOOR, FLOOR_RMS = "chaos_floor", "chaos_floor_node_rms_error"
 CURVE_STEP_S = 0.01
+# The `seed` of summary rows over every training seed of a model.
+ALL_SEEDS = -1
 MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale", "scaled_percent_error", "scaled_tangent_percent_error")
 
 
@@ -122,7 +128,29 @@ def tables(truths: dict, pairs: list):
             if metric == "node_rms_error" and scene in floor_rms:
                 ratio = metrics.summarise(arrays[f"{prefix}{metric}/per_ic_log"])[0] / floor_rms[scene]
                 summary.append(dict(scene=scene, model=model, seed=seed, metric=metric, **_env_columns(meta), statistic="chaos_floor_ratio", value=ratio))
+    summary += _seed_rows(pairs)
     return pd.DataFrame(summary), pd.DataFrame(curves)
+
+
+def _seed_rows(pairs: list) -> list[dict]:
+    """`ALL_SEEDS` rows of every (scene, model, metric) evaluated for several seeds."""
+    groups: dict[tuple[str, str, str], list] = {}
+    for pair, (arrays, meta) in pairs:
+        for metric in METRICS:
+            if f"{metric}/per_ic_log" in arrays:
+                groups.setdefault((pair.scene, pair.job.label, metric), []).append((arrays, meta))
+    rows = []
+    for (scene, model, metric), records in groups.items():
+        if len(records) < 2:
+            continue
+        gmean, low, high = metrics.summarise_seeds([arrays[f"{metric}/per_ic_log"] for arrays, _ in records])
+        diverged = np.concatenate([arrays["diverged_at"] for arrays, _ in records])
+        stats = {"gmean": gmean, "ci_low": low, "ci_high": high, "seeds": len(records),
+                 "initial_conditions": len(records[0][0][f"{metric}/per_ic_log"]), "diverged": int(np.sum(np.isfinite(diverged))),
+                 "first_divergence_s": float(np.nanmin(diverged)) if np.isfinite(diverged).any() else float("nan")}
+        base = dict(scene=scene, model=model, seed=ALL_SEEDS, metric=metric, **_env_columns(records[0][1]))
+        rows += [{**base, "statistic": k, "value": v} for k, v in stats.items()]
+    return rows
 
 
 def _fmt(value: float) -> str:
@@ -135,6 +163,8 @@ def _interval(row: dict) -> str:
         text += f" [{_fmt(row['ci_low'])}, {_fmt(row['ci_high'])}]"
     if math.isfinite(row.get("diverged", float("nan"))) and row["diverged"] > 0:
         text += f" ({int(row['diverged'])} diverged, first at {row['first_divergence_s']:.3g} s)"
+    if math.isfinite(row.get("seeds", float("nan"))):
+        text += f" ({int(row['seeds'])} seeds)"
     if math.isfinite(row.get("chaos_floor_ratio", float("nan"))):
         text += f", {row['chaos_floor_ratio']:.3g}x floor"
     return text
@@ -182,6 +212,8 @@ def summary_markdown(summary, metric: str) -> str:
         cells = []
         for model in models:
             match = wide[(wide.scene == scene) & (wide.model == model) & (wide.metric == metric)]
+            if (match.seed == ALL_SEEDS).any():  # several seeds: the interval over seeds and ICs
+                match = match[match.seed == ALL_SEEDS]
             record = (scene, "ground truth" if model == REST else model) in present
             cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "not computed" if record else "")
         for truth_metric in truth_metrics:
