@@ -115,3 +115,27 @@ def test_several_seeds_give_one_cell_over_seeds_and_initial_conditions():
     cell = _row(report.summary_markdown(summary, "rollout_error"), "chain4")["lgnn"]
     assert cell.startswith("3.16e-04 [1.00e-04, 1.00e-03] (1 diverged, first at 0.5 s) (2 seeds)"), cell
     assert set(summary[summary.model == "lgnn"].seed) == {0, 1, report.ALL_SEEDS}
+
+
+def test_default_lgnn_is_read_from_the_training_records(tmp_path):
+    """The variant with the lowest geometric mean over seeds of the best validation MSE
+    (mp1: 1e-3 and 1e-5, mean 1e-4, against lgnn's 2e-4 and 2e-4); a variant missing a
+    seed (mp2, best on its one seed) is not a candidate."""
+    import dataclasses
+
+    from lgnn.bench import store
+    from lgnn.bench.stages import train as train_stage
+    from lgnn.learn import models, train
+    from lgnn.scene import get_scene
+
+    profile = dataclasses.replace(grid.PROFILES["quick"], seeds=(0, 1), models=grid.LGNN_VARIANTS[:3])
+    best = {("lgnn", 0): 2e-4, ("lgnn", 1): 2e-4, ("lgnn-mp1", 0): 1e-3, ("lgnn-mp1", 1): 1e-5, ("lgnn-mp2", 0): 1e-6}
+    for (variant, seed), value in best.items():
+        job = grid.TrainingJob(variant, grid.TRAINING_SCENE, seed)
+        model, config = models.ModelConfig.for_scene(variant, get_scene(job.scene)), profile.training.train
+        path = store.Layout(tmp_path).checkpoint(job)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        train.save_checkpoint(path, train.initial_state(model, config)._replace(best_val=value, epoch=1, best_epoch=1), model, config)
+    chosen, scores = train_stage.default_lgnn(profile, tmp_path)
+    assert chosen == "lgnn-mp1" and set(scores) == {"lgnn", "lgnn-mp1"}
+    assert np.isclose(scores["lgnn-mp1"], 1e-4) and np.isclose(scores["lgnn"], 2e-4)

@@ -45,13 +45,13 @@ from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
-from lgnn.bench.stages.train import load_checkpoints
+from lgnn.bench.stages.train import default_lgnn, load_checkpoints
 from lgnn.bench.tables import write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.scene import get_scene
 
-MODEL_ORDER = ("lgnn", "gns", "lgn", "clnn")
-COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5"}
+MODEL_ORDER = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn")
+COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5", "lgnn-mp1": "C4", "lgnn-mp2": "C5", "lgnn-notebook": "C6"}
 # The rest baseline's model name in the tables (the initial state held).
 REST = "rest"
 # The chaos floor's metrics: its rollout error (first name kept) and per-node RMS error.
@@ -385,6 +385,10 @@ def _training_lines(profile: Profile, out: Path) -> list[str]:
     lines = ["| model | training scene | epochs | minutes | best validation MSE (epoch) |", "|---|---|---|---|---|"]
     for job, state in load_checkpoints(profile, out):
         lines.append(f"| {job.model} | {job.scene} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) |")
+    chosen, scores = default_lgnn(profile, out)
+    if scores:
+        lines += ["", f"Default LGNN (lowest geometric mean over seeds of the best validation MSE among the variants with every seed trained): "
+                  f"**{chosen}** ({', '.join(f'{v} {s:.3g}' for v, s in scores.items())})."]
     return lines
 
 
@@ -427,7 +431,9 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         f"- Training: {t.data.n_trajectories} trajectories of {t.data.duration:g} s, a state every {t.data.sample_dt:g} s (75:25 split), "
         f"Adam {t.train.learning_rate:g}, batch {t.train.batch_size}, budget {t.train.epochs} epochs"
         + (f" or {t.train.minutes:g} minutes per model (whichever ends first; the paper's 10 000 epochs did not fit)" if t.train.minutes else "")
-        + f", patience {t.train.patience}, seeds {', '.join(map(str, p.seeds))}.",
+        + (f", plateau: stop when the best validation MSE has not improved by {t.train.min_improvement:.0%} in {t.train.patience} epochs"
+           if t.train.min_improvement else f", patience {t.train.patience}")
+        + f", seeds {', '.join(map(str, p.seeds))}.",
         f"- Evaluation: {e.initial_conditions} initial conditions per chain scene (paper sampler, seed {e.ic_seed}; T1-T3: their rest state), "
         f"{e.duration:g} s, frames every {e.frame_dt:g} s, RK4 at dt {e.dt:g} with projection for models and the Lagrangian ground truth"
         + "".join(f" ({scene}: dt {dt:g})" for scene, dt in e.scene_dts if scene in evaluation_scenes(p)) + "; "

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from lgnn.bench.grid import Profile, TrainingJob, training_jobs
+from lgnn.bench.grid import LGNN_VARIANTS, TRAINING_SCENE, Profile, TrainingJob, training_jobs
 from lgnn.bench.store import Layout, log
 from lgnn.errors import CheckpointError
 from lgnn.learn import data, models, train
@@ -96,6 +97,20 @@ def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, tra
     """`(job, training state)` of every job of the profile with a checkpoint under `out`."""
     layout = Layout(out)
     return [(job, train.load_checkpoint(layout.checkpoint(job))[0]) for job in training_jobs(profile) if layout.checkpoint(job).exists()]
+
+
+def default_lgnn(profile: Profile, out: Path) -> tuple[str | None, dict[str, float]]:
+    """The default LGNN, chosen from the training records: among `LGNN_VARIANTS`
+    trained on TRAINING_SCENE with a checkpoint for every seed of the profile, the one
+    with the lowest geometric mean over seeds of the best validation MSE (ties: the
+    earlier, simpler variant). Returns `(name, {variant: that mean})`; name None when
+    no variant has all its seeds."""
+    found: dict[str, list[float]] = {}
+    for job, state in load_checkpoints(profile, out):
+        if job.model in LGNN_VARIANTS and job.scene == TRAINING_SCENE:
+            found.setdefault(job.model, []).append(state.best_val)
+    scores = {v: float(np.exp(np.mean(np.log(found[v])))) for v in LGNN_VARIANTS if len(found.get(v, ())) == len(profile.seeds)}
+    return (min(scores, key=lambda v: (scores[v], LGNN_VARIANTS.index(v))) if scores else None), scores
 
 
 def timed_epoch_fn(profile: Profile, job: TrainingJob, out: Path):
