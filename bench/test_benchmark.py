@@ -57,7 +57,7 @@ def out(profile) -> Path:
 
 
 def _ids(items):
-    return [getattr(i, "name", None) or f"{i.job.name}-on-{i.scene}" for i in items]
+    return [getattr(i, "name", None) or f"{i.job.name}-on-{i.scene}" + ("" if i.projected else "-unprojected") for i in items]
 
 
 def pytest_generate_tests(metafunc):
@@ -69,7 +69,7 @@ def pytest_generate_tests(metafunc):
         pairs = grid.evaluation_pairs(profile)
         metafunc.parametrize("pair", pairs, ids=_ids(pairs))
     if "timed_pair" in metafunc.fixturenames:
-        pairs = [p for p in grid.evaluation_pairs(profile) if p.scene in TIMED_SCENES]
+        pairs = [p for p in grid.evaluation_pairs(profile) if p.scene in TIMED_SCENES and p.projected]
         metafunc.parametrize("timed_pair", pairs, ids=_ids(pairs))
     if "eval_scene" in metafunc.fixturenames:
         metafunc.parametrize("eval_scene", grid.evaluation_scenes(profile))

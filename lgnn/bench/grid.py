@@ -57,6 +57,9 @@ class GridEntry:
     model: str
     train_scene: str
     eval_scenes: tuple[str, ...]
+    # Also evaluated without projecting its rollouts onto the constraints (GNS: its
+    # accelerations know no constraints; the projected row hides that, issue 13).
+    unprojected: bool = False
 
 
 # The LGNN variants (`lgnn.learn.models`): the per-edge one, the paper's equations with
@@ -66,7 +69,7 @@ LGNN_VARIANTS = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook")
 
 GRID = (
     *(GridEntry(variant, TRAINING_SCENE, TRANSFER_SCENES) for variant in LGNN_VARIANTS),
-    GridEntry("gns", TRAINING_SCENE, TRANSFER_SCENES),
+    GridEntry("gns", TRAINING_SCENE, TRANSFER_SCENES, unprojected=True),
     GridEntry("lgn", TRAINING_SCENE, TRANSFER_SCENES),
     GridEntry("clnn", TRAINING_SCENE, (TRAINING_SCENE,)),
     GridEntry("lgnn", "chain4-varied", ("chain4-varied",)),
@@ -92,10 +95,17 @@ class TrainingJob:
 
 @dataclasses.dataclass(frozen=True)
 class Pair:
-    """One evaluation: a trained job on a scene."""
+    """One evaluation: a trained job on a scene, its rollouts projected onto the
+    constraints after every step (as the ground truth's) unless `projected` is false."""
 
     job: TrainingJob
     scene: str
+    projected: bool = True
+
+    @property
+    def label(self) -> str:
+        """The row the tables give it: the job's label, `(unprojected)` added."""
+        return self.job.label + ("" if self.projected else " (unprojected)")
 
 
 # ---------------------------------------------------------------------------------
@@ -262,6 +272,8 @@ def evaluation_pairs(profile: Profile) -> list[Pair]:
             for scene in entry.eval_scenes:
                 if profile.scenes is None or scene in profile.scenes:
                     pairs.append(Pair(TrainingJob(entry.model, entry.train_scene, seed), scene))
+                    if entry.unprojected:
+                        pairs.append(Pair(TrainingJob(entry.model, entry.train_scene, seed), scene, projected=False))
     return pairs
 
 

@@ -41,6 +41,7 @@ from lgnn import metrics
 from lgnn.bench.grid import TRAINING_SCENE, TRANSFER_SCENES, Profile, evaluation_scenes
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
+from lgnn.bench.stages.evaluate import NO_DRAG
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
@@ -54,6 +55,8 @@ MODEL_ORDER = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "c
 COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5", "lgnn-mp1": "C4", "lgnn-mp2": "C5", "lgnn-notebook": "C6"}
 # The rest baseline's model name in the tables (the initial state held).
 REST = "rest"
+# The drag scenes' exact physics without drag, as the tables name it.
+EXACT_NO_DRAG = "exact, no drag"
 # The chaos floor's metrics: its rollout error (first name kept) and per-node RMS error.
 FLOOR, FLOOR_RMS = "chaos_floor", "chaos_floor_node_rms_error"
 CURVE_STEP_S = 0.01
@@ -118,7 +121,9 @@ def tables(truths: dict, pairs: list):
         if floor_ok and f"{FLOOR}/node_rms_error/per_ic_log" in arrays:
             floor_rms[scene] = metrics.summarise(arrays[f"{FLOOR}/node_rms_error/per_ic_log"])[0]
     rows = [(scene, REST, 0, arrays, meta, f"{REST_PREFIX}/", arrays.get(f"{REST_PREFIX}/diverged_at")) for scene, (arrays, meta) in truths.items()]
-    rows += [(pair.scene, pair.job.label, pair.job.seed, arrays, meta, "", arrays["diverged_at"]) for pair, (arrays, meta) in pairs]
+    rows += [(scene, EXACT_NO_DRAG, 0, arrays, meta, f"{NO_DRAG}/", arrays[f"{NO_DRAG}/diverged_at"])
+             for scene, (arrays, meta) in truths.items() if f"{NO_DRAG}/diverged_at" in arrays]
+    rows += [(pair.scene, pair.label, pair.job.seed, arrays, meta, "", arrays["diverged_at"]) for pair, (arrays, meta) in pairs]
     for scene, model, seed, arrays, meta, prefix, diverged in rows:
         for metric in METRICS:
             if f"{prefix}{metric}/per_ic_log" not in arrays:
@@ -138,7 +143,7 @@ def _seed_rows(pairs: list) -> list[dict]:
     for pair, (arrays, meta) in pairs:
         for metric in METRICS:
             if f"{metric}/per_ic_log" in arrays:
-                groups.setdefault((pair.scene, pair.job.label, metric), []).append((arrays, meta))
+                groups.setdefault((pair.scene, pair.label, metric), []).append((arrays, meta))
     rows = []
     for (scene, model, metric), records in groups.items():
         if len(records) < 2:
@@ -322,7 +327,7 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
         model_q = arrays["snapshot/model"]
         for col, f in enumerate(frames):
             ax = axes[row, col]
-            for q, style, color, label in ((mujoco_q[f], "-", "k", "MuJoCo"), (model_q[f], "--", COLORS.get(pair.job.model), pair.job.label.upper())):
+            for q, style, color, label in ((mujoco_q[f], "-", "k", "MuJoCo"), (model_q[f], "--", COLORS.get(pair.job.model), pair.label.upper())):
                 if np.isfinite(q).all():
                     for k, seg in enumerate(q[edges]):
                         ax.plot(seg[:, 0], seg[:, 1], style, color=color, linewidth=1.2, label=label if k == 0 else None)
@@ -402,7 +407,7 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
     for scene, (_, meta) in truths.items():
         add(meta.get("environment", {}), f"ground truth {scene}")
     for pair, (_, meta) in pairs:
-        add(meta.get("environment", {}), f"{pair.job.label} on {pair.scene}")
+        add(meta.get("environment", {}), f"{pair.label} on {pair.scene}")
     for scene, device, commit in dict.fromkeys((r["scene"], r["device"], r["commit"]) for r in speed_rows):
         add({"device": device, "commit": commit}, f"speed {scene}")
     for _, meta in mass_records:
@@ -449,6 +454,11 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "- `rest`: the rest baseline, the initial state held (`lgnn.metrics.rest_rollouts`), scored like a model: its errors are the truth's own "
         "displacement from its start, the bar any model must clear. The chaos floor is not given (\"diverged\") on a scene where a "
         "perturbed run diverged: it is then no floor. \"not computed\": a record written before that metric existed.",
+        "- `gns` rollouts are projected onto the constraints after every step, as the ground truth's and every Lagrangian model's "
+        "(GNS's own accelerations know no constraints); `gns (unprojected)` is the same checkpoint without projection. "
+        f"`{EXACT_NO_DRAG}` (drag scenes): the exact physics with the drag term removed, from the same states: what ignoring drag scores.",
+        "- Several training seeds: a cell is the geometric mean over seeds and initial conditions with a two-level bootstrap 95% interval "
+        "(seeds, then each seed's initial conditions), `(n seeds)`; each seed's own numbers are rows of `benchmark/summary.csv`.",
         "",
         "## Training",
         "",

@@ -39,7 +39,7 @@ class Layout:
         return self.bench / "checkpoints" / f"{job.name}.npz"
 
     def pair_record(self, pair: Pair) -> Path:
-        return self.bench / "runs" / pair.job.name / f"{pair.scene}.npz"
+        return self.bench / "runs" / pair.job.name / (f"{pair.scene}.npz" if pair.projected else f"{pair.scene}-unprojected.npz")
 
     def truth_record(self, scene: str) -> Path:
         return self.bench / "runs" / "ground-truth" / f"{scene}.npz"
