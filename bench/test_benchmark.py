@@ -86,6 +86,7 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     state, meta = train.load_checkpoint(path)
     assert np.isfinite(state.best_val) and state.epoch >= 1
     run_epoch, steps = train_stage.timed_epoch_fn(profile, job, out)
+    assert steps == grid.adam_steps_per_epoch(profile.training.data, profile.training.train)  # the schedule rule's count
     run_epoch()  # compiled already if this process trained; otherwise compile before timing
     benchmark.pedantic(run_epoch, rounds=3, iterations=1)
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)

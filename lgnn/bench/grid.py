@@ -24,7 +24,7 @@ import dataclasses
 from lgnn.errors import ConfigError
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.learn.data import DataConfig
-from lgnn.learn.train import TrainConfig
+from lgnn.learn.train import WARMUP_STEPS, TrainConfig
 
 # The scene every model of the main grid is trained on.
 TRAINING_SCENE = "chain4"
@@ -120,6 +120,21 @@ class TrainSettings:
 
     data: DataConfig
     train: TrainConfig
+
+
+def adam_steps_per_epoch(data: DataConfig, train: TrainConfig) -> int:
+    """Adam steps in one epoch of `data` (`lgnn.learn.data`'s split; the remainder of
+    a shuffle is dropped)."""
+    return round(data.train_fraction * data.n_trajectories * data.states_per_trajectory) // train.batch_size
+
+
+def scheduled(data: DataConfig, train: TrainConfig) -> TrainSettings:
+    """The training settings with the one rule for every model's schedule (README,
+    "Training budgets"): the paper's batch and peak rate as `train` gives them, a
+    warm-up over a fifth of the budget's Adam steps but at most `WARMUP_STEPS` (Adam's
+    moments settle; a short budget is not spent warming up), the decay as `train`'s."""
+    steps = train.epochs * adam_steps_per_epoch(data, train)
+    return TrainSettings(data, dataclasses.replace(train, warmup_steps=max(1, min(WARMUP_STEPS, steps // 5))))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,12 +235,9 @@ class Profile:
 PROFILES = {
     "quick": Profile(
         name="quick",
-        # 40 Adam steps in all: a warm-up of a few steps (the default 1000 would leave
-        # the rate at 4 % of its peak throughout).
-        training=TrainSettings(
-            DataConfig(n_trajectories=5, duration=0.5, sample_dt=0.05),
-            TrainConfig(epochs=10, patience=10, warmup_steps=8),
-        ),
+        # 30 Adam steps in all: a warm-up of 6 by the rule (the default 1000 would
+        # leave the rate at 3 % of its peak throughout).
+        training=scheduled(DataConfig(n_trajectories=5, duration=0.5, sample_dt=0.05), TrainConfig(epochs=10, patience=10)),
         evaluate=EvaluateSettings(initial_conditions=3, duration=0.1, chunk=3),
         speed=SpeedSettings(scenes=("chain4",), dts=(1e-3,), horizon=0.02, mjx=False, models=("lgnn",)),
         scaling=ScalingSettings(lengths=(4, 16), steps=10, throughput_scenes=("chain4",), throughput_batch=4),
@@ -243,7 +255,7 @@ PROFILES = {
         # validation MSE has not improved by 1 % in 200 epochs (README, "Training
         # budget"). Epochs, not minutes, so a run means the same on any machine. A
         # checkpoint every 10 epochs: a run cut off (10-minute calls) resumes there.
-        training=TrainSettings(DataConfig(), TrainConfig(epochs=10_000, patience=200, min_improvement=0.01, checkpoint_every=10)),
+        training=scheduled(DataConfig(), TrainConfig(epochs=10_000, patience=200, min_improvement=0.01, checkpoint_every=10)),
         evaluate=EvaluateSettings(initial_conditions=100, duration=1.0),
         seeds=(0, 1, 2),
     ),
