@@ -6,8 +6,11 @@ with a key derived from `(seed, epoch)` and takes `len(train) // batch_size` Ada
 (the remainder of a shuffle is dropped), one jitted `lax.scan` per epoch; the
 validation loss is computed after every epoch in large vmapped chunks; the parameters
 with the best validation loss are kept; training stops at the epoch budget (the
-budget: it means the same on any machine), after `patience` epochs without
-improvement, or at the optional minutes cap (a safety net, checked after each epoch).
+budget: it means the same on any machine), after `patience` epochs without an
+improvement by the fraction `min_improvement` (the plateau rule), or at the optional
+minutes cap (a safety net, checked after each epoch). `train_seeds` trains several
+seeds of one job in one compiled program (vmapped over params and Adam states, the
+data shared), each seed's run equal to its own `train` run to round-off.
 
 The optimiser is the paper's Adam (peak learning rate 1e-3, batch 10) with a linear
 warm-up, a per-step exponential decay and optional global-norm gradient clipping
@@ -79,10 +82,6 @@ class TrainConfig:
     minutes: float | None = None
     # Early stopping: stop after this many epochs without a better validation loss.
     patience: int = 500
-    # Plateau rule: an epoch counts as better only if its validation loss is below
-    # (1 - min_improvement) times the best before it (0: any improvement). The best
-    # parameters are still the best epoch's, however small its gain.
-    min_improvement: float = 0.0
     # Seed of the initial parameters and of every epoch's shuffle.
     seed: int = 0
     # States per vmapped validation chunk (memory vs. speed).
@@ -101,6 +100,10 @@ class TrainConfig:
     min_learning_rate: float = MIN_LEARNING_RATE
     # Gradients rescaled to at most this global norm before Adam (None: no clipping).
     clip_norm: float | None = CLIP_NORM
+    # Plateau rule (with `patience`): an epoch counts as better only if its validation loss is below
+    # (1 - min_improvement) times the best before it (0: any improvement). The best
+    # parameters are still the best epoch's, however small its gain.
+    min_improvement: float = 0.0
 
     def __post_init__(self):
         if not self.learning_rate > 0:
