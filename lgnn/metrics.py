@@ -235,6 +235,22 @@ def summarise(per_ic_log: np.ndarray, seed: int = 0, resamples: int = 2000) -> t
     return value, float(np.exp(low)), float(np.exp(high))
 
 
+def summarise_seeds(per_ic_logs, seed: int = 0, resamples: int = 2000) -> tuple[float, float, float]:
+    """Geometric mean over training seeds, frames and ICs (each seed weighs the same)
+    with a two-level bootstrap 95% interval: seeds resampled, then each resampled
+    seed's ICs. `per_ic_logs`: one (C,) per-IC mean log error per seed. One seed: its
+    `summarise`; one IC per seed: the interval is over seeds alone."""
+    logs = [np.asarray(a, float) for a in per_ic_logs]
+    if len(logs) == 1:
+        return summarise(logs[0], seed, resamples)
+    value = float(np.exp(np.mean([a.mean() for a in logs])))
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, len(logs), (resamples, len(logs)))
+    boots = np.array([np.mean([logs[k][rng.integers(0, len(logs[k]), len(logs[k]))].mean() for k in pick]) for pick in picks])
+    low, high = np.percentile(boots, [2.5, 97.5])
+    return value, float(np.exp(low)), float(np.exp(high))
+
+
 def gmean_error(q: np.ndarray, reference: np.ndarray) -> float:
     """Geometric mean over frames t > 0 of the rollout error of one trajectory `q`
     (F, N, D) against `reference`."""

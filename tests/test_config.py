@@ -18,7 +18,8 @@ def test_overrides_reach_any_value_and_nothing_else():
     changed = grid.load_profile("quick", ["training.train.epochs=50", "seeds=[0,1,2]", "scenes=[chain4,chain8]", "speed.models=none"])
     assert changed.training.train.epochs == 50 and changed.seeds == (0, 1, 2) and changed.speed.models is None
     assert changed == dataclasses.replace(quick, seeds=(0, 1, 2), speed=dataclasses.replace(quick.speed, models=None),
-                                          training=dataclasses.replace(quick.training, train=dataclasses.replace(quick.training.train, epochs=50)))
+                                          # the schedule rule follows the new budget (a warm-up of a fifth of its steps)
+                                          training=grid.scheduled(quick.training.data, dataclasses.replace(quick.training.train, epochs=50)))
     assert grid.load_profile("full") == grid.PROFILES["full"]
 
 

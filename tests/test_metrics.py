@@ -4,6 +4,7 @@ import json
 import re
 
 import numpy as np
+import pytest
 
 from lgnn import metrics
 from lgnn.cli import main
@@ -140,3 +141,19 @@ def test_the_rest_baseline_scores_exactly_the_truths_displacement_from_its_start
     np.testing.assert_allclose(scores["energy_error"][0], np.maximum(np.abs(e[1:] - e[0]) / (np.abs(e[1:]) + np.abs(e[0])), metrics.ERROR_FLOOR), rtol=1e-9)
     # Released from rest, the chain falls: after 0.05 s its nodes have moved by millimetres.
     assert 1e-4 < displacement[-1] < 0.05
+
+
+def test_seed_intervals_cover_the_spread_between_seeds():
+    """Seeds far apart (every IC of one at 1e-3, of the other at 1e-5) give the
+    geometric mean 1e-4 with an interval reaching both; equal seeds give the
+    single-seed interval over ICs; one seed is `summarise`."""
+    from lgnn.metrics import summarise, summarise_seeds
+
+    apart = [np.log(np.full(5, 1e-3)), np.log(np.full(5, 1e-5))]
+    value, low, high = summarise_seeds(apart)
+    assert value == pytest.approx(1e-4) and low == pytest.approx(1e-5) and high == pytest.approx(1e-3)
+    ics = np.log(np.geomspace(1e-4, 1e-2, 8))
+    assert summarise_seeds([ics])[0] == summarise(ics)[0]
+    value, low, high = summarise_seeds([ics, ics])
+    single = summarise(ics)
+    assert value == pytest.approx(single[0]) and low < value < high and high / low < 1.5 * single[2] / single[1]

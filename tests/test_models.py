@@ -203,6 +203,102 @@ def test_learned_mass_matrix_is_symmetric(name):
     np.testing.assert_allclose(mass, mass.T, rtol=0, atol=1e-12 * np.abs(mass).max())
 
 
+def _sqp(x):
+    return 0.5 * (x + np.sqrt(x * x + 4.0))
+
+
+def _paper_mlp(layers, x):
+    for k, layer in enumerate(layers):
+        x = x @ np.asarray(layer["w"]) + np.asarray(layer["b"])
+        x = _sqp(x) if k < len(layers) - 1 else x
+    return x
+
+
+def _paper_edge_energies(net, links, types, node_x, edge_x):
+    """The paper's equations (section 3) written as loops over nodes and directed
+    edges, read literally: edge (i, j) carries `x_ij` (`Delta q_ij = q_i - q_j`, or
+    `omega_ij`), is updated from `h_ij + W_E (h_i || h_j)`, and node i sums `W_U h_ij`
+    over its edges (i, j). Returns {(i, j): energy} for both orientations of each link."""
+    lin = lambda p, x: x @ np.asarray(p["w"]) + (np.asarray(p["b"]) if "b" in p else 0.0)  # noqa: E731
+    n = len(node_x)
+    h = [_sqp(lin(net["node_embed"], node_x[i])) for i in range(n)]
+    directed = [(i, j, t) for (i, j), t in zip(links, types)] + [(j, i, t) for (i, j), t in zip(links, types)]
+    e = {(i, j): _sqp(lin(net["edge_embed"], np.concatenate([t, edge_x(i, j)]))) for i, j, t in directed}
+    for layer in net["layers"]:
+        e_next = {(i, j): _sqp(_paper_mlp(layer["edge_mlp"], e[i, j] + lin(layer["w_edge"], np.concatenate([h[i], h[j]])))) for i, j, _ in directed}
+        h = [_sqp(_paper_mlp(layer["node_mlp"], h[i] + sum(lin(layer["w_node"], e[a, b]) for a, b, _ in directed if a == i))) for i in range(n)]
+        e = e_next
+    return {key: float(_paper_mlp(net["readout"], z)[0]) for key, z in e.items()}
+
+
+def _as_paper_params(net, potential: bool):
+    """The code's parameters under the paper's edge direction. jraph sends messages to
+    receivers, so the code's edge (s, r) is the paper's edge (r, s): its `W_E` halves
+    swap, and the sign of `Delta q` (antisymmetric; `omega` is not) flips in the edge
+    embedding. A reparametrisation: the same family of functions."""
+    net = jax.tree.map(np.asarray, net)
+    embed = dict(net["edge_embed"])
+    if potential:
+        w = embed["w"].copy()
+        w[-2:] *= -1  # the Delta q rows (after the type one-hot)
+        embed["w"] = w
+    layers = []
+    for layer in net["layers"]:
+        latent = layer["w_edge"]["w"].shape[1]
+        w = layer["w_edge"]["w"]
+        layers.append({**layer, "w_edge": {"w": np.concatenate([w[latent:], w[:latent]])}})
+    return {**net, "edge_embed": embed, "layers": layers}
+
+
+@pytest.mark.parametrize("name", ["lgnn-mp1", "lgnn-mp2"])
+def test_lgnn_with_message_passing_is_the_papers_equations(name):
+    """LGNN with L >= 1 gives, edge by edge, the energies of a loop implementation of
+    the paper's equations (on T2: two link types, a branching graph)."""
+    scene = get_scene("T2")
+    vocabulary = ("link", "rod")
+    config = models.ModelConfig.for_scene(name, scene)
+    assert config.message_passing == int(name[-1])
+    params = models.init(jax.random.PRNGKey(7), config)
+    q, qd = (np.asarray(a) for a in _moving_state(scene))
+    graph = graphs.graph_from_state(scene, jnp.asarray(q), jnp.asarray(qd), vocabulary)
+    kinetic, potential = models.apply(config, params, graph)
+    links = [tuple(map(int, link)) for link in scene.edge_index]
+    types = [np.eye(2)[vocabulary.index(t)] for t in scene.link_types]
+    paper_kinetic = _paper_edge_energies(_as_paper_params(params["kinetic"], False), links, types, qd,
+                                         lambda i, j: graphs.cross(q[i] - q[j], qd[i] - qd[j]))
+    paper_potential = _paper_edge_energies(_as_paper_params(params["potential"], True), links, types, q, lambda i, j: q[i] - q[j])
+    senders, receivers = np.asarray(graph.senders), np.asarray(graph.receivers)
+    for k, (s, r) in enumerate(zip(senders, receivers)):
+        assert kinetic[k] == pytest.approx(paper_kinetic[r, s], rel=1e-12, abs=1e-12)
+        assert potential[k] == pytest.approx(paper_potential[r, s], rel=1e-12, abs=1e-12)
+
+
+@pytest.mark.parametrize("name", ["lgnn-mp1", "lgnn-notebook"])
+def test_lgnn_variants_train(tiny_dataset, name):
+    """Each LGNN variant trains (a few epochs lower the validation loss) and its mass
+    matrix starts positive definite where its start promises it (`lgnn-mp1` shares
+    `lgnn`'s; the notebook's `T` is a sum of squares, positive semi-definite)."""
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene(name, scene)
+    config = train.TrainConfig(epochs=4, warmup_steps=10)
+    evaluate = train.evaluate_fn(model, scene)
+    val = tuple(a[tiny_dataset.val] for a in (tiny_dataset.q, tiny_dataset.qd, tiny_dataset.qdd))
+    before = evaluate(train.initial_state(model, config).params, *val)
+    state = train.train(model, config, tiny_dataset, scene)
+    assert np.isfinite(state.best_val) and state.best_val < before
+
+
+def test_lgnn_notebook_kinetic_energy_is_a_sum_of_squares():
+    scene = get_scene("chain4")
+    config = models.ModelConfig.for_scene("lgnn-notebook", scene)
+    params = models.init(jax.random.PRNGKey(3), config)
+    q, qd = _moving_state(scene)
+    kinetic, _ = models.apply(config, params, graphs.graph_from_state(scene, q, qd))
+    assert bool(jnp.all(kinetic >= 0))
+    at_rest, _ = models.apply(config, params, graphs.graph_from_state(scene, q, jnp.zeros_like(qd)))
+    assert bool(jnp.all(at_rest < kinetic.max()))  # the velocity MLPs see the velocities
+
+
 def test_gns_has_no_mass_matrix():
     config = models.ModelConfig("gns")
     with pytest.raises(ConfigError, match="no mass matrix"):
@@ -460,3 +556,33 @@ def test_physics_differences_from_the_training_scene():
     assert any(d.startswith("drag") for d in train.physics_differences(meta, get_scene("chain4-drag")))
     assert any(d.startswith("link masses") for d in train.physics_differences(meta, get_scene("chain4-varied")))
     assert train.physics_differences({"data": None}, get_scene("chain4-varied")) == []
+
+
+def test_seeds_trained_together_equal_separate_runs(tiny_dataset, tmp_path):
+    """One vmapped program for two seeds gives each seed's own run, to round-off
+    (params, losses, checkpoints), and resumes from seeds at different epochs."""
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene("lgnn", scene)
+    configs = [train.TrainConfig(epochs=2, warmup_steps=10, seed=seed) for seed in (0, 1)]
+    alone = [train.train(model, config, tiny_dataset, scene) for config in configs]
+    outs = [tmp_path / "s0.npz", tmp_path / "s1.npz"]
+    train.train(model, dataclasses.replace(configs[0], epochs=1), tiny_dataset, scene, out=outs[0])  # seed 0 one epoch ahead
+    together = train.train_seeds(model, configs, tiny_dataset, scene, outs=outs, resume=True)
+    for one, both, out in zip(alone, together, outs):
+        assert both.epoch == 2 and train.load_checkpoint(out)[0].epoch == 2
+        np.testing.assert_allclose([h[1:3] for h in both.history], [h[1:3] for h in one.history], rtol=1e-9)
+        for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(both.params)):
+            np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
+    assert not np.allclose(together[0].history[-1][2], together[1].history[-1][2])
+    with pytest.raises(ConfigError, match="but the seed"):
+        train.train_seeds(model, [configs[0], dataclasses.replace(configs[1], learning_rate=1e-2)], tiny_dataset, scene)
+
+
+def test_plateau_rule_stops_when_the_best_stops_improving_by_a_fraction():
+    config = train.TrainConfig(patience=2, min_improvement=0.01)
+    val = [10.0, 5.0, 4.98, 4.96, 4.95]  # gains of < 1 % after epoch 2
+    history = [(e, 0.0, v, 0.0) for e, v in enumerate(val, 1)]
+    state = train.TrainState({}, (), {}, min(val), 5, 5, history)
+    assert train.last_improvement(state, config) == 2 and train.finished(state, config)
+    assert not train.finished(state, dataclasses.replace(config, min_improvement=0.0))  # best at 5
+    assert not train.finished(state._replace(epoch=4, history=history[:4]), config)

@@ -29,6 +29,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--epochs", type=int, default=200)
+    parser.add_argument("--minutes", type=float, default=None, help="wall-clock cap per seed (the acceptance: a usable model within 5 minutes)")
     parser.add_argument("--legacy-optimiser", action="store_true")
     parser.add_argument("--lr", type=float, default=None)
     parser.add_argument("--cache-dir", default="results/datasets")
@@ -51,7 +52,7 @@ def main() -> None:
     simulation = SimulationConfig(dt=1e-3, frame_dt=1e-3, duration=1.0)
     truth = simulate(scene, simulation)
     for seed in args.seeds:
-        config = train.TrainConfig(epochs=args.epochs, seed=seed, patience=args.epochs)
+        config = train.TrainConfig(epochs=args.epochs, seed=seed, patience=args.epochs, minutes=args.minutes)
         if args.legacy_optimiser:
             config = dataclasses.replace(config, **train.LEGACY_OPTIMISATION)
         if args.lr:

@@ -14,6 +14,10 @@ Files under `<out>` (`results/` for the full profile, `lgnn-out/quick/` for the 
   `diverged` (count), `first_divergence_s`, and for `node_rms_error`
   `chaos_floor_ratio`. A chaos floor whose perturbed run diverged has no `gmean` or
   interval; a record without a metric (written before it existed) has no row for it.
+  A model trained with several seeds also has rows with `seed` -1 (`ALL_SEEDS`): the
+  geometric mean over seeds and initial conditions with a two-level bootstrap interval
+  (`lgnn.metrics.summarise_seeds`), `seeds`, and the summed divergences; the markdown
+  tables show these.
 - `benchmark/curves.csv`: the same metrics per frame (every 0.01 s): geometric mean
   over initial conditions with a normal-approximation 95% band (`t` column).
 - `benchmark/speed_error.csv`, `.md`: wall time per simulated second against rollout
@@ -37,22 +41,27 @@ from lgnn import metrics
 from lgnn.bench.grid import TRAINING_SCENE, TRANSFER_SCENES, Profile, evaluation_scenes
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
+from lgnn.bench.stages.evaluate import NO_DRAG
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
-from lgnn.bench.stages.train import load_checkpoints
+from lgnn.bench.stages.train import default_lgnn, load_checkpoints
 from lgnn.bench.tables import write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.scene import get_scene
 
-MODEL_ORDER = ("lgnn", "gns", "lgn", "clnn")
-COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5"}
+MODEL_ORDER = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn")
+COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5", "lgnn-mp1": "C4", "lgnn-mp2": "C5", "lgnn-notebook": "C6"}
 # The rest baseline's model name in the tables (the initial state held).
 REST = "rest"
+# The drag scenes' exact physics without drag, as the tables name it.
+EXACT_NO_DRAG = "exact, no drag"
 # The chaos floor's metrics: its rollout error (first name kept) and per-node RMS error.
 FLOOR, FLOOR_RMS = "chaos_floor", "chaos_floor_node_rms_error"
 CURVE_STEP_S = 0.01
+# The `seed` of summary rows over every training seed of a model.
+ALL_SEEDS = -1
 MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale", "scaled_percent_error", "scaled_tangent_percent_error")
 
 
@@ -112,7 +121,9 @@ def tables(truths: dict, pairs: list):
         if floor_ok and f"{FLOOR}/node_rms_error/per_ic_log" in arrays:
             floor_rms[scene] = metrics.summarise(arrays[f"{FLOOR}/node_rms_error/per_ic_log"])[0]
     rows = [(scene, REST, 0, arrays, meta, f"{REST_PREFIX}/", arrays.get(f"{REST_PREFIX}/diverged_at")) for scene, (arrays, meta) in truths.items()]
-    rows += [(pair.scene, pair.job.label, pair.job.seed, arrays, meta, "", arrays["diverged_at"]) for pair, (arrays, meta) in pairs]
+    rows += [(scene, EXACT_NO_DRAG, 0, arrays, meta, f"{NO_DRAG}/", arrays[f"{NO_DRAG}/diverged_at"])
+             for scene, (arrays, meta) in truths.items() if f"{NO_DRAG}/diverged_at" in arrays]
+    rows += [(pair.scene, pair.label, pair.job.seed, arrays, meta, "", arrays["diverged_at"]) for pair, (arrays, meta) in pairs]
     for scene, model, seed, arrays, meta, prefix, diverged in rows:
         for metric in METRICS:
             if f"{prefix}{metric}/per_ic_log" not in arrays:
@@ -122,7 +133,29 @@ def tables(truths: dict, pairs: list):
             if metric == "node_rms_error" and scene in floor_rms:
                 ratio = metrics.summarise(arrays[f"{prefix}{metric}/per_ic_log"])[0] / floor_rms[scene]
                 summary.append(dict(scene=scene, model=model, seed=seed, metric=metric, **_env_columns(meta), statistic="chaos_floor_ratio", value=ratio))
+    summary += _seed_rows(pairs)
     return pd.DataFrame(summary), pd.DataFrame(curves)
+
+
+def _seed_rows(pairs: list) -> list[dict]:
+    """`ALL_SEEDS` rows of every (scene, model, metric) evaluated for several seeds."""
+    groups: dict[tuple[str, str, str], list] = {}
+    for pair, (arrays, meta) in pairs:
+        for metric in METRICS:
+            if f"{metric}/per_ic_log" in arrays:
+                groups.setdefault((pair.scene, pair.label, metric), []).append((arrays, meta))
+    rows = []
+    for (scene, model, metric), records in groups.items():
+        if len(records) < 2:
+            continue
+        gmean, low, high = metrics.summarise_seeds([arrays[f"{metric}/per_ic_log"] for arrays, _ in records])
+        diverged = np.concatenate([arrays["diverged_at"] for arrays, _ in records])
+        stats = {"gmean": gmean, "ci_low": low, "ci_high": high, "seeds": len(records),
+                 "initial_conditions": len(records[0][0][f"{metric}/per_ic_log"]), "diverged": int(np.sum(np.isfinite(diverged))),
+                 "first_divergence_s": float(np.nanmin(diverged)) if np.isfinite(diverged).any() else float("nan")}
+        base = dict(scene=scene, model=model, seed=ALL_SEEDS, metric=metric, **_env_columns(records[0][1]))
+        rows += [{**base, "statistic": k, "value": v} for k, v in stats.items()]
+    return rows
 
 
 def _fmt(value: float) -> str:
@@ -135,6 +168,8 @@ def _interval(row: dict) -> str:
         text += f" [{_fmt(row['ci_low'])}, {_fmt(row['ci_high'])}]"
     if math.isfinite(row.get("diverged", float("nan"))) and row["diverged"] > 0:
         text += f" ({int(row['diverged'])} diverged, first at {row['first_divergence_s']:.3g} s)"
+    if math.isfinite(row.get("seeds", float("nan"))):
+        text += f" ({int(row['seeds'])} seeds)"
     if math.isfinite(row.get("chaos_floor_ratio", float("nan"))):
         text += f", {row['chaos_floor_ratio']:.3g}x floor"
     return text
@@ -182,6 +217,8 @@ def summary_markdown(summary, metric: str) -> str:
         cells = []
         for model in models:
             match = wide[(wide.scene == scene) & (wide.model == model) & (wide.metric == metric)]
+            if (match.seed == ALL_SEEDS).any():  # several seeds: the interval over seeds and ICs
+                match = match[match.seed == ALL_SEEDS]
             record = (scene, "ground truth" if model == REST else model) in present
             cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "not computed" if record else "")
         for truth_metric in truth_metrics:
@@ -302,7 +339,7 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
         model_q = arrays["snapshot/model"]
         for col, f in enumerate(frames):
             ax = axes[row, col]
-            for q, style, color, label in ((mujoco_q[f], "-", "k", "MuJoCo"), (model_q[f], "--", COLORS.get(pair.job.model), pair.job.label.upper())):
+            for q, style, color, label in ((mujoco_q[f], "-", "k", "MuJoCo"), (model_q[f], "--", COLORS.get(pair.job.model), pair.label.upper())):
                 if np.isfinite(q).all():
                     for k, seg in enumerate(q[edges]):
                         ax.plot(seg[:, 0], seg[:, 1], style, color=color, linewidth=1.2, label=label if k == 0 else None)
@@ -374,6 +411,10 @@ def _training_lines(profile: Profile, out: Path) -> list[str]:
     lines = ["| model | training scene | epochs | minutes | best validation MSE (epoch) |", "|---|---|---|---|---|"]
     for job, state in load_checkpoints(profile, out):
         lines.append(f"| {job.model} | {job.scene} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) |")
+    chosen, scores = default_lgnn(profile, out)
+    if scores:
+        lines += ["", f"Default LGNN (lowest geometric mean over seeds of the best validation MSE among the variants with every seed trained): "
+                  f"**{chosen}** ({', '.join(f'{v} {s:.3g}' for v, s in scores.items())})."]
     return lines
 
 
@@ -387,7 +428,7 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
     for scene, (_, meta) in truths.items():
         add(meta.get("environment", {}), f"ground truth {scene}")
     for pair, (_, meta) in pairs:
-        add(meta.get("environment", {}), f"{pair.job.label} on {pair.scene}")
+        add(meta.get("environment", {}), f"{pair.label} on {pair.scene}")
     for scene, device, commit in dict.fromkeys((r["scene"], r["device"], r["commit"]) for r in speed_rows):
         add({"device": device, "commit": commit}, f"speed {scene}")
     for _, meta in mass_records:
@@ -424,7 +465,9 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         f"- Training: {t.data.n_trajectories} trajectories of {t.data.duration:g} s, a state every {t.data.sample_dt:g} s (75:25 split), "
         f"Adam {t.train.learning_rate:g}, batch {t.train.batch_size}, budget {t.train.epochs} epochs"
         + (f" or {t.train.minutes:g} minutes per model (whichever ends first; the paper's 10 000 epochs did not fit)" if t.train.minutes else "")
-        + f", patience {t.train.patience}, seeds {', '.join(map(str, p.seeds))}.",
+        + (f", plateau: stop when the best validation MSE has not improved by {t.train.min_improvement:.0%} in {t.train.patience} epochs"
+           if t.train.min_improvement else f", patience {t.train.patience}")
+        + f", seeds {', '.join(map(str, p.seeds))}.",
         f"- Evaluation: {e.initial_conditions} initial conditions per chain scene (paper sampler, seed {e.ic_seed}; T1-T3: their rest state), "
         f"{e.duration:g} s, frames every {e.frame_dt:g} s, RK4 at dt {e.dt:g} with projection for models and the Lagrangian ground truth"
         + "".join(f" ({scene}: dt {dt:g})" for scene, dt in e.scene_dts if scene in evaluation_scenes(p)) + "; "
@@ -440,6 +483,11 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "- `rest`: the rest baseline, the initial state held (`lgnn.metrics.rest_rollouts`), scored like a model: its errors are the truth's own "
         "displacement from its start, the bar any model must clear. The chaos floor is not given (\"diverged\") on a scene where a "
         "perturbed run diverged: it is then no floor. \"not computed\": a record written before that metric existed.",
+        "- `gns` rollouts are projected onto the constraints after every step, as the ground truth's and every Lagrangian model's "
+        "(GNS's own accelerations know no constraints); `gns (unprojected)` is the same checkpoint without projection. "
+        f"`{EXACT_NO_DRAG}` (drag scenes): the exact physics with the drag term removed, from the same states: what ignoring drag scores.",
+        "- Several training seeds: a cell is the geometric mean over seeds and initial conditions with a two-level bootstrap 95% interval "
+        "(seeds, then each seed's initial conditions), `(n seeds)`; each seed's own numbers are rows of `benchmark/summary.csv`.",
         "",
         "## Training",
         "",

@@ -18,7 +18,7 @@ from lgnn.bench.stages.evaluate import evaluate_pair, evaluate_scene
 from lgnn.bench.stages.mass import mass_matrices
 from lgnn.bench.stages.scaling import scaling
 from lgnn.bench.stages.speed import speed_error
-from lgnn.bench.stages.train import train_job
+from lgnn.bench.stages.train import train_jobs
 from lgnn.bench.store import default_out
 from lgnn.errors import ConfigError
 
@@ -47,8 +47,7 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
     selected_scenes = [s for s in evaluation_scenes(profile) if not scenes or s in scenes]
     out.mkdir(parents=True, exist_ok=True)
     if "train" in stages:
-        for job in selected_jobs:
-            train_job(profile, job, out, progress)
+        train_jobs(profile, selected_jobs, out, progress)
     if "evaluate" in stages:
         for scene in selected_scenes:
             evaluate_scene(profile, scene, out, progress)

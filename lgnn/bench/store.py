@@ -40,7 +40,8 @@ class Layout:
         return self.bench / "checkpoints" / f"{file_name(job.name)}.npz"
 
     def pair_record(self, pair: Pair) -> Path:
-        return self.bench / "runs" / file_name(pair.job.name) / f"{file_name(pair.scene)}.npz"
+        stem = file_name(pair.scene) + ("" if pair.projected else "-unprojected")
+        return self.bench / "runs" / file_name(pair.job.name) / f"{stem}.npz"
 
     def truth_record(self, scene: str) -> Path:
         return self.bench / "runs" / "ground-truth" / f"{file_name(scene)}.npz"

@@ -23,13 +23,23 @@ Architectures (paper section 3 and appendix):
   dqd`) and V (node positions; edge type and `dq`). Embeddings `h = squareplus(Linear
   (features))` of size 5, MLPs with one hidden layer of 10 units, squareplus, `L`
   message-passing layers (paper Eqs.), per-edge energy `MLP(z_ij)` summed over links,
-  `L = T - V`. `message_passing = 0` is the authors' per-edge variant: the read-out sees
-  `z_ij = h_ij + W (h_i || h_j)`, the edge-update input of the paper's first layer without
-  its MLP, so a link's energy depends on its own features and its two end nodes (the
-  paper's equations with L = 0 would read `h_ij` alone, which cannot express gravity
-  `m g y_cm` nor translational kinetic energy). Per-link energies average the link's
-  two orientations (`graphs` module). Drag scenes add a learned per-link drag
-  coefficient (one per edge type): force `-c v_cm`, split between the two nodes.
+  `L = T - V`. Three registered variants share this code:
+  - `lgnn` (`message_passing = 0`, this suite's per-edge variant; neither the paper's
+    equations nor the authors' notebook): the read-out sees `z_ij = h_ij + W (h_i ||
+    h_j)`, the edge-update input of the paper's first layer without its MLP, so a
+    link's energy depends on its own features and its two end nodes (the paper's
+    equations with L = 0 would read `h_ij` alone, which cannot express gravity `m g
+    y_cm` nor translational kinetic energy);
+  - `lgnn-mp1`, `lgnn-mp2`: the paper's equations with L = 1 and 2 layers.
+  Per-link energies average the link's two orientations (`graphs` module). Drag scenes
+  add a learned per-link drag coefficient (one per edge type): force `-c v_cm`, split
+  between the two nodes.
+- `lgnn-notebook`: the authors' notebook variant (issue 13): no message passing; each
+  link's centre-of-mass velocity `v_cm`, angular feature `w = dq x dqd` (`l^2 omega`)
+  and centre of mass `r_cm`, each with the edge type, go to three separate MLPs
+  (hidden 10): `T_link = |MLP_v(v_cm)|^2 + |MLP_w(w)|^2`, `V_link = MLP_r(r_cm)`. The
+  MLPs for T output a vector of `latent` (5) entries and T is its squared norm (a
+  scalar output squared has a rank-1 mass matrix, which cannot be `m I` in 2D).
 - GNS: node (q, qd) and edge (type, dq, w) encoders to latent 8, the same message-passing
   layers with MLPs of 128 hidden units, a node decoder MLP to accelerations. No
   constraints.
@@ -436,16 +446,47 @@ def _clnn_lagrangian(config: ModelConfig, params: dict, scene: Scene) -> physics
     return lambda q, qd: _apply_mlp(params["mlp"], jnp.concatenate([q.reshape(-1), qd.reshape(-1)]))[0]
 
 
+def _init_lgnn_notebook(key, config: ModelConfig) -> dict:
+    k_types, d, w_dim = _feature_sizes(config)
+    keys = jax.random.split(key, 3)
+    return {
+        "v_cm": _mlp(keys[0], (k_types + d, config.hidden, config.latent)),
+        "w": _mlp(keys[1], (k_types + w_dim, config.hidden, config.latent)),
+        "r_cm": _mlp(keys[2], (k_types + d, config.hidden, 1)),
+    }
+
+
+def _lgnn_notebook_edge_energies(params: dict):
+    def energies(graph):
+        s, r, kind = graph.senders, graph.receivers, graph.edges["type"]
+        v_cm = 0.5 * (graph.nodes["qd"][s] + graph.nodes["qd"][r])
+        r_cm = 0.5 * (graph.nodes["q"][s] + graph.nodes["q"][r])
+        kinetic = sum(jnp.sum(_apply_mlp(params[k], jnp.concatenate([kind, x], -1)) ** 2, -1) for k, x in (("v_cm", v_cm), ("w", graph.edges["w"])))
+        return kinetic, _apply_mlp(params["r_cm"], jnp.concatenate([kind, r_cm], -1))[:, 0]
+
+    return energies
+
+
+def _lgnn_spec(name: str, message_passing: int) -> ModelSpec:
+    return ModelSpec(
+        name, _init_lgnn, apply=lambda config, params, graph: _lgnn_edge_energies(params)(graph),
+        lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_edge_energies(params)),
+        latent=5, hidden=10, message_passing=message_passing,
+        # Without message passing a link's energy depends on its own two nodes only.
+        local_mass=lambda config: config.message_passing == 0,
+    )
+
+
 # Sizes are the paper appendix's; message-passing layers when not given: LGNN's
-# per-edge variant (the true per-link energies need nothing more, and it is the
-# authors' code); two layers let GNS and LGN nodes see their neighbours' neighbours
-# (the paper does not give this number).
+# per-edge variant (the true per-link energies need nothing more); two layers let GNS
+# and LGN nodes see their neighbours' neighbours (the paper does not give this number).
+register(_lgnn_spec("lgnn", 0))
+register(_lgnn_spec("lgnn-mp1", 1))
+register(_lgnn_spec("lgnn-mp2", 2))
 register(ModelSpec(
-    "lgnn", _init_lgnn, apply=lambda config, params, graph: _lgnn_edge_energies(params)(graph),
-    lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_edge_energies(params)),
-    latent=5, hidden=10, message_passing=0,
-    # Without message passing a link's energy depends on its own two nodes only.
-    local_mass=lambda config: config.message_passing == 0,
+    "lgnn-notebook", _init_lgnn_notebook, apply=lambda config, params, graph: _lgnn_notebook_edge_energies(params)(graph),
+    lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_notebook_edge_energies(params)),
+    latent=5, hidden=10, local_mass=lambda config: True,
 ))
 register(ModelSpec(
     "gns", lambda key, config: _init_graph_model(key, config, (config.latent, config.hidden, config.dim)),

@@ -6,8 +6,11 @@ with a key derived from `(seed, epoch)` and takes `len(train) // batch_size` Ada
 (the remainder of a shuffle is dropped), one jitted `lax.scan` per epoch; the
 validation loss is computed after every epoch in large vmapped chunks; the parameters
 with the best validation loss are kept; training stops at the epoch budget (the
-budget: it means the same on any machine), after `patience` epochs without
-improvement, or at the optional minutes cap (a safety net, checked after each epoch).
+budget: it means the same on any machine), after `patience` epochs without an
+improvement by the fraction `min_improvement` (the plateau rule), or at the optional
+minutes cap (a safety net, checked after each epoch). `train_seeds` trains several
+seeds of one job in one compiled program (vmapped over params and Adam states, the
+data shared), each seed's run equal to its own `train` run to round-off.
 
 The optimiser is the paper's Adam (peak learning rate 1e-3, batch 10) with a linear
 warm-up, a per-step exponential decay and optional global-norm gradient clipping
@@ -36,7 +39,7 @@ import functools
 import os
 import time
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -98,6 +101,10 @@ class TrainConfig:
     min_learning_rate: float = MIN_LEARNING_RATE
     # Gradients rescaled to at most this global norm before Adam (None: no clipping).
     clip_norm: float | None = CLIP_NORM
+    # Plateau rule (with `patience`): an epoch counts as better only if its validation loss is below
+    # (1 - min_improvement) times the best before it (0: any improvement). The best
+    # parameters are still the best epoch's, however small its gain.
+    min_improvement: float = 0.0
 
     def __post_init__(self):
         if not self.learning_rate > 0:
@@ -108,6 +115,8 @@ class TrainConfig:
             raise ConfigError(f"clip norm must be > 0, got {self.clip_norm}")
         if self.batch_size < 1 or self.epochs < 0 or self.patience < 1 or self.checkpoint_every < 1:
             raise ConfigError("batch size, patience and checkpoint interval must be >= 1, epochs >= 0")
+        if not 0 <= self.min_improvement < 1:
+            raise ConfigError(f"minimum improvement must be in [0, 1), got {self.min_improvement}")
         if self.minutes is not None and not self.minutes > 0:
             raise ConfigError(f"minutes must be > 0, got {self.minutes}")
 
@@ -128,7 +137,18 @@ class TrainState(NamedTuple):
 def finished(state: TrainState, config: TrainConfig) -> bool:
     """Whether training has ended by one of `config`'s budgets or early stopping."""
     out_of_time = config.minutes is not None and state.elapsed_s >= 60 * config.minutes
-    return state.epoch >= config.epochs or state.epoch - state.best_epoch > config.patience or out_of_time
+    return state.epoch >= config.epochs or state.epoch - last_improvement(state, config) > config.patience or out_of_time
+
+
+def last_improvement(state: TrainState, config: TrainConfig) -> int:
+    """The last epoch whose validation loss beat the best before it by the factor
+    `1 - config.min_improvement` (the plateau rule; -1 before any)."""
+    if config.min_improvement == 0 or not state.history:
+        return state.best_epoch
+    val = np.array([entry[2] for entry in state.history], float)
+    best_before = np.concatenate([[np.inf], np.minimum.accumulate(val)[:-1]])
+    improved = np.flatnonzero(val < (1 - config.min_improvement) * best_before)
+    return int(state.history[improved[-1]][0]) if len(improved) else -1
 
 
 def learning_rate_schedule(config: TrainConfig) -> optax.Schedule | float:
@@ -159,9 +179,11 @@ def loss_fn(model: models.ModelConfig, scene: Scene):
 
 
 @functools.lru_cache(maxsize=16)
-def _epoch_fn(model, scene, config: TrainConfig):
+def _epoch_fn(model, scene, config: TrainConfig, vmapped: bool = False):
     """The jitted epoch, cached per (model, scene, optimisation settings), all keyed on
-    content, so that resuming or re-running in one process does not recompile."""
+    content, so that resuming or re-running in one process does not recompile. With
+    `vmapped`, one compiled program steps several seeds at once: params, Adam states
+    and shuffle keys carry a leading seed axis, the data are shared."""
     loss = loss_fn(model, scene)
     opt = optimizer(config)
 
@@ -171,7 +193,6 @@ def _epoch_fn(model, scene, config: TrainConfig):
         updates, opt_state = opt.update(grads, opt_state, params)
         return (optax.apply_updates(params, updates), opt_state), value
 
-    @jax.jit
     def epoch(params, opt_state, q, qd, qdd, key):
         n_batches = q.shape[0] // config.batch_size
         order = jax.random.permutation(key, q.shape[0])[: n_batches * config.batch_size]
@@ -179,14 +200,19 @@ def _epoch_fn(model, scene, config: TrainConfig):
         (params, opt_state), losses = jax.lax.scan(step, (params, opt_state), batches)
         return params, opt_state, jnp.mean(losses)
 
-    return epoch
+    return jax.jit(jax.vmap(epoch, in_axes=(0, 0, None, None, None, 0)) if vmapped else epoch)
 
 
-def compiled_epoch_fn(model: models.ModelConfig, scene: Scene, config: TrainConfig):
+def compiled_epoch_fn(model: models.ModelConfig, scene: Scene, config: TrainConfig, vmapped: bool = False):
     """`epoch(params, opt_state, q, qd, qdd, key) -> (params, opt_state, mean loss)`,
-    jitted and shared by every caller with the same optimisation settings (budgets do
-    not matter): training, resuming, and the benchmark's timing of an epoch."""
-    return _epoch_fn(model, scene, dataclasses.replace(config, epochs=0, minutes=None, patience=1, checkpoint_every=1))
+    jitted and shared by every caller with the same optimisation settings (budgets and
+    the seed do not matter): training, resuming, and the benchmark's timing of an
+    epoch. `vmapped`: params, opt_state and key with a leading seed axis (the loss too)."""
+    return _epoch_fn(model, scene, _optimisation_only(config), vmapped)
+
+
+def _optimisation_only(config: TrainConfig) -> TrainConfig:
+    return dataclasses.replace(config, epochs=0, minutes=None, patience=1, min_improvement=0.0, checkpoint_every=1, seed=0)
 
 
 @functools.lru_cache(maxsize=16)
@@ -220,44 +246,83 @@ def train(
     progress: bool = False,
 ) -> TrainState:
     """Train (or resume training of) `model` on `dataset` of `scene`; module docstring."""
+    return train_seeds(model, [config], dataset, scene, outs=None if out is None else [out], data_config=data_config, resume=resume, progress=progress)[0]
+
+
+def train_seeds(
+    model: models.ModelConfig,
+    configs: Sequence[TrainConfig],
+    dataset: Dataset,
+    scene: Scene,
+    *,
+    outs: Sequence[str | os.PathLike] | None = None,
+    data_config: DataConfig | None = None,
+    resume: bool = False,
+    progress: bool = False,
+) -> list[TrainState]:
+    """Train several seeds of one job in one compiled program: `configs` differ in
+    their seed only; each seed's run (shuffles, schedule, early stopping, checkpoint
+    `outs[k]`) is the run `train` would make alone, to round-off. Params and Adam states
+    are stacked on a leading axis and stepped by the vmapped epoch (the data shared);
+    a seed that has finished keeps its state while the others go on. Seeds may resume
+    from different epochs. Each seed's `elapsed_s` counts the group's wall-clock time."""
     from tqdm.auto import tqdm
 
+    configs = list(configs)
+    if not configs or any(_optimisation_only(c) != _optimisation_only(configs[0]) or _budget(c) != _budget(configs[0]) for c in configs):
+        raise ConfigError("seeds trained together must share every training setting but the seed")
+    if outs is not None and len(outs) != len(configs):
+        raise ConfigError(f"{len(configs)} seeds but {len(outs)} checkpoint paths")
     models.check_compatible(model, scene)
-    if len(dataset.train) < config.batch_size:
-        raise ConfigError(f"{len(dataset.train)} training states is fewer than one batch of {config.batch_size}")
-    if resume and out is not None and Path(out).exists():
-        state, _ = check_resumable(out, model, config)
-    else:
-        state = initial_state(model, config)
-    epoch_fn = compiled_epoch_fn(model, scene, config)
-    evaluate = evaluate_fn(model, scene, config.val_chunk)
+    if len(dataset.train) < configs[0].batch_size:
+        raise ConfigError(f"{len(dataset.train)} training states is fewer than one batch of {configs[0].batch_size}")
+    outs = [None] * len(configs) if outs is None else list(outs)
+    states = [
+        check_resumable(out, model, config)[0] if resume and out is not None and Path(out).exists() else initial_state(model, config)
+        for config, out in zip(configs, outs)
+    ]
+    vmapped = len(configs) > 1
+    epoch_fn = compiled_epoch_fn(model, scene, configs[0], vmapped)
+    evaluate = evaluate_fn(model, scene, configs[0].val_chunk)
     train_arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
     val_arrays = tuple(jnp.asarray(a[dataset.val]) for a in (dataset.q, dataset.qd, dataset.qdd))
-    base_key = jax.random.fold_in(jax.random.PRNGKey(config.seed), 1)
-    start, elapsed_before = time.monotonic(), state.elapsed_s
-    params, opt_state = state.params, state.opt_state
-    best_params, best_val, best_epoch, history = state.best_params, state.best_val, state.best_epoch, list(state.history)
-    epoch = state.epoch
-    bar = tqdm(total=config.epochs, initial=epoch, desc=f"train {model.name}", unit="epoch", disable=not progress, leave=False)
+    base_keys = [jax.random.fold_in(jax.random.PRNGKey(config.seed), 1) for config in configs]
+    start, elapsed_before = time.monotonic(), [state.elapsed_s for state in states]
+    name = model.name + (f" x{len(configs)} seeds" if vmapped else "")
+    bar = tqdm(total=configs[0].epochs, initial=min(s.epoch for s in states), desc=f"train {name}", unit="epoch", disable=not progress, leave=False)
     try:
-        while not finished(state, config):
-            params, opt_state, train_loss = epoch_fn(params, opt_state, *train_arrays, jax.random.fold_in(base_key, epoch))
-            val_loss = evaluate(params, *val_arrays)
-            epoch += 1
-            elapsed = elapsed_before + time.monotonic() - start
-            history.append((epoch, float(train_loss), val_loss, elapsed))
-            if val_loss < best_val:
-                best_params, best_val, best_epoch = params, val_loss, epoch
-            bar.update(1)
-            bar.set_postfix(train=f"{float(train_loss):.3e}", val=f"{val_loss:.3e}", best=f"{best_val:.3e}")
-            state = TrainState(params, opt_state, best_params, best_val, best_epoch, epoch, history, elapsed)
-            if out is not None and (epoch % config.checkpoint_every == 0 or finished(state, config)):
-                save_checkpoint(out, state, model, config, data_config)
+        while not all(finished(state, config) for state, config in zip(states, configs)):
+            keys = [jax.random.fold_in(key, state.epoch) for key, state in zip(base_keys, states)]
+            if vmapped:
+                stack = lambda trees: jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)  # noqa: E731
+                params, opt_states, losses = epoch_fn(stack([s.params for s in states]), stack([s.opt_state for s in states]), *train_arrays, jnp.stack(keys))
+                stepped = [(jax.tree.map(lambda a, k=k: a[k], params), jax.tree.map(lambda a, k=k: a[k], opt_states), losses[k]) for k in range(len(states))]
+            else:
+                stepped = [epoch_fn(states[0].params, states[0].opt_state, *train_arrays, keys[0])]
+            for k, ((params, opt_state, train_loss), config, out) in enumerate(zip(stepped, configs, outs)):
+                state = states[k]
+                if finished(state, config):
+                    continue
+                val_loss = evaluate(params, *val_arrays)
+                epoch, elapsed = state.epoch + 1, elapsed_before[k] + time.monotonic() - start
+                history = state.history + [(epoch, float(train_loss), val_loss, elapsed)]
+                best = (params, val_loss, epoch) if val_loss < state.best_val else (state.best_params, state.best_val, state.best_epoch)
+                states[k] = state = TrainState(params, opt_state, *best, epoch, history, elapsed)
+                if out is not None and (epoch % config.checkpoint_every == 0 or finished(state, config)):
+                    save_checkpoint(out, state, model, config, data_config)
+            bar.n = min(s.epoch for s in states)
+            bar.set_postfix(best=" ".join(f"{s.best_val:.3e}" for s in states))
+            bar.refresh()
     finally:
         bar.close()
-    if out is not None:
-        save_checkpoint(out, state, model, config, data_config)
-    return state
+    for state, config, out in zip(states, configs, outs):
+        if out is not None:
+            save_checkpoint(out, state, model, config, data_config)
+    return states
+
+
+def _budget(config: TrainConfig) -> tuple:
+    return config.epochs, config.minutes, config.patience, config.min_improvement, config.checkpoint_every
 
 
 # ---------------------------------------------------------------------------------
@@ -267,7 +332,7 @@ def train(
 
 def training_key(config: TrainConfig) -> dict:
     # Budgets may change on resume (train longer); the optimisation itself may not.
-    return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("epochs", "minutes", "patience", "checkpoint_every", "val_chunk")}
+    return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("epochs", "minutes", "patience", "min_improvement", "checkpoint_every", "val_chunk")}
 
 
 def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: TrainConfig, data_config: DataConfig | None = None) -> None:

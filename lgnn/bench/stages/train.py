@@ -1,7 +1,9 @@
 """Training stage: a checkpoint per (model, training scene, seed).
 
-`train_job` trains with `lgnn.learn.train.train` (resuming an interrupted run); a
-finished checkpoint whose model, optimisation (`train.training_key`) and data settings
+`train_jobs` trains the seeds of each (model, training scene) together, one compiled
+program (`lgnn.learn.train.train_seeds`), resuming interrupted runs from their
+checkpoints (written every `checkpoint_every` epochs, so a run cut off by a 10-minute
+limit goes on where it stopped); a finished checkpoint whose model, optimisation (`train.training_key`) and data settings
 match the profile's `TrainSettings` is reused, one made with other settings or
 unreadable is replaced. `load_checkpoints` gives the report the finished ones.
 """
@@ -13,8 +15,9 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from lgnn.bench.grid import Profile, TrainingJob, training_jobs
+from lgnn.bench.grid import LGNN_VARIANTS, TRAINING_SCENE, Profile, TrainingJob, training_jobs
 from lgnn.bench.store import Layout, log
 from lgnn.errors import CheckpointError
 from lgnn.learn import data, models, train
@@ -32,41 +35,82 @@ def _job_settings(profile: Profile, job: TrainingJob):
 def train_job(profile: Profile, job: TrainingJob, out: Path, progress: bool = True) -> Path:
     """The job's checkpoint, trained (or resumed) unless a finished one with the same
     settings exists. A checkpoint made with other settings, or unreadable, is replaced."""
+    return train_jobs(profile, [job], out, progress)[0]
+
+
+def _resumable(profile: Profile, job: TrainingJob, path: Path) -> bool | None:
+    """None if the job's checkpoint is finished with the profile's settings (reuse it),
+    True if it can be resumed, False if training starts afresh."""
     scene, model, data_config, train_config = _job_settings(profile, job)
-    path = Layout(out).checkpoint(job)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    resume = False
-    if path.exists():
-        try:
-            state, meta = train.load_checkpoint(path)
-        except CheckpointError as err:
-            log(f"warning: {err}; retraining {job.name}")
-        else:
-            same = (
-                meta["model"] == model.to_dict()
-                and meta["train"] == train.training_key(train_config)
-                and meta["data"] == dataclasses.asdict(data_config)
-            )
-            if same and train.finished(state, train_config):
-                log(f"train {job.name}: reusing finished checkpoint ({state.epoch} epochs, best validation MSE {state.best_val:.3g})")
-                return path
-            if same:
-                log(f"train {job.name}: resuming at epoch {state.epoch}")
-                resume = True
-            else:
-                log(f"train {job.name}: checkpoint was made with other settings; retraining")
-    dataset = data.load_or_generate(data_config, Layout(out).datasets, progress=progress)
-    if not resume:
-        log(f"train {job.name}: {len(dataset.train)} training states, budget {train_config.epochs} epochs" + (f" / {train_config.minutes:g} min" if train_config.minutes else ""))
-    state = train.train(model, train_config, dataset, scene, out=path, data_config=data_config, resume=resume, progress=progress)
-    log(f"train {job.name}: {state.epoch} epochs in {state.elapsed_s / 60:.1f} min, best validation MSE {state.best_val:.3g} (epoch {state.best_epoch})")
-    return path
+    if not path.exists():
+        return False
+    try:
+        state, meta = train.load_checkpoint(path)
+    except CheckpointError as err:
+        log(f"warning: {err}; retraining {job.name}")
+        return False
+    same = meta["model"] == model.to_dict() and meta["train"] == train.training_key(train_config) and meta["data"] == dataclasses.asdict(data_config)
+    if same and train.finished(state, train_config):
+        log(f"train {job.name}: reusing finished checkpoint ({state.epoch} epochs, best validation MSE {state.best_val:.3g})")
+        return None
+    if same:
+        log(f"train {job.name}: resuming at epoch {state.epoch}")
+        return True
+    log(f"train {job.name}: checkpoint was made with other settings; retraining")
+    return False
+
+
+def train_jobs(profile: Profile, jobs: list[TrainingJob], out: Path, progress: bool = True) -> list[Path]:
+    """Checkpoints of `jobs` (in order). The seeds of one (model, training scene) are
+    trained together, one compiled program (`train.train_seeds`), each resumed from its
+    own checkpoint or started afresh; finished checkpoints are reused."""
+    layout = Layout(out)
+    groups: dict[tuple[str, str], list[TrainingJob]] = {}
+    for job in jobs:
+        groups.setdefault((job.model, job.scene), []).append(job)
+    for group in groups.values():
+        paths = [layout.checkpoint(job) for job in group]
+        for path in paths:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        plans = [_resumable(profile, job, path) for job, path in zip(group, paths)]
+        todo = [(job, path, plan) for job, path, plan in zip(group, paths, plans) if plan is not None]
+        if not todo:
+            continue
+        fresh = [job for job, _, plan in todo if not plan]
+        for job, path, plan in todo:
+            if not plan and path.exists():
+                path.unlink()  # replaced: other settings or unreadable
+        scene, model, data_config, train_config = _job_settings(profile, todo[0][0])
+        dataset = data.load_or_generate(data_config, layout.datasets, progress=progress)
+        if fresh:
+            log(f"train {', '.join(j.name for j in fresh)}: {len(dataset.train)} training states, budget {train_config.epochs} epochs"
+                + (f", plateau: no {train_config.min_improvement:.0%} gain in {train_config.patience} epochs" if train_config.min_improvement else "")
+                + (f" / {train_config.minutes:g} min" if train_config.minutes else ""))
+        configs = [_job_settings(profile, job)[3] for job, _, _ in todo]
+        states = train.train_seeds(model, configs, dataset, scene, outs=[path for _, path, _ in todo], data_config=data_config, resume=True, progress=progress)
+        for (job, _, _), state in zip(todo, states):
+            log(f"train {job.name}: {state.epoch} epochs in {state.elapsed_s / 60:.1f} min, best validation MSE {state.best_val:.3g} (epoch {state.best_epoch})")
+    return [layout.checkpoint(job) for job in jobs]
 
 
 def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, train.TrainState]]:
     """`(job, training state)` of every job of the profile with a checkpoint under `out`."""
     layout = Layout(out)
     return [(job, train.load_checkpoint(layout.checkpoint(job))[0]) for job in training_jobs(profile) if layout.checkpoint(job).exists()]
+
+
+def default_lgnn(profile: Profile, out: Path) -> tuple[str | None, dict[str, float]]:
+    """The default LGNN, chosen from the training records: among `LGNN_VARIANTS`
+    trained on TRAINING_SCENE with a checkpoint for every seed of the profile, the one
+    with the lowest geometric mean over seeds of the best validation MSE (ties: the
+    earlier, simpler variant). Returns `(name, {variant: that mean})`; name None when
+    no variant has all its seeds."""
+    found: dict[str, list[float]] = {}
+    for job, state in load_checkpoints(profile, out):
+        if job.model in LGNN_VARIANTS and job.scene == TRAINING_SCENE:
+            found.setdefault(job.model, []).append(state.best_val)
+    scores = {v: float(np.exp(np.mean(np.log(found[v])))) for v in LGNN_VARIANTS if len(found.get(v, ())) == len(profile.seeds)}
+    return (min(scores, key=lambda v: (scores[v], LGNN_VARIANTS.index(v))) if scores else None), scores
 
 
 def timed_epoch_fn(profile: Profile, job: TrainingJob, out: Path):
