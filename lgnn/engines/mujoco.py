@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory
-from lgnn.engines.mjcf import SOLIMP, SOLREF_STEPS, Layout, scene_layout, scene_to_mjcf
+from lgnn.engines.mjcf import MAX_BODY_DEPTH, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, render, scene_layout
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.metrics import ExplosionBounds, true_energies
 from lgnn.scene import Scene, State, scene_to_dict
@@ -53,8 +53,8 @@ class Compiled:
     `hinge` (B,) qpos/qvel address of each body's hinge; `parent` (B,) parent body
     (B: the world, a row of zeros appended); `base`, `tip` (B,) nodes; `rest_angle`
     (B,) link direction in the rendered pose; `root_body`, `root_x` (R,) free roots
-    and the address of their x slide (y follows); `node_site` (N,) site ids;
-    `body_id` (B,) body ids.
+    and the address of their x slide (y follows), their frame at `layout.origin_weight`
+    along the link; `node_site` (N,) site ids; `body_id` (B,) body ids.
     """
 
     scene: Scene
@@ -71,12 +71,26 @@ class Compiled:
     body_id: np.ndarray
 
 
+def best_form(scene: Scene) -> Form:
+    """MuJoCo C's form of `scene`: nested (exact joints: ~1e-13 from the Lagrangian
+    engine on open chains) while MuJoCo can parse it, else maximal (no depth limit)."""
+    return "nested" if scene_layout(scene).depth <= MAX_BODY_DEPTH else "maximal"
+
+
+def resolve_form(scene: Scene, form: str, best=best_form) -> Form:
+    """`form`, or with "auto" the engine's choice `best(scene)`; `ConfigError` for others."""
+    if form == "auto":
+        return best(scene)
+    check_form(form)
+    return form
+
+
 @functools.lru_cache(maxsize=64)
-def compile_scene(scene: Scene, dt: float = 1e-4) -> Compiled:
-    """Render and compile the scene's model (cached on the scene's content and `dt`)."""
-    layout = scene_layout(scene)
+def compile_scene(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> Compiled:
+    """Render `scene` in `form` and compile it (cached on the scene's content, `dt` and `form`)."""
+    layout = scene_layout(scene, form)
     try:
-        text = scene_to_mjcf(scene, dt)
+        text = render(scene, dt, form)
     except SceneError as err:
         # Too deep to render (`mjcf.MAX_BODY_DEPTH`): this engine cannot run the scene,
         # which callers (the stability report) record like any stopped run.
@@ -122,10 +136,18 @@ def state_to_qpos_qvel(compiled: Compiled, q, qd):
     qpos = jnp.zeros(nq, q.dtype).at[c.hinge].set(rel)
     qvel = jnp.zeros(nq, q.dtype).at[c.hinge].set(omega - omega_ext[c.parent])
     if len(c.root_body):
-        root_nodes = c.base[c.root_body]
-        shift = q[root_nodes] - jnp.asarray(c.scene.nodes[root_nodes], q.dtype)
+        # A free root's slides hold the displacement of its frame: the base node
+        # (nested) or the rod's centre (maximal).
+        w = c.layout.origin_weight
+        base, tip = c.base[c.root_body], c.tip[c.root_body]
+
+        def frame(x):
+            return (1 - w) * x[base] + w * x[tip]
+
+        shift = frame(q) - jnp.asarray(frame(c.scene.nodes), q.dtype)
+        velocity = frame(qd)
         qpos = qpos.at[c.root_x].set(shift[:, 0]).at[c.root_x + 1].set(shift[:, 1])
-        qvel = qvel.at[c.root_x].set(qd[root_nodes, 0]).at[c.root_x + 1].set(qd[root_nodes, 1])
+        qvel = qvel.at[c.root_x].set(velocity[:, 0]).at[c.root_x + 1].set(velocity[:, 1])
     return qpos, qvel
 
 
@@ -268,11 +290,11 @@ def _check_warnings(scene: Scene, config, datas, frame: int) -> None:
             )
 
 
-def rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1) -> State:
+def rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1, form: Form = "nested") -> State:
     """MuJoCo C trajectories from initial node states (B, N, 2) (default: the scene's
-    own, B = 1): node `State` (B, F+1, N, 2), frame 0 the initial state. The stepping
-    (`joint_rollout`) followed by the node map (`node_states`)."""
-    return node_trajectories(*joint_rollout(scene, config, states, threads=threads))
+    own, B = 1) on the scene's MJCF in `form`: node `State` (B, F+1, N, 2), frame 0 the
+    initial state. The stepping (`joint_rollout`) followed by the node map (`node_states`)."""
+    return node_trajectories(*joint_rollout(scene, config, states, threads=threads, form=form))
 
 
 def node_trajectories(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray) -> State:
@@ -282,7 +304,7 @@ def node_trajectories(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray) ->
     return State(np.stack(qs), np.stack(qds))
 
 
-def joint_rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1):
+def joint_rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1, form: Form = "nested"):
     """The stepping of `rollout`: `(compiled, qpos (B, F+1, nq), qvel (B, F+1, nv))` in
     MuJoCo's joint coordinates (what a timing of MuJoCo itself should measure).
 
@@ -293,7 +315,7 @@ def joint_rollout(scene: Scene, config, states: State | None = None, *, threads:
     which it happened.
     """
     check_rk4(config)
-    compiled = compile_scene(scene, config.dt)
+    compiled = compile_scene(scene, config.dt, form)
     model = compiled.model
     if states is None:
         states = State(scene.nodes[None], scene.velocities[None])
