@@ -109,24 +109,36 @@ def _cmd_simulate(args) -> None:
 def _cmd_mjcf(args) -> None:
     from pathlib import Path
 
+    from lgnn.engines import mjcf
     from lgnn.files import write_text_atomic
-    from lgnn.engines.mjcf import scene_to_mjcf
-    from lgnn.scene import BUILTIN_SCENES
+    from lgnn.scene import get_scene
 
+    if args.scene is not None:
+        text = mjcf.render(get_scene(args.scene), args.dt, args.form or "nested")
+        if args.out in (None, "-"):
+            sys.stdout.write(text)
+        else:
+            write_text_atomic(args.out, text)
+            print(f"wrote {args.out} (view: python -m mujoco.viewer --mjcf={args.out})", file=sys.stderr)
+        return
+    if args.out is not None:
+        raise ConfigError("--out needs a SCENE (without one, every built-in is written into --dir)")
     out = Path(args.dir)
     if not out.is_dir():
         raise ConfigError(f"MJCF directory does not exist: {out}")
+    files = mjcf.builtin_files((args.form,) if args.form else mjcf.FORMS)
     stale = []
-    for name, entry in BUILTIN_SCENES.items():
-        path, text = out / f"{name}.xml", scene_to_mjcf(entry.build())
+    for name, text in files.items():
+        path = out / name
         if args.check:
             if not path.exists() or path.read_text() != text:
                 stale.append(str(path))
         else:
+            path.parent.mkdir(exist_ok=True)
             write_text_atomic(path, text)
     if stale:
         raise ConfigError(f"MJCF files differ from what the code renders: {', '.join(stale)} (run: lgnn mjcf)")
-    print(f"{'checked' if args.check else 'wrote'} {len(BUILTIN_SCENES)} MJCF files in {out}")
+    print(f"{'checked' if args.check else 'wrote'} {len(files)} MJCF files in {out}")
 
 
 def _cmd_crosscheck(args) -> None:
@@ -162,7 +174,11 @@ def _cmd_crosscheck(args) -> None:
 
 
 def _add_mujoco_commands(commands) -> None:
-    mjcf = commands.add_parser("mjcf", help="render the built-in scenes' MJCF into mjcf/")
+    mjcf = commands.add_parser("mjcf", help="render a scene's MJCF, or every built-in's into mjcf/")
+    mjcf.add_argument("scene", nargs="?", help="built-in name or scene file to render (default: every built-in, both forms, into --dir)")
+    mjcf.add_argument("--form", choices=("nested", "maximal"), help="nested (joint coordinates) or maximal (a body per link, connect joints)")
+    mjcf.add_argument("--dt", type=_positive_float, default=1e-4, help="SCENE: time step written into the model (default 1e-4)")
+    mjcf.add_argument("--out", help="SCENE: output .xml file (default: standard output)")
     mjcf.add_argument("--dir", default="mjcf", help="output directory (default: mjcf)")
     mjcf.add_argument("--check", action="store_true", help="fail if a file differs from the rendered text")
     mjcf.set_defaults(run=_cmd_mjcf)

@@ -256,7 +256,7 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
             lines.append(f'{inner}<joint name="link{e}_x" type="slide" axis="1 0 0"/>')
             lines.append(f'{inner}<joint name="link{e}_y" type="slide" axis="0 1 0"/>')
         lines.append(f'{inner}<joint name="link{e}_hinge" type="hinge" axis="0 0 1"/>')
-        lines.append(f'{inner}<inertial pos="{_vec(*((base + tip) / 2), 0)}" mass="{_num(mass)}" diaginertia="{_vec(inertia, inertia, inertia)}"/>')
+        lines.append(f'{inner}<inertial pos="{_vec(*((0.5 - layout.origin_weight) * (tip - base)), 0)}" mass="{_num(mass)}" diaginertia="{_vec(inertia, inertia, inertia)}"/>')
         lines.append(
             f'{inner}<geom name="link{e}" type="capsule" fromto="{_vec(*base, 0)} {_vec(*tip, 0)}" '
             f'size="{GEOM_RADIUS * scale:.3g}" rgba="{_link_color(scene.link_types[e])}"/>'
@@ -325,3 +325,17 @@ def _link_color(link_type: str) -> str:
     return "0.8 0.3 0.2 1" if link_type == "rod" else "0.2 0.4 0.8 1"
 
 
+
+
+def builtin_files(forms: tuple[str, ...] = FORMS) -> dict[str, str]:
+    """The committed `mjcf/` files of the built-in scenes: relative path -> text
+    (nested: NAME.xml, maximal: maximal/NAME.xml), at the default dt."""
+    from lgnn.scene import BUILTIN_SCENES
+
+    files = {}
+    for form in forms:
+        check_form(form)
+        folder = "" if form == "nested" else f"{form}/"
+        for name, entry in BUILTIN_SCENES.items():
+            files[f"{folder}{name}.xml"] = render(entry.build(), form=form)
+    return files
