@@ -96,7 +96,7 @@ def _cmd_simulate(args) -> None:
 
     config = _simulation_config(args)
     check_writable(args.out)
-    engine = get_engine(args.engine, dtype=args.dtype, progress=not args.quiet)
+    engine = get_engine(args.engine, dtype=args.dtype, progress=not args.quiet, form=args.form)
     scene = get_scene(args.scene)
     trajectory = engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0)
     trajectory.save(args.out)
@@ -156,7 +156,7 @@ def _cmd_crosscheck(args) -> None:
     if args.speed:
         rows = cc.speed_error(args.scenes or ["chain4", "chain16", "chain100", "T1"], engines, dts=tuple(args.speed_dts), batches=tuple(args.batch),
                               batch_dts=tuple(args.batch_dts), mjx_max_depth=args.mjx_max_depth, max_steps=args.max_steps, dtype=args.dtype)
-        columns = ["scene", "engine", "batch", "dt", "dtype", "steps_per_s", "compile_s", "max_node_error", "note"]
+        columns = ["scene", "engine", "form", "batch", "dt", "dtype", "steps_per_s", "compile_s", "max_node_error", "note"]
         notes = [f"speed: steps/s = batch x steps / run time (compile apart), RK4, horizon 0.1 s, JAX engines in {args.dtype}",
                  "error: max node error after 0.1 s (single state) vs MuJoCo C RK4 at dt 1e-6"]
         stem, title = "engines_speed_error", "Engines: speed against error"
@@ -164,10 +164,11 @@ def _cmd_crosscheck(args) -> None:
         config = _simulation_config(args)
         rows = []
         for name in args.scenes or ["chain4", "chain8", "chain16", "T1", "T2", "T3"]:
-            rows += cc.crosscheck(get_scene(name), config, engines, args.mjx_max_depth)
-            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == name))
-        columns = ["scene", "engine", "metric", "value", "note"]
-        notes = [f"RK4, dt {config.dt:g}, {config.duration:g} s, float64; MuJoCo loops: connect, solref 2 dt, solimp 0.9999"]
+            rows += cc.crosscheck(get_scene(name), config, engines, args.mjx_max_depth, progress=True)
+            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['form']:16s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == name))
+        columns = ["scene", "engine", "form", "metric", "value", "note"]
+        notes = [f"RK4, dt {config.dt:g}, {config.duration:g} s, float64; MuJoCo loops: connect, solref 2 dt, solimp 0.9999",
+                 "form: the MJCF form each MuJoCo engine ran (nested: joint coordinates; maximal: a body per link, connect joints)"]
         stem, title = "crosscheck", "Cross-check of the ground-truth engines"
     write_table(rows, columns, f"{args.out_dir}/{stem}.csv", f"{args.out_dir}/{stem}.md", title, cc.header(command), notes)
     print(f"wrote {args.out_dir}/{stem}.csv and .md")
@@ -185,7 +186,7 @@ def _add_mujoco_commands(commands) -> None:
     check = commands.add_parser("crosscheck", help="run every engine on the same scenes and compare them")
     check.add_argument("scenes", nargs="*", help="built-in names or scene files (default: chain4 chain8 chain16 T1 T2 T3)")
     check.add_argument("--engines", default="lagrangian,mujoco,mjx", help="comma-separated engines")
-    check.add_argument("--mjx-max-depth", type=int, default=8, help="skip MJX on deeper trees (compile time)")
+    check.add_argument("--mjx-max-depth", type=int, help="skip MJX on deeper trees (default: skip none)")
     check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")
     check.add_argument("--speed-dts", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="--speed: steps of the single-state runs")
     check.add_argument("--batch", type=int, nargs="+", default=[100], help="--speed: batch sizes of the batched runs (default 100)")
@@ -413,6 +414,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("scene", help="built-in scene name or scene JSON file")
     simulate.add_argument("--engine", default="lagrangian", help="ground-truth engine: lagrangian (default), mujoco, mjx (lgnn.engines.ENGINES)")
     simulate.add_argument("--dtype", choices=["float64", "float32"], default="float64", help="MJX precision (default float64)")
+    simulate.add_argument("--form", choices=["auto", "nested", "maximal"], help="MuJoCo engines: MJCF form (default auto: the engine's choice)")
     _add_simulation_options(simulate)
     simulate.add_argument("--out", required=True, help="output .npz file")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar")

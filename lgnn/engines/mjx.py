@@ -17,21 +17,28 @@ import contextlib
 import dataclasses
 import functools
 import time
-from typing import ClassVar
+from typing import Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from lgnn.engines.lagrangian import DTYPES, SimulationConfig, Trajectory
-from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, state_to_qpos_qvel
+from lgnn.engines.mjcf import Form, scene_layout
+from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, resolve_form, state_to_qpos_qvel
 from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.scene import Scene, State
 
 
+# Deepest tree MJX runs in the nested form by default: its compile time grows steeply
+# with depth (2-core CPU: ~35 s for chain4, minutes beyond 12 links, 459 s for the
+# kinematics alone of 100), the maximal form's barely (measured, module docstring).
+NESTED_MAX_DEPTH = 8
+
+
 @functools.lru_cache(maxsize=16)
-def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64"):
+def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form: Form = "maximal"):
     """Compiled-on-first-call `run(q0, qd0) -> (q, qd)`: MJX trajectories, `vmap`ped
     over initial node states (B, N, 2) -> (B, F+1, N, 2). Cached on the scene's
     content, config and dtype, so compilation (slow on CPU) happens once per process.
@@ -43,7 +50,7 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64"):
         raise ConfigError(f"MJX dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
     if dtype == "float64" and not jax.config.jax_enable_x64:
         raise ConfigError("MJX float64 needs jax_enable_x64 (the CLI and tests enable it)")
-    compiled = compile_scene(scene, config.dt)
+    compiled = compile_scene(scene, config.dt, form)
     if dtype == "float32":
         # Traced under `precision` (x64 off), the index arrays would be converted to
         # int32 once, and JAX reuses that conversion for the same NumPy objects in later
@@ -98,9 +105,10 @@ def precision(dtype: str):
     return jax.enable_x64(False) if dtype == "float32" else contextlib.nullcontext()
 
 
-def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = "float64") -> State:
-    """MJX node trajectories (B, F+1, N, 2) from initial node states (B, N, 2)."""
-    run = runner(scene, config, dtype)
+def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = "float64", run=None) -> State:
+    """MJX node trajectories (B, F+1, N, 2) from initial node states (B, N, 2), by `run`
+    (default: `runner` of the maximal form)."""
+    run = runner(scene, config, dtype) if run is None else run
     with precision(dtype):
         q, qd = run(jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
@@ -109,24 +117,48 @@ def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = 
     return State(q, qd)
 
 
+def best_form(scene: Scene) -> Form:
+    """MJX's form of `scene`: nested (exact joints) up to `NESTED_MAX_DEPTH`, else
+    maximal (compile time nearly flat in the number of links)."""
+    return "nested" if scene_layout(scene).depth <= NESTED_MAX_DEPTH else "maximal"
+
+
 @dataclasses.dataclass(frozen=True)
 class MjxEngine:
-    """MJX as an `lgnn.engines.Engine`, computing in `dtype`."""
+    """MJX as an `lgnn.engines.Engine`, computing in `dtype`, on the MJCF `form`
+    ("auto": `best_form`); `log` (e.g. `print`) is told before a compile starts."""
 
     name: ClassVar[str] = "mjx"
     dtype: str = "float64"
+    form: str = "auto"
+    log: Callable[[str], None] | None = None
+
+    def form_of(self, scene: Scene) -> Form:
+        """The MJCF form this engine runs `scene` in."""
+        return resolve_form(scene, self.form, best_form)
+
+    def _runner(self, scene: Scene, config: SimulationConfig):
+        form = self.form_of(scene)
+        cached = runner.cache_info().hits
+        run = runner(scene, config, self.dtype, form)
+        if self.log is not None and runner.cache_info().hits == cached:
+            nv = compile_scene(scene, config.dt, form).model.nv
+            self.log(f"MJX: compiling {scene.name} ({form} form, {nv} degrees of freedom, {self.dtype}) on "
+                     f"{jax.default_backend()}; on a CPU this takes from seconds to minutes")
+        return run, form
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)
         (lgnn's exact energy in float64 of the node states; MJX has none)."""
+        run, form = self._runner(scene, config)
         start = time.perf_counter()
-        nodes = rollout(scene, config, states, self.dtype)
-        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start)
+        nodes = rollout(scene, config, states, self.dtype, run)
+        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form)
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, 2))` of the compiled runner (`time_compiled`)."""
-        run = runner(scene, config, self.dtype)
+        run, _ = self._runner(scene, config)
         with precision(self.dtype):
             compile_s, run_s, (q, _) = time_compiled(run, jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype))
         return compile_s, run_s, np.asarray(q, np.float64)

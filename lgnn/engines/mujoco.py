@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory
-from lgnn.engines.mjcf import MAX_BODY_DEPTH, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, render, scene_layout
+from lgnn.engines.mjcf import MAX_BODY_DEPTH, MAXIMAL_SOLREF_STEPS, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, render, scene_layout
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.metrics import ExplosionBounds, true_energies
 from lgnn.scene import Scene, State, scene_to_dict
@@ -397,31 +397,37 @@ def checked_trajectory(scene: Scene, config: SimulationConfig, states: State, me
     return Trajectory(t, q, qd, energy, metadata)
 
 
-def engine_metadata(scene: Scene, config: SimulationConfig, engine: str, dtype: str, wall_s: float) -> dict:
+def engine_metadata(scene: Scene, config: SimulationConfig, engine: str, dtype: str, wall_s: float, form: Form = "nested") -> dict:
     """A MuJoCo engine's `Trajectory.metadata`: the scene, the settings, and the engine
-    (version, precision, stepping wall time, loop-closure stiffness)."""
+    (version, precision, stepping wall time, MJCF form, constraint stiffness)."""
     return {
         "scene": scene_to_dict(scene),
         "config": dataclasses.asdict(config),
-        "engine": {"name": engine, "mujoco": mujoco.__version__, "dtype": dtype, "wall_s": wall_s,
-                   "solref_steps": SOLREF_STEPS, "solimp": list(SOLIMP)},
+        "engine": {"name": engine, "mujoco": mujoco.__version__, "dtype": dtype, "wall_s": wall_s, "form": form,
+                   "solref_steps": MAXIMAL_SOLREF_STEPS if form == "maximal" else SOLREF_STEPS, "solimp": list(SOLIMP)},
     }
 
 
 @dataclasses.dataclass(frozen=True)
 class MujocoEngine:
     """MuJoCo C as an `lgnn.engines.Engine`: float64 always (MuJoCo C has no other
-    precision), `threads` MjData for batches."""
+    precision), `threads` MjData for batches, the MJCF `form` ("auto": `best_form`)."""
 
     name: ClassVar[str] = "mujoco"
     dtype: ClassVar[str] = "float64"
     threads: int = 1
+    form: str = "auto"
+
+    def form_of(self, scene: Scene) -> Form:
+        """The MJCF form this engine runs `scene` in."""
+        return resolve_form(scene, self.form, best_form)
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)."""
+        form = self.form_of(scene)
         start = time.perf_counter()
-        nodes = rollout(scene, config, states, threads=self.threads)
-        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start)
+        nodes = rollout(scene, config, states, threads=self.threads, form=form)
+        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form)
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
@@ -429,10 +435,11 @@ class MujocoEngine:
         compiles the model. Run: MuJoCo's stepping alone; the map to node states after
         it is a Python loop over frames and nodes that would otherwise dominate small
         scenes (the JAX engines' timings include it, compiled into their rollout)."""
+        form = self.form_of(scene)
         start = time.perf_counter()
-        joint_rollout(scene, dataclasses.replace(config, frame_dt=config.dt, duration=config.dt), states, threads=TIMING_THREADS)
+        joint_rollout(scene, dataclasses.replace(config, frame_dt=config.dt, duration=config.dt), states, threads=TIMING_THREADS, form=form)
         compile_s = time.perf_counter() - start
         start = time.perf_counter()
-        compiled, qpos, qvel = joint_rollout(scene, config, states, threads=TIMING_THREADS)
+        compiled, qpos, qvel = joint_rollout(scene, config, states, threads=TIMING_THREADS, form=form)
         run_s = time.perf_counter() - start
         return compile_s, run_s, node_trajectories(compiled, qpos, qvel).q
