@@ -211,7 +211,12 @@ def equality_jacobian(compiled: Compiled, qpos: np.ndarray) -> np.ndarray:
     """(n_eq_rows, nv) Jacobian of the loop-closure equalities at `qpos`."""
     model, data = compiled.model, _posed(compiled, qpos, forward=True)
     rows = data.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY
-    return data.efc_J.reshape(data.nefc, model.nv)[rows]
+    if not mujoco.mj_isSparse(model):
+        return data.efc_J.reshape(data.nefc, model.nv)[rows]
+    # The maximal form stores constraint rows sparse (its `jacobian="sparse"`).
+    dense = np.zeros((data.nefc, model.nv))
+    mujoco.mju_sparse2dense(dense, data.efc_J, data.efc_J_rownnz, data.efc_J_rowadr, data.efc_J_colind)
+    return dense[rows]
 
 
 # ---------------------------------------------------------------------------------
