@@ -323,8 +323,9 @@ def test_mjx_maximal_chain12_compiles_and_agrees():
 # --------------------------------------------------------------------- user scene, CLI
 
 
-def test_user_scene_through_all_engines(tmp_path):
-    """A scene file (a hanging triangle with a tail: one loop) through the CLI."""
+def test_user_scene_through_all_engines(tmp_path, capsys):
+    """A scene file (a hanging triangle with a tail: one loop) through the CLI; MJX says
+    it is compiling, and in which form, before it does."""
     nodes = [[0, 0], [0.6, -0.8], [-0.6, -0.8], [0.4, -1.5]]
     links = [{"nodes": [0, 1], "mass": 1.0, "inertia": 0.08}, {"nodes": [1, 2], "mass": 0.5, "inertia": 0.1},
              {"nodes": [2, 0], "mass": 1.0, "inertia": 0.08}, {"nodes": [1, 3], "mass": 0.3, "inertia": 0.02}]
@@ -333,13 +334,34 @@ def test_user_scene_through_all_engines(tmp_path):
     out = {}
     for engine in ("lagrangian", "mujoco", "mjx"):
         npz = tmp_path / f"{engine}.npz"
-        assert main(["simulate", str(path), "--engine", engine, "--duration", "0.2", "--out", str(npz), "--quiet"]) == 0
+        quiet = [] if engine == "mjx" else ["--quiet"]
+        capsys.readouterr()
+        assert main(["simulate", str(path), "--engine", engine, "--duration", "0.2", "--out", str(npz), *quiet]) == 0
+        if engine == "mjx":
+            assert "MJX: compiling mine (nested form" in capsys.readouterr().err
         out[engine] = Trajectory.load(npz)
         assert out[engine].q.shape == (201, 4, 2) and out[engine].energy.shape == (201,)
     assert np.max(np.abs(out["mujoco"].q - out["lagrangian"].q)) <= 1e-6
     # MJX's connect lacks the velocity term of MuJoCo C's: ~1000x looser loops.
     assert np.max(np.abs(out["mjx"].q - out["mujoco"].q)) <= 1e-5
     assert np.max(np.abs(out["mujoco"].energy - out["lagrangian"].energy)) <= 1e-5
+
+
+def test_cli_renders_a_scene_file_in_either_form(tmp_path, capsys):
+    """`lgnn mjcf SCENE.json --form F --out F.xml` writes the file MuJoCo loads; a bad
+    form or an engine without forms is one line."""
+    path = tmp_path / "loop.json"
+    path.write_text(json.dumps(scene_to_dict(scene("loop6"))))
+    for form in mjcf.FORMS:
+        out = tmp_path / f"{form}.xml"
+        assert main(["mjcf", str(path), "--form", form, "--out", str(out)]) == 0
+        assert f"--mjcf={out}" in capsys.readouterr().err
+        assert out.read_text() == mjcf.render(scene("loop6"), form=form)
+        model = mujoco.MjModel.from_xml_path(str(out))
+        assert model.nbody - 1 == 6 and model.neq == (7 if form == "maximal" else 1)  # maximal: 5 inner nodes + 2 pins
+    assert main(["mjcf", "--out", str(tmp_path / "x.xml")]) == 2 and "needs a SCENE" in capsys.readouterr().err
+    code = main(["simulate", "chain4", "--form", "maximal", "--out", str(tmp_path / "x.npz"), "--quiet"])
+    assert code == 2 and "no MJCF form" in capsys.readouterr().err
 
 
 def test_cli_rejects_verlet_for_mujoco(tmp_path, capsys):

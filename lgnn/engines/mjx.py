@@ -143,8 +143,8 @@ class MjxEngine:
         run = runner(scene, config, self.dtype, form)
         if self.log is not None and runner.cache_info().hits == cached:
             nv = compile_scene(scene, config.dt, form).model.nv
-            self.log(f"MJX: compiling {scene.name} ({form} form, {nv} degrees of freedom, {self.dtype}) on "
-                     f"{jax.default_backend()}; on a CPU this takes from seconds to minutes")
+            self.log(f"MJX: compiling {scene.name} ({form} form, {nv} degrees of freedom, {self.dtype}, "
+                     f"{jax.default_backend()}); on a CPU this can take minutes")
         return run, form
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
