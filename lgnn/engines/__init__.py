@@ -18,6 +18,9 @@ An `Engine` has a `name`, the precision it computes in (`dtype`), and
 - "mujoco" (`mujoco.MujocoEngine`): MuJoCo C on the scene's MJCF (`mjcf`), float64;
 - "mjx" (`mjx.MjxEngine`): MJX on the same model, float64 or float32.
 
+The MuJoCo engines take the MJCF form (`mjcf.Form`: "nested" or "maximal", or "auto"
+for the engine's own choice, `form_of(scene)`), through `get_engine(..., form=...)`.
+
 A learned model answers the same interface as `lgnn.learn.models.ModelEngine(config,
 params)` (e.g. `ModelEngine(*load_model(checkpoint))`); it is not in `ENGINES`
 because models live in a layer above the engines.

@@ -1,14 +1,26 @@
 """MJCF rendering of a scene: pure Python, no `import mujoco` (`lgnn.engines.mujoco`
-compiles the text; `lgnn mjcf` writes the built-in scenes' files into mjcf/).
+compiles the text; `lgnn mjcf` writes the built-in scenes' files into mjcf/, nested,
+and mjcf/maximal/).
 
-- `scene_layout(scene)` is the scene's spanning tree: every link is a body hinged at
+`render(scene, dt, form)` writes one of two forms (`Form`), each from its
+`scene_layout(scene, form)`:
+
+- "maximal": every link joining a free node is a body directly under the world, its
+  frame at the rod's centre, with slide x, slide y and hinge z (the planar free body;
+  a spatial one would be a <freejoint/>); a node's site sits on its first link (a pin's
+  on the world), and every other link end at that node is tied to it by a two-site
+  `connect` (`Layout.ties`). Depth 1 and a diagonal mass matrix, at any size and with
+  any loops; the joints are as soft as `MAXIMAL_SOLREF_STEPS` (errors measured there).
+- "nested", below.
+
+- `scene_layout(scene)` (nested) is the scene's spanning tree: every link is a body hinged at
   one of its end nodes (axis z, normal to the plane). The tree grows breadth-first
   from the pinned nodes (world-fixed); a component without pins gets a free planar
   root (slide x, slide y, hinge z). A link whose far node is already in the tree
   still becomes a body (it has mass) and closes its loop with a two-site `connect`
   equality from its tip to that node. Links between two pinned nodes never move and
   get no body.
-- `scene_to_mjcf(scene, dt)` renders the MJCF text: explicit `<inertial>` (the link's
+- `render(scene, dt)` (also `scene_to_mjcf`) renders the MJCF text: explicit `<inertial>` (the link's
   mass at the rod's centre, the scene's moment of inertia about z), contacts off,
   gravity `(0, -g, 0)`, a site `node{k}` on every node, RK4. Loop equalities are made
   stiff with `solref` of `SOLREF_STEPS` time steps and `solimp` near 1, so the MJCF
@@ -18,7 +30,7 @@ compiles the text; `lgnn mjcf` writes the built-in scenes' files into mjcf/).
 - Nesting: one `<body>` per tree level, and MuJoCo's XML parser (tinyxml2) refuses
   elements nested deeper than 500, so a tree deeper than `MAX_BODY_DEPTH` (496
   bodies, measured: chain496 compiles, chain497 is "XML parse error 18") cannot be
-  rendered; `scene_to_mjcf` refuses it with a `SceneError`.
+  rendered nested; `render` refuses it with a `SceneError` (the maximal form runs it).
 
 Why a small string writer and not `mujoco.MjSpec` (issue 12 asked; measured on
 mujoco 4.0.0, 2-core CPU): MjSpec builds and compiles chain1000 (4.0 s) but not

@@ -5,8 +5,11 @@ states (B, N, 2) to node trajectories (B, F+1, N, 2): node states map to MJX's
 `(qpos, qvel)` with MuJoCo C's state map, and back through MJX's kinematics (site
 positions, and their velocities as a `jvp`). Drag is applied as in MuJoCo C
 (`xfrc_applied` at link centres, held over a step). `MjxEngine` is the
-`lgnn.engines.Engine` on top. MJX compiles slowly on CPU (~35 s for chain4, minutes
-beyond 16 links), so `runner` is cached.
+`lgnn.engines.Engine` on top. MJX compiles slowly on CPU in the nested form (~35 s for
+chain4, over 10 minutes for 12 links), far less in the maximal form (12 links: 50 s
+of CPU time on a loaded 2-core machine; MJX has no tree depth there), so the engine
+runs the nested form to `NESTED_MAX_DEPTH` and the maximal form beyond (`best_form`),
+says so before compiling (`log`), and `runner` is cached.
 
 `dtype` float32 runs with JAX's x64 off (`precision`); float64 needs it on.
 """

@@ -3,9 +3,11 @@
 The only modules of lgnn that import `mujoco` are this one and `lgnn.engines.mjx`
 (built on it); `lgnn.engines` loads them on first use. Contract:
 
-- `compile_scene(scene, dt)` compiles the scene's MJCF (`lgnn.engines.mjcf`) into a
-  `Compiled` model with the index arrays of the state maps (cached on the scene's
-  content and `dt`).
+- `compile_scene(scene, dt, form)` compiles the scene's MJCF in `form`
+  (`lgnn.engines.mjcf`: nested or maximal) into a `Compiled` model with the index
+  arrays of the state maps (cached on the scene's content, `dt` and `form`);
+  `best_form` is MuJoCo C's choice (nested while MuJoCo parses it, else maximal),
+  `resolve_form` turns an engine's "auto" into it.
 - `state_to_qpos_qvel` and `node_states` map between node states `(q, qd)` (N, 2)
   and MuJoCo's `(qpos, qvel)` (nq,), (nv,) (hinge angles relative to the rendered
   pose, so `qpos = 0` is the scene's initial shape).
