@@ -3,8 +3,10 @@ MJCF rendering, and the one engine interface (`lgnn.engines`).
 
 Tolerances are measured (RK4, dt 1e-4, 1 s): open chains agree to ~1e-13, loops to
 ~9e-8 (loop6, T1; MuJoCo's stiff but soft `connect`), drag to 1.9e-6 (drag held over
-a step), MJX float64 to MuJoCo C to ~1e-14 on open chains. MJX compiles slowly on CPU (~35 s for chain4), so one small MJX scene is
-compiled once per session.
+a step), MJX float64 to MuJoCo C to ~1e-14 on open chains. The maximal form (every
+joint a soft `connect`): 3e-11..5e-7 over 1 s, falling as dt^2. MJX compiles slowly on
+CPU (~35 s for chain4 nested, ~30 s of CPU time for chain12 maximal), so one small
+scene per form is compiled once per session.
 """
 
 import functools
