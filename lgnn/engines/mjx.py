@@ -41,7 +41,7 @@ NESTED_MAX_DEPTH = 8
 
 
 @functools.lru_cache(maxsize=16)
-def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form: Form = "maximal"):
+def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form: Form = "nested"):
     """Compiled-on-first-call `run(q0, qd0) -> (q, qd)`: MJX trajectories, `vmap`ped
     over initial node states (B, N, 2) -> (B, F+1, N, 2). Cached on the scene's
     content, config and dtype, so compilation (slow on CPU) happens once per process.
@@ -110,7 +110,7 @@ def precision(dtype: str):
 
 def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = "float64", run=None) -> State:
     """MJX node trajectories (B, F+1, N, 2) from initial node states (B, N, 2), by `run`
-    (default: `runner` of the maximal form)."""
+    (default: `runner` of the nested form)."""
     run = runner(scene, config, dtype) if run is None else run
     with precision(dtype):
         q, qd = run(jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
