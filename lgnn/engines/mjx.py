@@ -42,9 +42,10 @@ NESTED_MAX_DEPTH = 8
 
 @functools.lru_cache(maxsize=16)
 def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form: Form = "nested"):
-    """Compiled-on-first-call `run(q0, qd0) -> (q, qd)`: MJX trajectories, `vmap`ped
-    over initial node states (B, N, 2) -> (B, F+1, N, 2). Cached on the scene's
-    content, config and dtype, so compilation (slow on CPU) happens once per process.
+    """Compiled-on-first-call `run(q0, qd0) -> (q, qd)`: MJX trajectories of the
+    scene's MJCF in `form`, `vmap`ped over initial node states (B, N, 2) -> (B, F+1, N,
+    2). Cached on the scene's content, config, dtype and form, so compilation (slow on
+    CPU) happens once per process.
     Call it inside `precision(dtype)`."""
     from mujoco import mjx
 
