@@ -1,7 +1,7 @@
 """Benchmark setup: float64 as the ground truth runs, and the two profiles.
 
 `pytest bench/` runs the quick profile (minutes on 2 CPU cores, part of CI; outputs in
-`results/quick/`); `pytest bench/ --benchmark` runs the full profile (outputs in
+`lgnn-out/quick/`); `pytest bench/ --benchmark` runs the full profile (outputs in
 `results/`). The profiles themselves are declared in `lgnn.bench.grid.PROFILES`.
 """
 

@@ -2,7 +2,7 @@
 scene, measure speed against error and write the report (`lgnn.bench.stages`,
 `lgnn.bench.run`, `lgnn.bench.report`).
 
-    pytest bench/test_benchmark.py               # quick profile -> results/quick/
+    pytest bench/test_benchmark.py               # quick profile -> lgnn-out/quick/
     pytest bench/test_benchmark.py --benchmark   # full profile  -> results/
 
 Tests run in file order (train, ground truth, evaluation, speed, scaling, mass matrix, report)
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from lgnn import metrics
-from lgnn.bench import grid, store
+from lgnn.bench import grid, report, store
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.bench.stages import train as train_stage
@@ -214,6 +214,8 @@ def test_report(profile, out):
     text = (out / "README.md").read_text()
     for pair in grid.evaluation_pairs(profile):
         assert f"| {pair.scene} |" in text
+    # A quick report says its ranking and timings are no results; the full one does not.
+    assert (report.QUICK_WARNING in text) == (profile.name != "full")
     for name in ("summary.csv", "curves.csv", "speed_error.csv", "mass_matrix.csv"):
         assert (out / "benchmark" / name).stat().st_size > 0
     performance = (out / "performance.md").read_text()

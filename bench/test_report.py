@@ -99,3 +99,26 @@ def test_the_committed_full_records_render_with_the_new_columns_not_computed():
     row = _row(report.summary_markdown(summary, "rollout_error"), "chain4")
     assert row["lgnn"].startswith("5.09e-05") and row["chaos floor"] == "1.10e-05"
     assert _row(report.summary_markdown(summary, "rollout_error"), "T2")["chaos floor"].startswith("diverged (1 of 1")
+
+
+def test_error_figures_label_their_axes_legend_every_panel_and_title_what_they_show(monkeypatch, tmp_path):
+    """Each row has a y-axis label, every panel with lines its own legend (panels may
+    hold different models), the title names the scenes drawn (not those asked for)
+    and says what an error of 1 means."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import pandas as pd
+
+    rows = [dict(scene=scene, model=model, seed=0, metric=metric, statistic=stat, t=t, value=1e-3)
+            for scene, model in (("chain4", "lgnn"), ("chain4-drag", "lgnn drag"))
+            for metric in ("rollout_error", "energy_error") for stat in ("gmean", "low", "high") for t in (0.1, 0.2)]
+    figures = []
+    monkeypatch.setattr(report, "_savefig", lambda fig, path: figures.append(fig))
+    assert report._plot_error_vs_time(pd.DataFrame(rows), ["chain4", "chain8", "chain4-drag"], tmp_path / "x.png", "each")
+    (fig,) = figures
+    axes = fig.get_axes()
+    assert len(axes) == 4 and all(ax.get_legend() is not None for ax in axes)
+    assert [ax.get_ylabel() for ax in axes if ax.get_ylabel()] == list(report.ERROR_AXIS_LABELS.values())
+    title = fig._suptitle.get_text()
+    assert "chain4, chain4-drag" in title and "chain8" not in title and "1 means diverged" in title

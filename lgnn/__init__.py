@@ -1,7 +1,9 @@
 """lgnn: a MuJoCo-validated benchmark suite for learned dynamics of articulated rigid bodies.
 
 The public interface, by lifecycle stage (layers from the bottom; see ARCHITECTURE.md):
-- set-up: `configure()` (float64, thread counts, XLA flags), to call first;
+- set-up: `configure()` (float64, thread counts, XLA flags), optional, to call first;
+  the computing entry points run in float64 without it (`precision(dtype)`, the
+  context they use, and float32 only when asked: `get_engine(name, dtype="float32")`);
 - scenes (`lgnn.scene`): `Scene`, `State`, `get_scene`, `BUILTIN_SCENES`,
   `scene_from_dict`, `load_scene_file`, `sample_initial_states`;
 - physics (`lgnn.physics`): `prepare(scene) -> System` (everything static about a
@@ -51,6 +53,9 @@ _PUBLIC = {
     "Trajectory": "lgnn.engines.lagrangian",
     "simulate": "lgnn.engines.lagrangian",
     "get_engine": "lgnn.engines",
+    "ENGINES": "lgnn.engines",
+    "batch_of_one": "lgnn.engines",
+    "precision": "lgnn.runtime",
     "energy_drift": "lgnn.metrics",
 }
 

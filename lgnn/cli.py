@@ -1,6 +1,7 @@
 """The `lgnn` command line.
 
-Every `LgnnError` becomes one line on stderr (`lgnn: error: ...`) and exit status 2;
+Every `LgnnError` becomes one line on stderr (`lgnn: error: ...`) and exit status 2
+(`EXIT_BAD_INPUT`), 3 for a diverged simulation (`EXIT_DIVERGED`, frames before it kept);
 output files are written atomically. Runtime set-up (`lgnn.runtime.configure`: float64,
 thread counts, XLA flags) is done here, at the entry point.
 """
@@ -11,14 +12,26 @@ import argparse
 import dataclasses
 import math
 import os
+import re
 import sys
 
-from lgnn.errors import ConfigError, LgnnError
+from lgnn.errors import ConfigError, LgnnError, SimulationError
+
+
+# Exit statuses (README, "Exit statuses").
+EXIT_BAD_INPUT = 2
+EXIT_DIVERGED = 3  # a simulation or rollout diverged; the frames before it are kept
 
 
 class _Parser(argparse.ArgumentParser):
     """argparse, but a usage error is one line `lgnn: error: ...` (exit 2) like every
-    other bad input; `--help` still shows the usage."""
+    other bad input; `--help` still shows the usage. A negative number in scientific
+    notation (`--dt -1e-4`) is a value, not an option, so it reaches the value's own
+    check ("must be a positive number") instead of "expected one argument"."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
 
     def error(self, message: str):
         self.exit(2, f"lgnn: error: {message} (see: {self.prog} --help)\n")
@@ -85,21 +98,52 @@ def _add_simulation_options(parser: argparse.ArgumentParser) -> None:
 def _simulation_config(args):
     from lgnn.engines.lagrangian import SimulationConfig
 
+    if args.dt > args.frame_dt:
+        raise ConfigError(f"dt {args.dt:g} is longer than the interval between frames (--frame-dt {args.frame_dt:g}): "
+                          f"pass --frame-dt too, a whole multiple of dt (e.g. --frame-dt {args.dt:g})")
     return SimulationConfig(args.integrator, args.dt, args.frame_dt, args.duration, args.project)
+
+
+def _trajectory_out(path: str):
+    """`--out` of a trajectory: an `.npz` file (the only trajectory format), checked
+    writable before any work."""
+    from lgnn.files import check_writable
+
+    checked = check_writable(path)
+    if checked.suffix != ".npz":
+        raise ConfigError(f"--out: trajectories are written as .npz (t, q, qd, energy; README), got {path!r}")
+    return checked
+
+
+def _save_rollout(run, out):
+    """`run()`'s trajectory saved to `out`; if it diverges, the frames before the
+    failure are saved, flagged `diverged` in the metadata, and the error says so."""
+    from lgnn.errors import SimulationError
+
+    try:
+        trajectory = run()
+    except SimulationError as err:
+        if err.trajectory is None or len(err.trajectory.t) == 0:
+            raise
+        partial = err.trajectory
+        partial = dataclasses.replace(partial, metadata={**partial.metadata, "diverged": {"time": err.time, "error": str(err)}})
+        partial.save(out)
+        raise SimulationError(f"{err}; kept the {len(partial.t)} frames before it in {out} (metadata 'diverged')",
+                              time=err.time, trajectory=partial) from None
+    trajectory.save(out)
+    return trajectory
 
 
 def _cmd_simulate(args) -> None:
     from lgnn.engines import batch_of_one, get_engine
-    from lgnn.files import check_writable
     from lgnn.metrics import energy_drift
     from lgnn.scene import get_scene
 
     config = _simulation_config(args)
-    check_writable(args.out)
+    _trajectory_out(args.out)
     engine = get_engine(args.engine, dtype=args.dtype, progress=not args.quiet, form=args.form)
     scene = get_scene(args.scene)
-    trajectory = engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0)
-    trajectory.save(args.out)
+    trajectory = _save_rollout(lambda: engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0), args.out)
     print(
         f"{scene.name}: {len(trajectory.t)} frames over {config.duration:g} s "
         f"({config.integrator}, dt {config.dt:g}); energy drift {energy_drift(scene, trajectory):.2e}; wrote {args.out}"
@@ -145,10 +189,11 @@ def _cmd_crosscheck(args) -> None:
     from lgnn.bench import crosscheck as cc
     from lgnn.bench.tables import write_table
     from lgnn.engines import ENGINES
-    from lgnn.files import check_writable
+    from lgnn.files import check_writable, out_dir
     from lgnn.scene import get_scene
 
     command = "lgnn " + " ".join(args.argv)
+    args.out_dir = out_dir(args.out_dir)
     check_writable(f"{args.out_dir}/engines_speed_error.md" if args.speed else f"{args.out_dir}/crosscheck.md")
     engines = tuple(args.engines.split(","))
     if set(engines) - set(ENGINES) or not engines:
@@ -164,8 +209,10 @@ def _cmd_crosscheck(args) -> None:
         config = _simulation_config(args)
         rows = []
         for name in args.scenes or ["chain4", "chain8", "chain16", "T1", "T2", "T3"]:
-            rows += cc.crosscheck(get_scene(name), config, engines, args.mjx_max_depth, progress=True)
-            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['form']:16s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == name))
+            scene = get_scene(name)
+            rows += cc.crosscheck(scene, config, engines, args.mjx_max_depth, progress=True)
+            # Rows name the scene, not the argument (a scene file's path).
+            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['form']:16s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == scene.name))
         columns = ["scene", "engine", "form", "metric", "value", "note"]
         notes = [f"RK4, dt {config.dt:g}, {config.duration:g} s, float64; MuJoCo loops: connect, solref 2 dt, solimp 0.9999",
                  "form: the MJCF form each MuJoCo engine ran (nested: joint coordinates; maximal: a body per link, connect joints)"]
@@ -193,7 +240,7 @@ def _add_mujoco_commands(commands) -> None:
     check.add_argument("--batch-dts", type=float, nargs="+", default=[1e-4], help="--speed: steps of the batched runs (default 1e-4)")
     check.add_argument("--max-steps", type=int, default=25_000, help="--speed: skip JAX runs over 16x this many link-steps")
     check.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="--speed: precision of the JAX engines")
-    check.add_argument("--out-dir", default="results", help="output directory (default: results)")
+    check.add_argument("--out-dir", default=None, help="output directory (default: ./lgnn-out; the committed tables are results/)")
     _add_simulation_options(check)
     check.set_defaults(run=_cmd_crosscheck)
 
@@ -201,10 +248,11 @@ def _add_mujoco_commands(commands) -> None:
 def _cmd_convergence(args) -> None:
     from lgnn.bench import convergence
     from lgnn.bench.grid import get_profile
-    from lgnn.files import check_writable
+    from lgnn.files import check_writable, out_dir
     from lgnn.provenance import environment
     from lgnn.scene import BUILTIN_SCENES, get_scene
 
+    args.out_dir = out_dir(args.out_dir)
     check_writable(f"{args.out_dir}/convergence.md")
     environment()  # the commit the run starts at, before any edit during a long run
     evaluate = get_profile("full").evaluate
@@ -230,7 +278,7 @@ def _add_convergence_parser(commands) -> None:
     parser.add_argument("--horizon", type=_positive_float, default=None,
                         help="simulated seconds (default: 1 s, 0.1 s on chain100 and the self-stressed or large scenes)")
     parser.add_argument("--frame-dt", type=_positive_float, default=1e-3, help="frames compared every this many seconds (default 1e-3)")
-    parser.add_argument("--out-dir", default="results", help="output directory (default: results)")
+    parser.add_argument("--out-dir", default=None, help="output directory (default: ./lgnn-out; the committed tables are results/)")
     parser.add_argument("--quiet", action="store_true", help="no per-run lines")
     parser.set_defaults(run=_cmd_convergence)
 
@@ -243,30 +291,34 @@ def _cmd_train(args) -> None:
     from lgnn.scene import get_scene
 
     check_writable(args.out)
+    if Path(args.out).exists() and not (args.resume or args.overwrite):
+        raise ConfigError(f"{args.out} exists: --resume to continue training it, --overwrite to start over, or choose another --out")
     data_config = data.DataConfig(args.scene, n_trajectories=args.trajectories, seed=args.seed)
     scene = get_scene(args.scene)
     model = models.ModelConfig.for_scene(args.model, scene, message_passing=args.message_passing)
     config = train.TrainConfig(args.lr, args.batch_size, args.epochs, args.minutes, args.patience, args.seed)
     if args.resume and Path(args.out).exists():
         train.check_resumable(args.out, model, config)  # before minutes of data generation
-    dataset = data.load_or_generate(data_config, args.cache_dir, progress=not args.quiet)
+    cache = args.cache_dir or data.default_cache_dir()
+    dataset = data.load_or_generate(data_config, cache, progress=not args.quiet)
     state = train.train(model, config, dataset, scene, out=args.out, data_config=data_config, resume=args.resume, progress=not args.quiet)
-    print(f"{args.model} on {scene.name}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out}")
+    print(f"{args.model} on {scene.name}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out} (data cached in {cache})")
 
 
 def _cmd_rollout(args) -> None:
-    from lgnn.learn import models
-    from lgnn.files import check_writable
+    from lgnn.learn import models, train
     from lgnn.scene import get_scene
-    from lgnn.learn.train import load_model
     from lgnn.metrics import energy_drift
 
     config = _simulation_config(args)
-    check_writable(args.out)
-    model, params = load_model(args.model)
+    _trajectory_out(args.out)
+    state, meta = train.load_checkpoint(args.model)
+    model, params = models.ModelConfig.from_dict(meta["model"]), state.best_params
     scene = get_scene(args.scene)
-    trajectory = models.rollout(model, params, scene, config, progress=not args.quiet)
-    trajectory.save(args.out)
+    differences = train.physics_differences(meta, scene)
+    if differences:
+        print(f"lgnn: warning: {scene.name} differs from the scene {model.name} was trained on: {'; '.join(differences)}", file=sys.stderr)
+    trajectory = _save_rollout(lambda: models.rollout(model, params, scene, config, progress=not args.quiet), args.out)
     print(f"{model.name} on {scene.name}: {len(trajectory.t)} frames over {config.duration:g} s; "
           f"true energy drift {energy_drift(scene, trajectory):.2e}; wrote {args.out}")
 
@@ -279,7 +331,7 @@ def _add_train_parser(commands) -> None:
     parser = commands.add_parser("train", help="train a learned model on ground-truth data")
     parser.add_argument("--model", required=True, choices=model_names())
     parser.add_argument("--scene", default="chain4", help="training scene (built-in name or JSON file)")
-    parser.add_argument("--epochs", type=int, default=default.epochs, help="epoch budget (paper: 10000)")
+    parser.add_argument("--epochs", type=_positive_int, default=default.epochs, help="epoch budget (paper: 10000)")
     parser.add_argument("--minutes", type=_positive_float, default=None, help="optional wall-clock cap (checked after each epoch); the budget is --epochs")
     parser.add_argument("--patience", type=int, default=default.patience, help="early stopping: epochs without improvement")
     parser.add_argument("--lr", type=_positive_float, default=default.learning_rate)
@@ -287,8 +339,9 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--message-passing", type=int, default=None, help="message-passing layers (default: the model's)")
     parser.add_argument("--trajectories", type=int, default=100, help="training trajectories (paper: 100)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--cache-dir", default="results/datasets", help="training data cache")
+    parser.add_argument("--cache-dir", default=None, help="training data cache (default: datasets/ in $LGNN_CACHE, else $XDG_CACHE_HOME/lgnn, else ~/.cache/lgnn)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
+    parser.add_argument("--overwrite", action="store_true", help="start over even if --out exists (default: refuse)")
     parser.add_argument("--out", required=True, help="checkpoint file (.npz), written after every epoch")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_train)
@@ -305,6 +358,98 @@ def _add_train_parser(commands) -> None:
     rollout.add_argument("--out", required=True, help="output .npz file (same layout as lgnn simulate)")
     rollout.add_argument("--quiet", action="store_true", help="no progress bar")
     rollout.set_defaults(run=_cmd_rollout)
+
+
+def _cmd_evaluate(args) -> None:
+    from pathlib import Path
+
+    from lgnn.bench import evaluation
+    from lgnn.files import check_writable
+    from lgnn.learn.train import load_model
+    from lgnn.scene import get_scene
+
+    config = _simulation_config(args)
+    out = Path(args.out_dir)
+    check_writable(out / "evaluate_summary.md")
+    model, params = load_model(args.model)
+    scored, written = [], []
+    for name in args.scenes:
+        scene = get_scene(name)
+        states = evaluation.initial_states(scene, args.initial_conditions, args.seed)
+        scene_scores, trajectories = evaluation.evaluate_model(model, params, scene, config, states, progress=not args.quiet)
+        scored += scene_scores
+        for engine, trajectory in trajectories.items():
+            path = out / f"{scene.name}_{engine}.npz"
+            trajectory.save(path)
+            written.append(path)
+    command = "lgnn " + " ".join(args.argv)
+    header = (command, f"model {model.name} ({args.model}); {config.integrator} dt {config.dt:g}, frames every {config.frame_dt:g} s, "
+              f"{config.duration:g} s; initial conditions: " + ("the scene's own" if args.initial_conditions == 1 else
+              f"{args.initial_conditions} sampled (seed {args.seed})"))
+    written = evaluation.write_outputs(scored, out, "evaluate", f"Evaluation of {args.model}", header) + written
+    print(evaluation.format_summary(evaluation.summary_rows(scored)))
+    print(f"wrote {', '.join(map(str, written))} (trajectories: initial condition 0)")
+
+
+def _cmd_compare(args) -> None:
+    from lgnn.bench import evaluation
+    from lgnn.files import check_writable
+
+    if args.out_dir:
+        check_writable(f"{args.out_dir}/compare_summary.md")
+    scored, notes = evaluation.compare_trajectories([args.reference, args.other])
+    for note in notes:
+        print(f"note: {note}")
+    print(evaluation.format_summary(evaluation.summary_rows([scored])))
+    if args.out_dir:
+        written = evaluation.write_outputs([scored], args.out_dir, "compare", f"{args.other} against {args.reference}",
+                                           ["lgnn " + " ".join(args.argv)], notes)
+        print(f"wrote {', '.join(map(str, written))}")
+
+
+def _cmd_animate(args) -> None:
+    from lgnn.bench import viz
+
+    frames = viz.animate(args.files, args.out, fps=args.fps, speed=args.speed)
+    print(f"wrote {args.out} ({frames} frames at {args.fps:g} per second)")
+
+
+def _cmd_plot(args) -> None:
+    from lgnn.bench import viz
+
+    viz.plot(args.files, args.out)
+    print(f"wrote {args.out}")
+
+
+def _add_evaluation_parsers(commands) -> None:
+    evaluate = commands.add_parser("evaluate", help="score a checkpoint against the Lagrangian engine and MuJoCo on any scenes")
+    evaluate.add_argument("scenes", nargs="+", metavar="SCENE", help="built-in scene names or scene JSON files")
+    evaluate.add_argument("--model", required=True, help="checkpoint written by lgnn train or lgnn benchmark")
+    evaluate.add_argument("--initial-conditions", type=_positive_int, default=1,
+                          help="1: the scene's own state (default); N: N sampled ones (the paper's chain sampler, else projected perturbations)")
+    evaluate.add_argument("--seed", type=int, default=0, help="seed of the sampled initial conditions")
+    _add_simulation_options(evaluate)
+    evaluate.add_argument("--out-dir", required=True, help="writes evaluate_frames.csv, evaluate_summary.csv/.md and SCENE_{model,lagrangian,mujoco}.npz")
+    evaluate.add_argument("--quiet", action="store_true", help="no progress bars")
+    evaluate.set_defaults(run=_cmd_evaluate)
+
+    compare = commands.add_parser("compare", help="the benchmark's metrics of one trajectory file against another")
+    compare.add_argument("reference", help="reference trajectory .npz (lgnn simulate / rollout / evaluate)")
+    compare.add_argument("other", help="trajectory .npz scored against the reference")
+    compare.add_argument("--out-dir", help="also write compare_frames.csv and compare_summary.csv/.md here")
+    compare.set_defaults(run=_cmd_compare)
+
+    animate = commands.add_parser("animate", help="animate trajectory files over each other (the first underneath)")
+    animate.add_argument("files", nargs="+", metavar="FILE", help="trajectory .npz files of one scene, the reference (ground truth) first")
+    animate.add_argument("--out", required=True, help="output .gif (Pillow) or .mp4 (needs ffmpeg)")
+    animate.add_argument("--fps", type=_positive_float, default=30.0, help="animation frames per second (default 30)")
+    animate.add_argument("--speed", type=_positive_float, default=1.0, help="simulated seconds per second of animation (default 1)")
+    animate.set_defaults(run=_cmd_animate)
+
+    plot = commands.add_parser("plot", help="per-node error against the first file and energy, against time")
+    plot.add_argument("files", nargs="+", metavar="FILE", help="trajectory .npz files of one scene, the reference first")
+    plot.add_argument("--out", required=True, help="output figure (.png, .pdf, .svg)")
+    plot.set_defaults(run=_cmd_plot)
 
 
 def _cmd_checkpoint(args) -> None:
@@ -330,36 +475,75 @@ def _cmd_benchmark(args) -> None:
 
     from lgnn.bench import grid
     from lgnn.bench.run import STAGES, run
+    from lgnn.bench.store import default_out
 
-    profile = grid.get_profile("full" if args.full else "quick")
-    if args.chunk is not None:
-        # Not an evaluation setting (records stay valid): only how many rollouts share a call.
-        profile = dataclasses.replace(profile, evaluate=dataclasses.replace(profile.evaluate, chunk=args.chunk))
-    stages = STAGES if args.stage == "all" else (args.stage,)
+    if sum(map(bool, (args.full, args.profile, args.config))) > 1:
+        raise ConfigError("give one of --config, --profile and --full")
+    overrides = list(args.set or ()) + ([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])
+    # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
+    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
+    stages = None if args.stage is None else STAGES if args.stage == "all" else (args.stage,)
+    print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet)
-    if "report" in stages:
+    if "report" in (stages or profile.stages or STAGES):
         print((out / "README.md").read_text())
+    print(f"wrote {out}/")
 
 
 def _add_benchmark_parser(commands) -> None:
+    from lgnn.bench import grid
     from lgnn.bench.run import STAGES
 
     parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
     parser.add_argument("--full", action="store_true", help="the full profile (default: the quick one, minutes on a laptop)")
-    parser.add_argument("--stage", default="all", choices=("all",) + STAGES, help="run one stage (default: all, resuming finished work)")
+    parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
+    parser.add_argument("--config", help="a benchmark config file (TOML; README, 'Benchmark configs')")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2] (repeatable)")
+    parser.add_argument("--stage", default=None, choices=("all",) + STAGES,
+                        help="run one stage (default: the config's stages, else all, resuming finished work)")
     parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")
     parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")
-    parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, results/quick/ otherwise)")
+    parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, the committed run it resumes and updates; ./lgnn-out/quick/ otherwise)")
     parser.add_argument("--chunk", type=_positive_int, default=None, help="initial conditions per compiled rollout call (default 25; a GPU wants 100)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_benchmark)
 
 
+def _cmd_dataset_export(args) -> None:
+    from lgnn.bench import grid
+    from lgnn.bench.dataset import export_scene
+    from lgnn.files import check_writable
+    from lgnn.learn import data
+
+    check_writable(args.out)
+    profile = grid.load_profile(args.config or args.profile, args.set or ())
+    shapes = export_scene(profile, args.scene, args.out, args.cache_dir or data.default_cache_dir(), progress=not args.quiet)
+    print(f"{args.scene}: {shapes['q'][0]} states ({shapes['train'][0]} train, {shapes['val'][0]} validation), "
+          f"{shapes['eval_q0'][0]} evaluation initial conditions ({profile.name} profile); wrote {args.out}")
+
+
+def _add_dataset_parser(commands) -> None:
+    from lgnn.bench import grid
+
+    parser = commands.add_parser("dataset", help="training and evaluation data for other frameworks")
+    sub = parser.add_subparsers(dest="dataset_command", required=True, metavar="SUBCOMMAND")
+    export = sub.add_parser("export", help="write a scene's training data and evaluation initial conditions (.npz or .h5; README 'Exported datasets')")
+    export.add_argument("--scene", required=True, help="built-in scene name or scene JSON file")
+    export.add_argument("--out", required=True, help="output file: .npz, or .h5 (needs h5py: pip install 'lgnn[hdf5]')")
+    export.add_argument("--profile", choices=grid.PROFILE_NAMES, default="full", help="data and evaluation settings (default: full, the paper's)")
+    export.add_argument("--config", help="a benchmark config file instead of --profile")
+    export.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting, e.g. training.data.n_trajectories=10")
+    export.add_argument("--cache-dir", default=None, help="training data cache (default: as lgnn train's)")
+    export.add_argument("--quiet", action="store_true", help="no progress bar")
+    export.set_defaults(run=_cmd_dataset_export)
+
+
 def _cmd_stability(args) -> None:
     from lgnn.bench import stability
-    from lgnn.files import check_writable
+    from lgnn.files import check_writable, out_dir
 
-    out = check_writable(args.out)
+    out = check_writable(args.out or out_dir(None) / "stability.md")
     if out.suffix != ".md":
         raise ConfigError(f"--out must be a .md file (the CSV is written beside it), got {out}")
     settings = stability.StabilitySettings(
@@ -382,21 +566,59 @@ def _cmd_stability(args) -> None:
 
 
 def _add_stability_parser(commands) -> None:
-    from lgnn.bench.stability import StabilitySettings
+    from lgnn.bench.stability import StabilitySettings, cases
 
     default = StabilitySettings()
     parser = commands.add_parser("stability", help="run the hard cases (long, large, near-singular, learned) and write a report")
-    parser.add_argument("--out", default="results/stability.md", help="markdown report; the CSV goes beside it (default: results/stability.md)")
+    parser.add_argument("--out", default=None, help="markdown report; the CSV goes beside it (default: ./lgnn-out/stability.md; the committed one is results/stability.md)")
     for name in ("long_horizon", "large_step_horizon", "chain1000_horizon", "model_horizon", "singular_horizon"):
         parser.add_argument(f"--{name.replace('_', '-')}", type=_positive_float, default=getattr(default, name),
                             help=f"simulated seconds (default {getattr(default, name):g})")
     parser.add_argument("--cost-sizes", type=int, nargs="*", default=list(default.cost_sizes), help="chain sizes timed per step (none: skip)")
-    parser.add_argument("--case", action="append", help="only this case (repeatable), e.g. large-step")
+    names = list(dict.fromkeys(case.name for case in cases()))
+    parser.add_argument("--case", action="append", choices=names, metavar="CASE", help=f"only this case (repeatable): {', '.join(names)}")
     parser.add_argument("--quiet", action="store_true", help="no per-case lines")
     parser.set_defaults(run=_cmd_stability)
 
 
+def _cmd_gpu_truth(args) -> None:
+    from lgnn.bench import gpu_truth
+    from lgnn.files import check_writable
+    from lgnn.scene import get_scene
+
+    settings = gpu_truth.GpuTruthSettings(tuple(args.scenes), tuple(args.batches), tuple(args.engines), args.steps, args.dt,
+                                          args.repeats, args.form, args.seed)
+    check_writable(f"{args.out}/gpu_truth_{settings.scenes[0]}{args.suffix}.md")
+    scenes = [get_scene(name) for name in settings.scenes]  # every name checked before any run
+    log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
+    for scene in scenes:
+        rows = gpu_truth.measure(scene, settings, log=log)
+        print(f"wrote {gpu_truth.write(rows, args.out, scene.name + args.suffix, 'lgnn ' + ' '.join(args.argv), settings)} and .csv")
+
+
+def _add_gpu_truth_parser(commands) -> None:
+    from lgnn.bench.gpu_truth import GpuTruthSettings
+
+    default = GpuTruthSettings()
+    parser = commands.add_parser("gpu-truth", help="time every ground-truth engine on batches of one scene and its error against float64")
+    parser.add_argument("--scenes", nargs="+", default=list(default.scenes), help="built-in names or scene files (a table each)")
+    parser.add_argument("--batches", type=_positive_int, nargs="+", default=list(default.batches), help="batch sizes")
+    parser.add_argument("--engines", nargs="+", default=list(default.engines),
+                        help="name:dtype besides the float64 Lagrangian reference (default: %(default)s)")
+    parser.add_argument("--steps", type=_positive_int, default=default.steps, help="RK4 steps; the error is after the last")
+    parser.add_argument("--dt", type=_positive_float, default=default.dt, help="integration step (s)")
+    parser.add_argument("--repeats", type=_positive_int, default=default.repeats, help="timed runs per engine and batch (the spread)")
+    parser.add_argument("--form", default=default.form, help="MJCF form of the MuJoCo engines (default nested)")
+    parser.add_argument("--seed", type=int, default=default.seed, help="initial states' seed")
+    parser.add_argument("--out", required=True, help="output directory: gpu_truth_<scene><suffix>.csv and .md")
+    parser.add_argument("--suffix", default="", help="appended to the file names (e.g. _mjx for a call of its own)")
+    parser.add_argument("--quiet", action="store_true", help="no per-run lines")
+    parser.set_defaults(run=_cmd_gpu_truth)
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from lgnn.engines import ENGINES
+
     parser = _Parser(prog="lgnn", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -412,7 +634,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     simulate = commands.add_parser("simulate", help="simulate a scene with a ground-truth engine")
     simulate.add_argument("scene", help="built-in scene name or scene JSON file")
-    simulate.add_argument("--engine", default="lagrangian", help="ground-truth engine: lagrangian (default), mujoco, mjx (lgnn.engines.ENGINES)")
+    simulate.add_argument("--engine", default="lagrangian", choices=list(ENGINES), help="ground-truth engine (default: lagrangian)")
     simulate.add_argument("--dtype", choices=["float64", "float32"], default="float64", help="MJX precision (default float64)")
     simulate.add_argument("--form", choices=["auto", "nested", "maximal"], help="MuJoCo engines: MJCF form (default auto: the engine's choice)")
     _add_simulation_options(simulate)
@@ -421,9 +643,12 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.set_defaults(run=_cmd_simulate)
     _add_mujoco_commands(commands)
     _add_train_parser(commands)
+    _add_evaluation_parsers(commands)
     _add_benchmark_parser(commands)
+    _add_dataset_parser(commands)
     _add_stability_parser(commands)
     _add_convergence_parser(commands)
+    _add_gpu_truth_parser(commands)
     return parser
 
 
@@ -437,9 +662,12 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv  # reports name the exact command
     try:
         args.run(args)
+    except SimulationError as err:
+        print(f"lgnn: error: {err}", file=sys.stderr)
+        return EXIT_DIVERGED
     except LgnnError as err:
         print(f"lgnn: error: {err}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("lgnn: interrupted", file=sys.stderr)
         return 130

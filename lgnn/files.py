@@ -1,7 +1,13 @@
-"""Atomic file output: write to a temporary file beside the target, then rename.
+"""Where outputs go, and atomic file output.
 
-A crash or a kill never leaves a half-written result: readers see the old file or
-the new one, nothing in between.
+A crash or a kill never leaves a half-written result: files are written to a temporary
+file beside the target, then renamed, so readers see the old file or the new one,
+nothing in between.
+
+No command writes into a repository's committed `results/` unless told to: reports go
+to `DEFAULT_OUT` (`./lgnn-out`, created on demand) unless an output is named; caches
+(training data) go to `user_cache_dir()` (`$LGNN_CACHE`, else `$XDG_CACHE_HOME/lgnn`,
+else `~/.cache/lgnn`), not beside wherever the user stands.
 """
 
 from __future__ import annotations
@@ -12,6 +18,27 @@ import tempfile
 from pathlib import Path
 
 from lgnn.errors import ConfigError
+
+# Reports of commands not told where to write (`out_dir(None)`).
+DEFAULT_OUT = Path("lgnn-out")
+
+
+def out_dir(path: str | os.PathLike | None) -> Path:
+    """The output directory a command writes into: `path` as given (it must exist, like
+    any named output), or `DEFAULT_OUT`, created, when none is named."""
+    if path is not None:
+        return Path(path)
+    DEFAULT_OUT.mkdir(exist_ok=True)
+    return DEFAULT_OUT
+
+
+def user_cache_dir() -> Path:
+    """lgnn's cache directory: `$LGNN_CACHE`, else `$XDG_CACHE_HOME/lgnn`, else
+    `~/.cache/lgnn` (not created here)."""
+    if os.environ.get("LGNN_CACHE"):
+        return Path(os.environ["LGNN_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "lgnn"
 
 
 def check_writable(path: str | os.PathLike) -> Path:

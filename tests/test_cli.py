@@ -83,12 +83,73 @@ def test_invalid_numbers_are_rejected_by_the_parser(capsys, value):
     assert "--dt" in capsys.readouterr().err
 
 
-def test_simulation_failure_leaves_no_file(capsys, tmp_path):
-    """A diverging run (chain4 with a huge step) reports when it diverged and writes nothing."""
+def test_diverged_simulation_keeps_its_frames_flagged_and_exits_3(capsys, tmp_path):
+    """A diverging run (chain16, RK4 at 0.1 s, no projection) reports when it diverged,
+    keeps the frames before it (flagged in the metadata) and exits 3, not 2 (bad input)."""
     out = tmp_path / "x.npz"
     code, _, err = run(capsys, "simulate", "chain16", "--dt", "0.1", "--frame-dt", "0.1", "--duration", "20", "--no-project", "--out", str(out), "--quiet")
-    if code == 0:  # it may survive; then the file must be complete
-        assert Trajectory.load(out).q.shape[0] == 201
-    else:
-        assert code == 2 and ("non-finite" in err or "exploded" in err) and "t =" in err
-        assert not out.exists() and not list(tmp_path.iterdir())
+    assert code == 3 and "exploded" in err and "t = 0.4 s" in err and "kept the 4 frames" in err, err
+    kept = Trajectory.load(out)
+    assert kept.q.shape == (4, 17, 2) and np.isfinite(kept.q).all()
+    np.testing.assert_allclose(kept.t, [0.0, 0.1, 0.2, 0.3])
+    assert kept.metadata["diverged"]["time"] == pytest.approx(0.4)
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["simulate", "chain4", "--dt", "-1e-4", "--out", "x.npz"], "--dt: must be a positive number, got -1e-4"),
+        (["simulate", "chain4", "--dt", "1e-2", "--out", "x.npz"], "pass --frame-dt too"),
+        (["simulate", "chain4", "--out", "x.csv"], "trajectories are written as .npz"),
+        (["simulate", "chain4", "--engine", "bullet", "--out", "x.npz"], "choose from 'lagrangian', 'mujoco', 'mjx'"),
+        (["train", "--model", "lgnn", "--epochs", "0", "--out", "x.npz"], "--epochs: must be a positive whole number"),
+        (["stability", "--case", "nope"], "invalid choice: 'nope'"),
+    ],
+)
+def test_rough_edges_are_one_clear_line(capsys, tmp_path, monkeypatch, argv, words):
+    monkeypatch.chdir(tmp_path)
+    try:
+        code = main(argv)
+    except SystemExit as exit:
+        code = exit.code
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and words in err, err
+    assert not list(tmp_path.iterdir())
+
+
+def test_stability_help_lists_the_cases(capsys):
+    from lgnn.bench.stability import cases
+
+    with pytest.raises(SystemExit):
+        main(["stability", "--help"])
+    help_text = "".join(capsys.readouterr().out.split())  # argparse wraps at hyphens
+    for case in cases():
+        assert case.name in help_text
+
+
+def test_train_refuses_to_overwrite_a_checkpoint(capsys, tmp_path):
+    (tmp_path / "other.npz").write_bytes(b"another model")
+    code, _, err = run(capsys, "train", "--model", "gns", "--out", str(tmp_path / "other.npz"))
+    assert code == 2 and "--resume to continue" in err and "--overwrite" in err
+    assert (tmp_path / "other.npz").read_bytes() == b"another model"
+
+
+def test_crosscheck_of_a_scene_file_writes_beside_the_user_and_summarises(capsys, tmp_path, monkeypatch):
+    """Not told where to write, a report goes to ./lgnn-out (never the repository's
+    results/), the console shows each engine's lines for a scene file too (they are
+    filtered on the scene's name, not the path) and says where it wrote; a `|` inside a
+    markdown cell is escaped, so every table row keeps its columns."""
+    import re
+
+    from lgnn.scene import get_scene, scene_to_json
+
+    monkeypatch.chdir(tmp_path)
+    scene_file = tmp_path / "mine.json"
+    scene_file.write_text(scene_to_json(get_scene("chain4")).replace('"chain4"', '"mine"'))
+    code, out, err = run(capsys, "crosscheck", str(scene_file), "--engines", "lagrangian,mujoco", "--dt", "1e-3", "--frame-dt", "1e-2", "--duration", "0.02")
+    assert code == 0, err
+    assert "mine     lagrangian" in out and "lagrangian~mujoco" in out
+    assert "wrote lgnn-out/crosscheck.csv" in out
+    table = [line for line in (tmp_path / "lgnn-out" / "crosscheck.md").read_text().splitlines() if line.startswith("| ")]
+    assert len(table) > 2 and any("\\|E-E0\\|" in line for line in table)
+    assert {len(re.findall(r"(?<!\\)\|", line)) for line in table} == {6}  # 5 columns

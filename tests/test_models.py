@@ -383,7 +383,7 @@ def test_checkpoint_round_trip_and_resume_are_exact(tiny_dataset, tmp_path):
 
     for a, b in zip(jax.tree.leaves(untimed(whole)), jax.tree.leaves(untimed(resumed))):
         np.testing.assert_array_equal(a, b)
-    with pytest.raises(CheckpointError, match="other model or training settings"):
+    with pytest.raises(CheckpointError, match=r"other settings \(train.learning_rate: checkpoint 0.01, now 0.001\)"):
         train.train(model, train.TrainConfig(learning_rate=1e-3, epochs=5), tiny_dataset, scene, out=part, resume=True)
 
 
@@ -450,3 +450,13 @@ def test_lgnn_structured_solve_matches_the_dense_solve(name):
     dense = np.asarray(jax.jit(physics.acceleration_fn(scene, lagrangian))(q, qd))
     structured = np.asarray(jax.jit(models.acceleration_fn(config, params, scene))(q, qd))
     np.testing.assert_allclose(structured, dense, atol=1e-9 * (1 + np.abs(dense).max()))
+
+
+def test_physics_differences_from_the_training_scene():
+    """A rollout on a scene with other gravity, drag or link masses is flagged; a longer
+    chain of the same links (generalisation) is not."""
+    meta = {"data": {"scene": "chain4"}}
+    assert train.physics_differences(meta, get_scene("chain8")) == []
+    assert any(d.startswith("drag") for d in train.physics_differences(meta, get_scene("chain4-drag")))
+    assert any(d.startswith("link masses") for d in train.physics_differences(meta, get_scene("chain4-varied")))
+    assert train.physics_differences({"data": None}, get_scene("chain4-varied")) == []

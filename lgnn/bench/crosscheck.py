@@ -40,7 +40,7 @@ SKIP_MJX = "skipped: MJX compile too slow on CPU (tree depth {depth} > {limit})"
 
 def form_of(engine, scene: Scene) -> str:
     """The MJCF form `engine` runs `scene` in ("" for engines without one)."""
-    return engine.form_of(scene) if hasattr(engine, "form_of") else ""
+    return engine.form_of(scene) if hasattr(engine, "form_of") else getattr(engine, "form", "")
 
 
 def crosscheck(scene: Scene, config: SimulationConfig, engines=tuple(ENGINES), mjx_max_depth: int | None = None,

@@ -7,7 +7,8 @@
 - `PROFILES["quick"]` (minutes on 2 CPU cores, part of CI: tiny data and training
   budgets, 3 initial conditions, 0.1 s rollouts, a subset of scenes) and
   `PROFILES["full"]` (the paper's data, 100 initial conditions per chain scene, 1 s
-  rollouts, every scene).
+  rollouts, every scene): the TOML files `lgnn/bench/profiles/{quick,full}.toml`,
+  read by `load_profile`, which reads a user's config file the same way.
 
 A `Profile` is the grid's selection (seeds, training and evaluation scenes) and one
 frozen settings dataclass per stage (`TrainSettings`, `EvaluateSettings`,
@@ -20,11 +21,16 @@ which records exist, never what a record holds), so no field can be forgotten.
 from __future__ import annotations
 
 import dataclasses
+import os
+import tomllib
+from importlib import resources
+from pathlib import Path
 
 from lgnn.errors import ConfigError
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.learn.data import DataConfig
 from lgnn.learn.train import TrainConfig
+from lgnn.learn.models import load_spec
 
 # The scene every model of the main grid is trained on.
 TRAINING_SCENE = "chain4"
@@ -198,34 +204,65 @@ class Profile:
     train_scenes: tuple[str, ...] | None = None
     # Evaluation scenes kept from GRID (None: all of them).
     scenes: tuple[str, ...] | None = None
+    # The grid: which model is trained on which scene and evaluated on which (config files may give their own).
+    grid: tuple[GridEntry, ...] = GRID
+    # Stages `lgnn benchmark` runs (None: all of `lgnn.bench.run.STAGES`; `--stage` overrides).
+    stages: tuple[str, ...] | None = None
 
 
-PROFILES = {
-    "quick": Profile(
-        name="quick",
-        # 40 Adam steps in all: a warm-up of a few steps (the default 1000 would leave
-        # the rate at 4 % of its peak throughout).
-        training=TrainSettings(
-            DataConfig(n_trajectories=5, duration=0.5, sample_dt=0.05),
-            TrainConfig(epochs=10, patience=10, warmup_steps=8),
-        ),
-        evaluate=EvaluateSettings(initial_conditions=3, duration=0.1, chunk=3),
-        speed=SpeedSettings(scenes=("chain4",), dts=(1e-3,), horizon=0.02, mjx=False, models=("lgnn",)),
-        scaling=ScalingSettings(lengths=(4, 16), steps=10, throughput_scenes=("chain4",), throughput_batch=4),
-        mass=MassSettings(scenes=("chain8",)),
-        # The chain4-trained models on chains only: compiling T1-T3 and the varied/drag
-        # models' own pipelines takes minutes on a small CPU (the full profile has them).
-        train_scenes=(TRAINING_SCENE,),
-        scenes=("chain4", "chain8"),
-    ),
-    "full": Profile(
-        name="full",
-        # The paper's 10 000 epochs do not fit a session; the minutes budget ends training
-        # first (results/README.md states the epochs reached).
-        training=TrainSettings(DataConfig(), TrainConfig(epochs=10_000, minutes=6.5)),
-        evaluate=EvaluateSettings(initial_conditions=100, duration=1.0),
-    ),
-}
+# The shipped profiles: TOML files in `lgnn/bench/profiles/` (`load_profile`).
+PROFILE_NAMES = ("quick", "full")
+
+
+def load_profile(source: str | os.PathLike, overrides=()) -> Profile:
+    """A profile from a shipped name (`quick`, `full`) or a TOML config file, with
+    `KEY=VALUE` overrides (`lgnn.bench.settings`; an unknown key is a one-line
+    `ConfigError` naming it). A config file starts from the shipped profile its
+    `profile` key names (default `quick`) and sets `Profile`'s fields over it: `name`
+    (default: the file's stem), `seeds`, `train_scenes`, `scenes`, `stages`, `[[grid]]` entries
+    (default: `GRID`), and one table per settings group (`[training.data]`,
+    `[training.train]`, `[evaluate]`, `[speed]`, `[scaling]`, `[mass]`). Scene files
+    and `file.py:attribute` model references are relative to the config's directory;
+    a `module:attribute` or `file.py:attribute` model is imported and registered
+    (`lgnn.learn.models.load_spec`) and the grid names it by its spec's name."""
+    from lgnn.bench import settings
+
+    def shipped(name: str) -> dict:
+        return tomllib.loads(resources.files("lgnn.bench").joinpath(f"profiles/{name}.toml").read_text())
+
+    if str(source) in PROFILE_NAMES:
+        data, base = shipped(str(source)), None
+    else:
+        path = Path(source)
+        data, base = settings.read_toml(path), path.resolve().parent
+        profile = data.pop("profile", "quick")
+        if profile not in PROFILE_NAMES:
+            raise ConfigError(f"{path}: profile {profile!r} is not a shipped profile (choose from {', '.join(PROFILE_NAMES)})")
+        data = settings.merged({**shipped(profile), "name": path.stem}, data)
+    return _resolved(settings.build(Profile, settings.apply_overrides(data, overrides)), base)
+
+
+def _resolved(profile: Profile, base: Path | None) -> Profile:
+    """The profile with scene files as paths from here and model references registered."""
+
+    def scene(name: str) -> str:
+        if base is None or not name.endswith(".json"):
+            return name
+        path = (base / name).resolve()
+        relative = os.path.relpath(path)
+        return path.as_posix() if relative.startswith("..") else Path(relative).as_posix()
+
+    def scenes(names):
+        return None if names is None else tuple(scene(n) for n in names)
+
+    def model(name: str) -> str:
+        return load_spec(name, base).name if ":" in name else name
+
+    entries = tuple(GridEntry(model(e.model), scene(e.train_scene), scenes(e.eval_scenes)) for e in profile.grid)
+    return dataclasses.replace(profile, grid=entries, train_scenes=scenes(profile.train_scenes), scenes=scenes(profile.scenes))
+
+
+PROFILES = {name: load_profile(name) for name in PROFILE_NAMES}
 
 
 def get_profile(name: str) -> Profile:
@@ -235,7 +272,7 @@ def get_profile(name: str) -> Profile:
 
 
 def _entries(profile: Profile) -> list[GridEntry]:
-    return [e for e in GRID if profile.train_scenes is None or e.train_scene in profile.train_scenes]
+    return [e for e in profile.grid if profile.train_scenes is None or e.train_scene in profile.train_scenes]
 
 
 def training_jobs(profile: Profile) -> list[TrainingJob]:

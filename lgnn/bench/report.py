@@ -2,7 +2,7 @@
 the records the stages wrote (`lgnn.bench.stages`), read through their public `load_*`
 functions only (nothing is computed here but statistics of them).
 
-Files under `<out>` (`results/` for the full profile, `results/quick/` for the quick):
+Files under `<out>` (`results/` for the full profile, `lgnn-out/quick/` for the quick):
 
 - `benchmark/summary.csv`: `scene, model, seed, metric, statistic, value` plus
   `commit, versions, device` of the run that made each number. Models: the learned
@@ -215,12 +215,20 @@ def _savefig(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def _plot_error_vs_time(curves, scenes: list[str], path: Path, title: str) -> bool:
+# Y-axis label of each row of an error-against-time figure.
+ERROR_AXIS_LABELS = {"rollout_error": "rollout error (geometric mean)", "energy_error": "energy error (geometric mean)"}
+
+
+def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str) -> bool:
+    """Error against time of every model on `scenes` (those with curves; the title
+    names them, so a profile without some scenes is not mislabelled)."""
     import matplotlib.pyplot as plt
 
     scenes = [s for s in scenes if s in set(curves["scene"])]
     if not scenes:
         return False
+    title = (f"Error against time: {', '.join(scenes)} (trained on {trained_on})\n"
+             f"errors are clipped to [{metrics.ERROR_FLOOR:g}, 1]: 1 means diverged (or no better than that); band: interval over initial conditions")
     fig, axes = plt.subplots(2, len(scenes), figsize=(4.2 * len(scenes), 6.4), squeeze=False, sharex=True)
     for col, scene in enumerate(scenes):
         for row, metric in enumerate(("rollout_error", "energy_error")):
@@ -241,10 +249,14 @@ def _plot_error_vs_time(curves, scenes: list[str], path: Path, title: str) -> bo
                 ax.plot(floor.t, floor.value, "k--", linewidth=1, label="chaos floor (1e-4)")
             ax.set_yscale("log")
             ax.set_title(f"{scene}: {metric.replace('_', ' ')}", fontsize=9)
+            if col == 0:
+                ax.set_ylabel(ERROR_AXIS_LABELS[metric])
             if row == 1:
                 ax.set_xlabel("t (s)")
-        axes[0, 0].legend(fontsize=7)
-    fig.suptitle(title, fontsize=10)
+            if ax.get_legend_handles_labels()[0]:
+                # In every panel: the panels of one figure may hold different models.
+                ax.legend(fontsize=7)
+    fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     _savefig(fig, path)
     return True
@@ -318,23 +330,32 @@ def _plot_speed_error(rows: list[dict], path: Path) -> bool:
     fig, axes = plt.subplots(n_rows, cols, figsize=(6 * cols, 4.5 * n_rows), squeeze=False)
     for ax in axes.flat[len(scenes):]:
         ax.set_visible(False)
+    from matplotlib.lines import Line2D
+
     markers = {"lagrangian": "o", "mujoco": "s", "mjx": "^"}
+    # dt labels beside their marker, on a side per engine, so the engines' labels at one
+    # dt do not overprint each other.
+    offsets = {"lagrangian": (4, 3), "mujoco": (4, -9), "mjx": (-26, 3)}
     for ax, scene in zip(axes.flat, scenes):
         for r in rows:
             if r["scene"] != scene or not (math.isfinite(r["wall_s_per_sim_s"]) and math.isfinite(r["rollout_error"])):
                 continue
             if r["kind"] == "engine":
                 ax.loglog(r["wall_s_per_sim_s"], r["rollout_error"], markers[r["solver"]], color="k", fillstyle="none")
-                ax.annotate(f"{r['solver']} {r['dt']:g}", (r["wall_s_per_sim_s"], r["rollout_error"]), fontsize=6)
+                ax.annotate(f"{r['dt']:g}", (r["wall_s_per_sim_s"], r["rollout_error"]), xytext=offsets[r["solver"]],
+                            textcoords="offset points", fontsize=6)
             else:
                 kind = r["solver"].split()[0]
                 ax.loglog(r["wall_s_per_sim_s"], r["rollout_error"], "*", color=COLORS.get(kind), markersize=10, label=r["solver"].upper())
         ax.set_title(scene, fontsize=9)
         ax.set_xlabel("wall s per simulated s")
         ax.set_ylabel("rollout error vs MuJoCo reference")
-        handles = ax.get_legend_handles_labels()
-        if handles[0]:
-            ax.legend(fontsize=7)
+        engines = sorted({r["solver"] for r in rows if r["scene"] == scene and r["kind"] == "engine"
+                          and math.isfinite(r["wall_s_per_sim_s"]) and math.isfinite(r["rollout_error"])})
+        handles = [Line2D([], [], marker=markers[e], color="k", fillstyle="none", linestyle="none", label=f"{e} (label: dt)") for e in engines]
+        handles += ax.get_legend_handles_labels()[0]
+        if handles:
+            ax.legend(handles=handles, fontsize=7)
     fig.tight_layout()
     _savefig(fig, path)
     return True
@@ -376,6 +397,13 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
     return lines
 
 
+# Heads a non-full profile's report (and the console, which prints the report).
+QUICK_WARNING = ("**Not results.** This profile checks that the pipeline runs: its training budgets are tiny and it has few initial "
+                 "conditions, so the ranking of the models means nothing, and its timings (single runs on a shared machine) vary "
+                 "several-fold between runs (a Lagrangian/MuJoCo ratio of 3.05 in one run, 0.41 in the next). "
+                 "Numbers: `lgnn benchmark --full`, or the committed `results/`.")
+
+
 def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str]) -> str:
     from lgnn.provenance import environment
 
@@ -390,6 +418,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "Each number's own commit, versions and device are columns of `benchmark/summary.csv` (the stages may run on different machines): "
         + "; ".join(envs) + ".",
         "",
+        *([QUICK_WARNING, ""] if p.name != "full" else []),
         "## Settings",
         "",
         f"- Training: {t.data.n_trajectories} trajectories of {t.data.duration:g} s, a state every {t.data.sample_dt:g} s (75:25 split), "
@@ -603,10 +632,10 @@ def write(profile: Profile, out: Path) -> Path:
     figures_dir = out / "figures"
     figures = []
     plots = [
-        ("error_vs_time_chain4_8_16.png", lambda p: _plot_error_vs_time(curves, ["chain4", "chain8", "chain16"], p, "Error against time: 4, 8, 16 links (trained on 4)")),
-        ("error_vs_time_chain100.png", lambda p: _plot_error_vs_time(curves, ["chain100"], p, "Error against time: 100 links (trained on 4)")),
-        ("error_vs_time_T1_T2_T3.png", lambda p: _plot_error_vs_time(curves, ["T1", "T2", "T3"], p, "Error against time: T1-T3 (trained on chain4)")),
-        ("error_vs_time_varied_drag.png", lambda p: _plot_error_vs_time(curves, ["chain4-varied", "chain4-drag"], p, "Error against time: varied links, drag (trained on each)")),
+        ("error_vs_time_chain4_8_16.png", lambda p: _plot_error_vs_time(curves, ["chain4", "chain8", "chain16"], p, "chain4")),
+        ("error_vs_time_chain100.png", lambda p: _plot_error_vs_time(curves, ["chain100"], p, "chain4")),
+        ("error_vs_time_T1_T2_T3.png", lambda p: _plot_error_vs_time(curves, ["T1", "T2", "T3"], p, "chain4")),
+        ("error_vs_time_varied_drag.png", lambda p: _plot_error_vs_time(curves, ["chain4-varied", "chain4-drag"], p, "each")),
         ("mass_matrix.png", lambda p: _plot_mass_matrices(mass_records, p)),
         ("snapshots_chain8.png", lambda p: _plot_snapshots("chain8", truths, pairs, p)),
         ("snapshots_T1.png", lambda p: _plot_snapshots("T1", truths, pairs, p)),

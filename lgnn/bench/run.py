@@ -25,10 +25,12 @@ from lgnn.errors import ConfigError
 STAGES = ("train", "evaluate", "speed", "scaling", "mass", "report")
 
 
-def run(profile: Profile, out: Path | None = None, stages=STAGES, jobs: list[str] | None = None, scenes: list[str] | None = None,
+def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] | None = None, scenes: list[str] | None = None,
         progress: bool = True) -> Path:
-    """Run the chosen stages of the benchmark (all by default), restricted to the named
-    training jobs and evaluation scenes when given; returns the output directory."""
+    """Run the chosen stages of the benchmark (default: the profile's `stages`, or all),
+    restricted to the named training jobs and evaluation scenes when given; returns
+    the output directory."""
+    stages = stages or profile.stages or STAGES
     out = Path(out) if out is not None else default_out(profile)
     unknown = sorted(set(stages) - set(STAGES))
     if unknown:

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from lgnn import records
+from lgnn.files import DEFAULT_OUT
 from lgnn.bench.grid import Pair, Profile, TrainingJob
 
 # Layout of a stage record's meta; records of another format are recomputed.
@@ -36,13 +37,13 @@ class Layout:
         return self.out / "benchmark"
 
     def checkpoint(self, job: TrainingJob) -> Path:
-        return self.bench / "checkpoints" / f"{job.name}.npz"
+        return self.bench / "checkpoints" / f"{file_name(job.name)}.npz"
 
     def pair_record(self, pair: Pair) -> Path:
-        return self.bench / "runs" / pair.job.name / f"{pair.scene}.npz"
+        return self.bench / "runs" / file_name(pair.job.name) / f"{file_name(pair.scene)}.npz"
 
     def truth_record(self, scene: str) -> Path:
-        return self.bench / "runs" / "ground-truth" / f"{scene}.npz"
+        return self.bench / "runs" / "ground-truth" / f"{file_name(scene)}.npz"
 
     @property
     def scaling_record(self) -> Path:
@@ -59,8 +60,21 @@ class Layout:
         return self.out / "datasets"
 
 
+def file_name(name: str) -> str:
+    """A job or scene name as one file name: built-in names as they are; a name holding
+    a scene file's path (a user's config) with its separators replaced and a digest of
+    the path appended, so records stay under `out` and two files of one name in
+    different directories do not share records."""
+    if all(c.isalnum() or c in "-_." for c in name) and not name.startswith("."):
+        return name
+    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in name)[-48:].lstrip("_")
+    return f"{safe}-{records.digest(name)[:8]}"
+
+
 def default_out(profile: Profile) -> Path:
-    return Path("results") if profile.name == "full" else Path("results") / profile.name
+    """The full profile's records are the repository's committed `results/` (a run
+    resumes and updates them); any other profile writes under `lgnn.files.DEFAULT_OUT`."""
+    return Path("results") if profile.name == "full" else DEFAULT_OUT / profile.name
 
 
 def save(path: Path, key: str, arrays: dict, meta: dict) -> None:

@@ -32,6 +32,11 @@ def _markdown_cell(value) -> str:
     return f"{value:.3g}" if isinstance(value, float) else str(value)
 
 
+def escape_markdown_cell(text: str) -> str:
+    """A cell's text with `|` escaped, so a note like `max |E-E0|` stays in its column."""
+    return text.replace("|", "\\|")
+
+
 def write_table(rows: Sequence[dict], columns: Sequence[str], csv_path: str | os.PathLike, md_path: str | os.PathLike, title: str,
                 header: Sequence[str] = (), notes: Sequence[str] = (), csv_cell: Callable = _csv_cell,
                 markdown_cell: Callable[[object], str] = _markdown_cell) -> None:
@@ -47,6 +52,6 @@ def write_table(rows: Sequence[dict], columns: Sequence[str], csv_path: str | os
         writer.writerow({k: csv_cell(row[k]) for k in columns})
     md = [f"# {title}", ""] + [f"- {line}" for line in header] + [f"- {n}" for n in notes] + ["",
           "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    md += ["| " + " | ".join(markdown_cell(row[k]) for k in columns) + " |" for row in rows]
+    md += ["| " + " | ".join(escape_markdown_cell(markdown_cell(row[k])) for k in columns) + " |" for row in rows]
     write_text_atomic(csv_path, buffer.getvalue())
     write_text_atomic(md_path, "\n".join(md) + "\n")

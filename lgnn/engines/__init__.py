@@ -16,7 +16,10 @@ An `Engine` has a `name`, the precision it computes in (`dtype`), and
 - "lagrangian" (`lagrangian.LagrangianEngine`): the exact constrained Lagrangian
   engine (`simulate`, `rollout_fn`), with `SimulationConfig` and `Trajectory`;
 - "mujoco" (`mujoco.MujocoEngine`): MuJoCo C on the scene's MJCF (`mjcf`), float64;
-- "mjx" (`mjx.MjxEngine`): MJX on the same model, float64 or float32.
+- "mjx" (`mjx.MjxEngine`): MJX on the same model, float64 or float32;
+- "mjwarp" (`mjwarp.MjwarpEngine`): MuJoCo Warp on the same model, many worlds at
+  once, float32 only, GPU or Warp's CPU backend; an optional extra (`lgnn[mjwarp]`),
+  a one-line `ConfigError` when it is not installed.
 
 The MuJoCo engines take the MJCF form (`mjcf.Form`: "nested" or "maximal", or "auto"
 for the engine's own choice, `form_of(scene)`), through `get_engine(..., form=...)`.
@@ -67,17 +70,23 @@ def _mujoco(dtype: str, progress: bool) -> Engine:
 
 
 def _mjx(dtype: str, progress: bool) -> Engine:
-    from lgnn.engines.mjx import MjxEngine
-
     import sys
+
+    from lgnn.engines.mjx import MjxEngine
 
     # progress: say before a compile starts (minutes on a CPU), on stderr.
     return MjxEngine(dtype=dtype, log=(lambda line: print(line, file=sys.stderr, flush=True)) if progress else None)
 
 
+def _mjwarp(dtype: str, progress: bool) -> Engine:
+    from lgnn.engines.mjwarp import MjwarpEngine
+
+    return MjwarpEngine()
+
+
 # Name -> factory(dtype, progress). The MuJoCo factories import their module (and so
 # `mujoco`) when called.
-ENGINES: dict[str, Callable[[str, bool], Engine]] = {"lagrangian": _lagrangian, "mujoco": _mujoco, "mjx": _mjx}
+ENGINES: dict[str, Callable[[str, bool], Engine]] = {"lagrangian": _lagrangian, "mujoco": _mujoco, "mjx": _mjx, "mjwarp": _mjwarp}
 
 
 def get_engine(name: str, *, dtype: str = "float64", progress: bool = False, form: str | None = None) -> Engine:

@@ -30,6 +30,7 @@ from lgnn.files import atomic_path
 from lgnn.metrics import ExplosionBounds
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.integrate import INTEGRATORS, Integrator, advance, rollout
+from lgnn.runtime import in_float64, precision
 from lgnn.scene import Scene, State, scene_to_dict
 
 NPZ_KEYS = ("t", "q", "qd", "energy")
@@ -171,6 +172,7 @@ def _chunk_runner(scene: Scene, config: SimulationConfig, accel_factory: Callabl
     return init, run
 
 
+@in_float64  # the ground truth's accuracy, whatever jax_enable_x64 says
 def simulate(
     scene: Scene,
     config: SimulationConfig = SimulationConfig(),
@@ -190,7 +192,8 @@ def simulate(
     a factory equal for equal models (`learn.models.AccelerationFactory`) compiles once
     whatever the params. Raises `SimulationError` at the first non-finite or exploding
     frame (`ExplosionBounds`), naming its time (`err.time`) and carrying the frames
-    before it (`err.trajectory`); `hint` ends its message.
+    before it (`err.trajectory`); `hint` ends its message. Computes in float64 whether
+    or not `lgnn.configure()` was called (`lgnn.runtime.precision`).
     """
     state = check_state(scene, scene.initial_state if state is None else state)
     init, run = _chunk_runner(scene, config, accel_factory, params is not None)
@@ -256,6 +259,10 @@ class LagrangianEngine:
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, D))` of the compiled batch (`time_compiled`)."""
+        with precision(self.dtype):
+            return self._timed_rollout(scene, config, states)
+
+    def _timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         batch = len(states.q)
         factory = physics.vectorised_true_acceleration_fn if batch > 1 else physics.true_acceleration_fn
         rollouts = jax.vmap(rollout_fn(scene, config, factory))

@@ -6,12 +6,13 @@ states (B, N, 2) to node trajectories (B, F+1, N, 2): node states map to MJX's
 positions, and their velocities as a `jvp`). Drag is applied as in MuJoCo C
 (`xfrc_applied` at link centres, held over a step). `MjxEngine` is the
 `lgnn.engines.Engine` on top. MJX compiles slowly on CPU in the nested form (~35 s for
-chain4, over 10 minutes for 12 links), far less in the maximal form (12 links: 50 s
-of CPU time on a loaded 2-core machine; MJX has no tree depth there), so the engine
-runs the nested form to `NESTED_MAX_DEPTH` and the maximal form beyond (`best_form`),
-says so before compiling (`log`), and `runner` is cached.
+chain4, over 10 minutes for 12 links), far less in the maximal form (12 links: ~30 s
+of CPU time; MJX has no tree depth there), so the engine runs the nested form to
+`NESTED_MAX_DEPTH` and the maximal form beyond (`best_form`), says so before
+compiling (`log`), and `runner` is cached.
 
-`dtype` float32 runs with JAX's x64 off (`precision`); float64 needs it on.
+`dtype` float32 runs with JAX's x64 off, float64 with it on (`lgnn.runtime.precision`,
+entered here whatever the global setting).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import io
 import time
 from typing import Callable, ClassVar
 
@@ -31,6 +33,7 @@ from lgnn.engines.mjcf import Form, scene_layout
 from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, resolve_form, state_to_qpos_qvel
 from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError, SimulationError
+from lgnn.runtime import precision
 from lgnn.scene import Scene, State
 
 
@@ -46,8 +49,11 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form:
     scene's MJCF in `form`, `vmap`ped over initial node states (B, N, 2) -> (B, F+1, N,
     2). Cached on the scene's content, config, dtype and form, so compilation (slow on
     CPU) happens once per process.
-    Call it inside `precision(dtype)`."""
-    from mujoco import mjx
+    Call it inside `lgnn.runtime.precision(dtype)`."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        # MJX prints "Failed to import mujoco_warp: ..." on import without the optional
+        # `warp` package, which lgnn does not use.
+        from mujoco import mjx
 
     check_rk4(config)
     if dtype not in DTYPES:
@@ -102,18 +108,13 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form:
     return jax.jit(jax.vmap(one))
 
 
-def precision(dtype: str):
-    """Context to trace and run a `runner` of `dtype` in: float32 runs need x64 off,
-    since MJX builds float64 constants under x64 (its RK4 tableau, for one) that would
-    promote the float32 state and break its scans."""
-    return jax.enable_x64(False) if dtype == "float32" else contextlib.nullcontext()
-
-
-def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = "float64", run=None) -> State:
-    """MJX node trajectories (B, F+1, N, 2) from initial node states (B, N, 2), by `run`
-    (default: `runner` of the nested form)."""
-    run = runner(scene, config, dtype) if run is None else run
+def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = "float64", form: Form = "nested") -> State:
+    """MJX node trajectories (B, F+1, N, 2) from initial node states (B, N, 2), on the
+    scene's MJCF in `form`."""
+    # float32 needs x64 off: MJX builds float64 constants under x64 (its RK4 tableau,
+    # for one) that would promote the float32 state and break its scans.
     with precision(dtype):
+        run = runner(scene, config, dtype, form)
         q, qd = run(jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype))
     q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
     if not (np.isfinite(q).all() and np.isfinite(qd).all()):
@@ -141,28 +142,37 @@ class MjxEngine:
         """The MJCF form this engine runs `scene` in."""
         return resolve_form(scene, self.form, best_form)
 
-    def _runner(self, scene: Scene, config: SimulationConfig):
+    def _announced_form(self, scene: Scene, config: SimulationConfig) -> Form:
+        # The form, told to `log` first when this process has no runner for it yet.
         form = self.form_of(scene)
-        cached = runner.cache_info().hits
-        run = runner(scene, config, self.dtype, form)
-        if self.log is not None and runner.cache_info().hits == cached:
+        if self.log is not None and not _has_runner(scene, config, self.dtype, form):
             nv = compile_scene(scene, config.dt, form).model.nv
             self.log(f"MJX: compiling {scene.name} ({form} form, {nv} degrees of freedom, {self.dtype}, "
                      f"{jax.default_backend()}); on a CPU this can take minutes")
-        return run, form
+        return form
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)
         (lgnn's exact energy in float64 of the node states; MJX has none)."""
-        run, form = self._runner(scene, config)
+        form = self._announced_form(scene, config)
         start = time.perf_counter()
-        nodes = rollout(scene, config, states, self.dtype, run)
+        nodes = rollout(scene, config, states, self.dtype, form)
         metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form)
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, 2))` of the compiled runner (`time_compiled`)."""
-        run, _ = self._runner(scene, config)
+        form = self._announced_form(scene, config)
         with precision(self.dtype):
+            run = runner(scene, config, self.dtype, form)
             compile_s, run_s, (q, _) = time_compiled(run, jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype))
         return compile_s, run_s, np.asarray(q, np.float64)
+
+
+def _has_runner(scene: Scene, config: SimulationConfig, dtype: str, form: Form) -> bool:
+    # Whether `runner` holds this one already (then nothing compiles): lru_cache keys
+    # on the call's arguments, so a probe call that is not a hit would build it.
+    hits = runner.cache_info().hits
+    with precision(dtype):
+        runner(scene, config, dtype, form)
+    return runner.cache_info().hits > hits

@@ -40,6 +40,7 @@ from lgnn.engines.lagrangian import SimulationConfig, Trajectory
 from lgnn.engines.mjcf import MAX_BODY_DEPTH, MAXIMAL_SOLREF_STEPS, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, render, scene_layout
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.metrics import ExplosionBounds, true_energies
+from lgnn.runtime import precision
 from lgnn.scene import Scene, State, scene_to_dict
 
 # Doubles of per-step state `rollout` buffers per call (64 MB).
@@ -239,7 +240,8 @@ def _to_mj_fn(compiled: Compiled):
 
 
 def _initial_mj_states(compiled: Compiled, states: State) -> tuple[np.ndarray, np.ndarray]:
-    qpos, qvel = _to_mj_fn(compiled)(jnp.asarray(states.q, jnp.float64), jnp.asarray(states.qd, jnp.float64))
+    with precision("float64"):  # MuJoCo C is float64: its initial state must be too
+        qpos, qvel = _to_mj_fn(compiled)(jnp.asarray(states.q, jnp.float64), jnp.asarray(states.qd, jnp.float64))
     return np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
 
 
@@ -389,7 +391,8 @@ def checked_trajectory(scene: Scene, config: SimulationConfig, states: State, me
     first non-finite or exploding frame (`lgnn.metrics.ExplosionBounds`) of any initial
     state, carrying that state's frames before it (unbatched)."""
     q, qd = states
-    energy = true_energies(scene, q, qd)
+    with precision("float64"):
+        energy = true_energies(scene, q, qd)
     t = np.arange(config.n_frames + 1) * config.frame_dt
     for b in range(len(q)):
         bounds = ExplosionBounds.of(scene, State(q[b, 0], qd[b, 0]), float(energy[b, 0]))

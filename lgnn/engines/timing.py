@@ -2,7 +2,9 @@
 
 `time_compiled(run, *args)` is what every speed measurement of lgnn reports (the
 engines' `timed_rollout`, the stability cost per step, the benchmark's speed and
-scaling stages), so their numbers mean the same thing.
+scaling stages), so their numbers mean the same thing. `time_runs(call, repeats)` is
+its running half for anything already compiled (a cached executable, MuJoCo Warp's
+captured step), with repeats for a spread.
 """
 
 from __future__ import annotations
@@ -12,13 +14,29 @@ import time
 import jax
 
 
-def time_compiled(run, *args):
-    """`(compile_s, run_s, out)` of a jitted `run(*args)`: compile apart, then one
-    untimed run (its one-off costs, ~0.1 s for LGNN) and one timed run."""
+def time_runs(call, repeats: int = 1):
+    """`(run_s, out)`: one untimed `call()` (its one-off costs, ~0.1 s for LGNN), then
+    `repeats` timed calls, each waited for (`jax.block_until_ready`); `run_s` is the
+    list of their seconds and `out` the last call's result."""
+    jax.block_until_ready(call())
+    run_s = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = jax.block_until_ready(call())
+        run_s.append(time.perf_counter() - start)
+    return run_s, out
+
+
+def compile_timed(run, *args):
+    """`(compiled, compile_s)`: the jitted `run` compiled for `args`, and how long it took."""
     start = time.perf_counter()
     compiled = run.lower(*args).compile()
-    compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(*args))
-    start = time.perf_counter()
-    out = jax.block_until_ready(compiled(*args))
-    return compile_s, time.perf_counter() - start, out
+    return compiled, time.perf_counter() - start
+
+
+def time_compiled(run, *args):
+    """`(compile_s, run_s, out)` of a jitted `run(*args)`: compile apart, then one
+    untimed run and one timed run (`time_runs`)."""
+    compiled, compile_s = compile_timed(run, *args)
+    (run_s,), out = time_runs(lambda: compiled(*args))
+    return compile_s, run_s, out

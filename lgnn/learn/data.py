@@ -1,9 +1,9 @@
 """Training data from the ground truth, cached on disk.
 
 Paper text (SPEC): 100 trajectories of the scene from the paper's chain sampler
-(`sample_initial_states`), each 1 s with a state every 0.01 s (100 states, t = 0 ..
-0.99 s), 10 000 states in all, split at random 75:25 into training and validation
-states. Trajectories are integrated with the ground-truth engine's RK4 at dt 1e-4 with
+(`physics.initial_states`; a user's scene gets `physics.sample_initial_conditions`),
+each 1 s with a state every 0.01 s (100 states, t = 0 .. 0.99 s), 10 000 states in
+all, split at random 75:25 into training and validation states. Trajectories are integrated with the ground-truth engine's RK4 at dt 1e-4 with
 projection onto the constraints. The targets are the exact accelerations
 `physics.true_acceleration_fn(scene)` at the saved states (the paper's code used a
 central finite difference of the positions, whose O(dt^2) error we avoid).
@@ -23,7 +23,7 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import jax
 import numpy as np
@@ -31,8 +31,10 @@ import numpy as np
 from lgnn import physics, sharding
 from lgnn import records
 from lgnn.errors import ConfigError
+from lgnn.files import user_cache_dir
+from lgnn.runtime import in_float64
 from lgnn.scene import Scene, scene_to_dict
-from lgnn.scene import get_scene, sample_initial_states
+from lgnn.scene import get_scene
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 
 # 2: an `lgnn.records` record (1: its own layout and checksum); part of the key, so
@@ -98,14 +100,14 @@ class Dataset(NamedTuple):
     val: np.ndarray
 
 
+@in_float64
 def generate(config: DataConfig, progress: bool = False) -> Dataset:
     """Integrate the trajectories and compute exact accelerations (module docstring)."""
     from tqdm.auto import tqdm
 
     scene = get_scene(config.scene)
     run, targets = _compiled(scene, config.simulation)
-    initial = sample_initial_states(scene, jax.random.PRNGKey(config.seed), config.n_trajectories)
-    initial_q, initial_qd = np.asarray(initial.q), np.asarray(initial.qd)
+    initial_q, initial_qd = physics.initial_states(scene, config.n_trajectories, config.seed)
     # One batch shape for every call (the last batch padded): one compile, sharded over
     # every local device.
     size = sharding.padded_size(min(config.chunk, config.n_trajectories))
@@ -163,9 +165,18 @@ def load(config: DataConfig, path: str | os.PathLike) -> Dataset:
     return Dataset(**arrays)
 
 
-def load_or_generate(config: DataConfig, cache_dir: str | os.PathLike | None = "results/datasets", progress: bool = False) -> Dataset:
+def default_cache_dir() -> Path:
+    """Where datasets are cached unless told otherwise: `datasets/` in the user's lgnn
+    cache (`lgnn.files.user_cache_dir`), whatever the working directory."""
+    return user_cache_dir() / "datasets"
+
+
+def load_or_generate(config: DataConfig, cache_dir: str | os.PathLike | None | Literal["default"] = "default", progress: bool = False) -> Dataset:
     """The cached dataset of `config`, generating (and caching) it when absent, corrupt
-    or stale. `cache_dir=None` disables the cache."""
+    or stale. The cache is `cache_dir` ("default": `default_cache_dir()`); `None`
+    disables it."""
+    if cache_dir == "default":
+        cache_dir = default_cache_dir()
     if cache_dir is None:
         return generate(config, progress)
     path = cache_path(config, cache_dir)

@@ -42,6 +42,12 @@ Architectures (paper section 3 and appendix):
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import importlib
+import importlib.util
+import os
+import sys
+from pathlib import Path
 from typing import Callable
 
 import jax
@@ -53,6 +59,7 @@ from lgnn.engines.lagrangian import SimulationConfig, Trajectory, rollout_fn, si
 from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
+from lgnn.runtime import precision
 from lgnn.scene import Scene, State
 
 
@@ -110,6 +117,49 @@ def register(spec: ModelSpec) -> ModelSpec:
         raise ConfigError(f"model {spec.name!r} is already registered")
     _REGISTRY[spec.name] = spec
     return spec
+
+
+# Where the models defined outside lgnn came from (`load_spec`): name -> reference.
+_SOURCES: dict[str, str] = {}
+
+
+def load_spec(reference: str, base: str | os.PathLike | None = None) -> ModelSpec:
+    """Import the `ModelSpec` at `module:attribute` (an importable module) or
+    `path/to/file.py:attribute` (relative to `base`, default the working directory),
+    register it, and return it: how a model defined outside lgnn enters training,
+    the benchmark's grid and its tables. `ConfigError` (one line) if it cannot."""
+    module_name, sep, attribute = reference.rpartition(":")
+    if not sep or not module_name or not attribute:
+        raise ConfigError(f"model reference {reference!r}: expected module:attribute or file.py:attribute")
+    if module_name.endswith(".py"):
+        path = (Path(base or ".") / module_name).resolve()
+        if not path.is_file():
+            raise ConfigError(f"model reference {reference!r}: no file {path}")
+        module_name, reference = f"lgnn_user_model_{hashlib.sha256(str(path).encode()).hexdigest()[:12]}", f"{path}:{attribute}"
+        if module_name not in sys.modules:
+            loader = importlib.util.spec_from_file_location(module_name, path)
+            module = importlib.util.module_from_spec(loader)
+            sys.modules[module_name] = module
+            try:
+                loader.loader.exec_module(module)
+            except Exception as err:
+                del sys.modules[module_name]
+                raise ConfigError(f"model reference {reference!r}: importing {path} failed ({type(err).__name__}: {err})") from None
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as err:
+        raise ConfigError(f"model reference {reference!r}: cannot import {module_name!r} ({type(err).__name__}: {err})") from None
+    spec = getattr(module, attribute, None)
+    if not isinstance(spec, ModelSpec):
+        raise ConfigError(f"model reference {reference!r}: {attribute!r} is not a lgnn.learn.models.ModelSpec")
+    register(spec)
+    _SOURCES[spec.name] = reference
+    return spec
+
+
+def model_source(name: str) -> str | None:
+    """The `load_spec` reference of a model defined outside lgnn (None for the built-ins)."""
+    return _SOURCES.get(name)
 
 
 def get_spec(name: str) -> ModelSpec:
@@ -516,6 +566,10 @@ class ModelEngine:
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, D))` of the batch as one compiled, vmapped run."""
         check_compatible(self.config, scene)
+        with precision(self.dtype):
+            return self._timed_rollout(scene, config, states)
+
+    def _timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         factory = AccelerationFactory(self.config)
         run = jax.jit(lambda params, q, qd: jax.vmap(rollout_fn(scene, config, lambda s: factory(s, params)))(q, qd))
         params = jax.tree.map(lambda leaf: jnp.asarray(leaf, self.dtype), self.params)

@@ -47,6 +47,7 @@ from lgnn.learn import models
 from lgnn import records
 from lgnn.learn.data import DataConfig, Dataset
 from lgnn.errors import CheckpointError, ConfigError
+from lgnn.runtime import in_float64
 from lgnn.scene import Scene
 
 CHECKPOINT_FORMAT = 1
@@ -206,6 +207,7 @@ def initial_state(model: models.ModelConfig, config: TrainConfig) -> TrainState:
     return TrainState(params, optimizer(config).init(params), params, float("inf"), -1, 0, [], 0.0)
 
 
+@in_float64
 def train(
     model: models.ModelConfig,
     config: TrainConfig,
@@ -289,6 +291,9 @@ def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: 
         "history": state.history,
         "elapsed_s": state.elapsed_s,
     }
+    if models.model_source(model.name):
+        # A model defined outside lgnn: where its code is, for the error that asks for it.
+        meta["model_source"] = models.model_source(model.name)
     records.save(path, arrays, meta)
 
 
@@ -315,9 +320,15 @@ def _restore(path, template, arrays: dict, prefix: str):
     return jax.tree.unflatten(treedef, restored)
 
 
+@in_float64  # parameters restored in the precision they were trained in
 def load_checkpoint(path) -> tuple[TrainState, dict]:
     """The training state and metadata of a checkpoint; `CheckpointError` if unusable."""
     meta, arrays = _read(path)
+    source = meta.get("model_source")
+    if source and meta["model"].get("name") not in models.model_names():
+        # Never imported from a file's say-so: loading code is the user's decision.
+        raise CheckpointError(f"{path}: model {meta['model'].get('name')!r} is defined outside lgnn ({source}): load it first "
+                              "(lgnn.learn.models.load_spec, or the config's model reference)")
     try:
         model = models.ModelConfig.from_dict(meta["model"])
         config = TrainConfig(**{**LEGACY_OPTIMISATION, **meta["train_config"]})
@@ -338,9 +349,23 @@ def check_resumable(path, model: models.ModelConfig, config: TrainConfig) -> tup
     `CheckpointError` (one line) if it is unusable or was written with other settings.
     Entry points call it before generating data, so a wrong `--resume` fails at once."""
     state, saved = load_checkpoint(path)
-    if saved["model"] != model.to_dict() or saved["train"] != training_key(config):
-        raise CheckpointError(f"{path}: cannot resume: it was written with other model or training settings")
+    differences = settings_differences(saved["model"], model.to_dict(), "model") + settings_differences(saved["train"], training_key(config), "train")
+    if differences:
+        raise CheckpointError(f"{path}: cannot resume: it was written with other settings ({'; '.join(differences)})")
     return state, saved
+
+
+def settings_differences(saved: dict, wanted: dict, prefix: str) -> list[str]:
+    """`"prefix.key: saved X, now Y"` for each setting that differs between two flat-ish
+    settings dicts (nested dicts are compared by key too), in key order."""
+    lines = []
+    for key in sorted(set(saved) | set(wanted)):
+        old, new = saved.get(key), wanted.get(key)
+        if isinstance(old, dict) and isinstance(new, dict):
+            lines += settings_differences(old, new, f"{prefix}.{key}")
+        elif old != new:
+            lines.append(f"{prefix}.{key}: checkpoint {old!r}, now {new!r}")
+    return lines
 
 
 def load_model(path) -> tuple[models.ModelConfig, dict]:
@@ -356,3 +381,35 @@ def seconds_to_reach(state: TrainState, target: float) -> float | None:
         if len(entry) >= 4 and entry[2] <= target:
             return float(entry[3])
     return None
+
+
+def physics_differences(meta: dict, scene: Scene) -> list[str]:
+    """How `scene`'s physical parameters differ from the scene a checkpoint was trained
+    on (gravity, drag, the link masses and inertias; the number and shape of links may
+    differ, that is generalisation): one phrase each, empty when they agree or when the
+    training scene is unknown or no longer loadable (a moved scene file)."""
+    from lgnn.errors import SceneError
+    from lgnn.scene import get_scene
+
+    source = (meta.get("data") or {}).get("scene")
+    try:
+        trained = get_scene(source) if source else None
+    except SceneError:
+        return []
+    if trained is None:
+        return []
+    differences = []
+    if not np.allclose(trained.gravity, scene.gravity):
+        differences.append(f"gravity {np.asarray(scene.gravity).tolist()} (trained on {np.asarray(trained.gravity).tolist()})")
+    if not np.isclose(trained.drag, scene.drag):
+        differences.append(f"drag {scene.drag:g} (trained on {trained.drag:g})")
+    for name in ("masses", "inertias"):
+        values, trained_values = (np.unique(np.round(getattr(s, name), 12)) for s in (scene, trained))
+        if values.shape != trained_values.shape or not np.allclose(values, trained_values):
+            differences.append(f"link {name} {_values(values)} (trained on {_values(trained_values)})")
+    return differences
+
+
+def _values(values: np.ndarray) -> str:
+    shown = ", ".join(f"{v:g}" for v in values[:4])
+    return f"{{{shown}{', ...' if len(values) > 4 else ''}}}"

@@ -1,7 +1,8 @@
 """Constrained Lagrangian mechanics of a scene in Cartesian node coordinates.
 
 Contract: every factory here takes a concrete `Scene` and returns pure functions of node
-arrays `q, qd` of shape (N, D) (no batching: `vmap` them; nothing here calls `jit`).
+arrays `q, qd` of shape (N, D) (no batching: `vmap` them; nothing here calls `jit`, but `sample_initial_conditions`,
+which returns checked NumPy arrays).
 Use float64 (`lgnn.configure()`) where accuracy matters.
 
 One module per idea, from the bottom up:
@@ -18,7 +19,10 @@ One module per idea, from the bottom up:
 - `dynamics`: the Euler-Lagrange transformer `acceleration_fn(scene, lagrangian,
   force_fn)` (true and learned Lagrangians go through the same solve) and the
   ground-truth `true_acceleration_fn`;
-- `projection`: `projection_fn`, back onto the constraint manifold after a step.
+- `projection`: `projection_fn`, back onto the constraint manifold after a step;
+- `sampling`: `sample_initial_conditions(scene, count, seed)`, random initial states of
+  any scene on its constraint manifold; `sample_states` (the paper's chain sampler where
+  it applies); `initial_states`, the benchmark's rule.
 """
 
 from lgnn.physics.constraints import Constraints, constraint_violation, velocity_constraint_violation
@@ -43,6 +47,7 @@ from lgnn.physics.energies import (
     potential_energy_per_link,
 )
 from lgnn.physics.projection import projection_fn
+from lgnn.physics.sampling import initial_states, sample_initial_conditions, sample_states
 from lgnn.physics.solvers import refine
 from lgnn.physics.system import System, prepare
 
@@ -60,6 +65,7 @@ __all__ = [
     "drag_force_fn",
     "energy_fn",
     "hamiltonian_fn",
+    "initial_states",
     "kinetic_energy_per_link",
     "lagrangian_fn",
     "mass_matrix_fn",
@@ -67,6 +73,8 @@ __all__ = [
     "prepare",
     "projection_fn",
     "refine",
+    "sample_initial_conditions",
+    "sample_states",
     "true_acceleration_fn",
     "vectorised_true_acceleration_fn",
     "velocity_constraint_violation",

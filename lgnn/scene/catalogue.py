@@ -314,6 +314,15 @@ HARD_SCENES: dict[str, BuiltinScene] = {
 }
 
 
+def is_catalogue_scene(scene: Scene) -> bool:
+    """Whether `scene` is a built-in or hard-case scene (by content, not by name alone:
+    a user's file may reuse a name)."""
+    for catalogue in (BUILTIN_SCENES, HARD_SCENES):
+        if scene.name in catalogue:
+            return catalogue[scene.name].build() == scene
+    return False
+
+
 def get_scene(name_or_path: str) -> Scene:
     """A built-in or hard-case scene by name, or a user's scene JSON file by path."""
     for catalogue in (BUILTIN_SCENES, HARD_SCENES):

@@ -339,7 +339,7 @@ def check_scene(scene: Scene) -> None:
     if not stretch[k] <= LENGTH_TOLERANCE:
         raise _fail(
             f"links[{k}]",
-            f"initial positions violate the link length: nodes {i[k]}-{j[k]} are {distance[k]!r} apart, length is {lengths[k]!r}",
+            f"initial positions violate the link length: nodes {i[k]}-{j[k]} are {float(distance[k])!r} apart, length is {float(lengths[k])!r}",
         )
     pinned = list(scene.pinned)
     if pinned and np.any(scene.velocities[pinned] != 0):

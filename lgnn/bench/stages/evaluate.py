@@ -45,7 +45,7 @@ from lgnn.bench.timing import batched_rollouts, compiled_rollouts
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models, train
-from lgnn.scene import Scene, State, get_scene, is_pinned_chain, sample_initial_states, scene_to_dict
+from lgnn.scene import Scene, State, get_scene, is_catalogue_scene, is_pinned_chain, scene_to_dict
 
 # Metrics recorded per frame and initial condition, for a model and the rest baseline.
 METRICS = ("rollout_error", "energy_error", "rollout_error_vs_mujoco", "node_rms_error")
@@ -62,11 +62,12 @@ SNAPSHOT_DT = 0.01
 
 
 def initial_states(profile: Profile, scene: Scene) -> State:
-    """The evaluation initial conditions (C, N, D): `initial_conditions` samples of the
-    paper's chain sampler (seed `ic_seed`), or the scene's own state (C = 1)."""
-    count = profile.evaluate.initial_conditions if is_pinned_chain(scene) else 1
-    states = sample_initial_states(scene, jax.random.PRNGKey(profile.evaluate.ic_seed), count)
-    return State(np.asarray(states.q), np.asarray(states.qd))
+    """The evaluation initial conditions (C, N, D), seed `ic_seed` (`physics.initial_states`):
+    `initial_conditions` samples of the paper's chain sampler on a chain, or of
+    `physics.sample_initial_conditions` on a user's scene; a built-in scene's own
+    state (C = 1) otherwise (T1-T3)."""
+    count = profile.evaluate.initial_conditions if is_pinned_chain(scene) or not is_catalogue_scene(scene) else 1
+    return physics.initial_states(scene, count, profile.evaluate.ic_seed)
 
 
 def truth_key(profile: Profile, scene_name: str) -> str:

@@ -1,0 +1,38 @@
+"""`lgnn dataset export`: a profile's training data of a scene and its evaluation
+initial conditions in one documented file (`lgnn.learn.export`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import numpy as np
+
+from lgnn.bench.grid import Profile
+from lgnn.bench.stages.evaluate import initial_states
+from lgnn.learn import data, export
+from lgnn.scene import get_scene, scene_to_dict
+
+
+def export_scene(profile: Profile, scene_name: str, out: str | os.PathLike, cache_dir: str | os.PathLike | None, progress: bool = False) -> dict:
+    """Write `scene_name`'s training data (the profile's `training.data` settings) and
+    evaluation initial conditions to `out`; returns the arrays' shapes."""
+    export.check_path(out)
+    scene = get_scene(scene_name)
+    config = dataclasses.replace(profile.training.data, scene=scene_name)
+    dataset = data.load_or_generate(config, cache_dir, progress=progress)
+    evaluation = initial_states(profile, scene)
+    simulation = profile.evaluate.simulation(scene_name)
+    arrays = {
+        **dataset._asdict(),
+        "t": np.tile(np.arange(config.states_per_trajectory) * config.sample_dt, config.n_trajectories),
+        "eval_q0": np.asarray(evaluation.q), "eval_qd0": np.asarray(evaluation.qd),
+    }
+    meta = {
+        "scene": scene_to_dict(scene),
+        "data": dataclasses.asdict(config),
+        "profile": profile.name,
+        "evaluation": {**dataclasses.asdict(simulation), "seed": profile.evaluate.ic_seed},
+    }
+    export.export_dataset(out, arrays, meta)
+    return {name: value.shape for name, value in arrays.items()}

@@ -1,0 +1,194 @@
+"""Scoring anything against anything: a checkpoint on any scene, or two trajectory files.
+
+The benchmark's evaluation stage (`lgnn.bench.stages.evaluate`) scores the grid's
+models on the grid's scenes; this module gives the same metrics (`lgnn.metrics.
+score_rollouts`: rollout error, energy error, per-node RMS error, divergence; their
+geometric mean over frames and initial conditions with a bootstrap interval,
+`lgnn.metrics.summarise`) to the `lgnn evaluate` and `lgnn compare` commands.
+
+- `evaluate_model(model, params, scene, config, states)`: the model's rollouts from the
+  initial `states` (C, N, D), scored against the Lagrangian engine and MuJoCo C run
+  with the same settings. The model's rollout is not stopped at divergence (its frames
+  from there count as each metric's maximum, as in the benchmark); a reference that
+  diverges stops with `SimulationError` (an error against it would mean nothing).
+- `compare_trajectories(reference, other)`: one trajectory file against another (the
+  scene from the reference's metadata).
+- `Scored`: per-frame scores of one prediction against one reference; `frame_table`
+  (tidy: `scene, model, reference, initial_condition, t, metric, value`) and
+  `summary_rows` turn a list of them into tables; `write_outputs` writes them.
+
+Units: positions in the scene's length unit (m), energies in its energy unit (J),
+times in s; the relative errors are dimensionless.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import numpy as np
+
+from lgnn import metrics, physics
+from lgnn.bench.tables import write_csv, write_table
+from lgnn.bench.timing import batched_rollouts
+from lgnn.engines import get_engine
+from lgnn.engines.lagrangian import SimulationConfig, Trajectory
+from lgnn.errors import ConfigError
+from lgnn.learn import models
+from lgnn.scene import Scene, State, scene_from_dict
+
+# Unit of each metric of `metrics.ROLLOUT_METRICS` in the tables.
+METRIC_UNITS = {"rollout_error": "1", "energy_error": "1", "node_rms_error": "m"}
+# Initial conditions per compiled model rollout (`batched_rollouts`): a handful per
+# call keeps the compile small on a CPU.
+CHUNK = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class Scored:
+    """Scores of predicted trajectories against a reference: `t` (F - 1,) frame times
+    after the initial one, `errors` {metric: clean errors (C, F - 1)} for each of
+    `metrics.ROLLOUT_METRICS`, `diverged` (C,) the first diverged frame (an index
+    into the full trajectory, frame 0 the initial state) or -1."""
+
+    scene: str
+    model: str
+    reference: str
+    t: np.ndarray
+    errors: dict
+    diverged: np.ndarray
+
+
+def score(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference_q: np.ndarray, reference_qd: np.ndarray,
+          model: str, reference: str) -> Scored:
+    """`Scored` of predictions `q`, `qd` (C, F, N, D) at times `t` (F,) against reference
+    states (C, F, N, D); the reference's energies are the scene's true `H` of its states."""
+    reference_energy = metrics.true_energies(scene, reference_q, reference_qd)
+    errors, diverged = metrics.score_rollouts(scene, t, q, qd, reference_q, reference_energy)
+    return Scored(scene.name, model, reference, np.asarray(t)[1:], errors, diverged)
+
+
+def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config: SimulationConfig, states: State,
+                   progress: bool = False) -> tuple[list[Scored], dict[str, Trajectory]]:
+    """The model's rollouts from `states` (C, N, D) scored against the Lagrangian engine
+    and MuJoCo C (the same `config`), and the three trajectories of initial condition 0
+    (`{"model", "lagrangian", "mujoco"}`, for `lgnn animate` and `lgnn plot`)."""
+    models.check_compatible(model, scene)
+    states = State(np.asarray(states.q, np.float64), np.asarray(states.qd, np.float64))
+    references = {name: get_engine(name, progress=progress).rollout(scene, config, states) for name in ("lagrangian", "mujoco")}
+    accel_factory = lambda s: models.acceleration_fn(model, params, s)  # noqa: E731
+    q, qd, _, _ = batched_rollouts(scene, config, accel_factory, states, CHUNK, f"{model.name} on {scene.name}", progress)
+    t = references["lagrangian"].t
+    scored = [score(scene, t, q, qd, truth.q, truth.qd, model.name, name) for name, truth in references.items()]
+    metadata = {**references["lagrangian"].metadata, "model": model.to_dict()}
+    predicted = Trajectory(t, q[0], qd[0], metrics.true_energies(scene, q[0], qd[0]), metadata)
+    return scored, {"model": predicted, **{name: truth.member(0) for name, truth in references.items()}}
+
+
+def trajectory_scene(trajectory: Trajectory, path: str | os.PathLike) -> Scene:
+    """The scene a trajectory file was made on (its metadata's `scene`)."""
+    if "scene" not in trajectory.metadata:
+        raise ConfigError(f"{path}: the trajectory file names no scene (write it with lgnn simulate or lgnn rollout)")
+    return scene_from_dict(trajectory.metadata["scene"])
+
+
+def load_trajectories(paths) -> tuple[Scene, list[Trajectory], int]:
+    """`(scene, trajectories, frames)`: the files at `paths`, the first one's scene, and
+    the frames they share. `ConfigError` (one line) if their shapes or frame times
+    differ (a shorter file, a rollout that stopped, is compared over its frames)."""
+    trajectories = [Trajectory.load(path) for path in paths]
+    scene = trajectory_scene(trajectories[0], paths[0])
+    for path, trajectory in zip(paths, trajectories):
+        if trajectory.q.ndim != 3 or trajectory.q.shape[1:] != (scene.n_nodes, scene.dim):
+            raise ConfigError(f"{path}: positions of shape {trajectory.q.shape}, expected (frames, {scene.n_nodes}, {scene.dim}) "
+                              f"as in {paths[0]}")
+    frames = min(len(trajectory.t) for trajectory in trajectories)
+    for path, trajectory in zip(paths[1:], trajectories[1:]):
+        if not np.allclose(trajectory.t[:frames], trajectories[0].t[:frames], rtol=1e-9, atol=1e-12):
+            raise ConfigError(f"{path}: frame times differ from {paths[0]}'s (simulate both with the same --frame-dt)")
+    return scene, trajectories, frames
+
+
+def compare_trajectories(paths) -> tuple[Scored, list[str]]:
+    """The second file of `paths` (two trajectory files) scored against the first, over
+    the frames they share, and notes on what differs (frame counts, scenes)."""
+    scene, (reference, other), frames = load_trajectories(paths)
+    notes = []
+    if len(reference.t) != len(other.t):
+        notes.append(f"compared over the {frames} frames both files have ({len(reference.t)} and {len(other.t)})")
+    if "scene" in other.metadata and other.metadata["scene"] != reference.metadata["scene"]:
+        notes.append(f"the files' scenes differ; energies are {scene.name}'s (from {paths[0]})")
+    take = lambda a: np.asarray(a[:frames], np.float64)[None]  # noqa: E731
+    scored = score(scene, reference.t[:frames], take(other.q), take(other.qd), take(reference.q), take(reference.qd),
+                   Path(paths[1]).name, Path(paths[0]).name)
+    return scored, notes
+
+
+def frame_table(scored: list[Scored]):
+    """Tidy per-frame table (pandas): `scene, model, reference, initial_condition, t,
+    metric, unit, value, diverged` (diverged: the frame is at or after the prediction's
+    divergence, so `value` is the metric's maximum)."""
+    import pandas as pd
+
+    parts = []
+    for item in scored:
+        for metric, errors in item.errors.items():
+            count, frames = errors.shape
+            ic = np.repeat(np.arange(count), frames)
+            frame = np.tile(np.arange(1, frames + 1), count)
+            after = (item.diverged[ic] >= 0) & (frame >= item.diverged[ic])
+            parts.append(pd.DataFrame({"scene": item.scene, "model": item.model, "reference": item.reference, "initial_condition": ic,
+                                       "t": np.tile(item.t, count), "metric": metric, "unit": METRIC_UNITS[metric],
+                                       "value": errors.ravel(), "diverged": after}))
+    return pd.concat(parts, ignore_index=True)
+
+
+SUMMARY_COLUMNS = ("scene", "model", "reference", "metric", "unit", "initial_conditions", "gmean", "low", "high", "final", "diverged")
+
+
+def summary_rows(scored: list[Scored], seed: int = 0) -> list[dict]:
+    """One row per (scene, model, reference, metric): the geometric mean over frames and
+    initial conditions with its bootstrap 95% interval (`metrics.summarise`; NaN for one
+    initial condition), the geometric mean over initial conditions at the last frame,
+    and how many initial conditions diverged."""
+    rows = []
+    for item in scored:
+        for metric, errors in item.errors.items():
+            statistics = metrics.error_statistics(errors)
+            gmean, low, high = metrics.summarise(statistics["per_ic_log"], seed)
+            rows.append(dict(scene=item.scene, model=item.model, reference=item.reference, metric=metric, unit=METRIC_UNITS[metric],
+                             initial_conditions=len(errors), gmean=gmean, low=low, high=high, final=float(statistics["gmean"][-1]),
+                             diverged=int(np.sum(item.diverged >= 0))))
+    return rows
+
+
+def format_summary(rows: list[dict]) -> str:
+    """The summary rows as an aligned text table, for the terminal."""
+    header = ("scene", "model", "reference", "metric", "gmean", "95% interval", "final", "diverged")
+    lines = [[r["scene"], r["model"], r["reference"], f"{r['metric']} ({r['unit']})", f"{r['gmean']:.3e}",
+              "-" if np.isnan(r["low"]) else f"[{r['low']:.2e}, {r['high']:.2e}]", f"{r['final']:.3e}",
+              f"{r['diverged']}/{r['initial_conditions']}"] for r in rows]
+    widths = [max(len(str(cell)) for cell in column) for column in zip(header, *lines)]
+    return "\n".join("  ".join(str(cell).ljust(width) for cell, width in zip(line, widths)).rstrip() for line in [header, *lines])
+
+
+def write_outputs(scored: list[Scored], out_dir: str | os.PathLike, stem: str, title: str, header=(), notes=()) -> list[Path]:
+    """Write `STEM_frames.csv` (`frame_table`) and `STEM_summary.csv` / `.md`
+    (`summary_rows`) into `out_dir`, atomically; the paths written."""
+    out = Path(out_dir)
+    frames, summary_csv, summary_md = out / f"{stem}_frames.csv", out / f"{stem}_summary.csv", out / f"{stem}_summary.md"
+    write_csv(frame_table(scored), frames)
+    notes = ("gmean: geometric mean over frames t > 0 and initial conditions; low, high: bootstrap 95% interval over initial "
+             "conditions (empty for one); final: geometric mean at the last frame; from a diverged frame on, an error counts "
+             "as its maximum (1, or for node_rms_error the divergence rule's reach)", *notes)
+    write_table(summary_rows(scored), SUMMARY_COLUMNS, summary_csv, summary_md, title, header, notes)
+    return [frames, summary_csv, summary_md]
+
+
+def initial_states(scene: Scene, count: int, seed: int) -> State:
+    """The scene's own state (count 1) or `count` sampled initial conditions
+    (`lgnn.physics.sample_states` with `seed`), (count, N, D)."""
+    if count == 1:
+        return State(np.asarray(scene.nodes, np.float64)[None], np.asarray(scene.velocities, np.float64)[None])
+    return physics.sample_states(scene, count, seed)

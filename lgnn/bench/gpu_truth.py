@@ -1,0 +1,209 @@
+"""GPU ground truth: every engine on the same batches of initial states, one run per scene.
+
+`measure(scene, settings)` runs, for each batch size, lgnn's Lagrangian engine in
+float64 (the reference) and the engines of `settings.engines` (name:dtype; the
+Lagrangian engine in float32, MJX, MuJoCo Warp) from the same `batch` initial states
+(`lgnn.scene.sample_initial_states`, seed `settings.seed`) for `settings.steps` RK4
+steps of `settings.dt`, and returns tidy rows:
+
+`scene, engine, dtype, form, batch, steps, steps_per_s, steps_per_s_min,
+steps_per_s_max, compile_s, max_node_error, finite_worlds, note`
+
+- speed: batch x steps / run time, the median of `repeats` timed runs after an untimed
+  one (`lgnn.engines.timing.time_runs`), with their min and max; compile apart (JAX:
+  the executable; MuJoCo Warp: its kernels and the CUDA graph of the steps);
+- error: max node position error after the last step against the float64 Lagrangian
+  reference of the same batch; NaN when any world is non-finite, and `finite_worlds`
+  says how many are finite (never a number made of the finite ones only).
+
+A run that cannot be made (an engine not installed, a model an engine rejects, out of
+device memory) is a row whose note says why, so one scene's table is never lost to one
+engine. `write(rows, out_dir, scene, command)` writes `gpu_truth_<scene>.csv` and `.md`
+(`lgnn.bench.tables`) with the command, machine, versions and commit
+(`lgnn.provenance`).
+
+Precision (issue 14: "float32 on a GPU: chosen how?"): the process runs with JAX's
+float64 on (`lgnn.configure()`), and an engine's precision is that of its inputs: a
+float32 Lagrangian run is traced from float32 states, and its compiled program holds
+no float64 operation (tests/test_gpu_truth.py checks the lowered text). Turning x64
+off for it instead fails (the cached int64 index arrays meet int32 ones). MJX float32
+traces under x64 off (`lgnn.engines.mjx.precision`, its own constants); MuJoCo Warp is
+float32 only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn import physics, provenance
+from lgnn.bench.tables import write_table
+from lgnn.bench.timing import compiled_rollouts
+from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.timing import compile_timed, time_runs
+from lgnn.errors import ConfigError, LgnnError
+from lgnn.scene import Scene, State, sample_initial_states
+
+ENGINE_NAMES = ("lagrangian", "mjx", "mjwarp")
+REFERENCE = "lagrangian:float64"
+COLUMNS = ("scene", "engine", "dtype", "form", "batch", "steps", "steps_per_s", "steps_per_s_min", "steps_per_s_max",
+           "compile_s", "max_node_error", "finite_worlds", "note")
+
+
+@dataclasses.dataclass(frozen=True)
+class GpuTruthSettings:
+    # The issue's scenes and batches (issue 14, item 5).
+    scenes: tuple[str, ...] = ("chain4", "chain16", "chain100", "T1")
+    batches: tuple[int, ...] = (1024, 8192, 65536)
+    # Engines besides the float64 reference, as name:dtype (MuJoCo Warp: float32 only).
+    engines: tuple[str, ...] = ("lagrangian:float32", "mjx:float32", "mjwarp:float32")
+    # The issue's measured table: RK4 at dt 1e-3; 100 steps is 0.1 s of motion, enough
+    # for float32 and soft loop closures to show their error.
+    steps: int = 100
+    dt: float = 1e-3
+    # Timed runs per engine and batch (the spread); one untimed run comes before them.
+    repeats: int = 3
+    # MJCF form of the MuJoCo engines (`lgnn.engines.mjcf`).
+    form: str = "nested"
+    seed: int = 0
+
+    def __post_init__(self):
+        for spec in self.engines:
+            name, _, dtype = spec.partition(":")
+            if name not in ENGINE_NAMES or dtype not in ("float32", "float64"):
+                raise ConfigError(f"--engines: {spec!r} is not name:dtype with name in {', '.join(ENGINE_NAMES)} and dtype float32 or float64")
+            if name == "mjwarp" and dtype != "float32":
+                raise ConfigError("--engines: MuJoCo Warp computes in float32 only (mjwarp:float32)")
+        if min(self.batches, default=0) < 1 or self.steps < 1 or self.repeats < 1 or not self.dt > 0:
+            raise ConfigError("batches, steps and repeats must be positive whole numbers and dt positive")
+
+    @property
+    def config(self) -> SimulationConfig:
+        """One frame after `steps` steps: only the final state is compared."""
+        duration = self.steps * self.dt
+        return SimulationConfig(integrator="rk4", dt=self.dt, frame_dt=duration, duration=duration)
+
+
+def _initial_states(scene: Scene, settings: GpuTruthSettings) -> State:
+    states = sample_initial_states(scene, jax.random.key(settings.seed), max(settings.batches))
+    return State(np.asarray(states.q, np.float64), np.asarray(states.qd, np.float64))
+
+
+def _lagrangian(scene: Scene, config: SimulationConfig, states: State, dtype: str, repeats: int):
+    factory = physics.vectorised_true_acceleration_fn if len(states.q) > 1 else physics.true_acceleration_fn
+    compiled, compile_s = compiled_rollouts(scene, config, factory, len(states.q), dtype)
+    q, qd = jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype)
+    run_s, out = time_runs(lambda: compiled(q, qd), repeats)
+    return compile_s, run_s, np.asarray(out.q[:, -1], np.float64)
+
+
+def _mjx(scene: Scene, config: SimulationConfig, states: State, dtype: str, repeats: int, form: str):
+    from lgnn.engines import mjx
+
+    if form != "nested":
+        raise ConfigError(f"MJX takes no MJCF form yet (only nested), asked for {form!r}")
+    run = mjx.runner(scene, config, dtype)
+    with mjx.precision(dtype):
+        q, qd = jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype)
+        compiled, compile_s = compile_timed(run, q, qd)
+        run_s, (q_out, _) = time_runs(lambda: compiled(q, qd), repeats)
+    return compile_s, run_s, np.asarray(q_out[:, -1], np.float64)
+
+
+def _mjwarp(scene: Scene, config: SimulationConfig, states: State, repeats: int, form: str):
+    from lgnn.engines import mjwarp
+
+    run = mjwarp.runner(scene, config, len(states.q), form)
+    compile_s = run.prepare()
+    qpos, qvel = mjwarp.initial_qpos_qvel(run.compiled, states)
+    run_s, _ = time_runs(lambda: run.run(qpos, qvel), repeats)
+    return compile_s, run_s, run.nodes(frames=[config.n_frames]).q[:, 0]
+
+
+def _run(spec: str, scene: Scene, config: SimulationConfig, states: State, settings: GpuTruthSettings):
+    """`(compile_s, run_s list, final q (B, N, 2))` of engine `spec` (name:dtype)."""
+    name, _, dtype = spec.partition(":")
+    if name == "lagrangian":
+        return _lagrangian(scene, config, states, dtype, settings.repeats)
+    if name == "mjx":
+        return _mjx(scene, config, states, dtype, settings.repeats, settings.form)
+    return _mjwarp(scene, config, states, settings.repeats, settings.form)
+
+
+def _out_of_memory(err: Exception) -> bool:
+    # XLA's and CUDA's allocation failures are runtime errors of their own types; they
+    # are told apart by their messages.
+    text = str(err)
+    return any(mark in text for mark in ("RESOURCE_EXHAUSTED", "out of memory", "Failed to allocate"))
+
+
+def measure(scene: Scene, settings: GpuTruthSettings, log=print) -> list[dict]:
+    """Tidy rows of every engine and batch on `scene` (module docstring)."""
+    config = settings.config
+    all_states = _initial_states(scene, settings)
+    rows = []
+    for batch in settings.batches:
+        states = State(all_states.q[:batch], all_states.qd[:batch])
+        reference = None
+        for spec in (REFERENCE,) + tuple(s for s in settings.engines if s != REFERENCE):
+            name, _, dtype = spec.partition(":")
+            row = dict(scene=scene.name, engine=name, dtype=dtype, form=settings.form if name != "lagrangian" else "",
+                       batch=batch, steps=settings.steps, steps_per_s=float("nan"), steps_per_s_min=float("nan"),
+                       steps_per_s_max=float("nan"), compile_s=float("nan"), max_node_error=float("nan"), finite_worlds=0, note="")
+            try:
+                compile_s, run_s, q = _run(spec, scene, config, states, settings)
+            except LgnnError as err:
+                row["note"] = f"not run: {err}"
+            except Exception as err:  # noqa: BLE001 (only allocation failures are a row)
+                if not _out_of_memory(err):
+                    raise
+                row["note"] = "not run: out of device memory"
+            else:
+                speeds = [batch * settings.steps / s for s in run_s]
+                finite = np.isfinite(q).all(axis=(1, 2))
+                row.update(steps_per_s=statistics.median(speeds), steps_per_s_min=min(speeds), steps_per_s_max=max(speeds),
+                           compile_s=compile_s, finite_worlds=int(finite.sum()))
+                if spec == REFERENCE:
+                    reference = q if finite.all() else None
+                    row["max_node_error"] = 0.0 if finite.all() else float("nan")
+                    row["note"] = "reference" if finite.all() else "reference non-finite: no errors for this batch"
+                elif not finite.all():
+                    row["note"] = f"non-finite in {batch - int(finite.sum())} of {batch} worlds"
+                elif reference is None:
+                    row["note"] = "no float64 reference for this batch"
+                else:
+                    row["max_node_error"] = float(np.max(np.abs(q - reference)))
+            rows.append(row)
+            log(f"{scene.name} {spec} batch {batch}: {row['steps_per_s']:.3g} steps/s ({row['steps_per_s_min']:.3g}..{row['steps_per_s_max']:.3g}), "
+                f"compile {row['compile_s']:.1f} s, error {row['max_node_error']:.2e} {row['note']}".rstrip())
+    return rows
+
+
+def header(command: str) -> list[str]:
+    """Provenance lines: command, machine, versions (MuJoCo Warp's when installed), commit."""
+    from lgnn.engines import mjwarp
+
+    versions = provenance.versions() + (f", {mjwarp.versions()}" if mjwarp.available() else ", mujoco-warp absent")
+    return [f"command: {command}", f"machine: {provenance.device()}", f"versions: {versions}", f"commit: {provenance.commit()}"]
+
+
+NOTES = (
+    "steps/s: batch x steps / run time, median of the timed runs (min..max beside it), compile apart; RK4",
+    "error: max node position error after the last step against lgnn's Lagrangian engine in float64 from the same initial "
+    "states; NaN where any world is non-finite (finite_worlds counts the finite ones)",
+    "precision: JAX engines run in the dtype of their inputs with x64 on (no float64 operation in a float32 program); "
+    "MuJoCo Warp is float32 only",
+)
+
+
+def write(rows: list[dict], out_dir, name: str, command: str, settings: GpuTruthSettings) -> str:
+    """`gpu_truth_<name>.csv` and `.md` in `out_dir` (`name`: the scene's, and a suffix
+    where one scene's engines are split over calls); returns the markdown path."""
+    stem = f"{out_dir}/gpu_truth_{name}"
+    notes = NOTES + (f"settings: steps {settings.steps}, dt {settings.dt:g}, repeats {settings.repeats}, form {settings.form}, seed {settings.seed}",)
+    write_table(rows, COLUMNS, f"{stem}.csv", f"{stem}.md", f"GPU ground truth: {name}", header(command), notes)
+    return f"{stem}.md"

@@ -1,0 +1,253 @@
+"""MuJoCo Warp: MuJoCo's Warp engine on the scene's MuJoCo model, many worlds at once.
+
+An optional extra (`pip install 'lgnn[mjwarp]'`: `mujoco-warp`, `warp-lang`); without
+it, using this engine is a one-line `ConfigError`. Warp runs on a CUDA GPU, or on its
+CPU backend where there is none (slow: ~200 s of kernel compilation on a 2-core CPU
+the first time, cached on disk by Warp afterwards), so a machine without a GPU can
+still check it.
+
+- `Runner` holds the device model and a `Data` of B worlds for one (scene, config,
+  batch, form); `runner(...)` builds it once per process (`lru_cache`).
+- `Runner.run(q0, qd0)`: node states (B, N, 2) -> MuJoCo `(qpos, qvel)` by MuJoCo C's
+  state map (`lgnn.engines.mujoco.state_to_qpos_qvel`), then `config.n_frames` frames
+  of `steps_per_frame` `mjw.step`s (captured as one CUDA graph per frame on a GPU),
+  the state of every frame kept on the device. `Runner.nodes(...)` maps them back
+  with MuJoCo Warp's own kinematics: node positions are site positions, velocities
+  the site velocities from each body's spatial velocity (`cvel`, about its tree's
+  centre of mass, as `mj_objectVelocity`), so any MJCF form maps the same way.
+- `MjwarpEngine` is the `lgnn.engines.Engine` on top.
+
+Precision: MuJoCo Warp computes in float32 only (`dtype` is always "float32"); the
+maps around it are float64. Solver settings are the MJCF's (Newton, equality rows
+only) except the Jacobian: MuJoCo Warp refuses a dense one beyond 60 degrees of
+freedom, so it gets MuJoCo's automatic choice (sparse from 60 on). Drag scenes are
+refused: their force needs the state at every step, which MuJoCo C and MJX compute
+outside the step (`xfrc_applied`) and this engine does not.
+
+`form` is the MJCF form (`lgnn.engines.mjcf`); "nested" (joint coordinates) is what
+`compile_scene` renders today, and other forms are passed on to it by name.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import functools
+import time
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn.engines.lagrangian import SimulationConfig, Trajectory
+from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, state_to_qpos_qvel
+from lgnn.engines.timing import time_runs
+from lgnn.errors import ConfigError, SimulationError
+from lgnn.scene import Scene, State
+
+INSTALL_HINT = "pip install 'lgnn[mjwarp]' (mujoco-warp, warp-lang)"
+# The MJCF form when none is given: the one `mjcf/` holds.
+DEFAULT_FORM = "nested"
+
+
+def _modules():
+    """`(warp, mujoco_warp, mujoco)`, imported on first use; `ConfigError` when absent."""
+    try:
+        import mujoco
+        import mujoco_warp
+        import warp
+    except ImportError as err:
+        raise ConfigError(f"the mjwarp engine needs MuJoCo Warp, which is not installed ({err.name} missing): {INSTALL_HINT}") from None
+    # Warp logs a line per compiled kernel module otherwise (dozens on a first run).
+    warp.config.log_level = warp.LOG_WARNING
+    return warp, mujoco_warp, mujoco
+
+
+def available() -> bool:
+    """Whether MuJoCo Warp can be imported (tests and the GPU measurement skip it otherwise)."""
+    try:
+        _modules()
+    except ConfigError:
+        return False
+    return True
+
+
+def versions() -> str:
+    """`mujoco-warp X, warp-lang Y` of the installed packages."""
+    warp, mujoco_warp, _ = _modules()
+    return f"mujoco-warp {mujoco_warp.__version__}, warp-lang {warp.__version__}"
+
+
+def _compile(scene: Scene, dt: float, form: str):
+    # Only the nested form is rendered on this branch; another form is passed by name
+    # to `compile_scene`, which checks it once it renders more than one.
+    if form == DEFAULT_FORM:
+        return compile_scene(scene, dt)
+    try:
+        return compile_scene(scene, dt, form=form)
+    except TypeError:
+        raise ConfigError(f"MJCF form {form!r} is not available in this lgnn (only {DEFAULT_FORM!r})") from None
+
+
+@dataclasses.dataclass(eq=False)
+class Runner:
+    """MuJoCo Warp's model and B worlds of one scene (module docstring). Mutable: its
+    `data` holds the worlds' state between calls."""
+
+    compiled: object
+    config: SimulationConfig
+    batch: int
+    device: str
+    model: object
+    data: object
+    qpos_frames: object  # (F+1, B, nq) on the device
+    qvel_frames: object
+    graph: object = None  # one frame of steps, captured on a CUDA device
+    compile_s: float = float("nan")
+
+    def _frame(self) -> None:
+        _, mjw, _ = _modules()
+        for _ in range(self.config.steps_per_frame):
+            mjw.step(self.model, self.data)
+
+    def prepare(self) -> float:
+        """Compile the step's kernels (and capture a frame's CUDA graph): seconds taken,
+        once per runner. Leaves the worlds' state to be reset by `run`."""
+        if self.graph is None and np.isnan(self.compile_s):
+            wp, mjw, _ = _modules()
+            start = time.perf_counter()
+            with wp.ScopedDevice(self.device):
+                if wp.get_device(self.device).is_cuda:
+                    mjw.step(self.model, self.data)  # loads the modules before the capture
+                    with wp.ScopedCapture() as capture:
+                        self._frame()
+                    self.graph = capture.graph
+                else:
+                    mjw.step(self.model, self.data)
+                wp.synchronize_device(self.device)
+            self.compile_s = time.perf_counter() - start
+        return self.compile_s
+
+    def run(self, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        """Step the B worlds from `qpos` (B, nq), `qvel` (B, nv) through every frame,
+        keeping each frame's state on the device; returns when the device is done."""
+        wp, mjw, _ = _modules()
+        self.prepare()
+        with wp.ScopedDevice(self.device):
+            mjw.reset_data(self.model, self.data)
+            wp.copy(self.data.qpos, wp.array(np.asarray(qpos, np.float32), dtype=wp.float32))
+            wp.copy(self.data.qvel, wp.array(np.asarray(qvel, np.float32), dtype=wp.float32))
+            wp.copy(self.qpos_frames[0], self.data.qpos)
+            wp.copy(self.qvel_frames[0], self.data.qvel)
+            for f in range(1, self.config.n_frames + 1):
+                if self.graph is not None:
+                    wp.capture_launch(self.graph)
+                else:
+                    self._frame()
+                wp.copy(self.qpos_frames[f], self.data.qpos)
+                wp.copy(self.qvel_frames[f], self.data.qvel)
+            wp.synchronize_device(self.device)
+
+    def nodes(self, frames=None) -> State:
+        """Node states (B, len(frames), N, 2) (float64) of the last `run`'s `frames`
+        (default: all), by MuJoCo Warp's kinematics (module docstring)."""
+        wp, mjw, _ = _modules()
+        frames = range(self.config.n_frames + 1) if frames is None else frames
+        c, m, d = self.compiled, self.model, self.data
+        root = c.model.body_rootid[c.model.site_bodyid[c.node_site]]
+        body = c.model.site_bodyid[c.node_site]
+        qs, qds = [], []
+        with wp.ScopedDevice(self.device):
+            for f in frames:
+                wp.copy(d.qpos, self.qpos_frames[f])
+                wp.copy(d.qvel, self.qvel_frames[f])
+                mjw.fwd_kinematics(m, d)
+                mjw.fwd_velocity(m, d)  # cvel
+                x = d.site_xpos.numpy()[:, c.node_site].astype(np.float64)
+                cvel = d.cvel.numpy()[:, body].astype(np.float64)
+                centre = d.subtree_com.numpy()[:, root].astype(np.float64)
+                v = cvel[..., 3:] + np.cross(cvel[..., :3], x - centre)
+                qs.append(x[..., :2])
+                qds.append(v[..., :2])
+        return State(np.stack(qs, 1), np.stack(qds, 1))
+
+
+@functools.lru_cache(maxsize=8)
+def runner(scene: Scene, config: SimulationConfig, batch: int, form: str = DEFAULT_FORM, device: str | None = None) -> Runner:
+    """The `Runner` of `batch` worlds (cached on the scene's content, settings, batch,
+    form and device; default device: Warp's preferred, a GPU when there is one)."""
+    wp, mjw, mujoco = _modules()
+    check_rk4(config)
+    if scene.drag:
+        raise ConfigError(f"{scene.name}: the mjwarp engine does not model drag (use mujoco or mjx)")
+    compiled = _compile(scene, config.dt, form)
+    model = copy.copy(compiled.model)  # the compiled model is shared (cached): change a copy
+    model.opt.jacobian = mujoco.mjtJacobian.mjJAC_AUTO
+    device = str(wp.get_device(device))
+    with wp.ScopedDevice(device):
+        try:
+            m = mjw.put_model(model)
+            d = mjw.make_data(model, nworld=batch)
+        except (ValueError, NotImplementedError) as err:
+            raise ConfigError(f"{scene.name}: MuJoCo Warp rejected the model: {str(err).splitlines()[0]}") from None
+        frames = config.n_frames + 1
+        qpos_frames = wp.zeros((frames, batch, model.nq), dtype=wp.float32)
+        qvel_frames = wp.zeros((frames, batch, model.nv), dtype=wp.float32)
+    return Runner(compiled, config, batch, device, m, d, qpos_frames, qvel_frames)
+
+
+@functools.lru_cache(maxsize=16)
+def _to_mj_fn(compiled):
+    # Cached: a fresh jit per call would recompile on every rollout.
+    return jax.jit(jax.vmap(lambda q, qd: state_to_qpos_qvel(compiled, q, qd)))
+
+
+def initial_qpos_qvel(compiled, states: State) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo states (B, nq), (B, nv) of node states (B, N, 2), mapped in float64."""
+    qpos, qvel = _to_mj_fn(compiled)(jnp.asarray(states.q, jnp.float64), jnp.asarray(states.qd, jnp.float64))
+    return np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
+
+
+def rollout(scene: Scene, config: SimulationConfig, states: State, form: str = DEFAULT_FORM, device: str | None = None) -> State:
+    """Node trajectories (B, F+1, N, 2) (float64 of MuJoCo Warp's float32) from initial
+    node states (B, N, 2). Non-finite states are returned as they are."""
+    run = runner(scene, config, len(states.q), form, device)
+    run.run(*initial_qpos_qvel(run.compiled, states))
+    return run.nodes()
+
+
+@dataclasses.dataclass(frozen=True)
+class MjwarpEngine:
+    """MuJoCo Warp as an `lgnn.engines.Engine`: float32 always (MuJoCo Warp has no
+    other precision), on the MJCF `form`, on Warp's `device` (default: its preferred)."""
+
+    name: ClassVar[str] = "mjwarp"
+    dtype: ClassVar[str] = "float32"
+    form: str = DEFAULT_FORM
+    device: str | None = None
+
+    def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
+        """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)
+        (lgnn's exact energy of the node states); stopped at the first non-finite or
+        exploding frame like every engine."""
+        start = time.perf_counter()
+        nodes = rollout(scene, config, states, self.form, self.device)
+        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start)
+        metadata["engine"].update(form=self.form, mujoco_warp=versions())
+        if not (np.isfinite(nodes.q).all() and np.isfinite(nodes.qd).all()):
+            bad = int(np.argmin(np.isfinite(nodes.q).all(axis=(0, 2, 3)) & np.isfinite(nodes.qd).all(axis=(0, 2, 3))))
+            t = bad * config.frame_dt
+            raise SimulationError(f"{scene.name}: mjwarp state became non-finite at t = {t:.6g} s (dt = {config.dt:g}, float32)", time=t)
+        return checked_trajectory(scene, config, nodes, metadata, self.name)
+
+    def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
+        """`(compile_s, run_s, q (B, F+1, N, 2))`: compile is the kernels' compilation
+        (and graph capture) when the runner was built (as `lgnn.bench.timing` reports a
+        cached compile); run is the stepping alone, after one untimed run
+        (`lgnn.engines.timing.time_runs`); `q` may be non-finite."""
+        run = runner(scene, config, len(states.q), self.form, self.device)
+        compile_s = run.prepare()
+        qpos, qvel = initial_qpos_qvel(run.compiled, states)
+        (run_s,), _ = time_runs(lambda: run.run(qpos, qvel))
+        return compile_s, run_s, run.nodes().q

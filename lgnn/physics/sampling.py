@@ -1,0 +1,116 @@
+"""Random initial conditions of any scene, consistent with its constraints.
+
+Contract: `sample_initial_conditions(scene, count, seed) -> State` of NumPy arrays
+(count, N, D): the scene's own state with every free node moved by Gaussian noise
+(standard deviation `position_scale` times the mean link length per coordinate) and
+Gaussian velocities added (standard deviation `velocity_scale` times the scene's
+characteristic speed `sqrt(g l)`, or `l` per second without gravity), then put back on
+the constraint manifold by `projection_fn` (Gauss-Newton on the positions, then the
+orthogonal projection of the velocities onto the tangent space): link lengths hold,
+pins stay put and at rest. It is the sampler for scenes the paper's chain sampler
+(`lgnn.scene.sample_initial_states`, pinned chains only) does not cover: a user's scene
+file gets `count` different trajectories, not `count` copies of one.
+
+`sample_states(scene, count, seed)`: the paper's chain sampler on a pinned chain,
+`sample_initial_conditions` otherwise (`lgnn evaluate`'s sampled initial conditions).
+`initial_states(scene, count, seed)` is the one rule the training data and the
+benchmark's evaluation use: the paper's chain sampler on a pinned chain, the scene's
+own state on the other catalogue scenes (T1-T3 start from the paper's rest states),
+`sample_initial_conditions` on any other scene.
+
+A sample the projection could not bring onto the constraints (a perturbation across a
+singular configuration) raises `SceneError` naming the scene, never a state that
+breaks them. Unlike the rest of `lgnn.physics` this function compiles its batch
+(`jax.jit`, cached per scene content): it returns checked NumPy arrays, so it is never
+traced by a caller, and run eagerly its vmapped Gauss-Newton steps took 20-45 s per call.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn.errors import ConfigError, SceneError
+from lgnn.physics.constraints import constraint_violation, velocity_constraint_violation
+from lgnn.physics.projection import projection_fn
+from lgnn.scene import Scene, State, is_catalogue_scene, is_pinned_chain, sample_initial_states
+
+# Position noise per coordinate, in mean link lengths: large enough that trajectories
+# differ visibly, small enough that Gauss-Newton from the perturbed state converges
+# to the nearby branch of the constraint manifold.
+POSITION_SCALE = 0.05
+# Velocity noise per coordinate, in units of the characteristic speed sqrt(g l).
+VELOCITY_SCALE = 0.1
+# Gauss-Newton steps of the projection: quadratic convergence from a 5 % perturbation
+# reaches round-off in about 5 (0.05, 3e-3, 6e-6, 4e-11); the rest is margin.
+PROJECTION_ITERATIONS = 8
+# Largest constraint violation accepted, relative to the mean link length (and to the
+# characteristic speed for velocities), in float64 and (without `lgnn.configure()`) float32.
+TOLERANCE = {"float64": 1e-9, "float32": 1e-4}
+
+
+def sample_initial_conditions(
+    scene: Scene, count: int, seed: int, *, position_scale: float = POSITION_SCALE, velocity_scale: float = VELOCITY_SCALE
+) -> State:
+    """`count` random initial states (q, qd), each (count, N, D), near the scene's own
+    and consistent with its constraints (module docstring). Same `seed`, same states."""
+    if count < 1:
+        raise ConfigError(f"need at least one initial condition, got {count}")
+    if position_scale < 0 or velocity_scale < 0:
+        raise ConfigError("sampler scales must be >= 0")
+    length = float(np.mean(scene.lengths)) if scene.n_links else 1.0
+    gravity = abs(float(scene.gravity))
+    speed = float(np.sqrt(gravity * length)) if gravity > 0 else length
+    free = np.ones((scene.n_nodes, 1))
+    free[list(scene.pinned)] = 0.0
+    key_q, key_qd = jax.random.split(jax.random.PRNGKey(seed))
+    shape = (count, *scene.nodes.shape)
+    q = scene.nodes + position_scale * length * free * np.asarray(jax.random.normal(key_q, shape, jnp.float64))
+    qd = scene.velocities + velocity_scale * speed * free * np.asarray(jax.random.normal(key_qd, shape, jnp.float64))
+    q, qd, position_error, velocity_error = map(np.asarray, _projection(scene)(jnp.asarray(q), jnp.asarray(qd)))
+    position_error, velocity_error = position_error / length, velocity_error / speed
+    worst = np.maximum(np.nan_to_num(position_error, nan=np.inf), np.nan_to_num(velocity_error, nan=np.inf))
+    if scene.n_links and worst.max() > TOLERANCE[str(q.dtype)]:
+        k = int(np.argmax(worst))
+        raise SceneError(
+            f"scene {scene.name!r}: initial condition {k} of seed {seed} could not be put on the constraints "
+            f"(relative violation {float(worst[k]):.1e}); try a smaller position scale"
+        )
+    return State(np.asarray(q), np.asarray(qd))
+
+
+def sample_states(scene: Scene, count: int, seed: int) -> State:
+    """`count` different initial states (count, N, D) of any scene: the paper's sampler
+    on a pinned chain, `sample_initial_conditions` on every other scene."""
+    if is_pinned_chain(scene):
+        if count < 1:
+            raise ConfigError(f"need at least one initial condition, got {count}")
+        states = sample_initial_states(scene, jax.random.PRNGKey(seed), count)
+        return State(np.asarray(states.q), np.asarray(states.qd))
+    return sample_initial_conditions(scene, count, seed)
+
+
+def initial_states(scene: Scene, count: int, seed: int) -> State:
+    """`count` initial states (count, N, D) of training data or the benchmark's evaluation
+    (module docstring): `sample_states`, except that the catalogue's other scenes (T1-T3)
+    start from their own state, as in the paper."""
+    if is_catalogue_scene(scene) and not is_pinned_chain(scene):
+        return State(np.broadcast_to(scene.nodes, (count, *scene.nodes.shape)), np.broadcast_to(scene.velocities, (count, *scene.nodes.shape)))
+    return sample_states(scene, count, seed)
+
+
+@functools.lru_cache(maxsize=8)
+def _projection(scene: Scene):
+    """Jitted batch projection, returning the projected states and their position and
+    velocity constraint violations (C,), cached per scene content."""
+    project = projection_fn(scene, PROJECTION_ITERATIONS)
+
+    def run(q, qd):
+        q, qd = jax.vmap(project)(q, qd)
+        violations = jax.vmap(lambda x, v: (constraint_violation(scene, x), velocity_constraint_violation(scene, x, v)))(q, qd)
+        return (q, qd, *violations)
+
+    return jax.jit(run)

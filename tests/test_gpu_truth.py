@@ -1,0 +1,83 @@
+"""`lgnn gpu-truth` (`lgnn.bench.gpu_truth`) small on the CPU: the table's rows, the
+float32 engines really in float32, and non-finite runs said plainly.
+
+The GPU runs themselves are made on a lent machine (README, "GPU ground truth"); here
+chain4, 2 worlds, 10 steps, with the engines this machine has (MJX is left out for its
+~35 s CPU compile, tested in test_mujoco.py; MuJoCo Warp only where installed).
+"""
+
+import csv
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lgnn import physics
+from lgnn.bench import gpu_truth
+from lgnn.cli import main
+from lgnn.engines import mjwarp
+from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.scene import get_scene
+
+
+def read_rows(path):
+    with open(path) as handle:
+        return list(csv.DictReader(line for line in handle if not line.startswith("#")))
+
+
+def test_float32_lagrangian_program_holds_no_float64():
+    """With x64 on (as every entry point runs), a rollout traced from float32 states is
+    float32 throughout: the lowered program names no f64 type (it would if a float64
+    constant promoted the state)."""
+    scene = get_scene("T1")  # loops: the constrained solve and projection are in it
+    run = jax.jit(jax.vmap(rollout_fn(scene, SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=1e-2), physics.vectorised_true_acceleration_fn)))
+    shape = jax.ShapeDtypeStruct((2, scene.n_nodes, 2), jnp.float32)
+    text = run.lower(shape, shape).as_text()
+    assert "f32" in text and "f64" not in text
+
+
+def test_small_cpu_run_writes_the_table(tmp_path):
+    """chain4, 2 worlds, 10 RK4 steps: a row per engine with speed, compile and the error
+    against float64; float32 is ~1e-7 from it (not 1e-14: it is float32)."""
+    engines = ["lagrangian:float32"] + (["mjwarp:float32"] if mjwarp.available() else [])
+    code = main(["gpu-truth", "--scenes", "chain4", "--batches", "2", "--steps", "10", "--repeats", "2",
+                 "--engines", *engines, "--out", str(tmp_path), "--quiet"])
+    assert code == 0
+    rows = read_rows(tmp_path / "gpu_truth_chain4.csv")
+    assert [(r["engine"], r["dtype"]) for r in rows] == [("lagrangian", "float64")] + [tuple(e.split(":")) for e in engines]
+    for row in rows:
+        assert float(row["steps_per_s_min"]) <= float(row["steps_per_s"]) <= float(row["steps_per_s_max"])
+        assert float(row["compile_s"]) > 0 and row["finite_worlds"] == "2" and row["steps"] == "10"
+    assert float(rows[0]["max_node_error"]) == 0 and rows[0]["note"] == "reference"
+    for row in rows[1:]:
+        assert 1e-9 < float(row["max_node_error"]) < 1e-5, row
+    markdown = (tmp_path / "gpu_truth_chain4.md").read_text()
+    assert "commit: " in markdown and "machine: " in markdown and "mujoco" in markdown
+
+
+def test_non_finite_worlds_are_said_plainly(monkeypatch):
+    """An engine whose world goes non-finite gets NaN error and a note counting the
+    worlds, never an error computed from the finite ones."""
+    final = np.zeros((3, 5, 2))
+
+    def fake_run(spec, scene, config, states, settings):
+        q = final.copy()
+        if spec != gpu_truth.REFERENCE:
+            q[1, 2, 0] = np.nan
+        return 0.5, [1.0, 2.0], q
+
+    monkeypatch.setattr(gpu_truth, "_run", fake_run)
+    settings = gpu_truth.GpuTruthSettings(scenes=("chain4",), batches=(3,), engines=("mjx:float32",), steps=4)
+    reference, row = gpu_truth.measure(get_scene("chain4"), settings, log=lambda line: None)
+    assert reference["max_node_error"] == 0 and reference["finite_worlds"] == 3
+    assert np.isnan(row["max_node_error"]) and row["finite_worlds"] == 2 and row["note"] == "non-finite in 1 of 3 worlds"
+    # Speeds of the runs: 12 and 6 steps/s; the median of two is their mean.
+    assert row["steps_per_s"] == pytest.approx(9) and row["steps_per_s_min"] == 6 and row["steps_per_s_max"] == 12
+
+
+@pytest.mark.parametrize("spec", ["mjwarp:float64", "bullet:float32", "lagrangian"])
+def test_bad_engine_is_one_line(spec, tmp_path, capsys):
+    assert main(["gpu-truth", "--scenes", "chain4", "--engines", spec, "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lgnn: error: ") and err.count("\n") == 1 and not list(tmp_path.iterdir())

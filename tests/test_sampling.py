@@ -1,0 +1,70 @@
+"""`physics.sample_initial_conditions`: random initial states of any scene, on its
+constraint manifold, different from each other and reproducible by seed."""
+
+import numpy as np
+import pytest
+
+from lgnn import physics
+from lgnn.errors import ConfigError
+from lgnn.scene import get_scene
+from lgnn.scene.catalogue import free_triangle
+
+# A truss with closed loops, a free body (no pins) and a chain of unequal links.
+SCENES = {"T1": lambda: get_scene("T1"), "free_triangle": free_triangle, "chain4-varied": lambda: get_scene("chain4-varied")}
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_samples_satisfy_every_constraint_and_differ(name):
+    scene = SCENES[name]()
+    states = physics.sample_initial_conditions(scene, 6, seed=3)
+    assert states.q.shape == states.qd.shape == (6, *scene.nodes.shape)
+    length = float(np.mean(scene.lengths))
+    for q, qd in zip(states.q, states.qd):
+        assert float(physics.constraint_violation(scene, q)) < 1e-9 * length
+        assert float(physics.velocity_constraint_violation(scene, q, qd)) < 1e-9 * np.sqrt(10 * length)
+        np.testing.assert_array_equal(q[list(scene.pinned)], scene.nodes[list(scene.pinned)])
+    # Perturbations, not copies: every pair of samples differs in position and velocity,
+    # by about the sampler's scale (5 % of a link, 0.1 sqrt(g l)), not by round-off.
+    free = list(scene.free_nodes)
+    for a in range(6):
+        for b in range(a):
+            assert np.abs(states.q[a, free] - states.q[b, free]).max() > 1e-3 * length
+            assert np.abs(states.qd[a, free] - states.qd[b, free]).max() > 1e-3
+    assert np.abs(states.q[:, free] - scene.nodes[free]).max() < 0.5 * length
+
+
+def test_samples_are_reproducible_by_seed():
+    scene = get_scene("T1")
+    first, again = physics.sample_initial_conditions(scene, 3, 7), physics.sample_initial_conditions(scene, 3, 7)
+    other = physics.sample_initial_conditions(scene, 3, 8)
+    np.testing.assert_array_equal(first.q, again.q)
+    np.testing.assert_array_equal(first.qd, again.qd)
+    assert not np.allclose(first.q, other.q)
+
+
+def test_zero_scales_give_the_scenes_own_state():
+    scene = get_scene("chain4-varied")
+    states = physics.sample_initial_conditions(scene, 2, 0, position_scale=0.0, velocity_scale=0.0)
+    np.testing.assert_allclose(states.q, np.broadcast_to(scene.nodes, states.q.shape), atol=1e-12)
+    np.testing.assert_allclose(states.qd, 0.0, atol=1e-12)
+
+
+def test_bad_counts_are_one_line_errors():
+    with pytest.raises(ConfigError, match="at least one initial condition"):
+        physics.sample_initial_conditions(get_scene("chain4"), 0, 0)
+
+
+def test_the_benchmark_samples_a_users_scene_and_keeps_the_papers_choices(tmp_path):
+    """Chains keep the paper's sampler and T1 its own rest state (records stay valid); a
+    user's scene file gets sampled initial conditions, not copies of its state."""
+    from lgnn.scene import sample_initial_states, scene_to_json
+
+    chain = get_scene("chain4")
+    paper = sample_initial_states(chain, __import__("jax").random.PRNGKey(1), 3)
+    np.testing.assert_array_equal(physics.initial_states(chain, 3, 1).q, paper.q)
+    t1 = get_scene("T1")
+    np.testing.assert_array_equal(physics.initial_states(t1, 2, 1).q, np.broadcast_to(t1.nodes, (2, *t1.nodes.shape)))
+    path = tmp_path / "mine.json"
+    path.write_text(scene_to_json(t1.replace(name="mine")))
+    mine = get_scene(str(path))
+    np.testing.assert_array_equal(physics.initial_states(mine, 3, 1).q, physics.sample_initial_conditions(mine, 3, 1).q)
