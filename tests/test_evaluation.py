@@ -17,8 +17,9 @@ from lgnn.scene import get_scene, sample_initial_states
 from lgnn.scene.catalogue import double_pinned_chain
 
 SHORT = SimulationConfig(duration=0.02)
-# LagrangeBench's cheating model: the true accelerations (as in tests/test_models.py).
-CHEAT = models.ModelSpec("cheat", lambda key, config: {}, acceleration=lambda config, params, scene: physics.true_acceleration_fn(scene))
+# LagrangeBench's cheating model: the true accelerations (as in tests/test_models.py,
+# under a name of its own: a name keeps one spec per process, and xdist may run both files in one).
+CHEAT = models.ModelSpec("cheat-evaluate", lambda key, config: {}, acceleration=lambda config, params, scene: physics.true_acceleration_fn(scene))
 
 
 def run(capsys, *argv):
@@ -98,7 +99,7 @@ def test_evaluate_with_the_cheating_model_has_no_error(capsys, tmp_path):
     """The true-physics model scored by `lgnn evaluate` is exact against the Lagrangian
     engine and within MuJoCo's agreement with it; every output is written."""
     models.register(CHEAT)
-    config = models.ModelConfig("cheat")
+    config = models.ModelConfig("cheat-evaluate")
     checkpoint = tmp_path / "cheat.npz"
     train.save_checkpoint(checkpoint, train.initial_state(config, train.TrainConfig()), config, train.TrainConfig())
     code, out, err = run(capsys, "evaluate", "chain4", "--model", str(checkpoint), "--duration", "0.01", "--initial-conditions", "2",
