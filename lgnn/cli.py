@@ -57,6 +57,18 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _model_reference(text: str) -> str:
+    """A built-in model name, or a `module:attribute` / `file.py:attribute` reference
+    to a model defined outside lgnn (imported when the command runs, so a failing
+    import is the command's one-line error, not argparse's)."""
+    from lgnn.learn.models import model_names
+
+    if ":" in text or text in model_names():
+        return text
+    raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(map(repr, model_names()))}, "
+                                     "or module:attribute or file.py:attribute of your own ModelSpec)")
+
+
 def _cmd_scenes(args) -> None:
     from lgnn.scene import BUILTIN_SCENES, HARD_SCENES, SPATIAL_SCENES
 
@@ -297,14 +309,15 @@ def _cmd_train(args) -> None:
         raise ConfigError(f"{args.out} exists: --resume to continue training it, --overwrite to start over, or choose another --out")
     data_config = data.DataConfig(args.scene, n_trajectories=args.trajectories, seed=args.seed)
     scene = get_scene(args.scene)
-    model = models.ModelConfig.for_scene(args.model, scene, message_passing=args.message_passing)
+    name = models.load_spec(args.model).name if ":" in args.model else args.model
+    model = models.ModelConfig.for_scene(name, scene, message_passing=args.message_passing)
     config = train.TrainConfig(args.lr, args.batch_size, args.epochs, args.minutes, args.patience, args.seed)
     if args.resume and Path(args.out).exists():
         train.check_resumable(args.out, model, config)  # before minutes of data generation
     cache = args.cache_dir or data.default_cache_dir()
     dataset = data.load_or_generate(data_config, cache, progress=not args.quiet)
     state = train.train(model, config, dataset, scene, out=args.out, data_config=data_config, resume=args.resume, progress=not args.quiet)
-    print(f"{args.model} on {scene.name}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out} (data cached in {cache})")
+    print(f"{name} on {scene.name}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out} (data cached in {cache})")
 
 
 def _cmd_rollout(args) -> None:
@@ -331,7 +344,9 @@ def _add_train_parser(commands) -> None:
 
     default = TrainConfig()
     parser = commands.add_parser("train", help="train a learned model on ground-truth data")
-    parser.add_argument("--model", required=True, choices=model_names())
+    parser.add_argument("--model", required=True, type=_model_reference, metavar="{" + ",".join(model_names()) + "}|MODULE:ATTR",
+                        help=f"a built-in model ({', '.join(model_names())}) or your own ModelSpec as module:attribute "
+                             "or file.py:attribute (README, 'Bring your own model')")
     parser.add_argument("--scene", default="chain4", help="training scene (built-in name or JSON file)")
     parser.add_argument("--epochs", type=_positive_int, default=default.epochs, help="epoch budget (paper: 10000)")
     parser.add_argument("--minutes", type=_positive_float, default=None, help="optional wall-clock cap (checked after each epoch); the budget is --epochs")

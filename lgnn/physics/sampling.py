@@ -18,9 +18,11 @@ benchmark's evaluation use: the paper's chain sampler on a pinned chain, the sce
 own state on the other catalogue scenes (T1-T3 start from the paper's rest states),
 `sample_initial_conditions` on any other scene.
 
-A sample the projection could not bring onto the constraints (a perturbation across a
-singular configuration) raises `SceneError` naming the scene, never a state that
-breaks them. Unlike the rest of `lgnn.physics` this function compiles its batch
+The projection is repeated while the worst violation still halves (linear convergence
+near the self-stressed T2/T3, whose float64 tolerance is the looser
+`SINGULAR_TOLERANCE`: what the Lagrangian engine keeps there itself). A sample it
+could not bring onto the constraints (a perturbation across a singular configuration)
+raises `SceneError` naming the scene, never a state that breaks them. Unlike the rest of `lgnn.physics` this function compiles its batch
 (`jax.jit`, cached per scene content): it returns checked NumPy arrays, so it is never
 traced by a caller, and run eagerly its vmapped Gauss-Newton steps took 20-45 s per call.
 """
@@ -36,6 +38,7 @@ import numpy as np
 from lgnn.errors import ConfigError, SceneError
 from lgnn.physics.constraints import constraint_violation, velocity_constraint_violation
 from lgnn.physics.projection import projection_fn
+from lgnn.physics.system import prepare
 from lgnn.scene import Scene, State, is_catalogue_scene, is_pinned_chain, sample_initial_states
 
 # Position noise per coordinate, in mean link lengths: large enough that trajectories
@@ -44,12 +47,23 @@ from lgnn.scene import Scene, State, is_catalogue_scene, is_pinned_chain, sample
 POSITION_SCALE = 0.05
 # Velocity noise per coordinate, in units of the characteristic speed sqrt(g l).
 VELOCITY_SCALE = 0.1
-# Gauss-Newton steps of the projection: quadratic convergence from a 5 % perturbation
-# reaches round-off in about 5 (0.05, 3e-3, 6e-6, 4e-11); the rest is margin.
+# Gauss-Newton steps of one projection round: quadratic convergence from a 5 %
+# perturbation reaches round-off in about 5 (0.05, 3e-3, 6e-6, 4e-11); the rest is margin.
 PROJECTION_ITERATIONS = 8
+# Rounds are repeated while the worst violation still halves, at most this many: near
+# the self-stressed (singular) T2/T3 the projection's Levenberg-Marquardt shift makes
+# convergence linear (T2, 5 samples: 1e-4, 1e-5, 4e-7, 1e-7 after 8, 16, 32, 64 steps).
+MAX_PROJECTION_ROUNDS = 16
 # Largest constraint violation accepted, relative to the mean link length (and to the
 # characteristic speed for velocities), in float64 and (without `lgnn.configure()`) float32.
 TOLERANCE = {"float64": 1e-9, "float32": 1e-4}
+# The float64 tolerance of a scene self-stressed at its own state (`self_stresses > 0`:
+# T2, T3), where the shifted steps stop halving the violation near 1e-5 (worst of 20
+# samples, seed 0: T2 6e-6, T3 8e-6; the median 1e-6): the benchmark's chaos-floor
+# perturbation (`EvaluateSettings.floor_perturbation`, 1e-4 of a unit link), a
+# difference it already counts as indistinguishable initial conditions; the engine's
+# projection at every step then holds the constraints as on any T2/T3 run.
+SINGULAR_TOLERANCE = 1e-4
 
 
 def sample_initial_conditions(
@@ -70,14 +84,22 @@ def sample_initial_conditions(
     shape = (count, *scene.nodes.shape)
     q = scene.nodes + position_scale * length * free * np.asarray(jax.random.normal(key_q, shape, jnp.float64))
     qd = scene.velocities + velocity_scale * speed * free * np.asarray(jax.random.normal(key_qd, shape, jnp.float64))
-    q, qd, position_error, velocity_error = map(np.asarray, _projection(scene)(jnp.asarray(q), jnp.asarray(qd)))
-    position_error, velocity_error = position_error / length, velocity_error / speed
-    worst = np.maximum(np.nan_to_num(position_error, nan=np.inf), np.nan_to_num(velocity_error, nan=np.inf))
-    if scene.n_links and worst.max() > TOLERANCE[str(q.dtype)]:
+    singular = prepare(scene).constraints.self_stresses > 0
+    tolerance = SINGULAR_TOLERANCE if singular and q.dtype == np.float64 else TOLERANCE[str(q.dtype)]
+    project = _projection(scene)
+    worst_before = np.inf
+    for _ in range(MAX_PROJECTION_ROUNDS):
+        q, qd, position_error, velocity_error = map(np.asarray, project(jnp.asarray(q), jnp.asarray(qd)))
+        worst = np.maximum(np.nan_to_num(position_error / length, nan=np.inf), np.nan_to_num(velocity_error / speed, nan=np.inf))
+        if not scene.n_links or worst.max() <= tolerance or not worst.max() < 0.5 * worst_before:
+            break
+        worst_before = worst.max()
+    if scene.n_links and worst.max() > tolerance:
         k = int(np.argmax(worst))
         raise SceneError(
             f"scene {scene.name!r}: initial condition {k} of seed {seed} could not be put on the constraints "
-            f"(relative violation {float(worst[k]):.1e}); try a smaller position scale"
+            f"(relative violation {float(worst[k]):.1e} > {tolerance:g}, no longer halving per projection round); "
+            "try a smaller position scale"
         )
     return State(np.asarray(q), np.asarray(qd))
 
