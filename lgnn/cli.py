@@ -143,7 +143,7 @@ def _cmd_simulate(args) -> None:
 
     config = _simulation_config(args)
     _trajectory_out(args.out)
-    engine = get_engine(args.engine, dtype=args.dtype, progress=not args.quiet)
+    engine = get_engine(args.engine, dtype=args.dtype, progress=not args.quiet, form=args.form)
     scene = get_scene(args.scene)
     trajectory = _save_rollout(lambda: engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0), args.out)
     print(
@@ -155,24 +155,36 @@ def _cmd_simulate(args) -> None:
 def _cmd_mjcf(args) -> None:
     from pathlib import Path
 
+    from lgnn.engines import mjcf
     from lgnn.files import write_text_atomic
-    from lgnn.engines.mjcf import scene_to_mjcf
-    from lgnn.scene import BUILTIN_SCENES
+    from lgnn.scene import get_scene
 
+    if args.scene is not None:
+        text = mjcf.render(get_scene(args.scene), args.dt, args.form or "nested")
+        if args.out in (None, "-"):
+            sys.stdout.write(text)
+        else:
+            write_text_atomic(args.out, text)
+            print(f"wrote {args.out} (view: python -m mujoco.viewer --mjcf={args.out})", file=sys.stderr)
+        return
+    if args.out is not None:
+        raise ConfigError("--out needs a SCENE (without one, every built-in is written into --dir)")
     out = Path(args.dir)
     if not out.is_dir():
         raise ConfigError(f"MJCF directory does not exist: {out}")
+    files = mjcf.builtin_files((args.form,) if args.form else mjcf.FORMS)
     stale = []
-    for name, entry in BUILTIN_SCENES.items():
-        path, text = out / f"{name}.xml", scene_to_mjcf(entry.build())
+    for name, text in files.items():
+        path = out / name
         if args.check:
             if not path.exists() or path.read_text() != text:
                 stale.append(str(path))
         else:
+            path.parent.mkdir(exist_ok=True)
             write_text_atomic(path, text)
     if stale:
         raise ConfigError(f"MJCF files differ from what the code renders: {', '.join(stale)} (run: lgnn mjcf)")
-    print(f"{'checked' if args.check else 'wrote'} {len(BUILTIN_SCENES)} MJCF files in {out}")
+    print(f"{'checked' if args.check else 'wrote'} {len(files)} MJCF files in {out}")
 
 
 def _cmd_crosscheck(args) -> None:
@@ -191,7 +203,7 @@ def _cmd_crosscheck(args) -> None:
     if args.speed:
         rows = cc.speed_error(args.scenes or ["chain4", "chain16", "chain100", "T1"], engines, dts=tuple(args.speed_dts), batches=tuple(args.batch),
                               batch_dts=tuple(args.batch_dts), mjx_max_depth=args.mjx_max_depth, max_steps=args.max_steps, dtype=args.dtype)
-        columns = ["scene", "engine", "batch", "dt", "dtype", "steps_per_s", "compile_s", "max_node_error", "note"]
+        columns = ["scene", "engine", "form", "batch", "dt", "dtype", "steps_per_s", "compile_s", "max_node_error", "note"]
         notes = [f"speed: steps/s = batch x steps / run time (compile apart), RK4, horizon 0.1 s, JAX engines in {args.dtype}",
                  "error: max node error after 0.1 s (single state) vs MuJoCo C RK4 at dt 1e-6"]
         stem, title = "engines_speed_error", "Engines: speed against error"
@@ -200,25 +212,30 @@ def _cmd_crosscheck(args) -> None:
         rows = []
         for name in args.scenes or ["chain4", "chain8", "chain16", "T1", "T2", "T3"]:
             scene = get_scene(name)
-            rows += cc.crosscheck(scene, config, engines, args.mjx_max_depth)
+            rows += cc.crosscheck(scene, config, engines, args.mjx_max_depth, progress=True)
             # Rows name the scene, not the argument (a scene file's path).
-            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == scene.name))
-        columns = ["scene", "engine", "metric", "value", "note"]
-        notes = [f"RK4, dt {config.dt:g}, {config.duration:g} s, float64; MuJoCo loops: connect, solref 2 dt, solimp 0.9999"]
+            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['form']:16s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == scene.name))
+        columns = ["scene", "engine", "form", "metric", "value", "note"]
+        notes = [f"RK4, dt {config.dt:g}, {config.duration:g} s, float64; MuJoCo loops: connect, solref 2 dt, solimp 0.9999",
+                 "form: the MJCF form each MuJoCo engine ran (nested: joint coordinates; maximal: a body per link, connect joints)"]
         stem, title = "crosscheck", "Cross-check of the ground-truth engines"
     write_table(rows, columns, f"{args.out_dir}/{stem}.csv", f"{args.out_dir}/{stem}.md", title, cc.header(command), notes)
     print(f"wrote {args.out_dir}/{stem}.csv and .md")
 
 
 def _add_mujoco_commands(commands) -> None:
-    mjcf = commands.add_parser("mjcf", help="render the built-in scenes' MJCF into mjcf/")
+    mjcf = commands.add_parser("mjcf", help="render a scene's MJCF, or every built-in's into mjcf/")
+    mjcf.add_argument("scene", nargs="?", help="built-in name or scene file to render (default: every built-in, both forms, into --dir)")
+    mjcf.add_argument("--form", choices=("nested", "maximal"), help="nested (joint coordinates) or maximal (a body per link, connect joints)")
+    mjcf.add_argument("--dt", type=_positive_float, default=1e-4, help="SCENE: time step written into the model (default 1e-4)")
+    mjcf.add_argument("--out", help="SCENE: output .xml file (default: standard output)")
     mjcf.add_argument("--dir", default="mjcf", help="output directory (default: mjcf)")
     mjcf.add_argument("--check", action="store_true", help="fail if a file differs from the rendered text")
     mjcf.set_defaults(run=_cmd_mjcf)
     check = commands.add_parser("crosscheck", help="run every engine on the same scenes and compare them")
     check.add_argument("scenes", nargs="*", help="built-in names or scene files (default: chain4 chain8 chain16 T1 T2 T3)")
     check.add_argument("--engines", default="lagrangian,mujoco,mjx", help="comma-separated engines")
-    check.add_argument("--mjx-max-depth", type=int, default=8, help="skip MJX on deeper trees (compile time)")
+    check.add_argument("--mjx-max-depth", type=int, help="skip MJX on deeper trees (default: skip none)")
     check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")
     check.add_argument("--speed-dts", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="--speed: steps of the single-state runs")
     check.add_argument("--batch", type=int, nargs="+", default=[100], help="--speed: batch sizes of the batched runs (default 100)")
@@ -621,6 +638,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("scene", help="built-in scene name or scene JSON file")
     simulate.add_argument("--engine", default="lagrangian", choices=list(ENGINES), help="ground-truth engine (default: lagrangian)")
     simulate.add_argument("--dtype", choices=["float64", "float32"], default="float64", help="MJX precision (default float64)")
+    simulate.add_argument("--form", choices=["auto", "nested", "maximal"], help="MuJoCo engines: MJCF form (default auto: the engine's choice)")
     _add_simulation_options(simulate)
     simulate.add_argument("--out", required=True, help="output .npz file")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -154,4 +154,4 @@ def test_crosscheck_of_a_scene_file_writes_beside_the_user_and_summarises(capsys
     assert "wrote lgnn-out/crosscheck.csv" in out
     table = [line for line in (tmp_path / "lgnn-out" / "crosscheck.md").read_text().splitlines() if line.startswith("| ")]
     assert len(table) > 2 and any("\\|E-E0\\|" in line for line in table)
-    assert {len(re.findall(r"(?<!\\)\|", line)) for line in table} == {6}  # 5 columns
+    assert {len(re.findall(r"(?<!\\)\|", line)) for line in table} == {7}  # 6 columns (scene, engine, form, metric, value, note)

@@ -3,8 +3,10 @@ MJCF rendering, and the one engine interface (`lgnn.engines`).
 
 Tolerances are measured (RK4, dt 1e-4, 1 s): open chains agree to ~1e-13, loops to
 ~9e-8 (loop6, T1; MuJoCo's stiff but soft `connect`), drag to 1.9e-6 (drag held over
-a step), MJX float64 to MuJoCo C to ~1e-14 on open chains. MJX compiles slowly on CPU (~35 s for chain4), so one small MJX scene is
-compiled once per session.
+a step), MJX float64 to MuJoCo C to ~1e-14 on open chains. The maximal form (every
+joint a soft `connect`): 3e-11..5e-7 over 1 s, falling as dt^2. MJX compiles slowly on
+CPU (~35 s for chain4 nested, ~30 s of CPU time for chain12 maximal), so one small
+scene per form is compiled once per session.
 """
 
 import functools
@@ -93,20 +95,22 @@ def test_layout_spanning_tree():
     assert all(set(t3.edges[e]) <= pinned for e in layout.static_links)
 
 
+@pytest.mark.parametrize("form", mjcf.FORMS)
 @pytest.mark.parametrize("name", [*BUILTIN_SCENES, *EXTRA])
-def test_rendered_model_reproduces_nodes(name):
+def test_rendered_model_reproduces_nodes(name, form):
     s = scene(name)
-    compiled = lm.compile_scene(s)
+    compiled = lm.compile_scene(s, 1e-4, form)
     data = mujoco.MjData(compiled.model)
     mujoco.mj_kinematics(compiled.model, data)
     np.testing.assert_allclose(data.site_xpos[compiled.node_site, :2], s.nodes, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(data.site_xpos[compiled.node_site, 2], 0.0)
 
 
-@pytest.mark.parametrize("name", ["chain8", "chain4-varied", "tree", "free", "loop6", "T1"])
-def test_state_maps_round_trip(name):
+@pytest.mark.parametrize(("name", "form"), [(name, "nested") for name in ["chain8", "chain4-varied", "tree", "free", "loop6", "T1"]]
+                         + [(name, "maximal") for name in ["chain4-varied", "free", "loop6"]])
+def test_state_maps_round_trip(name, form):
     s = scene(name)
-    compiled = lm.compile_scene(s)
+    compiled = lm.compile_scene(s, 1e-4, form)
     states = sample_initial_states(s, jax.random.key(1), 3)
     # Rigid-body-consistent velocities: from a random qvel of the sampled shapes.
     for q in np.asarray(states.q):
@@ -122,11 +126,13 @@ def test_state_maps_round_trip(name):
         np.testing.assert_allclose(np.cos(np.asarray(qpos2) - np.asarray(qpos)), 1.0, rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("name", ["chain4-varied", "tree", "free", "loop6", "T1"])
-def test_mass_matrix_matches_kinetic_energy(name):
-    """MuJoCo's M mapped to node velocities gives lgnn's exact rod kinetic energy."""
+@pytest.mark.parametrize(("name", "form"), [(name, "nested") for name in ["chain4-varied", "tree", "free", "loop6", "T1"]]
+                         + [(name, "maximal") for name in ["chain4-varied", "free", "T1"]])
+def test_mass_matrix_matches_kinetic_energy(name, form):
+    """MuJoCo's M mapped to node velocities gives lgnn's exact rod kinetic energy (in
+    the maximal form: on velocities that keep every `connect` joint together)."""
     s = scene(name)
-    compiled = lm.compile_scene(s)
+    compiled = lm.compile_scene(s, 1e-4, form)
     qpos, _ = lm.state_to_qpos_qvel(compiled, jnp.asarray(s.nodes), jnp.asarray(s.velocities))
     qpos = np.asarray(qpos)
     mass, jac = lm.mass_matrix(compiled, qpos), lm.site_jacobian(compiled, qpos)
@@ -144,14 +150,35 @@ def test_mass_matrix_matches_kinetic_energy(name):
 
 
 def test_mjcf_files_match_rendering():
+    """mjcf/ holds both forms of every built-in (maximal ones under mjcf/maximal/)."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1] / "mjcf"
-    for name, entry in BUILTIN_SCENES.items():
-        path = root / f"{name}.xml"
+    files = mjcf.builtin_files()
+    assert len(files) == len(mjcf.FORMS) * len(BUILTIN_SCENES)
+    for name, text in files.items():
+        path = root / name
         assert path.exists(), f"{path} missing: run `python -m lgnn.cli mjcf`"
-        assert path.read_text() == mjcf.scene_to_mjcf(entry.build()), f"{path} drifted: run `python -m lgnn.cli mjcf`"
+        assert path.read_text() == text, f"{path} drifted: run `python -m lgnn.cli mjcf`"
         mujoco.MjModel.from_xml_path(str(path))
+    assert files["chain4.xml"] == mjcf.render(get_scene("chain4"), form="nested")
+
+
+def test_maximal_layout_is_flat():
+    """Every moving link is a free body under the world; a node with k links gets k-1
+    connects (plus one per link at a pin), so loops need no spanning tree."""
+    t1 = get_scene("T1")
+    layout = mjcf.scene_layout(t1, "maximal")
+    assert layout.depth == 1 and all(b.free_root for b in layout.bodies)
+    assert len(layout.bodies) + len(layout.static_links) == t1.n_links
+    degree = np.bincount(np.asarray(t1.edges).ravel(), minlength=t1.n_nodes)
+    pinned = set(t1.pinned)
+    moving = [e for e in range(t1.n_links) if e not in layout.static_links]
+    expected = sum(degree[k] - 1 for k in range(t1.n_nodes) if k not in pinned)
+    expected += sum(1 for e in moving for k in t1.edges[e] if k in pinned)
+    assert len(layout.ties) == expected
+    with pytest.raises(ConfigError, match="form"):
+        mjcf.render(t1, form="spatial")
 
 
 # --------------------------------------------------------------------- agreement
@@ -171,6 +198,47 @@ def test_closed_loops_agree_with_lagrangian(name):
     print(f"{name}: max node error {err:.2e}, MuJoCo loop-closure violation {violation:.2e}")
     assert err <= 1e-6
     assert violation <= 1e-7
+
+
+@functools.cache
+def maximal_c(name, dt=1e-4, duration=1.0):
+    return lm.rollout(scene(name), SimulationConfig(dt=dt, duration=duration), form="maximal")
+
+
+@pytest.mark.parametrize(("name", "tolerance"), [("chain4", 1e-8), ("tree", 1e-7), ("free", 1e-9), ("loop6", 1e-6)])
+def test_maximal_form_agrees_with_nested_and_lagrangian(name, tolerance):
+    """The maximal form's joints are soft `connect`s (solref 2 dt): measured over 1 s
+    at dt 1e-4, max node error against the Lagrangian engine chain4 2.9e-9, tree
+    1.8e-8, free 2.7e-11, loop6 4.8e-7 (nested: 8.9e-8); constraint violation stays
+    small."""
+    s, ours = scene(name), maximal_c(name).q[0]
+    err = np.max(np.abs(ours - lagrangian(name).q))
+    assert err <= tolerance, f"{name}: maximal vs Lagrangian {err:.2e}"
+    assert np.max(np.abs(ours - mujoco_c(name).q[0])) <= tolerance
+    assert max_violation(s, ours) <= tolerance
+
+
+def test_maximal_form_error_falls_as_dt_squared():
+    """Its error is set by the constraint time constant (2 dt) and falls ~dt^2: the tree
+    over 0.2 s at dt 1e-3 against 2e-4 (measured ratio ~25, the RK4 part is far smaller)."""
+    reference = lagrangian("tree", 0.2).q
+    coarse = np.max(np.abs(maximal_c("tree", 1e-3, 0.2).q[0] - reference))
+    fine = np.max(np.abs(maximal_c("tree", 2e-4, 0.2).q[0] - reference))
+    assert 15 <= coarse / fine <= 40, (coarse, fine)
+
+
+def test_mujoco_c_runs_past_the_nesting_limit_in_the_maximal_form():
+    """A chain deeper than MuJoCo's parser allows runs in the maximal form, chosen by the
+    engine's "auto" form; a short run keeps every link length."""
+    deep = chain(mjcf.MAX_BODY_DEPTH + 1)
+    engine = get_engine("mujoco")
+    assert engine.form_of(deep) == "maximal" and engine.form_of(scene("chain4")) == "nested"
+    config = SimulationConfig(dt=1e-4, frame_dt=1e-3, duration=3e-3)
+    traj = engine.rollout(deep, config, batch_of_one(deep.initial_state))
+    assert traj.metadata["engine"]["form"] == "maximal"
+    assert max_violation(deep, traj.q[0]) <= 1e-9
+    with pytest.raises(SimulationError, match="too deep"):
+        get_engine("mujoco", form="nested").rollout(deep, config, batch_of_one(deep.initial_state))
 
 
 @pytest.mark.parametrize("name", ["T2", "T3"])
@@ -238,11 +306,28 @@ def test_mjx_float64_agrees_with_mujoco_c():
     assert np.max(np.abs(ours.qd - reference.qd)) <= 1e-7
 
 
+def test_mjx_maximal_chain12_compiles_and_agrees():
+    """MJX on a 12-link chain in the maximal form (its "auto" choice past depth 8; the
+    nested form compiled for over 10 minutes on a 2-core CPU) against MuJoCo C in the
+    same form and the Lagrangian engine, over 0.05 s at dt 1e-4."""
+    s = chain(12)
+    config = SimulationConfig(dt=1e-4, frame_dt=1e-3, duration=0.05)
+    engine = get_engine("mjx")
+    assert engine.form_of(s) == "maximal"
+    ours = engine.rollout(s, config, batch_of_one(s.initial_state))
+    assert ours.metadata["engine"]["form"] == "maximal"
+    same_form = lm.rollout(s, config, form="maximal").q[0]
+    exact = simulate(s, config).q
+    assert np.max(np.abs(ours.q[0] - same_form)) <= 1e-7
+    assert np.max(np.abs(ours.q[0] - exact)) <= 1e-7
+
+
 # --------------------------------------------------------------------- user scene, CLI
 
 
-def test_user_scene_through_all_engines(tmp_path):
-    """A scene file (a hanging triangle with a tail: one loop) through the CLI."""
+def test_user_scene_through_all_engines(tmp_path, capsys):
+    """A scene file (a hanging triangle with a tail: one loop) through the CLI; MJX says
+    it is compiling, and in which form, before it does."""
     nodes = [[0, 0], [0.6, -0.8], [-0.6, -0.8], [0.4, -1.5]]
     links = [{"nodes": [0, 1], "mass": 1.0, "inertia": 0.08}, {"nodes": [1, 2], "mass": 0.5, "inertia": 0.1},
              {"nodes": [2, 0], "mass": 1.0, "inertia": 0.08}, {"nodes": [1, 3], "mass": 0.3, "inertia": 0.02}]
@@ -251,13 +336,34 @@ def test_user_scene_through_all_engines(tmp_path):
     out = {}
     for engine in ("lagrangian", "mujoco", "mjx"):
         npz = tmp_path / f"{engine}.npz"
-        assert main(["simulate", str(path), "--engine", engine, "--duration", "0.2", "--out", str(npz), "--quiet"]) == 0
+        quiet = [] if engine == "mjx" else ["--quiet"]
+        capsys.readouterr()
+        assert main(["simulate", str(path), "--engine", engine, "--duration", "0.2", "--out", str(npz), *quiet]) == 0
+        if engine == "mjx":
+            assert "MJX: compiling mine (nested form" in capsys.readouterr().err
         out[engine] = Trajectory.load(npz)
         assert out[engine].q.shape == (201, 4, 2) and out[engine].energy.shape == (201,)
     assert np.max(np.abs(out["mujoco"].q - out["lagrangian"].q)) <= 1e-6
     # MJX's connect lacks the velocity term of MuJoCo C's: ~1000x looser loops.
     assert np.max(np.abs(out["mjx"].q - out["mujoco"].q)) <= 1e-5
     assert np.max(np.abs(out["mujoco"].energy - out["lagrangian"].energy)) <= 1e-5
+
+
+def test_cli_renders_a_scene_file_in_either_form(tmp_path, capsys):
+    """`lgnn mjcf SCENE.json --form F --out F.xml` writes the file MuJoCo loads; a bad
+    form or an engine without forms is one line."""
+    path = tmp_path / "loop.json"
+    path.write_text(json.dumps(scene_to_dict(scene("loop6"))))
+    for form in mjcf.FORMS:
+        out = tmp_path / f"{form}.xml"
+        assert main(["mjcf", str(path), "--form", form, "--out", str(out)]) == 0
+        assert f"--mjcf={out}" in capsys.readouterr().err
+        assert out.read_text() == mjcf.render(scene("loop6"), form=form)
+        model = mujoco.MjModel.from_xml_path(str(out))
+        assert model.nbody - 1 == 6 and model.neq == (7 if form == "maximal" else 1)  # maximal: 5 inner nodes + 2 pins
+    assert main(["mjcf", "--out", str(tmp_path / "x.xml")]) == 2 and "needs a SCENE" in capsys.readouterr().err
+    code = main(["simulate", "chain4", "--form", "maximal", "--out", str(tmp_path / "x.npz"), "--quiet"])
+    assert code == 2 and "no MJCF form" in capsys.readouterr().err
 
 
 def test_cli_rejects_verlet_for_mujoco(tmp_path, capsys):

@@ -2,12 +2,13 @@
 
 Every engine is an `lgnn.engines.Engine` from `get_engine`, so each stage treats them
 alike. `crosscheck(scene, config, engines)` runs every engine from the scene's initial state
-and returns tidy rows `scene, engine, metric, value, note`: per engine the relative
-energy drift and the constraint violation (`lgnn.metrics`: max over frames; the latter
-includes loop closure) and the wall time; per
-pair `a~b` the max node error over the run. MJX is skipped, with an explicit row,
-on scenes whose tree is deeper than `MJX_MAX_DEPTH` (its compile time on CPU grows
-steeply with depth: 35 s for chain4, minutes beyond 16 links).
+and returns tidy rows `scene, engine, form, metric, value, note`: per engine the
+relative energy drift and the constraint violation (`lgnn.metrics`: max over frames;
+the latter includes loop closure) and the wall time; per pair `a~b` the max node error
+over the run. `form` is the MJCF form a MuJoCo engine ran the scene in (each picks
+its own, `MujocoEngine.form_of`; "a~b" for pairs, "" for the Lagrangian engine): MJX
+runs deep scenes in the maximal form, whose compile time barely grows with the number
+of links, so no scene is skipped unless `mjx_max_depth` asks for it.
 
 `speed_error(...)` measures steps per second (compile excluded) and accuracy against
 a converged reference: the speed-against-error table. The command writes both as CSV +
@@ -30,37 +31,43 @@ from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.engines.mjcf import scene_layout
 from lgnn.scene import Scene, State
 
-# Deepest spanning tree MJX is compiled for by default (chain4 compiles in ~35 s on a
-# 2-core CPU; chain16 20-60 s; 100 links kinematics alone 459 s).
+# Deepest spanning tree the benchmark's speed stage compiles MJX for (nested form:
+# chain4 compiles in ~35 s on a 2-core CPU; chain16 20-60 s; 100 links kinematics
+# alone 459 s). The crosscheck skips nothing by default.
 MJX_MAX_DEPTH = 8
 SKIP_MJX = "skipped: MJX compile too slow on CPU (tree depth {depth} > {limit})"
 
 
-def _run_engine(scene: Scene, config: SimulationConfig, engine: str):
-    start = time.perf_counter()
-    traj = get_engine(engine).rollout(scene, config, batch_of_one(scene.initial_state)).member(0)
-    return traj, time.perf_counter() - start
+def form_of(engine, scene: Scene) -> str:
+    """The MJCF form `engine` runs `scene` in ("" for engines without one)."""
+    return engine.form_of(scene) if hasattr(engine, "form_of") else getattr(engine, "form", "")
 
 
-def crosscheck(scene: Scene, config: SimulationConfig, engines=tuple(ENGINES), mjx_max_depth: int = MJX_MAX_DEPTH) -> list[dict]:
-    """Tidy rows (module docstring). Wall time of MJX includes its compile (once per process)."""
-    rows, trajectories = [], {}
-    for engine in engines:
+def crosscheck(scene: Scene, config: SimulationConfig, engines=tuple(ENGINES), mjx_max_depth: int | None = None,
+               progress: bool = False) -> list[dict]:
+    """Tidy rows (module docstring). Wall time of MJX includes its compile (once per
+    process); `progress` lets the engines say so before compiling."""
+    rows, trajectories, forms = [], {}, {}
+    for name in engines:
+        engine = get_engine(name, progress=progress and name == "mjx")
+        form = forms[name] = form_of(engine, scene)
         depth = scene_layout(scene).depth
-        if engine == "mjx" and depth > mjx_max_depth:
-            rows.append(dict(scene=scene.name, engine=engine, metric="skipped", value=float("nan"),
+        if name == "mjx" and mjx_max_depth is not None and depth > mjx_max_depth:
+            rows.append(dict(scene=scene.name, engine=name, form=form, metric="skipped", value=float("nan"),
                              note=SKIP_MJX.format(depth=depth, limit=mjx_max_depth)))
             continue
-        traj, wall = _run_engine(scene, config, engine)
-        trajectories[engine] = traj
+        start = time.perf_counter()
+        traj = trajectories[name] = engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0)
+        wall = time.perf_counter() - start
         rows += [
-            dict(scene=scene.name, engine=engine, metric="energy_drift", value=metrics.energy_drift(scene, traj), note="max |E-E0| / energy scale"),
-            dict(scene=scene.name, engine=engine, metric="constraint_violation", value=metrics.max_constraint_violation(scene, traj.q), note="max link-length/pin/loop error"),
-            dict(scene=scene.name, engine=engine, metric="wall_s", value=wall, note="incl. compile" if engine != "mujoco" else ""),
+            dict(scene=scene.name, engine=name, form=form, metric="energy_drift", value=metrics.energy_drift(scene, traj), note="max |E-E0| / energy scale"),
+            dict(scene=scene.name, engine=name, form=form, metric="constraint_violation", value=metrics.max_constraint_violation(scene, traj.q), note="max link-length/pin/loop error"),
+            dict(scene=scene.name, engine=name, form=form, metric="wall_s", value=wall, note="incl. compile" if name != "mujoco" else ""),
         ]
     for a, b in itertools.combinations(trajectories, 2):
         err = float(np.max(np.abs(trajectories[a].q - trajectories[b].q)))
-        rows.append(dict(scene=scene.name, engine=f"{a}~{b}", metric="max_node_error", value=err, note=f"over {config.duration:g} s"))
+        rows.append(dict(scene=scene.name, engine=f"{a}~{b}", form=f"{forms[a] or '-'}~{forms[b] or '-'}", metric="max_node_error", value=err,
+                         note=f"over {config.duration:g} s"))
     return rows
 
 
@@ -80,8 +87,8 @@ def header(command: str) -> list[str]:
 
 
 def speed_error(scenes, engines=tuple(ENGINES), dts=(1e-3, 1e-4, 1e-5), batches=(100,), batch_dts=(1e-4,), horizon: float = 0.1,
-                mjx_max_depth: int = MJX_MAX_DEPTH, max_steps: int = 25_000, dtype: str = "float64", log=print) -> list[dict]:
-    """Rows `scene, engine, batch, dt, dtype, steps_per_s, compile_s, max_node_error, note`.
+                mjx_max_depth: int | None = None, max_steps: int = 25_000, dtype: str = "float64", log=print) -> list[dict]:
+    """Rows `scene, engine, form, batch, dt, dtype, steps_per_s, compile_s, max_node_error, note`.
 
     Speed: steps per second of simulated trajectories (batch x steps / run time),
     compile excluded, over `horizon` s: a single state at each of `dts`, and each of
@@ -89,7 +96,7 @@ def speed_error(scenes, engines=tuple(ENGINES), dts=(1e-3, 1e-4, 1e-5), batches=
     `horizon` s at each dt (single state) against the MuJoCo C RK4 solution at dt / 10
     of the smallest dt (RK4 is converged to round-off there). Runs whose link-steps
     (batch x steps x links) exceed `max_steps` x 16 for the JAX engines, or MJX beyond
-    `mjx_max_depth`, get a row saying so. `dtype` applies to the JAX engines (MuJoCo C
+    `mjx_max_depth` (None: none), get a row saying so. `dtype` applies to the JAX engines (MuJoCo C
     is float64).
     """
     from lgnn.scene import get_scene, sample_initial_states
@@ -107,8 +114,9 @@ def speed_error(scenes, engines=tuple(ENGINES), dts=(1e-3, 1e-4, 1e-5), batches=
         reference = get_engine("mujoco").rollout(scene, ref_config, single).q[0, -1]
         for engine in engines:
             timed = get_engine(engine, dtype=dtype)
-            if engine == "mjx" and depth > mjx_max_depth:
-                rows.append(dict(scene=name, engine=engine, batch=0, dt=float("nan"), dtype=dtype, steps_per_s=float("nan"), compile_s=float("nan"),
+            form = form_of(timed, scene)
+            if engine == "mjx" and mjx_max_depth is not None and depth > mjx_max_depth:
+                rows.append(dict(scene=name, engine=engine, form=form, batch=0, dt=float("nan"), dtype=dtype, steps_per_s=float("nan"), compile_s=float("nan"),
                                  max_node_error=float("nan"), note=SKIP_MJX.format(depth=depth, limit=mjx_max_depth)))
                 continue
             runs = [(dt, single) for dt in dts] + [(dt, states) for dt in batch_dts for states in batched]
@@ -116,7 +124,7 @@ def speed_error(scenes, engines=tuple(ENGINES), dts=(1e-3, 1e-4, 1e-5), batches=
                 b = len(states.q)
                 steps = round(horizon / dt)
                 config = SimulationConfig(dt=dt, frame_dt=horizon, duration=horizon)
-                row = dict(scene=name, engine=engine, batch=b, dt=dt, dtype=timed.dtype,
+                row = dict(scene=name, engine=engine, form=form, batch=b, dt=dt, dtype=timed.dtype,
                            steps_per_s=float("nan"), compile_s=float("nan"), max_node_error=float("nan"), note="")
                 if engine != "mujoco" and b * steps * scene.n_links > max_steps * 16:
                     row["note"] = "not run: over the link-step limit (--max-steps)"

@@ -21,6 +21,9 @@ An `Engine` has a `name`, the precision it computes in (`dtype`), and
   once, float32 only, GPU or Warp's CPU backend; an optional extra (`lgnn[mjwarp]`),
   a one-line `ConfigError` when it is not installed.
 
+The MuJoCo engines take the MJCF form (`mjcf.Form`: "nested" or "maximal", or "auto"
+for the engine's own choice, `form_of(scene)`), through `get_engine(..., form=...)`.
+
 A learned model answers the same interface as `lgnn.learn.models.ModelEngine(config,
 params)` (e.g. `ModelEngine(*load_model(checkpoint))`); it is not in `ENGINES`
 because models live in a layer above the engines.
@@ -34,10 +37,12 @@ members in its own module, and one entry in `ENGINES`.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, Protocol
 
 import numpy as np
 
+from lgnn.engines.mjcf import FORMS
 from lgnn.engines.lagrangian import DTYPES, LagrangianEngine, SimulationConfig, Trajectory
 from lgnn.errors import ConfigError
 from lgnn.scene import Scene, State
@@ -65,9 +70,12 @@ def _mujoco(dtype: str, progress: bool) -> Engine:
 
 
 def _mjx(dtype: str, progress: bool) -> Engine:
+    import sys
+
     from lgnn.engines.mjx import MjxEngine
 
-    return MjxEngine(dtype=dtype)
+    # progress: say before a compile starts (minutes on a CPU), on stderr.
+    return MjxEngine(dtype=dtype, log=(lambda line: print(line, file=sys.stderr, flush=True)) if progress else None)
 
 
 def _mjwarp(dtype: str, progress: bool) -> Engine:
@@ -81,14 +89,23 @@ def _mjwarp(dtype: str, progress: bool) -> Engine:
 ENGINES: dict[str, Callable[[str, bool], Engine]] = {"lagrangian": _lagrangian, "mujoco": _mujoco, "mjx": _mjx, "mjwarp": _mjwarp}
 
 
-def get_engine(name: str, *, dtype: str = "float64", progress: bool = False) -> Engine:
+def get_engine(name: str, *, dtype: str = "float64", progress: bool = False, form: str | None = None) -> Engine:
     """The engine `name` (a key of `ENGINES`) computing in `dtype` where it has a choice;
-    `progress` shows progress bars where the engine has them (the Lagrangian engine's)."""
+    `progress` shows progress where the engine has it (the Lagrangian engine's bars,
+    MJX's compile notice); `form` picks the MJCF form of a MuJoCo engine ("nested",
+    "maximal", or "auto": the engine's own choice; None: its default)."""
     if name not in ENGINES:
         raise ConfigError(f"unknown engine {name!r} (choose from {', '.join(ENGINES)})")
     if dtype not in DTYPES:
         raise ConfigError(f"unknown dtype {dtype!r} (choose from {', '.join(DTYPES)})")
-    return ENGINES[name](dtype, progress)
+    engine = ENGINES[name](dtype, progress)
+    if form is None:
+        return engine
+    if form not in ("auto", *FORMS):
+        raise ConfigError(f"unknown MJCF form {form!r} (choose from auto, {', '.join(FORMS)})")
+    if not (dataclasses.is_dataclass(engine) and any(field.name == "form" for field in dataclasses.fields(engine))):
+        raise ConfigError(f"engine {name!r} has no MJCF form (only the MuJoCo engines take --form)")
+    return dataclasses.replace(engine, form=form)
 
 
 def batch_of_one(state: State) -> State:

@@ -1,14 +1,26 @@
 """MJCF rendering of a scene: pure Python, no `import mujoco` (`lgnn.engines.mujoco`
-compiles the text; `lgnn mjcf` writes the built-in scenes' files into mjcf/).
+compiles the text; `lgnn mjcf` writes the built-in scenes' files into mjcf/, nested,
+and mjcf/maximal/).
 
-- `scene_layout(scene)` is the scene's spanning tree: every link is a body hinged at
+`render(scene, dt, form)` writes one of two forms (`Form`), each from its
+`scene_layout(scene, form)`:
+
+- "maximal": every link joining a free node is a body directly under the world, its
+  frame at the rod's centre, with slide x, slide y and hinge z (the planar free body;
+  a spatial one would be a <freejoint/>); a node's site sits on its first link (a pin's
+  on the world), and every other link end at that node is tied to it by a two-site
+  `connect` (`Layout.ties`). Depth 1 and a diagonal mass matrix, at any size and with
+  any loops; the joints are as soft as `MAXIMAL_SOLREF_STEPS` (errors measured there).
+- "nested", below.
+
+- `scene_layout(scene)` (nested) is the scene's spanning tree: every link is a body hinged at
   one of its end nodes (axis z, normal to the plane). The tree grows breadth-first
   from the pinned nodes (world-fixed); a component without pins gets a free planar
   root (slide x, slide y, hinge z). A link whose far node is already in the tree
   still becomes a body (it has mass) and closes its loop with a two-site `connect`
   equality from its tip to that node. Links between two pinned nodes never move and
   get no body.
-- `scene_to_mjcf(scene, dt)` renders the MJCF text: explicit `<inertial>` (the link's
+- `render(scene, dt)` (also `scene_to_mjcf`) renders the MJCF text: explicit `<inertial>` (the link's
   mass at the rod's centre, the scene's moment of inertia about z), contacts off,
   gravity `(0, -g, 0)`, a site `node{k}` on every node, RK4. Loop equalities are made
   stiff with `solref` of `SOLREF_STEPS` time steps and `solimp` near 1, so the MJCF
@@ -18,7 +30,7 @@ compiles the text; `lgnn mjcf` writes the built-in scenes' files into mjcf/).
 - Nesting: one `<body>` per tree level, and MuJoCo's XML parser (tinyxml2) refuses
   elements nested deeper than 500, so a tree deeper than `MAX_BODY_DEPTH` (496
   bodies, measured: chain496 compiles, chain497 is "XML parse error 18") cannot be
-  rendered; `scene_to_mjcf` refuses it with a `SceneError`.
+  rendered nested; `render` refuses it with a `SceneError` (the maximal form runs it).
 
 Why a small string writer and not `mujoco.MjSpec` (issue 12 asked; measured on
 mujoco 4.0.0, 2-core CPU): MjSpec builds and compiles chain1000 (4.0 s) but not
@@ -35,6 +47,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -45,6 +58,13 @@ from lgnn.scene import Scene
 # smallest MuJoCo accepts without clamping) and an impedance near 1 (nearly hard
 # constraint). Measured on a closed 4-link loop: 5e-10 agreement with an exact solver.
 SOLREF_STEPS = 2.0
+# The maximal form's joints are all `connect` equalities, so its accuracy is set by
+# this softness. Max node error against the Lagrangian engine over 0.5 s (RK4), dt 1e-4
+# / 1e-3, solref 2 dt: tree 1.9e-9 / 1.9e-7, loop6 2.1e-7 / 2.4e-5, T1 9.1e-7 / 6.8e-5
+# (~dt^2); 4 dt is 2-4x worse; solimp 0.9999 .. 0.999999 changes nothing; 1 dt (refsafe
+# off, which MuJoCo otherwise clamps to 2 dt) gains 2.5x on T1 and nothing on loop6,
+# 0.5 dt loses 100x: 2 dt, MuJoCo's safe minimum, is the default.
+MAXIMAL_SOLREF_STEPS = 2.0
 SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
 # Constraint solver: equality-only problems are quadratic, so Newton converges in one
 # or two iterations; the tolerance only stops it at round-off.
@@ -56,6 +76,12 @@ SITE_RADIUS = 0.04
 # Deepest body tree MuJoCo's XML parser accepts: its element depth limit (500) less
 # <mujoco>, <worldbody> and the innermost body's children (measured, module docstring).
 MAX_BODY_DEPTH = 496
+
+# The two MJCF forms of a scene (module docstring): "nested" (joint coordinates, one
+# body per tree level) and "maximal" (every link a body under the world, joined by
+# `connect` equalities). Engines take a `Form` or "auto" (their own best choice).
+Form = Literal["nested", "maximal"]
+FORMS: tuple[str, ...] = get_args(Form)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +110,25 @@ class Layout:
     bodies: tuple[LinkBody, ...]
     node_body: tuple[int, ...]
     static_links: tuple[int, ...]
+    form: Form = "nested"
+
+    @property
+    def origin_weight(self) -> float:
+        """Where a body's frame sits on its link, from `base` (0) to `tip` (1): nested
+        bodies hinge at their base node, maximal ones sit at the rod's centre (a
+        diagonal mass matrix)."""
+        return 0.5 if self.form == "maximal" else 0.0
+
+    @property
+    def ties(self) -> tuple[tuple[int, int], ...]:
+        """`(body, node)` pairs joined by a `connect` equality: the body's end at `node`
+        to the site of the node's owner (a pin: the world). Nested: loop-closing tips;
+        maximal: every link end the link does not own."""
+        ties = []
+        for k, body in enumerate(self.bodies):
+            ends = (body.base, body.tip) if self.form == "maximal" else (body.tip,) if body.closes_loop else ()
+            ties += [(k, node) for node in ends if self.node_body[node] != k]
+        return tuple(ties)
 
     @property
     def depth(self) -> int:
@@ -94,10 +139,16 @@ class Layout:
         return max(depth, default=0)
 
 
-def scene_layout(scene: Scene) -> Layout:
-    """Breadth-first spanning tree rooted at the pinned nodes (see module docstring)."""
+def scene_layout(scene: Scene, form: Form = "nested") -> Layout:
+    """The bodies of `form`: nested, the breadth-first spanning tree rooted at the
+    pinned nodes; maximal, one free body per moving link (module docstring)."""
+    check_form(form)
     if scene.dim != 2:
+        # The maximal form's spatial body would be a <freejoint/>; the state maps and
+        # rendering are planar today.
         raise ConfigError(f"{scene.name}: the MuJoCo engines support planar (2D) scenes only, got {scene.dim}D")
+    if form == "maximal":
+        return _maximal_layout(scene)
     adjacency = [[] for _ in range(scene.n_nodes)]
     for e, (i, j) in enumerate(scene.edges):
         adjacency[i].append((e, j))
@@ -137,6 +188,30 @@ def scene_layout(scene: Scene) -> Layout:
     return Layout(tuple(bodies), tuple(node_body), static)
 
 
+def _maximal_layout(scene: Scene) -> Layout:
+    # Every link joining a free node is a body under the world; a node's site sits on
+    # the first such link (edge order) or, pinned, on the world.
+    pinned = set(scene.pinned)
+    static = tuple(e for e, (i, j) in enumerate(scene.edges) if i in pinned and j in pinned)
+    node_body = [-1 if k in pinned else None for k in range(scene.n_nodes)]
+    bodies = []
+    for e, (i, j) in enumerate(scene.edges):
+        if e in static:
+            continue
+        for node in (i, j):
+            if node_body[node] is None:
+                node_body[node] = len(bodies)
+        tied = node_body[i] != len(bodies) or node_body[j] != len(bodies)
+        bodies.append(LinkBody(e, i, j, -1, free_root=True, closes_loop=tied))
+    return Layout(tuple(bodies), tuple(node_body), static, "maximal")
+
+
+def check_form(form: str) -> None:
+    """`ConfigError` unless `form` is one of `FORMS`."""
+    if form not in FORMS:
+        raise ConfigError(f"unknown MJCF form {form!r} (choose from {', '.join(FORMS)})")
+
+
 def _num(x) -> str:
     # Shortest repr that round-trips: the MJCF reproduces the scene exactly.
     x = float(x)
@@ -147,14 +222,15 @@ def _vec(*xs) -> str:
     return " ".join(_num(x) for x in xs)
 
 
-def scene_to_mjcf(scene: Scene, dt: float = 1e-4) -> str:
-    """The MJCF text of `scene` for time step `dt` (module docstring)."""
-    layout = scene_layout(scene)
+def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
+    """The MJCF text of `scene` in `form` for time step `dt` (module docstring)."""
+    layout = scene_layout(scene, form)
     if layout.depth > MAX_BODY_DEPTH:
         raise SceneError(
             f"{scene.name}: spanning tree of depth {layout.depth} is too deep to render as nested MJCF bodies "
-            f"(MuJoCo parses at most {MAX_BODY_DEPTH})"
+            f"(MuJoCo parses at most {MAX_BODY_DEPTH}; the maximal form has no such limit)"
         )
+    maximal = form == "maximal"
     nodes = np.asarray(scene.nodes, np.float64)
     scale = float(np.median(scene.lengths))
     children = collections.defaultdict(list)
@@ -163,10 +239,16 @@ def scene_to_mjcf(scene: Scene, dt: float = 1e-4) -> str:
     sites = collections.defaultdict(list)
     for k, owner in enumerate(layout.node_body):
         sites[owner].append(k)
+    ties = collections.defaultdict(list)
+    for k, node in layout.ties:
+        ties[k].append(node)
     site_size = f"{SITE_RADIUS * scale:.3g}"
 
     def origin(index: int) -> np.ndarray:
-        return nodes[layout.bodies[index].base] if index >= 0 else np.zeros(2)
+        if index < 0:
+            return np.zeros(2)
+        body = layout.bodies[index]
+        return nodes[body.base] + layout.origin_weight * (nodes[body.tip] - nodes[body.base])
 
     def node_sites(index: int, indent: str) -> list[str]:
         o = origin(index)
@@ -177,8 +259,9 @@ def scene_to_mjcf(scene: Scene, dt: float = 1e-4) -> str:
     def body_xml(index: int, indent: str) -> list[str]:
         body = layout.bodies[index]
         e = body.link
-        pos = nodes[body.base] - origin(body.parent)
-        tip = nodes[body.tip] - nodes[body.base]
+        o = origin(index)
+        pos = o - origin(body.parent)
+        base, tip = nodes[body.base] - o, nodes[body.tip] - o
         mass, inertia = float(scene.masses[e]), float(scene.inertias[e])
         # Only Izz acts on a planar hinge; Ixx = Iyy = Izz satisfies MuJoCo's triangle
         # inequality. A zero inertia (a point-mass rod) is raised to a negligible floor
@@ -190,25 +273,27 @@ def scene_to_mjcf(scene: Scene, dt: float = 1e-4) -> str:
             lines.append(f'{inner}<joint name="link{e}_x" type="slide" axis="1 0 0"/>')
             lines.append(f'{inner}<joint name="link{e}_y" type="slide" axis="0 1 0"/>')
         lines.append(f'{inner}<joint name="link{e}_hinge" type="hinge" axis="0 0 1"/>')
-        lines.append(f'{inner}<inertial pos="{_vec(*(tip / 2), 0)}" mass="{_num(mass)}" diaginertia="{_vec(inertia, inertia, inertia)}"/>')
+        lines.append(f'{inner}<inertial pos="{_vec(*((0.5 - layout.origin_weight) * (tip - base)), 0)}" mass="{_num(mass)}" diaginertia="{_vec(inertia, inertia, inertia)}"/>')
         lines.append(
-            f'{inner}<geom name="link{e}" type="capsule" fromto="0 0 0 {_vec(*tip, 0)}" '
+            f'{inner}<geom name="link{e}" type="capsule" fromto="{_vec(*base, 0)} {_vec(*tip, 0)}" '
             f'size="{GEOM_RADIUS * scale:.3g}" rgba="{_link_color(scene.link_types[e])}"/>'
         )
-        if body.closes_loop:
-            lines.append(f'{inner}<site name="link{e}_tip" pos="{_vec(*tip, 0)}" size="{site_size}" rgba="1 0 0 1"/>')
+        for node in ties[index]:
+            lines.append(f'{inner}<site name="{_tie_site(body, node)}" pos="{_vec(*(nodes[node] - o), 0)}" size="{site_size}" rgba="1 0 0 1"/>')
         lines += node_sites(index, inner)
         for child in children[index]:
             lines += body_xml(child, inner)
         lines.append(f"{indent}</body>")
         return lines
 
-    solref = f"{_num(SOLREF_STEPS * dt)} 1"
+    solref = f"{_num((MAXIMAL_SOLREF_STEPS if maximal else SOLREF_STEPS) * dt)} 1"
     solimp = _vec(*SOLIMP)
+    what = "maximal coordinates: every link a body under the world, joined by connect equalities" if maximal else "nested bodies"
     lines = [
         f'<mujoco model="{scene.name}">',
-        f"  <!-- Rendered by lgnn.engines.mjcf.scene_to_mjcf from scene {scene.name!r} "
-        f"({scene.n_nodes} nodes, {scene.n_links} links, pins {list(scene.pinned)}); dt {dt:g}. -->",
+        f"  <!-- Rendered by lgnn.engines.mjcf.render from scene {scene.name!r} "
+        f"({scene.n_nodes} nodes, {scene.n_links} links, pins {list(scene.pinned)}); dt {dt:g}"
+        + (f"; {what}. -->" if maximal else ". -->"),
     ]
     if layout.static_links:
         lines.append(f"  <!-- Links {list(layout.static_links)} join two pins: they never move and have no body. -->")
@@ -217,7 +302,7 @@ def scene_to_mjcf(scene: Scene, dt: float = 1e-4) -> str:
     lines += [
         '  <compiler angle="radian" autolimits="true"/>',
         f'  <option timestep="{_num(dt)}" integrator="RK4" gravity="0 {_num(-float(scene.gravity))} 0" '
-        f'solver="Newton" tolerance="{_num(SOLVER_TOLERANCE)}" iterations="{SOLVER_ITERATIONS}" jacobian="dense">',
+        f'solver="Newton" tolerance="{_num(SOLVER_TOLERANCE)}" iterations="{SOLVER_ITERATIONS}" jacobian="{"sparse" if maximal else "dense"}">',
         '    <flag contact="disable"/>',
         "  </option>",
         '  <default><geom contype="0" conaffinity="0"/></default>',
@@ -230,12 +315,13 @@ def scene_to_mjcf(scene: Scene, dt: float = 1e-4) -> str:
     for child in children[-1]:
         lines += body_xml(child, "    ")
     lines.append("  </worldbody>")
-    loops = [body for body in layout.bodies if body.closes_loop]
-    if loops:
+    if layout.ties:
         lines.append("  <equality>")
-        for body in loops:
+        for k, node in layout.ties:
+            body = layout.bodies[k]
+            name = f"link{body.link}_node{node}" if maximal else f"loop{body.link}"
             lines.append(
-                f'    <connect name="loop{body.link}" site1="link{body.link}_tip" site2="node{body.tip}" '
+                f'    <connect name="{name}" site1="{_tie_site(body, node)}" site2="node{node}" '
                 f'solref="{solref}" solimp="{solimp}"/>'
             )
         lines.append("  </equality>")
@@ -243,7 +329,30 @@ def scene_to_mjcf(scene: Scene, dt: float = 1e-4) -> str:
     return "\n".join(lines) + "\n"
 
 
+# The nested renderer's earlier name (other modules and branches call it).
+scene_to_mjcf = render
+
+
+def _tie_site(body: LinkBody, node: int) -> str:
+    # The end of `body` at `node` that a `connect` ties to the node's owner.
+    return f"link{body.link}_tip" if node == body.tip else f"link{body.link}_base"
+
+
 def _link_color(link_type: str) -> str:
     return "0.8 0.3 0.2 1" if link_type == "rod" else "0.2 0.4 0.8 1"
 
 
+
+
+def builtin_files(forms: tuple[str, ...] = FORMS) -> dict[str, str]:
+    """The committed `mjcf/` files of the built-in scenes: relative path -> text
+    (nested: NAME.xml, maximal: maximal/NAME.xml), at the default dt."""
+    from lgnn.scene import BUILTIN_SCENES
+
+    files = {}
+    for form in forms:
+        check_form(form)
+        folder = "" if form == "nested" else f"{form}/"
+        for name, entry in BUILTIN_SCENES.items():
+            files[f"{folder}{name}.xml"] = render(entry.build(), form=form)
+    return files

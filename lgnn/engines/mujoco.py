@@ -3,9 +3,11 @@
 The only modules of lgnn that import `mujoco` are this one and `lgnn.engines.mjx`
 (built on it); `lgnn.engines` loads them on first use. Contract:
 
-- `compile_scene(scene, dt)` compiles the scene's MJCF (`lgnn.engines.mjcf`) into a
-  `Compiled` model with the index arrays of the state maps (cached on the scene's
-  content and `dt`).
+- `compile_scene(scene, dt, form)` compiles the scene's MJCF in `form`
+  (`lgnn.engines.mjcf`: nested or maximal) into a `Compiled` model with the index
+  arrays of the state maps (cached on the scene's content, `dt` and `form`);
+  `best_form` is MuJoCo C's choice (nested while MuJoCo parses it, else maximal),
+  `resolve_form` turns an engine's "auto" into it.
 - `state_to_qpos_qvel` and `node_states` map between node states `(q, qd)` (N, 2)
   and MuJoCo's `(qpos, qvel)` (nq,), (nv,) (hinge angles relative to the rendered
   pose, so `qpos = 0` is the scene's initial shape).
@@ -35,7 +37,7 @@ import mujoco
 import numpy as np
 
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory
-from lgnn.engines.mjcf import SOLIMP, SOLREF_STEPS, Layout, scene_layout, scene_to_mjcf
+from lgnn.engines.mjcf import MAX_BODY_DEPTH, MAXIMAL_SOLREF_STEPS, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, render, scene_layout
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.metrics import ExplosionBounds, true_energies
 from lgnn.runtime import precision
@@ -54,8 +56,8 @@ class Compiled:
     `hinge` (B,) qpos/qvel address of each body's hinge; `parent` (B,) parent body
     (B: the world, a row of zeros appended); `base`, `tip` (B,) nodes; `rest_angle`
     (B,) link direction in the rendered pose; `root_body`, `root_x` (R,) free roots
-    and the address of their x slide (y follows); `node_site` (N,) site ids;
-    `body_id` (B,) body ids.
+    and the address of their x slide (y follows), their frame at `layout.origin_weight`
+    along the link; `node_site` (N,) site ids; `body_id` (B,) body ids.
     """
 
     scene: Scene
@@ -72,12 +74,26 @@ class Compiled:
     body_id: np.ndarray
 
 
+def best_form(scene: Scene) -> Form:
+    """MuJoCo C's form of `scene`: nested (exact joints: ~1e-13 from the Lagrangian
+    engine on open chains) while MuJoCo can parse it, else maximal (no depth limit)."""
+    return "nested" if scene_layout(scene).depth <= MAX_BODY_DEPTH else "maximal"
+
+
+def resolve_form(scene: Scene, form: str, best=best_form) -> Form:
+    """`form`, or with "auto" the engine's choice `best(scene)`; `ConfigError` for others."""
+    if form == "auto":
+        return best(scene)
+    check_form(form)
+    return form
+
+
 @functools.lru_cache(maxsize=64)
-def compile_scene(scene: Scene, dt: float = 1e-4) -> Compiled:
-    """Render and compile the scene's model (cached on the scene's content and `dt`)."""
-    layout = scene_layout(scene)
+def compile_scene(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> Compiled:
+    """Render `scene` in `form` and compile it (cached on the scene's content, `dt` and `form`)."""
+    layout = scene_layout(scene, form)
     try:
-        text = scene_to_mjcf(scene, dt)
+        text = render(scene, dt, form)
     except SceneError as err:
         # Too deep to render (`mjcf.MAX_BODY_DEPTH`): this engine cannot run the scene,
         # which callers (the stability report) record like any stopped run.
@@ -123,10 +139,18 @@ def state_to_qpos_qvel(compiled: Compiled, q, qd):
     qpos = jnp.zeros(nq, q.dtype).at[c.hinge].set(rel)
     qvel = jnp.zeros(nq, q.dtype).at[c.hinge].set(omega - omega_ext[c.parent])
     if len(c.root_body):
-        root_nodes = c.base[c.root_body]
-        shift = q[root_nodes] - jnp.asarray(c.scene.nodes[root_nodes], q.dtype)
+        # A free root's slides hold the displacement of its frame: the base node
+        # (nested) or the rod's centre (maximal).
+        w = c.layout.origin_weight
+        base, tip = c.base[c.root_body], c.tip[c.root_body]
+
+        def frame(x):
+            return (1 - w) * x[base] + w * x[tip]
+
+        shift = frame(q) - jnp.asarray(frame(c.scene.nodes), q.dtype)
+        velocity = frame(qd)
         qpos = qpos.at[c.root_x].set(shift[:, 0]).at[c.root_x + 1].set(shift[:, 1])
-        qvel = qvel.at[c.root_x].set(qd[root_nodes, 0]).at[c.root_x + 1].set(qd[root_nodes, 1])
+        qvel = qvel.at[c.root_x].set(velocity[:, 0]).at[c.root_x + 1].set(velocity[:, 1])
     return qpos, qvel
 
 
@@ -190,7 +214,12 @@ def equality_jacobian(compiled: Compiled, qpos: np.ndarray) -> np.ndarray:
     """(n_eq_rows, nv) Jacobian of the loop-closure equalities at `qpos`."""
     model, data = compiled.model, _posed(compiled, qpos, forward=True)
     rows = data.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY
-    return data.efc_J.reshape(data.nefc, model.nv)[rows]
+    if not mujoco.mj_isSparse(model):
+        return data.efc_J.reshape(data.nefc, model.nv)[rows]
+    # The maximal form stores constraint rows sparse (its `jacobian="sparse"`).
+    dense = np.zeros((data.nefc, model.nv))
+    mujoco.mju_sparse2dense(dense, data.efc_J, data.efc_J_rownnz, data.efc_J_rowadr, data.efc_J_colind)
+    return dense[rows]
 
 
 # ---------------------------------------------------------------------------------
@@ -270,11 +299,11 @@ def _check_warnings(scene: Scene, config, datas, frame: int) -> None:
             )
 
 
-def rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1) -> State:
+def rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1, form: Form = "nested") -> State:
     """MuJoCo C trajectories from initial node states (B, N, 2) (default: the scene's
-    own, B = 1): node `State` (B, F+1, N, 2), frame 0 the initial state. The stepping
-    (`joint_rollout`) followed by the node map (`node_states`)."""
-    return node_trajectories(*joint_rollout(scene, config, states, threads=threads))
+    own, B = 1) on the scene's MJCF in `form`: node `State` (B, F+1, N, 2), frame 0 the
+    initial state. The stepping (`joint_rollout`) followed by the node map (`node_states`)."""
+    return node_trajectories(*joint_rollout(scene, config, states, threads=threads, form=form))
 
 
 def node_trajectories(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray) -> State:
@@ -284,7 +313,7 @@ def node_trajectories(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray) ->
     return State(np.stack(qs), np.stack(qds))
 
 
-def joint_rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1):
+def joint_rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1, form: Form = "nested"):
     """The stepping of `rollout`: `(compiled, qpos (B, F+1, nq), qvel (B, F+1, nv))` in
     MuJoCo's joint coordinates (what a timing of MuJoCo itself should measure).
 
@@ -295,7 +324,7 @@ def joint_rollout(scene: Scene, config, states: State | None = None, *, threads:
     which it happened.
     """
     check_rk4(config)
-    compiled = compile_scene(scene, config.dt)
+    compiled = compile_scene(scene, config.dt, form)
     model = compiled.model
     if states is None:
         states = State(scene.nodes[None], scene.velocities[None])
@@ -378,31 +407,37 @@ def checked_trajectory(scene: Scene, config: SimulationConfig, states: State, me
     return Trajectory(t, q, qd, energy, metadata)
 
 
-def engine_metadata(scene: Scene, config: SimulationConfig, engine: str, dtype: str, wall_s: float) -> dict:
+def engine_metadata(scene: Scene, config: SimulationConfig, engine: str, dtype: str, wall_s: float, form: Form = "nested") -> dict:
     """A MuJoCo engine's `Trajectory.metadata`: the scene, the settings, and the engine
-    (version, precision, stepping wall time, loop-closure stiffness)."""
+    (version, precision, stepping wall time, MJCF form, constraint stiffness)."""
     return {
         "scene": scene_to_dict(scene),
         "config": dataclasses.asdict(config),
-        "engine": {"name": engine, "mujoco": mujoco.__version__, "dtype": dtype, "wall_s": wall_s,
-                   "solref_steps": SOLREF_STEPS, "solimp": list(SOLIMP)},
+        "engine": {"name": engine, "mujoco": mujoco.__version__, "dtype": dtype, "wall_s": wall_s, "form": form,
+                   "solref_steps": MAXIMAL_SOLREF_STEPS if form == "maximal" else SOLREF_STEPS, "solimp": list(SOLIMP)},
     }
 
 
 @dataclasses.dataclass(frozen=True)
 class MujocoEngine:
     """MuJoCo C as an `lgnn.engines.Engine`: float64 always (MuJoCo C has no other
-    precision), `threads` MjData for batches."""
+    precision), `threads` MjData for batches, the MJCF `form` ("auto": `best_form`)."""
 
     name: ClassVar[str] = "mujoco"
     dtype: ClassVar[str] = "float64"
     threads: int = 1
+    form: str = "auto"
+
+    def form_of(self, scene: Scene) -> Form:
+        """The MJCF form this engine runs `scene` in."""
+        return resolve_form(scene, self.form, best_form)
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)."""
+        form = self.form_of(scene)
         start = time.perf_counter()
-        nodes = rollout(scene, config, states, threads=self.threads)
-        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start)
+        nodes = rollout(scene, config, states, threads=self.threads, form=form)
+        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form)
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
@@ -410,10 +445,11 @@ class MujocoEngine:
         compiles the model. Run: MuJoCo's stepping alone; the map to node states after
         it is a Python loop over frames and nodes that would otherwise dominate small
         scenes (the JAX engines' timings include it, compiled into their rollout)."""
+        form = self.form_of(scene)
         start = time.perf_counter()
-        joint_rollout(scene, dataclasses.replace(config, frame_dt=config.dt, duration=config.dt), states, threads=TIMING_THREADS)
+        joint_rollout(scene, dataclasses.replace(config, frame_dt=config.dt, duration=config.dt), states, threads=TIMING_THREADS, form=form)
         compile_s = time.perf_counter() - start
         start = time.perf_counter()
-        compiled, qpos, qvel = joint_rollout(scene, config, states, threads=TIMING_THREADS)
+        compiled, qpos, qvel = joint_rollout(scene, config, states, threads=TIMING_THREADS, form=form)
         run_s = time.perf_counter() - start
         return compile_s, run_s, node_trajectories(compiled, qpos, qvel).q

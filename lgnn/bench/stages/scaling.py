@@ -64,8 +64,12 @@ def scaling(profile: Profile, out: Path) -> Path:
         for solver, factory in factories.items():
             row = dict(kind="size", scene=scene.name, n_links=n, solver=solver, batch=1, s_per_step=float("nan"), compile_s=float("nan"), note="")
             if factory is None:
+                # MuJoCo C picks its MJCF form (nested up to MuJoCo's nesting limit, then
+                # maximal: chain1000 runs); the note says which.
+                engine = get_engine("mujoco")
+                row["note"] = f"{engine.form_of(scene)} MJCF"
                 try:
-                    compile_s, run_s, _ = get_engine("mujoco").timed_rollout(scene, config, single)
+                    compile_s, run_s, _ = engine.timed_rollout(scene, config, single)
                 except (ConfigError, SceneError, SimulationError) as err:
                     row["note"] = f"not run: {err}"
                     rows.append(row)
