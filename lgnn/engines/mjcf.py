@@ -69,7 +69,12 @@ MAXIMAL_SOLREF_STEPS = 2.0
 # its normals. The node description has no spin about a rod's axis and no force
 # excites it (gravity and the joint forces act on the axis; the Euler equations of an
 # axisymmetric body keep a zero axial spin zero), but MuJoCo needs a positive-definite
-# body inertia. FILLED IN BELOW.
+# body inertia. Measured (MuJoCo C, RK4, dt 1e-4, 0.5 s, both forms, chain4-3d and
+# net3x3-3d): fractions 1e-1 .. 1e-6 move node positions by at most 1.3e-13 from
+# 1e-3's, against 3e-14 .. 2e-8 from the Lagrangian engine. The axial spin stays at
+# round-off (open chains: 6e-14, 9e-13, 5e-12 rad/s at 1e-2, 1e-3, 1e-4) or at the
+# loops' `connect` softness (~4e-10 rad/s, 10x worse at 1e-4): 1e-3 is small enough
+# not to matter and large enough to keep that round-off small.
 AXIAL_INERTIA_FRACTION = 1e-3
 SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
 # Constraint solver: equality-only problems are quadratic, so Newton converges in one

@@ -30,7 +30,7 @@ import numpy as np
 
 from lgnn.engines.lagrangian import DTYPES, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import Form, scene_layout
-from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, resolve_form, state_to_qpos_qvel
+from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, qpos_rate, resolve_form, state_to_qpos_qvel
 from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.runtime import precision
@@ -81,15 +81,19 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form:
 
     def positions(qpos, which):
         d = mjx.kinematics(mx, d0.replace(qpos=qpos))
-        return d.site_xpos[sites, :2] if which == "sites" else d.xipos[bodies]
+        return d.site_xpos[sites, : scene.dim] if which == "sites" else d.xipos[bodies]
+
+    def velocities(qpos, qvel, which):
+        # Positions and their velocities: a jvp along qpos's rate (qvel itself for
+        # hinges and slides; quaternions turn at 1/2 quat * omega).
+        return jax.jvp(lambda p: positions(p, which), (qpos,), (qpos_rate(compiled, qpos, qvel),))
 
     def to_nodes(qpos, qvel):
-        # qpos derivative = qvel for hinge and slide joints: site velocity is a jvp.
-        return jax.jvp(lambda p: positions(p, "sites"), (qpos,), (qvel,))
+        return velocities(qpos, qvel, "sites")
 
     def step(d):
         if drag:
-            _, v_cm = jax.jvp(lambda p: positions(p, "com"), (d.qpos,), (d.qvel,))
+            _, v_cm = velocities(d.qpos, d.qvel, "com")
             d = d.replace(xfrc_applied=d.xfrc_applied.at[bodies, :3].set(-drag * v_cm))
         return mjx.step(mx, d)
 
