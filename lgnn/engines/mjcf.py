@@ -7,7 +7,7 @@ and mjcf/maximal/).
 
 - "maximal": every link joining a free node is a body directly under the world, its
   frame at the rod's centre, with slide x, slide y and hinge z (the planar free body;
-  a spatial one would be a <freejoint/>); a node's site sits on its first link (a pin's
+  in 3D a <freejoint/>); a node's site sits on its first link (a pin's
   on the world), and every other link end at that node is tied to it by a two-site
   `connect` (`Layout.ties`). Depth 1 and a diagonal mass matrix, at any size and with
   any loops; the joints are as soft as `MAXIMAL_SOLREF_STEPS` (errors measured there).
@@ -20,6 +20,9 @@ and mjcf/maximal/).
   still becomes a body (it has mass) and closes its loop with a two-site `connect`
   equality from its tip to that node. Links between two pinned nodes never move and
   get no body.
+- Spatial (3D) scenes: the same layouts, with a ball joint for each hinge and a
+  <freejoint/> for each free root; a rod's inertia is the scene's about every axis
+  normal to it and `AXIAL_INERTIA_FRACTION` of that about its own axis (`rod_inertia`).
 - `render(scene, dt)` (also `scene_to_mjcf`) renders the MJCF text: explicit `<inertial>` (the link's
   mass at the rod's centre, the scene's moment of inertia about z), contacts off,
   gravity `(0, -g, 0)`, a site `node{k}` on every node, RK4. Loop equalities are made

@@ -1,9 +1,9 @@
 """MJX: MuJoCo's JAX engine on the scene's MuJoCo model (`lgnn.engines.mujoco`).
 
 `runner(scene, config, dtype)` is the compiled, `vmap`ped rollout from initial node
-states (B, N, 2) to node trajectories (B, F+1, N, 2): node states map to MJX's
+states (B, N, dim) to node trajectories (B, F+1, N, dim): node states map to MJX's
 `(qpos, qvel)` with MuJoCo C's state map, and back through MJX's kinematics (site
-positions, and their velocities as a `jvp`). Drag is applied as in MuJoCo C
+positions, and their velocities as a `jvp` along `qpos_rate`). Drag is applied as in MuJoCo C
 (`xfrc_applied` at link centres, held over a step). `MjxEngine` is the
 `lgnn.engines.Engine` on top. MJX compiles slowly on CPU in the nested form (~35 s for
 chain4, over 10 minutes for 12 links), far less in the maximal form (12 links: ~30 s
@@ -46,8 +46,8 @@ NESTED_MAX_DEPTH = 8
 @functools.lru_cache(maxsize=16)
 def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form: Form = "nested"):
     """Compiled-on-first-call `run(q0, qd0) -> (q, qd)`: MJX trajectories of the
-    scene's MJCF in `form`, `vmap`ped over initial node states (B, N, 2) -> (B, F+1, N,
-    2). Cached on the scene's content, config, dtype and form, so compilation (slow on
+    scene's MJCF in `form`, `vmap`ped over initial node states (B, N, dim) -> (B, F+1,
+    N, dim). Cached on the scene's content, config, dtype and form, so compilation (slow on
     CPU) happens once per process.
     Call it inside `lgnn.runtime.precision(dtype)`."""
     with contextlib.redirect_stdout(io.StringIO()):
@@ -113,7 +113,7 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form:
 
 
 def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = "float64", form: Form = "nested") -> State:
-    """MJX node trajectories (B, F+1, N, 2) from initial node states (B, N, 2), on the
+    """MJX node trajectories (B, F+1, N, dim) from initial node states (B, N, dim), on the
     scene's MJCF in `form`."""
     # float32 needs x64 off: MJX builds float64 constants under x64 (its RK4 tableau,
     # for one) that would promote the float32 state and break its scans.
@@ -156,7 +156,7 @@ class MjxEngine:
         return form
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
-        """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)
+        """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1)
         (lgnn's exact energy in float64 of the node states; MJX has none)."""
         form = self._announced_form(scene, config)
         start = time.perf_counter()
@@ -165,7 +165,7 @@ class MjxEngine:
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
-        """`(compile_s, run_s, q (B, F+1, N, 2))` of the compiled runner (`time_compiled`)."""
+        """`(compile_s, run_s, q (B, F+1, N, dim))` of the compiled runner (`time_compiled`)."""
         form = self._announced_form(scene, config)
         with precision(self.dtype):
             run = runner(scene, config, self.dtype, form)

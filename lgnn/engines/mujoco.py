@@ -1,4 +1,4 @@
-"""MuJoCo C: an independent ground-truth engine for any planar scene.
+"""MuJoCo C: an independent ground-truth engine for any planar or spatial scene.
 
 The only modules of lgnn that import `mujoco` are this one and `lgnn.engines.mjx`
 (built on it); `lgnn.engines` loads them on first use. Contract:
@@ -8,11 +8,12 @@ The only modules of lgnn that import `mujoco` are this one and `lgnn.engines.mjx
   arrays of the state maps (cached on the scene's content, `dt` and `form`);
   `best_form` is MuJoCo C's choice (nested while MuJoCo parses it, else maximal),
   `resolve_form` turns an engine's "auto" into it.
-- `state_to_qpos_qvel` and `node_states` map between node states `(q, qd)` (N, 2)
-  and MuJoCo's `(qpos, qvel)` (nq,), (nv,) (hinge angles relative to the rendered
-  pose, so `qpos = 0` is the scene's initial shape).
+- `state_to_qpos_qvel` and `node_states` map between node states `(q, qd)` (N, dim)
+  and MuJoCo's `(qpos, qvel)` (nq,), (nv,) (rotations relative to the rendered pose,
+  so zero hinge angles / unit quaternions are the scene's initial shape; in 3D,
+  quaternions with no spin about a link's axis, `qpos_rate` their time derivative).
 - `rollout(scene, config, states)` (`mujoco.rollout`) returns node trajectories
-  (B, F+1, N, 2): `joint_rollout` (MuJoCo's stepping, in joint coordinates) followed
+  (B, F+1, N, dim): `joint_rollout` (MuJoCo's stepping, in joint coordinates) followed
   by `node_trajectories` (the map to nodes). `MujocoEngine` is the `lgnn.engines.Engine`
   on top: a `Trajectory` with lgnn's exact energy of the node states, stopped like
   the Lagrangian engine at the first non-finite or exploding frame (`checked_trajectory`).
@@ -269,7 +270,7 @@ def _posed(compiled: Compiled, qpos: np.ndarray, data: mujoco.MjData | None = No
 
 
 def node_states(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray, data: mujoco.MjData | None = None) -> State:
-    """MuJoCo states `qpos, qvel` (F, nq) -> node `q, qd` (F, N, 2), by MuJoCo's own
+    """MuJoCo states `qpos, qvel` (F, nq) -> node `q, qd` (F, N, dim), by MuJoCo's own
     kinematics: node positions are the sites' `site_xpos`, velocities `J_site qvel`."""
     model = compiled.model
     data = mujoco.MjData(model) if data is None else data
@@ -394,14 +395,14 @@ def _check_warnings(scene: Scene, config, datas, frame: int) -> None:
 
 
 def rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1, form: Form = "nested") -> State:
-    """MuJoCo C trajectories from initial node states (B, N, 2) (default: the scene's
-    own, B = 1) on the scene's MJCF in `form`: node `State` (B, F+1, N, 2), frame 0 the
+    """MuJoCo C trajectories from initial node states (B, N, dim) (default: the scene's
+    own, B = 1) on the scene's MJCF in `form`: node `State` (B, F+1, N, dim), frame 0 the
     initial state. The stepping (`joint_rollout`) followed by the node map (`node_states`)."""
     return node_trajectories(*joint_rollout(scene, config, states, threads=threads, form=form))
 
 
 def node_trajectories(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray) -> State:
-    """`node_states` of a batch: (B, F, nq), (B, F, nv) -> `State` (B, F, N, 2)."""
+    """`node_states` of a batch: (B, F, nq), (B, F, nv) -> `State` (B, F, N, dim)."""
     data = mujoco.MjData(compiled.model)
     qs, qds = zip(*(node_states(compiled, qpos[b], qvel[b], data) for b in range(len(qpos))))
     return State(np.stack(qs), np.stack(qds))
@@ -480,7 +481,7 @@ def joint_rollout(scene: Scene, config, states: State | None = None, *, threads:
 
 
 def checked_trajectory(scene: Scene, config: SimulationConfig, states: State, metadata: dict, engine: str) -> Trajectory:
-    """The `Trajectory` of node trajectories `states` (B, F+1, N, 2), with lgnn's exact
+    """The `Trajectory` of node trajectories `states` (B, F+1, N, dim), with lgnn's exact
     energies (B, F+1). Raises, like the Lagrangian engine, `SimulationError` at the
     first non-finite or exploding frame (`lgnn.metrics.ExplosionBounds`) of any initial
     state, carrying that state's frames before it (unbatched)."""
@@ -527,7 +528,7 @@ class MujocoEngine:
         return resolve_form(scene, self.form, best_form)
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
-        """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)."""
+        """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1)."""
         form = self.form_of(scene)
         start = time.perf_counter()
         nodes = rollout(scene, config, states, threads=self.threads, form=form)
@@ -535,7 +536,7 @@ class MujocoEngine:
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
-        """`(compile_s, run_s, q (B, F+1, N, 2))`. Compile: a one-step warm-up run, which
+        """`(compile_s, run_s, q (B, F+1, N, dim))`. Compile: a one-step warm-up run, which
         compiles the model. Run: MuJoCo's stepping alone; the map to node states after
         it is a Python loop over frames and nodes that would otherwise dominate small
         scenes (the JAX engines' timings include it, compiled into their rollout)."""
