@@ -131,9 +131,7 @@ def test_axial_inertia_is_never_excited_and_does_not_matter(monkeypatch):
         lm.compile_scene.cache_clear()
 
 
-@pytest.mark.parametrize(("planar", "form", "tolerance"), [
-    ("chain4", "nested", 1e-13), ("chain4", "maximal", 2e-9), ("double-pinned", "nested", 2e-9), ("double-pinned", "maximal", 1e-8),
-])
+@pytest.mark.parametrize(("planar", "form", "tolerance"), [("chain4", "nested", 1e-13), ("double-pinned", "maximal", 1e-8)])
 def test_planar_scene_embedded_in_3d_moves_as_in_2d(planar, form, tolerance):
     """An embedded planar scene stays at z = 0 and has the planar MuJoCo trajectory: to
     round-off with exact joints; with `connect`s within their softness (measured over
