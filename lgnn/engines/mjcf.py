@@ -7,7 +7,7 @@ and mjcf/maximal/).
 
 - "maximal": every link joining a free node is a body directly under the world, its
   frame at the rod's centre, with slide x, slide y and hinge z (the planar free body;
-  a spatial one would be a <freejoint/>); a node's site sits on its first link (a pin's
+  in 3D a <freejoint/>); a node's site sits on its first link (a pin's
   on the world), and every other link end at that node is tied to it by a two-site
   `connect` (`Layout.ties`). Depth 1 and a diagonal mass matrix, at any size and with
   any loops; the joints are as soft as `MAXIMAL_SOLREF_STEPS` (errors measured there).
@@ -20,6 +20,9 @@ and mjcf/maximal/).
   still becomes a body (it has mass) and closes its loop with a two-site `connect`
   equality from its tip to that node. Links between two pinned nodes never move and
   get no body.
+- Spatial (3D) scenes: the same layouts, with a ball joint for each hinge and a
+  <freejoint/> for each free root; a rod's inertia is the scene's about every axis
+  normal to it and `AXIAL_INERTIA_FRACTION` of that about its own axis (`rod_inertia`).
 - `render(scene, dt)` (also `scene_to_mjcf`) renders the MJCF text: explicit `<inertial>` (the link's
   mass at the rod's centre, the scene's moment of inertia about z), contacts off,
   gravity `(0, -g, 0)`, a site `node{k}` on every node, RK4. Loop equalities are made
@@ -65,6 +68,17 @@ SOLREF_STEPS = 2.0
 # off, which MuJoCo otherwise clamps to 2 dt) gains 2.5x on T1 and nothing on loop6,
 # 0.5 dt loses 100x: 2 dt, MuJoCo's safe minimum, is the default.
 MAXIMAL_SOLREF_STEPS = 2.0
+# A spatial rod's moment of inertia about its own axis, as a fraction of the one about
+# its normals. The node description has no spin about a rod's axis and no force
+# excites it (gravity and the joint forces act on the axis; the Euler equations of an
+# axisymmetric body keep a zero axial spin zero), but MuJoCo needs a positive-definite
+# body inertia. Measured (MuJoCo C, RK4, dt 1e-4, 0.5 s, both forms, chain4-3d and
+# net3x3-3d): fractions 1e-1 .. 1e-6 move node positions by at most 1.3e-13 from
+# 1e-3's, against 3e-14 .. 2e-8 from the Lagrangian engine. The axial spin stays at
+# round-off (open chains: 6e-14, 9e-13, 5e-12 rad/s at 1e-2, 1e-3, 1e-4) or at the
+# loops' `connect` softness (~4e-10 rad/s, 10x worse at 1e-4): 1e-3 is small enough
+# not to matter and large enough to keep that round-off small.
+AXIAL_INERTIA_FRACTION = 1e-3
 SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
 # Constraint solver: equality-only problems are quadratic, so Newton converges in one
 # or two iterations; the tolerance only stops it at round-off.
@@ -143,10 +157,6 @@ def scene_layout(scene: Scene, form: Form = "nested") -> Layout:
     """The bodies of `form`: nested, the breadth-first spanning tree rooted at the
     pinned nodes; maximal, one free body per moving link (module docstring)."""
     check_form(form)
-    if scene.dim != 2:
-        # The maximal form's spatial body would be a <freejoint/>; the state maps and
-        # rendering are planar today.
-        raise ConfigError(f"{scene.name}: the MuJoCo engines support planar (2D) scenes only, got {scene.dim}D")
     if form == "maximal":
         return _maximal_layout(scene)
     adjacency = [[] for _ in range(scene.n_nodes)]
@@ -206,6 +216,15 @@ def _maximal_layout(scene: Scene) -> Layout:
     return Layout(tuple(bodies), tuple(node_body), static, "maximal")
 
 
+def rod_inertia(inertia: float, direction: np.ndarray) -> tuple[float, ...]:
+    """MJCF `fullinertia` (Ixx, Iyy, Izz, Ixy, Ixz, Iyz) of a thin rod along
+    `direction` (3,): `inertia` about every axis normal to it and
+    `AXIAL_INERTIA_FRACTION * inertia` about its own axis."""
+    u = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    tensor = inertia * (np.eye(3) - (1 - AXIAL_INERTIA_FRACTION) * np.outer(u, u))
+    return (*np.diag(tensor), tensor[0, 1], tensor[0, 2], tensor[1, 2])
+
+
 def check_form(form: str) -> None:
     """`ConfigError` unless `form` is one of `FORMS`."""
     if form not in FORMS:
@@ -244,16 +263,22 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         ties[k].append(node)
     site_size = f"{SITE_RADIUS * scale:.3g}"
 
+    spatial = scene.dim == 3
+
+    def pos3(x) -> str:
+        # A scene point as MJCF's 3D vector (planar scenes lie at z = 0).
+        return _vec(*x) if spatial else _vec(*x, 0)
+
     def origin(index: int) -> np.ndarray:
         if index < 0:
-            return np.zeros(2)
+            return np.zeros(scene.dim)
         body = layout.bodies[index]
         return nodes[body.base] + layout.origin_weight * (nodes[body.tip] - nodes[body.base])
 
     def node_sites(index: int, indent: str) -> list[str]:
         o = origin(index)
         return [
-            f'{indent}<site name="node{k}" pos="{_vec(*(nodes[k] - o), 0)}" size="{site_size}"/>' for k in sites[index]
+            f'{indent}<site name="node{k}" pos="{pos3(nodes[k] - o)}" size="{site_size}"/>' for k in sites[index]
         ]
 
     def body_xml(index: int, indent: str) -> list[str]:
@@ -263,29 +288,39 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         pos = o - origin(body.parent)
         base, tip = nodes[body.base] - o, nodes[body.tip] - o
         mass, inertia = float(scene.masses[e]), float(scene.inertias[e])
-        # Only Izz acts on a planar hinge; Ixx = Iyy = Izz satisfies MuJoCo's triangle
-        # inequality. A zero inertia (a point-mass rod) is raised to a negligible floor
-        # because MuJoCo rejects zero principal moments.
+        # A zero inertia (a point-mass rod) is raised to a negligible floor because
+        # MuJoCo rejects zero principal moments.
         inertia = max(inertia, 1e-12 * mass * float(scene.lengths[e]) ** 2)
         inner = indent + "  "
-        lines = [f'{indent}<body name="link{e}" pos="{_vec(*pos, 0)}">']
-        if body.free_root:
-            lines.append(f'{inner}<joint name="link{e}_x" type="slide" axis="1 0 0"/>')
-            lines.append(f'{inner}<joint name="link{e}_y" type="slide" axis="0 1 0"/>')
-        lines.append(f'{inner}<joint name="link{e}_hinge" type="hinge" axis="0 0 1"/>')
-        lines.append(f'{inner}<inertial pos="{_vec(*((0.5 - layout.origin_weight) * (tip - base)), 0)}" mass="{_num(mass)}" diaginertia="{_vec(inertia, inertia, inertia)}"/>')
+        lines = [f'{indent}<body name="link{e}" pos="{pos3(pos)}">']
+        centre = pos3((0.5 - layout.origin_weight) * (tip - base))
+        if spatial:
+            # A free root: a <freejoint/> (position and orientation of the body frame);
+            # every other body turns about its base node in a ball joint.
+            lines.append(f'{inner}<freejoint name="link{e}_free"/>' if body.free_root else f'{inner}<joint name="link{e}_ball" type="ball"/>')
+            lines.append(f'{inner}<inertial pos="{centre}" mass="{_num(mass)}" fullinertia="{_vec(*rod_inertia(inertia, tip - base))}"/>')
+        else:
+            if body.free_root:
+                lines.append(f'{inner}<joint name="link{e}_x" type="slide" axis="1 0 0"/>')
+                lines.append(f'{inner}<joint name="link{e}_y" type="slide" axis="0 1 0"/>')
+            lines.append(f'{inner}<joint name="link{e}_hinge" type="hinge" axis="0 0 1"/>')
+            # Only Izz acts on a planar hinge; Ixx = Iyy = Izz satisfies MuJoCo's
+            # triangle inequality.
+            lines.append(f'{inner}<inertial pos="{centre}" mass="{_num(mass)}" diaginertia="{_vec(inertia, inertia, inertia)}"/>')
         lines.append(
-            f'{inner}<geom name="link{e}" type="capsule" fromto="{_vec(*base, 0)} {_vec(*tip, 0)}" '
+            f'{inner}<geom name="link{e}" type="capsule" fromto="{pos3(base)} {pos3(tip)}" '
             f'size="{GEOM_RADIUS * scale:.3g}" rgba="{_link_color(scene.link_types[e])}"/>'
         )
         for node in ties[index]:
-            lines.append(f'{inner}<site name="{_tie_site(body, node)}" pos="{_vec(*(nodes[node] - o), 0)}" size="{site_size}" rgba="1 0 0 1"/>')
+            lines.append(f'{inner}<site name="{_tie_site(body, node)}" pos="{pos3(nodes[node] - o)}" size="{site_size}" rgba="1 0 0 1"/>')
         lines += node_sites(index, inner)
         for child in children[index]:
             lines += body_xml(child, inner)
         lines.append(f"{indent}</body>")
         return lines
 
+    # In front of the scene along +z (the viewer's default assumes z up).
+    camera = np.concatenate([nodes.mean(0)[:2], [(nodes[:, 2].max() if spatial else 0.0) + 2 * max(np.ptp(nodes, 0).max(), scale)]])
     solref = f"{_num((MAXIMAL_SOLREF_STEPS if maximal else SOLREF_STEPS) * dt)} 1"
     solimp = _vec(*SOLIMP)
     what = "maximal coordinates: every link a body under the world, joined by connect equalities" if maximal else "nested bodies"
@@ -308,8 +343,7 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         '  <default><geom contype="0" conaffinity="0"/></default>',
         "  <worldbody>",
         f'    <light pos="0 0 {10 * scale:.3g}" dir="0 0 -1"/>',
-        # A camera facing the plane of motion (the viewer's default assumes z up).
-        f'    <camera name="front" pos="{" ".join(f"{x:.3g}" for x in nodes.mean(0))} {2 * max(np.ptp(nodes, 0).max(), scale):.3g}" xyaxes="1 0 0 0 1 0"/>',
+        f'    <camera name="front" pos="{" ".join(f"{x:.3g}" for x in camera)}" xyaxes="1 0 0 0 1 0"/>',
     ]
     lines += node_sites(-1, "    ")
     for child in children[-1]:

@@ -168,8 +168,8 @@ class Runner:
                 cvel = d.cvel.numpy()[:, body].astype(np.float64)
                 centre = d.subtree_com.numpy()[:, root].astype(np.float64)
                 v = cvel[..., 3:] + np.cross(cvel[..., :3], x - centre)
-                qs.append(x[..., :2])
-                qds.append(v[..., :2])
+                qs.append(x[..., : c.scene.dim])
+                qds.append(v[..., : c.scene.dim])
         return State(np.stack(qs, 1), np.stack(qds, 1))
 
 

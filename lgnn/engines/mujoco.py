@@ -1,4 +1,4 @@
-"""MuJoCo C: an independent ground-truth engine for any planar scene.
+"""MuJoCo C: an independent ground-truth engine for any planar or spatial scene.
 
 The only modules of lgnn that import `mujoco` are this one and `lgnn.engines.mjx`
 (built on it); `lgnn.engines` loads them on first use. Contract:
@@ -8,11 +8,12 @@ The only modules of lgnn that import `mujoco` are this one and `lgnn.engines.mjx
   arrays of the state maps (cached on the scene's content, `dt` and `form`);
   `best_form` is MuJoCo C's choice (nested while MuJoCo parses it, else maximal),
   `resolve_form` turns an engine's "auto" into it.
-- `state_to_qpos_qvel` and `node_states` map between node states `(q, qd)` (N, 2)
-  and MuJoCo's `(qpos, qvel)` (nq,), (nv,) (hinge angles relative to the rendered
-  pose, so `qpos = 0` is the scene's initial shape).
+- `state_to_qpos_qvel` and `node_states` map between node states `(q, qd)` (N, dim)
+  and MuJoCo's `(qpos, qvel)` (nq,), (nv,) (rotations relative to the rendered pose,
+  so zero hinge angles / unit quaternions are the scene's initial shape; in 3D,
+  quaternions with no spin about a link's axis, `qpos_rate` their time derivative).
 - `rollout(scene, config, states)` (`mujoco.rollout`) returns node trajectories
-  (B, F+1, N, 2): `joint_rollout` (MuJoCo's stepping, in joint coordinates) followed
+  (B, F+1, N, dim): `joint_rollout` (MuJoCo's stepping, in joint coordinates) followed
   by `node_trajectories` (the map to nodes). `MujocoEngine` is the `lgnn.engines.Engine`
   on top: a `Trajectory` with lgnn's exact energy of the node states, stopped like
   the Lagrangian engine at the first non-finite or exploding frame (`checked_trajectory`).
@@ -53,23 +54,29 @@ TIMING_THREADS = 2
 class Compiled:
     """A compiled `MjModel` of a scene with the index arrays of the state maps.
 
-    `hinge` (B,) qpos/qvel address of each body's hinge; `parent` (B,) parent body
-    (B: the world, a row of zeros appended); `base`, `tip` (B,) nodes; `rest_angle`
-    (B,) link direction in the rendered pose; `root_body`, `root_x` (R,) free roots
-    and the address of their x slide (y follows), their frame at `layout.origin_weight`
-    along the link; `node_site` (N,) site ids; `body_id` (B,) body ids.
+    `rotation_qpos`, `rotation_dof` (B,) each body's rotation in qpos (planar: its
+    hinge angle; spatial: the first of its quaternion's 4 numbers, of a ball joint or
+    a free joint's rotation) and qvel (hinge rate; 3 angular velocity numbers in the
+    body's frame); `parent` (B,) parent body (B: the world, a row appended); `base`,
+    `tip` (B,) nodes; `rest_direction` (B, dim) link vector `tip - base` in the
+    rendered pose; `root_body` (R,) free roots, their frame at `layout.origin_weight`
+    along the link, `root_x`, `root_v` (R,) the first qpos / qvel address of their
+    position (planar: x slide, y follows; spatial: a free joint's 3); `node_site` (N,)
+    site ids; `body_id` (B,) body ids.
     """
 
     scene: Scene
     layout: Layout
     model: mujoco.MjModel
-    hinge: np.ndarray
+    rotation_qpos: np.ndarray
+    rotation_dof: np.ndarray
     parent: np.ndarray
     base: np.ndarray
     tip: np.ndarray
-    rest_angle: np.ndarray
+    rest_direction: np.ndarray
     root_body: np.ndarray
     root_x: np.ndarray
+    root_v: np.ndarray
     node_site: np.ndarray
     body_id: np.ndarray
 
@@ -102,56 +109,144 @@ def compile_scene(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> Comp
         model = mujoco.MjModel.from_xml_string(text)
     except ValueError as err:
         raise SimulationError(f"{scene.name}: MuJoCo rejected the rendered model: {str(err).splitlines()[0]}") from None
-    assert model.nq == model.nv, "only hinge and slide joints are rendered"
     bodies = layout.bodies
-    hinge = np.array([model.joint(f"link{b.link}_hinge").qposadr[0] for b in bodies], np.int64)
+    roots = [k for k, b in enumerate(bodies) if b.free_root]
+    if scene.dim == 2:
+        rotation_qpos = np.array([model.joint(f"link{b.link}_hinge").qposadr[0] for b in bodies], np.int64)
+        rotation_dof = rotation_qpos  # hinges and slides: qpos and qvel alike
+        root_x = np.array([model.joint(f"link{bodies[k].link}_x").qposadr[0] for k in roots], np.int64)
+        root_v = root_x
+    else:
+        # A free joint holds its position (3) before its quaternion (4), its velocity
+        # (3) before its angular velocity (3).
+        joints = [model.joint(f"link{b.link}_{'free' if b.free_root else 'ball'}") for b in bodies]
+        shift = np.array([3 if b.free_root else 0 for b in bodies], np.int64)
+        rotation_qpos = np.array([j.qposadr[0] for j in joints], np.int64) + shift
+        rotation_dof = np.array([j.dofadr[0] for j in joints], np.int64) + shift
+        root_x = np.array([joints[k].qposadr[0] for k in roots], np.int64)
+        root_v = np.array([joints[k].dofadr[0] for k in roots], np.int64)
     parent = np.array([b.parent if b.parent >= 0 else len(bodies) for b in bodies], np.int64)
     base = np.array([b.base for b in bodies], np.int64)
     tip = np.array([b.tip for b in bodies], np.int64)
-    d0 = scene.nodes[tip] - scene.nodes[base]
-    roots = [k for k, b in enumerate(bodies) if b.free_root]
-    root_x = np.array([model.joint(f"link{bodies[k].link}_x").qposadr[0] for k in roots], np.int64)
     node_site = np.array([model.site(f"node{k}").id for k in range(scene.n_nodes)], np.int64)
     body_id = np.array([model.body(f"link{b.link}").id for b in bodies], np.int64)
     return Compiled(
-        scene, layout, model, hinge, parent, base, tip, np.arctan2(d0[:, 1], d0[:, 0]),
-        np.array(roots, np.int64), root_x, node_site, body_id,
+        scene, layout, model, rotation_qpos, rotation_dof, parent, base, tip, scene.nodes[tip] - scene.nodes[base],
+        np.array(roots, np.int64), root_x, root_v, node_site, body_id,
     )
 
 
 def state_to_qpos_qvel(compiled: Compiled, q, qd):
-    """Node state `q, qd` (N, 2) -> `qpos` (nq,), `qvel` (nv,) (jnp; vmappable).
+    """Node state `q, qd` (N, dim) -> `qpos` (nq,), `qvel` (nv,) (jnp; vmappable).
 
-    Each body's absolute rotation is its link's direction minus its rendered
-    direction; the hinge holds the rotation relative to the parent body. A loop body's
-    angle comes from its two end nodes, so its tip meets the node it is tied to.
+    Each body's absolute rotation takes its rendered link direction to its current
+    one (planar: the angle between them; spatial: the shortest rotation, with no spin
+    about the link, which the node state cannot see); a hinge or ball joint holds the
+    rotation relative to the parent body, and its velocity the angular velocity
+    `d x dd / |d|^2` (normal to the link) relative to the parent's (spatial: in the
+    body's frame, as MuJoCo's ball and free joints). A loop body's rotation comes from
+    its two end nodes, so its tip meets the node it is tied to.
     """
     c = compiled
     d = q[c.tip] - q[c.base]
     dd = qd[c.tip] - qd[c.base]
-    angle = jnp.arctan2(d[:, 1], d[:, 0]) - c.rest_angle
-    omega = (d[:, 0] * dd[:, 1] - d[:, 1] * dd[:, 0]) / jnp.sum(d * d, -1)
-    angle_ext = jnp.concatenate([angle, jnp.zeros(1, angle.dtype)])
-    omega_ext = jnp.concatenate([omega, jnp.zeros(1, omega.dtype)])
-    rel = angle - angle_ext[c.parent]
-    rel = jnp.arctan2(jnp.sin(rel), jnp.cos(rel))
-    nq = c.model.nq
-    qpos = jnp.zeros(nq, q.dtype).at[c.hinge].set(rel)
-    qvel = jnp.zeros(nq, q.dtype).at[c.hinge].set(omega - omega_ext[c.parent])
+    if c.scene.dim == 2:
+        qpos, qvel = _planar_rotations(c, d, dd, q.dtype)
+    else:
+        qpos, qvel = _spatial_rotations(c, d, dd, q.dtype)
     if len(c.root_body):
-        # A free root's slides hold the displacement of its frame: the base node
-        # (nested) or the rod's centre (maximal).
+        # A free root's position is that of its frame: the base node (nested) or the
+        # rod's centre (maximal); planar slides hold its displacement from the
+        # rendered pose, a spatial free joint the position itself.
         w = c.layout.origin_weight
         base, tip = c.base[c.root_body], c.tip[c.root_body]
 
         def frame(x):
             return (1 - w) * x[base] + w * x[tip]
 
-        shift = frame(q) - jnp.asarray(frame(c.scene.nodes), q.dtype)
-        velocity = frame(qd)
-        qpos = qpos.at[c.root_x].set(shift[:, 0]).at[c.root_x + 1].set(shift[:, 1])
-        qvel = qvel.at[c.root_x].set(velocity[:, 0]).at[c.root_x + 1].set(velocity[:, 1])
+        position = frame(q) - jnp.asarray(frame(c.scene.nodes), q.dtype) if c.scene.dim == 2 else frame(q)
+        at_x = c.root_x[:, None] + np.arange(c.scene.dim)
+        at_v = c.root_v[:, None] + np.arange(c.scene.dim)
+        qpos = qpos.at[at_x].set(position)
+        qvel = qvel.at[at_v].set(frame(qd))
     return qpos, qvel
+
+
+def _planar_rotations(c: Compiled, d, dd, dtype):
+    # Hinge angles and rates relative to the parent body (`state_to_qpos_qvel`).
+    rest_angle = np.arctan2(c.rest_direction[:, 1], c.rest_direction[:, 0])
+    angle = jnp.arctan2(d[:, 1], d[:, 0]) - rest_angle
+    omega = (d[:, 0] * dd[:, 1] - d[:, 1] * dd[:, 0]) / jnp.sum(d * d, -1)
+    angle_ext = jnp.concatenate([angle, jnp.zeros(1, angle.dtype)])
+    omega_ext = jnp.concatenate([omega, jnp.zeros(1, omega.dtype)])
+    rel = angle - angle_ext[c.parent]
+    rel = jnp.arctan2(jnp.sin(rel), jnp.cos(rel))
+    qpos = jnp.zeros(c.model.nq, dtype).at[c.rotation_qpos].set(rel)
+    qvel = jnp.zeros(c.model.nv, dtype).at[c.rotation_dof].set(omega - omega_ext[c.parent])
+    return qpos, qvel
+
+
+def _spatial_rotations(c: Compiled, d, dd, dtype):
+    # Ball / free joint quaternions relative to the parent body and angular velocities
+    # in the body's frame (`state_to_qpos_qvel`).
+    absolute = _shortest_rotation(c.rest_direction, d)
+    omega = jnp.cross(d, dd) / jnp.sum(d * d, -1, keepdims=True)
+    absolute_ext = jnp.concatenate([absolute, jnp.array([[1.0, 0.0, 0.0, 0.0]], absolute.dtype)])
+    omega_ext = jnp.concatenate([omega, jnp.zeros((1, 3), omega.dtype)])
+    relative = _quat_mul(_quat_conj(absolute_ext[c.parent]), absolute)
+    local_omega = _quat_rotate(_quat_conj(absolute), omega - omega_ext[c.parent])
+    qpos = jnp.zeros(c.model.nq, dtype).at[c.rotation_qpos[:, None] + np.arange(4)].set(relative)
+    qvel = jnp.zeros(c.model.nv, dtype).at[c.rotation_dof[:, None] + np.arange(3)].set(local_omega)
+    return qpos, qvel
+
+
+def _shortest_rotation(rest: np.ndarray, d):
+    """Unit quaternions (B, 4) (w, x, y, z) of the shortest rotations taking the
+    directions `rest` (B, 3) (NumPy) to `d` (B, 3). Well conditioned at any angle: a
+    direction more than 90 degrees from `rest` is reached from `-rest`, after a half
+    turn about a fixed normal of `rest`."""
+    u0 = rest / np.linalg.norm(rest, axis=-1, keepdims=True)
+    u = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+    # A normal of u0: its cross product with the axis it has least of.
+    normal = np.cross(u0, np.eye(3)[np.argmin(np.abs(u0), -1)])
+    half_turn = np.concatenate([np.zeros((len(u0), 1)), normal / np.linalg.norm(normal, axis=-1, keepdims=True)], -1)
+    far = jnp.sum(u0 * u, -1, keepdims=True) < 0
+    start = jnp.where(far, -u0, u0)
+    quat = jnp.concatenate([1 + jnp.sum(start * u, -1, keepdims=True), jnp.cross(start, u)], -1)
+    quat = quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)
+    return jnp.where(far, _quat_mul(quat, jnp.asarray(half_turn, quat.dtype)), quat)
+
+
+def _quat_mul(a, b):
+    # Hamilton product of (..., 4) quaternions (w, x, y, z).
+    aw, av, bw, bv = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
+    return jnp.concatenate([aw * bw - jnp.sum(av * bv, -1, keepdims=True), aw * bv + bw * av + jnp.cross(av, bv)], -1)
+
+
+def _quat_conj(a):
+    return a * jnp.array([1.0, -1.0, -1.0, -1.0], a.dtype)
+
+
+def _quat_rotate(a, v):
+    # The vectors v (..., 3) rotated by the unit quaternions a (..., 4).
+    w, u = a[..., :1], a[..., 1:]
+    t = 2 * jnp.cross(u, v)
+    return v + w * t + jnp.cross(u, t)
+
+
+def qpos_rate(compiled: Compiled, qpos, qvel):
+    """The time derivative of `qpos` (nq,) at velocity `qvel` (nv,) (jnp): `qvel`
+    itself for hinges and slides; a free joint's position rate is its velocity, a
+    quaternion's `1/2 quat * (0, omega)` with `omega` in the body's frame. (What a
+    `jvp` of positions in qpos takes as its tangent.)"""
+    c = compiled
+    if c.scene.dim == 2:
+        return qvel
+    at_x, at_v = c.root_x[:, None] + np.arange(3), c.root_v[:, None] + np.arange(3)
+    at_quat, at_omega = c.rotation_qpos[:, None] + np.arange(4), c.rotation_dof[:, None] + np.arange(3)
+    omega = jnp.concatenate([jnp.zeros((len(at_omega), 1), qvel.dtype), qvel[at_omega]], -1)
+    rate = jnp.zeros(c.model.nq, qvel.dtype).at[at_x].set(qvel[at_v])
+    return rate.at[at_quat].set(0.5 * _quat_mul(qpos[at_quat], omega))
 
 
 def _kinematics(model: mujoco.MjModel, data: mujoco.MjData) -> None:
@@ -175,20 +270,20 @@ def _posed(compiled: Compiled, qpos: np.ndarray, data: mujoco.MjData | None = No
 
 
 def node_states(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray, data: mujoco.MjData | None = None) -> State:
-    """MuJoCo states `qpos, qvel` (F, nq) -> node `q, qd` (F, N, 2), by MuJoCo's own
+    """MuJoCo states `qpos, qvel` (F, nq) -> node `q, qd` (F, N, dim), by MuJoCo's own
     kinematics: node positions are the sites' `site_xpos`, velocities `J_site qvel`."""
     model = compiled.model
     data = mujoco.MjData(model) if data is None else data
     qpos, qvel = np.atleast_2d(qpos), np.atleast_2d(qvel)
-    frames, n = len(qpos), compiled.scene.n_nodes
-    q, qd = np.empty((frames, n, 2)), np.empty((frames, n, 2))
+    frames, n, dim = len(qpos), compiled.scene.n_nodes, compiled.scene.dim
+    q, qd = np.empty((frames, n, dim)), np.empty((frames, n, dim))
     jac = np.empty((3, model.nv))
     for f in range(frames):
         _posed(compiled, qpos[f], data)
-        q[f] = data.site_xpos[compiled.node_site, :2]
+        q[f] = data.site_xpos[compiled.node_site, :dim]
         for k, site in enumerate(compiled.node_site):
             mujoco.mj_jacSite(model, data, jac, None, site)
-            qd[f, k] = jac[:2] @ qvel[f]
+            qd[f, k] = jac[:dim] @ qvel[f]
     return State(q, qd)
 
 
@@ -201,12 +296,12 @@ def mass_matrix(compiled: Compiled, qpos: np.ndarray) -> np.ndarray:
 
 
 def site_jacobian(compiled: Compiled, qpos: np.ndarray) -> np.ndarray:
-    """(N*2, nv) Jacobian of node positions with respect to qpos (= qvel here)."""
+    """(N*dim, nv) Jacobian of node positions with respect to qvel (planar: = qpos)."""
     model, data = compiled.model, _posed(compiled, qpos)
     rows, jac = [], np.empty((3, model.nv))
     for site in compiled.node_site:
         mujoco.mj_jacSite(model, data, jac, None, site)
-        rows.append(jac[:2].copy())
+        rows.append(jac[: compiled.scene.dim].copy())
     return np.concatenate(rows)
 
 
@@ -300,14 +395,14 @@ def _check_warnings(scene: Scene, config, datas, frame: int) -> None:
 
 
 def rollout(scene: Scene, config, states: State | None = None, *, threads: int = 1, form: Form = "nested") -> State:
-    """MuJoCo C trajectories from initial node states (B, N, 2) (default: the scene's
-    own, B = 1) on the scene's MJCF in `form`: node `State` (B, F+1, N, 2), frame 0 the
+    """MuJoCo C trajectories from initial node states (B, N, dim) (default: the scene's
+    own, B = 1) on the scene's MJCF in `form`: node `State` (B, F+1, N, dim), frame 0 the
     initial state. The stepping (`joint_rollout`) followed by the node map (`node_states`)."""
     return node_trajectories(*joint_rollout(scene, config, states, threads=threads, form=form))
 
 
 def node_trajectories(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray) -> State:
-    """`node_states` of a batch: (B, F, nq), (B, F, nv) -> `State` (B, F, N, 2)."""
+    """`node_states` of a batch: (B, F, nq), (B, F, nv) -> `State` (B, F, N, dim)."""
     data = mujoco.MjData(compiled.model)
     qs, qds = zip(*(node_states(compiled, qpos[b], qvel[b], data) for b in range(len(qpos))))
     return State(np.stack(qs), np.stack(qds))
@@ -331,7 +426,7 @@ def joint_rollout(scene: Scene, config, states: State | None = None, *, threads:
     qpos, qvel = _initial_mj_states(compiled, states)
     batch, spf = len(qpos), config.steps_per_frame
     frames_qpos = np.empty((batch, config.n_frames + 1, model.nq))
-    frames_qvel = np.empty_like(frames_qpos)
+    frames_qvel = np.empty((batch, config.n_frames + 1, model.nv))
     frames_qpos[:, 0], frames_qvel[:, 0] = qpos, qvel
     datas = [mujoco.MjData(model) for _ in range(max(1, min(threads, batch)))]
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -386,7 +481,7 @@ def joint_rollout(scene: Scene, config, states: State | None = None, *, threads:
 
 
 def checked_trajectory(scene: Scene, config: SimulationConfig, states: State, metadata: dict, engine: str) -> Trajectory:
-    """The `Trajectory` of node trajectories `states` (B, F+1, N, 2), with lgnn's exact
+    """The `Trajectory` of node trajectories `states` (B, F+1, N, dim), with lgnn's exact
     energies (B, F+1). Raises, like the Lagrangian engine, `SimulationError` at the
     first non-finite or exploding frame (`lgnn.metrics.ExplosionBounds`) of any initial
     state, carrying that state's frames before it (unbatched)."""
@@ -433,7 +528,7 @@ class MujocoEngine:
         return resolve_form(scene, self.form, best_form)
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
-        """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)."""
+        """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1)."""
         form = self.form_of(scene)
         start = time.perf_counter()
         nodes = rollout(scene, config, states, threads=self.threads, form=form)
@@ -441,7 +536,7 @@ class MujocoEngine:
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
-        """`(compile_s, run_s, q (B, F+1, N, 2))`. Compile: a one-step warm-up run, which
+        """`(compile_s, run_s, q (B, F+1, N, dim))`. Compile: a one-step warm-up run, which
         compiles the model. Run: MuJoCo's stepping alone; the map to node states after
         it is a Python loop over frames and nodes that would otherwise dominate small
         scenes (the JAX engines' timings include it, compiled into their rollout)."""
