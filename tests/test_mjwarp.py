@@ -87,3 +87,16 @@ def test_unknown_form_is_one_line():
         pytest.skip("MuJoCo Warp not installed")
     with pytest.raises(ConfigError, match="form"):
         mjwarp.runner(get_scene("chain4"), SHORT, 1, "spaghetti")
+
+
+@needs_mjwarp
+def test_maximal_form_sizes_its_constraint_rows():
+    """A loop in the maximal form has 3 rows per `connect` equality (here more than the
+    default 64 MuJoCo Warp allocates would hold for T1): the engine sizes them from the
+    model, and one world agrees with MuJoCo C on the same MJCF to float32 round-off."""
+    scene = get_scene("double-pinned")
+    states = State(np.asarray(scene.nodes)[None], np.asarray(scene.velocities)[None])
+    traj = get_engine("mjwarp", form="maximal").rollout(scene, SHORT, states)
+    reference = lm.rollout(scene, SHORT, states, form="maximal")
+    assert traj.metadata["engine"]["form"] == "maximal" and np.all(np.isfinite(traj.q))
+    assert np.max(np.abs(traj.q - reference.q)) <= 5e-5

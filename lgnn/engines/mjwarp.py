@@ -188,7 +188,13 @@ def runner(scene: Scene, config: SimulationConfig, batch: int, form: str = DEFAU
     with wp.ScopedDevice(device):
         try:
             m = mjw.put_model(model)
-            d = mjw.make_data(model, nworld=batch)
+            # MuJoCo Warp allocates a fixed number of constraint rows per world (njmax),
+            # by default too few for the maximal form's `connect` equalities (3 rows
+            # each: T1 overflowed 64). Scenes have no contacts, so MuJoCo C's count at
+            # the initial state is the count at every step.
+            probe = mujoco.MjData(model)
+            mujoco.mj_forward(model, probe)
+            d = mjw.make_data(model, nworld=batch, njmax=max(int(probe.nefc), 1))
         except (ValueError, NotImplementedError) as err:
             raise ConfigError(f"{scene.name}: MuJoCo Warp rejected the model: {str(err).splitlines()[0]}") from None
         frames = config.n_frames + 1
