@@ -69,4 +69,5 @@ def test_lgnn_train_takes_a_model_reference(capsys, tmp_path, monkeypatch):
         main(["train", "--help"])
     except SystemExit:
         pass
-    assert "{lgnn,gns,lgn,clnn" in capsys.readouterr().out
+    usage = capsys.readouterr().out
+    assert all(name in usage for name in ("lgnn", "lgnn-mp1", "gns", "lgn", "clnn")) and "module:attr" in usage
