@@ -501,7 +501,12 @@ def _cmd_benchmark(args) -> None:
     profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
     stages = None if args.stage is None else STAGES if args.stage == "all" else (args.stage,)
     print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
-    out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet)
+    # What selects this profile, for the child processes of --workers.
+    profile_argv = ((["--config", args.config] if args.config else []) + (["--profile", args.profile] if args.profile else [])
+                    + (["--full"] if args.full else []) + [arg for value in args.set or () for arg in ("--set", value)]
+                    + (["--chunk", str(args.chunk)] if args.chunk is not None else []))
+    out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet,
+              workers=args.workers, profile_argv=profile_argv)
     if "report" in (stages or profile.stages or STAGES):
         print((out / "README.md").read_text())
     print(f"wrote {out}/")
@@ -523,6 +528,9 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")
     parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, the committed run it resumes and updates; ./lgnn-out/quick/ otherwise)")
     parser.add_argument("--chunk", type=_positive_int, default=None, help="initial conditions per compiled rollout call (default 25; a GPU wants 100)")
+    parser.add_argument("--workers", type=_positive_int, default=1,
+                        help="train each model group and evaluate each scene in this many processes at once (a GPU or a "
+                             "many-core CPU; logs under OUT/benchmark/logs/)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_benchmark)
 

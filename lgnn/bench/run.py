@@ -5,7 +5,8 @@ size and the learned mass matrix, and write the report (`lgnn.bench.report`).
 Stages (`STAGES`, one module each under `lgnn.bench.stages`) are resumable: each
 output is a record written atomically, reused when the settings it was made with
 match, redone otherwise; so stages may run apart, on several machines, and be
-assembled by the report.
+assembled by the report. With `workers` > 1 the training groups and the evaluation
+scenes run in that many child processes at once (`lgnn.bench.parallel`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 
 from lgnn.bench import report
 from lgnn.bench.grid import Profile, evaluation_pairs, evaluation_scenes, training_jobs
+from lgnn.bench.parallel import run_split
 from lgnn.bench.stages.evaluate import evaluate_pair, evaluate_scene
 from lgnn.bench.stages.mass import mass_matrices
 from lgnn.bench.stages.scaling import scaling
@@ -26,10 +28,14 @@ STAGES = ("train", "evaluate", "speed", "scaling", "mass", "report")
 
 
 def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] | None = None, scenes: list[str] | None = None,
-        progress: bool = True) -> Path:
+        progress: bool = True, workers: int = 1, profile_argv: list[str] | None = None) -> Path:
     """Run the chosen stages of the benchmark (default: the profile's `stages`, or all),
     restricted to the named training jobs and evaluation scenes when given; returns
-    the output directory."""
+    the output directory. With `workers` > 1, training (one part per model and
+    training scene) and evaluation (one part per scene) run in child `lgnn benchmark`
+    processes given `profile_argv`, the arguments that select this profile."""
+    if workers > 1 and profile_argv is None:
+        raise ConfigError("parallel workers need the profile's command-line arguments (profile_argv)")
     stages = stages or profile.stages or STAGES
     out = Path(out) if out is not None else default_out(profile)
     unknown = sorted(set(stages) - set(STAGES))
@@ -46,9 +52,17 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
     selected_jobs = [j for j in all_jobs if not jobs or j.name in jobs]
     selected_scenes = [s for s in evaluation_scenes(profile) if not scenes or s in scenes]
     out.mkdir(parents=True, exist_ok=True)
-    if "train" in stages:
+    if "train" in stages and workers > 1:
+        groups: dict[str, list[str]] = {}
+        for job in selected_jobs:
+            groups.setdefault(f"{job.model}-{job.scene}", []).append(job.name)
+        run_split("train", groups, "--job", profile_argv, out, workers)
+    elif "train" in stages:
         train_jobs(profile, selected_jobs, out, progress)
-    if "evaluate" in stages:
+    if "evaluate" in stages and workers > 1:
+        parts = {scene: [scene] for scene in selected_scenes}
+        run_split("evaluate", parts, "--scene", [*profile_argv, *(a for j in (jobs or ()) for a in ("--job", j))], out, workers)
+    elif "evaluate" in stages:
         for scene in selected_scenes:
             evaluate_scene(profile, scene, out, progress)
             for pair in evaluation_pairs(profile):
