@@ -171,15 +171,16 @@ def test_loss_gradient_matches_finite_differences(name):
     assert abs(analytic - numeric) <= 1e-6 * max(1.0, abs(analytic))
 
 
-@pytest.mark.parametrize("message_passing", [0, 1])
+@pytest.mark.parametrize("name, message_passing", [("lgnn", 0), ("lgnn", 1), ("lgn", None), ("clnn", None)])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_lgnn_starts_with_a_positive_definite_mass_matrix_on_the_tangent_space(seed, message_passing):
-    """At initialisation LGNN's kinetic energy is strictly convex in the velocities, so
-    `d2T/dqd2` is positive definite on the motions that keep link lengths (the paper's
-    random start is indefinite there, and early training blew up: issue 13). Checked
-    at generic moving states, on random tangent velocities and on a tangent basis."""
+def test_lagrangian_models_start_with_a_positive_definite_mass_matrix_on_the_tangent_space(seed, name, message_passing):
+    """At initialisation LGNN's kinetic energy (LGN's and CLNN's Lagrangian) is strictly
+    convex in the velocities, so `d2L/dqd2` is positive definite on the motions that
+    keep link lengths (the paper's random start is indefinite there, and early training
+    blew up: issue 13). Checked at generic moving states, on random tangent velocities
+    and on a tangent basis."""
     scene = get_scene("chain4")
-    config = models.ModelConfig.for_scene("lgnn", scene, message_passing=message_passing)
+    config = models.ModelConfig.for_scene(name, scene, **({} if message_passing is None else {"message_passing": message_passing}))
     params = models.init(jax.random.fold_in(jax.random.PRNGKey(seed), 0), config)
     mass_fn = jax.jit(models.mass_matrix_fn(config, params, scene))
     project = physics.projection_fn(scene)
