@@ -128,7 +128,7 @@ def test_ground_truth(profile, out, eval_scene):
 
 def test_evaluation(profile, out, pair):
     arrays, meta = store.load(evaluate.evaluate_pair(profile, pair, out))
-    count = len(evaluate.initial_states(profile, get_scene(pair.scene)).q)
+    count = len(evaluate.evaluation_initial_states(profile, get_scene(pair.scene)).q)
     for metric in evaluate.METRICS:
         assert arrays[f"{metric}/per_ic_log"].shape == (count,), metric
         assert arrays[f"{metric}/gmean"].shape == arrays["t"].shape, metric

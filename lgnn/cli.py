@@ -380,6 +380,7 @@ def _add_train_parser(commands) -> None:
 def _cmd_evaluate(args) -> None:
     from pathlib import Path
 
+    from lgnn import physics
     from lgnn.bench import evaluation
     from lgnn.files import check_writable
     from lgnn.learn.train import load_model
@@ -392,7 +393,7 @@ def _cmd_evaluate(args) -> None:
     scored, written = [], []
     for name in args.scenes:
         scene = get_scene(name)
-        states = evaluation.initial_states(scene, args.initial_conditions, args.seed)
+        states = physics.own_or_sampled_states(scene, args.initial_conditions, args.seed)
         scene_scores, trajectories = evaluation.evaluate_model(model, params, scene, config, states, progress=not args.quiet)
         scored += scene_scores
         for engine, trajectory in trajectories.items():

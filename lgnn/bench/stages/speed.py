@@ -22,7 +22,7 @@ from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX
 from lgnn.engines import get_engine
 from lgnn.engines.timing import time_compiled
 from lgnn.bench.grid import TRAINING_SCENE, Profile, TrainingJob, settings_key, training_jobs
-from lgnn.bench.stages.evaluate import initial_states
+from lgnn.bench.stages.evaluate import evaluation_initial_states
 from lgnn.bench.store import Layout, log
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 from lgnn.learn import models, train
@@ -63,7 +63,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     path, key = layout.speed_record(scene_name), speed_key(profile, scene_name, out, jobs)
     if store.load_json(path, key) is not None:
         return path
-    states = initial_states(profile, scene)
+    states = evaluation_initial_states(profile, scene)
     single = State(states.q[:1], states.qd[:1])
     horizon, frame_dt = settings.horizon, profile.evaluate.frame_dt
     reference_config = SimulationConfig("rk4", min(settings.dts) / 10, frame_dt, horizon, True)
