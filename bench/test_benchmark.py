@@ -42,7 +42,7 @@ FLOOR_DIVERGES = {"T2", "T3"}
 LEARNS = 0.75
 # Models whose quick-profile training does not learn yet. Strict: the test fails once
 # one learns, so its entry is removed then. (LGNN learns since the quick profile's 30
-# steps peak at grid.SHORT_BUDGET_RATE: 0.70 of the untrained model's MSE.)
+# steps peak at train.SHORT_BUDGET_RATE: 0.70 of the untrained model's MSE.)
 DOES_NOT_LEARN_YET: set[str] = set()
 
 
@@ -86,7 +86,7 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     state, meta = train.load_checkpoint(path)
     assert np.isfinite(state.best_val) and state.epoch >= 1
     run_epoch, steps = train_stage.timed_epoch_fn(profile, job, out)
-    assert steps == grid.adam_steps_per_epoch(profile.training.data, profile.training.train)  # the schedule rule's count
+    assert steps == train.adam_steps_per_epoch(profile.training.data, profile.training.train)  # the schedule rule's count
     run_epoch()  # compiled already if this process trained; otherwise compile before timing
     benchmark.pedantic(run_epoch, rounds=3, iterations=1)
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
