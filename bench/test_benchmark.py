@@ -158,6 +158,10 @@ def test_speed_error(profile, out, speed_scene):
     assert engines, "at least one engine ran"
     # Converged ground truths agree with the reference far below any learned error.
     assert min(r["rollout_error"] for r in engines) < 1e-8
+    # Each timing is the median of the profile's repeats, with their spread.
+    timed = [r for r in rows if r["runs"]]
+    assert timed and all(r["runs"] == profile.speed.repeats for r in timed)
+    assert all(r["wall_s_min_per_sim_s"] <= r["wall_s_per_sim_s"] <= r["wall_s_max_per_sim_s"] for r in timed)
 
 
 def test_scaling(profile, out):

@@ -187,6 +187,15 @@ class SpeedSettings:
     # Lagrangian engine runs longer than this many link-steps are skipped (with a row
     # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
     max_link_steps: float = 5e5
+    # Timed runs per row: the table gives their median and spread (min..max). In the key
+    # (a record of 3 runs holds other numbers than one of 1), but left out of it at 1,
+    # so the single-run records made before this field keep theirs (`speed.speed_key`).
+    # A JAX engine's repeat is a whole `timed_rollout`, compile included (reported apart).
+    repeats: int = 1
+
+    def __post_init__(self):
+        if self.repeats < 1:
+            raise ConfigError(f"speed.repeats must be >= 1, got {self.repeats}")
 
 
 @dataclasses.dataclass(frozen=True)
