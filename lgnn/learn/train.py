@@ -434,7 +434,7 @@ def load_checkpoint(path) -> tuple[TrainState, dict]:
     if source and meta["model"].get("name") not in models.model_names():
         # Never imported from a file's say-so: loading code is the user's decision.
         raise CheckpointError(f"{path}: model {meta['model'].get('name')!r} is defined outside lgnn ({source}): load it first "
-                              "(lgnn.learn.models.load_spec, or the config's model reference)")
+                              f"(lgnn.learn.models.load_spec, the config's model reference, or the command's --model-code {source})")
     try:
         model = models.ModelConfig.from_dict(meta["model"])
         config = TrainConfig(**{**LEGACY_OPTIMISATION, **meta["train_config"]})
