@@ -42,7 +42,7 @@ FLOOR_DIVERGES = {"T2", "T3"}
 LEARNS = 0.75
 # Models whose quick-profile training does not learn yet. Strict: the test fails once
 # one learns, so its entry is removed then. (LGNN learns since the quick profile's 30
-# steps peak at grid.SHORT_BUDGET_RATE: 0.70 of the untrained model's MSE.)
+# steps peak at train.SHORT_BUDGET_RATE: 0.70 of the untrained model's MSE.)
 DOES_NOT_LEARN_YET: set[str] = set()
 
 
@@ -86,7 +86,7 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     state, meta = train.load_checkpoint(path)
     assert np.isfinite(state.best_val) and state.epoch >= 1
     run_epoch, steps = train_stage.timed_epoch_fn(profile, job, out)
-    assert steps == grid.adam_steps_per_epoch(profile.training.data, profile.training.train)  # the schedule rule's count
+    assert steps == train.adam_steps_per_epoch(profile.training.data, profile.training.train)  # the schedule rule's count
     run_epoch()  # compiled already if this process trained; otherwise compile before timing
     benchmark.pedantic(run_epoch, rounds=3, iterations=1)
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
@@ -128,7 +128,7 @@ def test_ground_truth(profile, out, eval_scene):
 
 def test_evaluation(profile, out, pair):
     arrays, meta = store.load(evaluate.evaluate_pair(profile, pair, out))
-    count = len(evaluate.initial_states(profile, get_scene(pair.scene)).q)
+    count = len(evaluate.evaluation_initial_states(profile, get_scene(pair.scene)).q)
     for metric in evaluate.METRICS:
         assert arrays[f"{metric}/per_ic_log"].shape == (count,), metric
         assert arrays[f"{metric}/gmean"].shape == arrays["t"].shape, metric
@@ -158,6 +158,10 @@ def test_speed_error(profile, out, speed_scene):
     assert engines, "at least one engine ran"
     # Converged ground truths agree with the reference far below any learned error.
     assert min(r["rollout_error"] for r in engines) < 1e-8
+    # Each timing is the median of the profile's repeats, with their spread.
+    timed = [r for r in rows if r["runs"]]
+    assert timed and all(r["runs"] == profile.speed.repeats for r in timed)
+    assert all(r["wall_s_min_per_sim_s"] <= r["wall_s_per_sim_s"] <= r["wall_s_max_per_sim_s"] for r in timed)
 
 
 def test_scaling(profile, out):

@@ -69,6 +69,20 @@ def _model_reference(text: str) -> str:
                                      "or module:attribute or file.py:attribute of your own ModelSpec)")
 
 
+def _add_model_code_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model-code", metavar="MODULE:ATTR", default=None,
+                        help="a checkpoint of your own model: the module:attribute or file.py:attribute it was trained with "
+                             "(the checkpoint names it; its code is imported only when you say so)")
+
+
+def _import_model_code(args) -> None:
+    """Register the model code `--model-code` names, before a checkpoint of it is read."""
+    if args.model_code:
+        from lgnn.learn.models import load_spec
+
+        load_spec(args.model_code)
+
+
 def _cmd_scenes(args) -> None:
     from lgnn.scene import BUILTIN_SCENES, HARD_SCENES, SPATIAL_SCENES
 
@@ -311,7 +325,7 @@ def _cmd_train(args) -> None:
     scene = get_scene(args.scene)
     name = models.load_spec(args.model).name if ":" in args.model else args.model
     model = models.ModelConfig.for_scene(name, scene, message_passing=args.message_passing)
-    config = train.TrainConfig(args.lr, args.batch_size, args.epochs, args.minutes, args.patience, args.seed)
+    config = train.TrainConfig(args.lr, args.batch_size, args.epochs, args.minutes, args.patience, args.seed, warmup_steps=train.WARMUP_STEPS)
     if args.resume and Path(args.out).exists():
         train.check_resumable(args.out, model, config)  # before minutes of data generation
     cache = args.cache_dir or data.default_cache_dir()
@@ -327,6 +341,7 @@ def _cmd_rollout(args) -> None:
 
     config = _simulation_config(args)
     _trajectory_out(args.out)
+    _import_model_code(args)
     state, meta = train.load_checkpoint(args.model)
     model, params = models.ModelConfig.from_dict(meta["model"]), state.best_params
     scene = get_scene(args.scene)
@@ -340,7 +355,7 @@ def _cmd_rollout(args) -> None:
 
 def _add_train_parser(commands) -> None:
     from lgnn.learn.models import model_names
-    from lgnn.learn.train import TrainConfig
+    from lgnn.learn.train import PAPER_LEARNING_RATE, TrainConfig
 
     default = TrainConfig()
     parser = commands.add_parser("train", help="train a learned model on ground-truth data")
@@ -351,7 +366,9 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--epochs", type=_positive_int, default=default.epochs, help="epoch budget (paper: 10000)")
     parser.add_argument("--minutes", type=_positive_float, default=None, help="optional wall-clock cap (checked after each epoch); the budget is --epochs")
     parser.add_argument("--patience", type=int, default=default.patience, help="early stopping: epochs without improvement")
-    parser.add_argument("--lr", type=_positive_float, default=default.learning_rate)
+    # `lgnn train` keeps the paper's rate and the full warm-up whatever the budget (the
+    # benchmark's profiles follow `train.scheduled`'s short-budget rule instead).
+    parser.add_argument("--lr", type=_positive_float, default=PAPER_LEARNING_RATE, help=f"peak learning rate (paper: {PAPER_LEARNING_RATE:g})")
     parser.add_argument("--batch-size", type=int, default=default.batch_size)
     parser.add_argument("--message-passing", type=int, default=None, help="message-passing layers (default: the model's)")
     parser.add_argument("--trajectories", type=int, default=100, help="training trajectories (paper: 100)")
@@ -365,12 +382,14 @@ def _add_train_parser(commands) -> None:
 
     inspect = commands.add_parser("checkpoint", help="summarise a checkpoint: epochs, losses, training time")
     inspect.add_argument("path", help="checkpoint written by lgnn train or lgnn benchmark")
+    _add_model_code_option(inspect)
     inspect.add_argument("--reference", help="another checkpoint: also print when this one reached its best validation loss")
     inspect.set_defaults(run=_cmd_checkpoint)
 
     rollout = commands.add_parser("rollout", help="roll a trained model out on a scene")
     rollout.add_argument("scene", help="built-in scene name or scene JSON file")
     rollout.add_argument("--model", required=True, help="checkpoint written by lgnn train")
+    _add_model_code_option(rollout)
     _add_simulation_options(rollout)
     rollout.add_argument("--out", required=True, help="output .npz file (same layout as lgnn simulate)")
     rollout.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -380,6 +399,7 @@ def _add_train_parser(commands) -> None:
 def _cmd_evaluate(args) -> None:
     from pathlib import Path
 
+    from lgnn import physics
     from lgnn.bench import evaluation
     from lgnn.files import check_writable
     from lgnn.learn.train import load_model
@@ -388,11 +408,12 @@ def _cmd_evaluate(args) -> None:
     config = _simulation_config(args)
     out = Path(args.out_dir)
     check_writable(out / "evaluate_summary.md")
+    _import_model_code(args)
     model, params = load_model(args.model)
     scored, written = [], []
     for name in args.scenes:
         scene = get_scene(name)
-        states = evaluation.initial_states(scene, args.initial_conditions, args.seed)
+        states = physics.own_or_sampled_states(scene, args.initial_conditions, args.seed)
         scene_scores, trajectories = evaluation.evaluate_model(model, params, scene, config, states, progress=not args.quiet)
         scored += scene_scores
         for engine, trajectory in trajectories.items():
@@ -442,6 +463,7 @@ def _add_evaluation_parsers(commands) -> None:
     evaluate = commands.add_parser("evaluate", help="score a checkpoint against the Lagrangian engine and MuJoCo on any scenes")
     evaluate.add_argument("scenes", nargs="+", metavar="SCENE", help="built-in scene names or scene JSON files")
     evaluate.add_argument("--model", required=True, help="checkpoint written by lgnn train or lgnn benchmark")
+    _add_model_code_option(evaluate)
     evaluate.add_argument("--initial-conditions", type=_positive_int, default=1,
                           help="1: the scene's own state (default); N: N sampled ones (the paper's chain sampler, else projected perturbations)")
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the sampled initial conditions")
@@ -472,6 +494,7 @@ def _add_evaluation_parsers(commands) -> None:
 def _cmd_checkpoint(args) -> None:
     from lgnn.learn import train
 
+    _import_model_code(args)
     state, meta = train.load_checkpoint(args.path)
     print(f"{args.path}: {meta['model']['name']}, epoch {state.epoch}, best validation loss {state.best_val:.4g} at epoch {state.best_epoch}, "
           f"{state.elapsed_s:.1f} s of training")

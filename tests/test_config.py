@@ -19,9 +19,26 @@ def test_overrides_reach_any_value_and_nothing_else():
     assert changed.training.train.epochs == 50 and changed.seeds == (0, 1, 2) and changed.speed.models is None
     assert changed == dataclasses.replace(quick, seeds=(0, 1, 2), speed=dataclasses.replace(quick.speed, models=None),
                                           # the schedule rule follows the new budget (a warm-up of a fifth of its steps)
-                                          training=grid.scheduled(quick.training.data, dataclasses.replace(quick.training.train, epochs=50)))
+                                          training=grid.TrainSettings(quick.training.data, dataclasses.replace(
+                                              quick.training.train, epochs=50, learning_rate=None, warmup_steps=None)))
     assert grid.load_profile("full") == grid.PROFILES["full"]
 
+
+
+def test_the_schedule_rule_fills_only_what_a_config_leaves_unset():
+    """`learning_rate` and `warmup_steps` left None follow the budget (30 Adam steps:
+    the short-budget rate, a warm-up of a fifth); a value given is kept, the other
+    still follows the rule; an unresolved config cannot make an optimiser."""
+    from lgnn.learn import train
+
+    quick = grid.load_profile("quick").training.train
+    assert (quick.learning_rate, quick.warmup_steps) == (train.SHORT_BUDGET_RATE, 6)
+    given = grid.load_profile("quick", ["training.train.learning_rate=0.05"]).training.train
+    assert (given.learning_rate, given.warmup_steps) == (0.05, 6)
+    long = train.scheduled(train.TrainConfig(warmup_steps=7), 750)  # the paper's data and budget
+    assert (long.learning_rate, long.warmup_steps) == (train.PAPER_LEARNING_RATE, 7)
+    with pytest.raises(ConfigError, match="schedule rule"):
+        train.optimizer(train.TrainConfig())
 
 @pytest.mark.parametrize("override, message", [
     ("training.train.epoch=5", "unknown setting 'training.train.epoch'"),

@@ -281,7 +281,7 @@ def test_lgnn_variants_train(tiny_dataset, name):
     `lgnn`'s; the notebook's `T` is a sum of squares, positive semi-definite)."""
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene(name, scene)
-    config = train.TrainConfig(epochs=4, warmup_steps=10)
+    config = train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, epochs=4, warmup_steps=10)
     evaluate = train.evaluate_fn(model, scene)
     val = tuple(a[tiny_dataset.val] for a in (tiny_dataset.q, tiny_dataset.qd, tiny_dataset.qdd))
     before = evaluate(train.initial_state(model, config).params, *val)
@@ -421,7 +421,7 @@ def test_lgnn_training_does_not_blow_up_in_its_first_epochs(tiny_dataset, seed):
     (The paper's random start with plain Adam swung by 1e4 on chain4: issue 13.)"""
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene("lgnn", scene)
-    config = train.TrainConfig(epochs=30, seed=seed, warmup_steps=100)  # 450 steps
+    config = train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, epochs=30, seed=seed, warmup_steps=100)  # 450 steps
     evaluate = train.evaluate_fn(model, scene)
     val = tuple(a[tiny_dataset.val] for a in (tiny_dataset.q, tiny_dataset.qd, tiny_dataset.qdd))
     initial = evaluate(train.initial_state(model, config).params, *val)
@@ -436,7 +436,7 @@ def test_schedule_warms_up_decays_and_legacy_checkpoints_keep_plain_adam():
     schedule = train.learning_rate_schedule(config)
     assert float(schedule(0)) == 0.0 and float(schedule(50)) == pytest.approx(5e-4)
     assert float(schedule(1100)) == pytest.approx(5e-4) and float(schedule(10**6)) == pytest.approx(1e-4)
-    legacy = train.TrainConfig(**train.LEGACY_OPTIMISATION)
+    legacy = train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, **train.LEGACY_OPTIMISATION)
     assert train.learning_rate_schedule(legacy) == legacy.learning_rate
     params = {"w": jnp.ones(3)}
     plain = optax.adam(1e-3)
@@ -460,7 +460,7 @@ def test_schedule_warms_up_decays_and_legacy_checkpoints_keep_plain_adam():
 def test_checkpoint_round_trip_and_resume_are_exact(tiny_dataset, tmp_path):
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene("lgnn", scene)
-    config = train.TrainConfig(learning_rate=1e-2, epochs=4)
+    config = train.TrainConfig(learning_rate=1e-2, epochs=4, warmup_steps=train.WARMUP_STEPS)
     whole = train.train(model, config, tiny_dataset, scene, out=tmp_path / "whole.npz")
     loaded, meta = train.load_checkpoint(tmp_path / "whole.npz")
     for a, b in zip(jax.tree.leaves((whole.params, whole.opt_state, whole.best_params)), jax.tree.leaves((loaded.params, loaded.opt_state, loaded.best_params))):
@@ -468,7 +468,7 @@ def test_checkpoint_round_trip_and_resume_are_exact(tiny_dataset, tmp_path):
     assert loaded.history == whole.history and meta["epoch"] == 4
     # Interrupted after 2 epochs, then resumed to 4.
     part = tmp_path / "part.npz"
-    train.train(model, train.TrainConfig(learning_rate=1e-2, epochs=2), tiny_dataset, scene, out=part)
+    train.train(model, train.TrainConfig(learning_rate=1e-2, epochs=2, warmup_steps=train.WARMUP_STEPS), tiny_dataset, scene, out=part)
     resumed = train.train(model, config, tiny_dataset, scene, out=part, resume=True)
     # Everything but the wall-clock seconds (summed over both runs, and each epoch's
     # time in the history) is identical.
@@ -481,7 +481,7 @@ def test_checkpoint_round_trip_and_resume_are_exact(tiny_dataset, tmp_path):
     for a, b in zip(jax.tree.leaves(untimed(whole)), jax.tree.leaves(untimed(resumed))):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(CheckpointError, match=r"other settings \(train.learning_rate: checkpoint 0.01, now 0.001\)"):
-        train.train(model, train.TrainConfig(learning_rate=1e-3, epochs=5), tiny_dataset, scene, out=part, resume=True)
+        train.train(model, train.TrainConfig(learning_rate=1e-3, epochs=5, warmup_steps=train.WARMUP_STEPS), tiny_dataset, scene, out=part, resume=True)
 
 
 def test_corrupt_or_mismatched_checkpoint_is_one_clear_error(tmp_path):
@@ -564,7 +564,7 @@ def test_seeds_trained_together_equal_separate_runs(tiny_dataset, tmp_path):
     (params, losses, checkpoints), and resumes from seeds at different epochs."""
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene("lgnn", scene)
-    configs = [train.TrainConfig(epochs=2, warmup_steps=10, seed=seed) for seed in (0, 1)]
+    configs = [train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, epochs=2, warmup_steps=10, seed=seed) for seed in (0, 1)]
     alone = [train.train(model, config, tiny_dataset, scene) for config in configs]
     outs = [tmp_path / "s0.npz", tmp_path / "s1.npz"]
     train.train(model, dataclasses.replace(configs[0], epochs=1), tiny_dataset, scene, out=outs[0])  # seed 0 one epoch ahead

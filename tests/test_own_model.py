@@ -71,3 +71,30 @@ def test_lgnn_train_takes_a_model_reference(capsys, tmp_path, monkeypatch):
         pass
     usage = capsys.readouterr().out
     assert all(name in usage for name in ("lgnn", "lgnn-mp1", "gns", "lgn", "clnn")) and "module:attr" in usage
+
+
+def test_commands_reading_a_checkpoint_load_its_model_code_when_told(capsys, tmp_path, monkeypatch):
+    """`lgnn rollout`, `lgnn evaluate` and `lgnn checkpoint` on a checkpoint of one's own
+    model: without its code one line naming the option, with `--model-code` they run."""
+    from lgnn.learn import models
+    from lgnn.scene import get_scene
+
+    reference = f"{__name__}:SCALED_TRUTH"
+    models.load_spec(reference)
+    model = models.ModelConfig.for_scene("scaled-truth", get_scene("chain4"))
+    config = train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, warmup_steps=1)
+    checkpoint = tmp_path / "own.npz"
+    train.save_checkpoint(checkpoint, train.initial_state(model, config), model, config)
+    short = ["--duration", "0.01", "--quiet"]
+    commands = {
+        "rollout": ["rollout", "chain4", "--model", checkpoint, "--out", tmp_path / "own_traj.npz", *short],
+        "evaluate": ["evaluate", "chain4", "--model", checkpoint, "--out-dir", tmp_path, *short],
+        "checkpoint": ["checkpoint", checkpoint],
+    }
+    for name, argv in commands.items():
+        monkeypatch.delitem(models._REGISTRY, "scaled-truth")  # a fresh process: the checkpoint's code not imported
+        assert main(argv) == 2, name
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"--model-code {reference}" in err, err
+        assert main([*argv, "--model-code", reference]) == 0, name
+        assert "scaled-truth" in capsys.readouterr().out

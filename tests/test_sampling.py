@@ -61,13 +61,13 @@ def test_the_benchmark_samples_a_users_scene_and_keeps_the_papers_choices(tmp_pa
 
     chain = get_scene("chain4")
     paper = sample_initial_states(chain, __import__("jax").random.PRNGKey(1), 3)
-    np.testing.assert_array_equal(physics.initial_states(chain, 3, 1).q, paper.q)
+    np.testing.assert_array_equal(physics.benchmark_initial_states(chain, 3, 1).q, paper.q)
     t1 = get_scene("T1")
-    np.testing.assert_array_equal(physics.initial_states(t1, 2, 1).q, np.broadcast_to(t1.nodes, (2, *t1.nodes.shape)))
+    np.testing.assert_array_equal(physics.benchmark_initial_states(t1, 2, 1).q, np.broadcast_to(t1.nodes, (2, *t1.nodes.shape)))
     path = tmp_path / "mine.json"
     path.write_text(scene_to_json(t1.replace(name="mine")))
     mine = get_scene(str(path))
-    np.testing.assert_array_equal(physics.initial_states(mine, 3, 1).q, physics.sample_initial_conditions(mine, 3, 1).q)
+    np.testing.assert_array_equal(physics.benchmark_initial_states(mine, 3, 1).q, physics.sample_initial_conditions(mine, 3, 1).q)
 
 
 def test_the_self_stressed_trusses_are_sampled_within_their_stated_tolerance():

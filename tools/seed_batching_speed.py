@@ -17,7 +17,7 @@ scene = get_scene("chain4")
 ds = data.load_or_generate(data.DataConfig("chain4"), "results/datasets")
 arrays = tuple(jnp.asarray(a[ds.train]) for a in (ds.q, ds.qd, ds.qdd))
 model = models.ModelConfig.for_scene("lgnn", scene)
-config = train.TrainConfig()
+config = train.scheduled(train.TrainConfig(), len(ds.train) // train.TrainConfig().batch_size)  # the paper budget: 1e-3, warm-up 1000
 states = [train.initial_state(model, train.TrainConfig(seed=s)) for s in range(3)]
 one = train.compiled_epoch_fn(model, scene, config)
 many = train.compiled_epoch_fn(model, scene, config, vmapped=True)

@@ -9,7 +9,7 @@ import os
 import numpy as np
 
 from lgnn.bench.grid import Profile
-from lgnn.bench.stages.evaluate import initial_states
+from lgnn.bench.stages.evaluate import evaluation_initial_states
 from lgnn.learn import data, export
 from lgnn.scene import get_scene, scene_to_dict
 
@@ -21,7 +21,7 @@ def export_scene(profile: Profile, scene_name: str, out: str | os.PathLike, cach
     scene = get_scene(scene_name)
     config = dataclasses.replace(profile.training.data, scene=scene_name)
     dataset = data.load_or_generate(config, cache_dir, progress=progress)
-    evaluation = initial_states(profile, scene)
+    evaluation = evaluation_initial_states(profile, scene)
     simulation = profile.evaluate.simulation(scene_name)
     arrays = {
         **dataset._asdict(),

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lgnn import metrics, physics
+from lgnn import metrics
 from lgnn.bench.tables import write_csv, write_table
 from lgnn.bench.timing import batched_rollouts
 from lgnn.engines import get_engine
@@ -185,10 +185,3 @@ def write_outputs(scored: list[Scored], out_dir: str | os.PathLike, stem: str, t
     write_table(summary_rows(scored), SUMMARY_COLUMNS, summary_csv, summary_md, title, header, notes)
     return [frames, summary_csv, summary_md]
 
-
-def initial_states(scene: Scene, count: int, seed: int) -> State:
-    """The scene's own state (count 1) or `count` sampled initial conditions
-    (`lgnn.physics.sample_states` with `seed`), (count, N, D)."""
-    if count == 1:
-        return State(np.asarray(scene.nodes, np.float64)[None], np.asarray(scene.velocities, np.float64)[None])
-    return physics.sample_states(scene, count, seed)

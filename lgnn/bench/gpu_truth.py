@@ -3,7 +3,8 @@
 `measure(scene, settings)` runs, for each batch size, lgnn's Lagrangian engine in
 float64 (the reference) and the engines of `settings.engines` (name:dtype; the
 Lagrangian engine in float32, MJX, MuJoCo Warp) from the same `batch` initial states
-(`lgnn.scene.sample_initial_states`, seed `settings.seed`) for `settings.steps` RK4
+(`lgnn.physics.benchmark_initial_states`, seed `settings.seed`: the paper's chain
+sampler, T1's own state) for `settings.steps` RK4
 steps of `settings.dt`, and returns tidy rows:
 
 `scene, engine, dtype, form, batch, steps, steps_per_s, steps_per_s_min,
@@ -36,7 +37,6 @@ from __future__ import annotations
 import dataclasses
 import statistics
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -46,7 +46,7 @@ from lgnn.bench.timing import compiled_rollouts
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.engines.timing import compile_timed, time_runs
 from lgnn.errors import ConfigError, LgnnError
-from lgnn.scene import Scene, State, sample_initial_states
+from lgnn.scene import Scene, State
 
 ENGINE_NAMES = ("lagrangian", "mjx", "mjwarp")
 REFERENCE = "lagrangian:float64"
@@ -86,11 +86,6 @@ class GpuTruthSettings:
         """One frame after `steps` steps: only the final state is compared."""
         duration = self.steps * self.dt
         return SimulationConfig(integrator="rk4", dt=self.dt, frame_dt=duration, duration=duration)
-
-
-def _initial_states(scene: Scene, settings: GpuTruthSettings) -> State:
-    states = sample_initial_states(scene, jax.random.key(settings.seed), max(settings.batches))
-    return State(np.asarray(states.q, np.float64), np.asarray(states.qd, np.float64))
 
 
 def _lagrangian(scene: Scene, config: SimulationConfig, states: State, dtype: str, repeats: int):
@@ -143,7 +138,7 @@ def _out_of_memory(err: Exception) -> bool:
 def measure(scene: Scene, settings: GpuTruthSettings, log=print) -> list[dict]:
     """Tidy rows of every engine and batch on `scene` (module docstring)."""
     config = settings.config
-    all_states = _initial_states(scene, settings)
+    all_states = physics.benchmark_initial_states(scene, max(settings.batches), settings.seed)
     rows = []
     for batch in settings.batches:
         states = State(all_states.q[:batch], all_states.qd[:batch])

@@ -30,7 +30,7 @@ from lgnn.errors import ConfigError
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.learn.data import DataConfig
 from lgnn.learn.models import load_spec
-from lgnn.learn.train import WARMUP_STEPS, TrainConfig
+from lgnn.learn.train import TrainConfig, adam_steps_per_epoch, scheduled
 
 # The scene every model of the main grid is trained on.
 TRAINING_SCENE = "chain4"
@@ -125,35 +125,16 @@ class Pair:
 @dataclasses.dataclass(frozen=True)
 class TrainSettings:
     """Training data (the scene is each job's) and the optimisation budget. A checkpoint
-    is reused when its model, `train.training_key` and data settings match."""
+    is reused when its model, `train.training_key` and data settings match. A learning
+    rate or warm-up `train` leaves None follows the schedule rule for this budget
+    (`lgnn.learn.train.scheduled`), filled in here so that records and the report see
+    the values trained with; one the config gives is kept."""
 
     data: DataConfig
     train: TrainConfig
 
-
-def adam_steps_per_epoch(data: DataConfig, train: TrainConfig) -> int:
-    """Adam steps in one epoch of `data` (`lgnn.learn.data`'s split; the remainder of
-    a shuffle is dropped)."""
-    return round(data.train_fraction * data.n_trajectories * data.states_per_trajectory) // train.batch_size
-
-
-# A budget of fewer Adam steps than this (the quick profile's 30: a check of the
-# machinery, not a result) peaks at SHORT_BUDGET_RATE: at the paper's 1e-3 LGNN gained
-# only 10 % on the untrained model in 30 steps; at 1e-2 seeds 0 and 1 reach 0.70 and
-# 0.53 of it, GNS 0.50 and 0.60, LGN 0.47 and 0.77, CLNN 0.02 and 0.01.
-SHORT_BUDGET_STEPS = 1000
-SHORT_BUDGET_RATE = 1e-2
-
-
-def scheduled(data: DataConfig, train: TrainConfig) -> TrainSettings:
-    """The training settings with the one rule for every model's schedule (README,
-    "Training budgets"): the paper's batch and peak rate as `train` gives them (but
-    SHORT_BUDGET_RATE for a budget under SHORT_BUDGET_STEPS), a warm-up over a fifth
-    of the budget's Adam steps but at most `WARMUP_STEPS` (Adam's moments settle; a
-    short budget is not spent warming up), the decay as `train`'s."""
-    steps = train.epochs * adam_steps_per_epoch(data, train)
-    rate = SHORT_BUDGET_RATE if steps < SHORT_BUDGET_STEPS else train.learning_rate
-    return TrainSettings(data, dataclasses.replace(train, learning_rate=rate, warmup_steps=max(1, min(WARMUP_STEPS, steps // 5))))
+    def __post_init__(self):
+        object.__setattr__(self, "train", scheduled(self.train, adam_steps_per_epoch(self.data, self.train)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,6 +190,15 @@ class SpeedSettings:
     # Lagrangian engine runs longer than this many link-steps are skipped (with a row
     # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
     max_link_steps: float = 5e5
+    # Timed runs per row: the table gives their median and spread (min..max). In the key
+    # (a record of 3 runs holds other numbers than one of 1), but left out of it at 1,
+    # so the single-run records made before this field keep theirs (`speed.speed_key`).
+    # A JAX engine's repeat is a whole `timed_rollout`, compile included (reported apart).
+    repeats: int = 1
+
+    def __post_init__(self):
+        if self.repeats < 1:
+            raise ConfigError(f"speed.repeats must be >= 1, got {self.repeats}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -288,13 +278,7 @@ def load_profile(source: str | os.PathLike, overrides=()) -> Profile:
             base_profile.pop("models", None)  # a grid of one's own is kept whole, not filtered by the shipped profile's models
         data = settings.merged(base_profile, data)
     data = settings.apply_overrides(data, overrides)
-    profile = _resolved(settings.build(Profile, data), base)
-    # The schedule follows the one rule (`scheduled`) except where the config sets the
-    # rate or the warm-up itself.
-    given = data.get("training", {}).get("train", {})
-    rule = scheduled(profile.training.data, profile.training.train)
-    kept = {name: getattr(profile.training.train, name) for name in ("learning_rate", "warmup_steps") if name in given}
-    return dataclasses.replace(profile, training=dataclasses.replace(rule, train=dataclasses.replace(rule.train, **kept)))
+    return _resolved(settings.build(Profile, data), base)
 
 
 def _resolved(profile: Profile, base: Path | None) -> Profile:

@@ -229,11 +229,23 @@ def summary_markdown(summary, metric: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _spread(r: dict) -> str:
+    """`min..max (n runs)` of a speed row's timed runs; `1 run` for one (records made
+    before the spread was kept hold one run)."""
+    runs = r.get("runs", 1 if math.isfinite(r["wall_s_per_sim_s"]) else 0)
+    if not runs:
+        return "—"
+    if runs == 1:
+        return "1 run"
+    return f"{_fmt(r['wall_s_min_per_sim_s'])}..{_fmt(r['wall_s_max_per_sim_s'])} ({runs} runs)"
+
+
 def speed_markdown(rows: list[dict]) -> str:
-    lines = ["| scene | solver | dt | wall s per simulated s | evaluations per simulated s | compile s | rollout error | note |", "|---" * 8 + "|"]
+    lines = ["| scene | solver | dt | wall s per simulated s (median) | spread | evaluations per simulated s | compile s | rollout error | note |",
+             "|---" * 9 + "|"]
     for r in rows:
         compile_s = "—" if not math.isfinite(r["compile_s"]) else f"{r['compile_s']:.1f}"
-        lines.append(f"| {r['scene']} | {r['solver']} | {r['dt']:g} | {_fmt(r['wall_s_per_sim_s'])} | {r['evaluations_per_sim_s']:.0f} | "
+        lines.append(f"| {r['scene']} | {r['solver']} | {r['dt']:g} | {_fmt(r['wall_s_per_sim_s'])} | {_spread(r)} | {r['evaluations_per_sim_s']:.0f} | "
                      f"{compile_s} | {_fmt(r['rollout_error'])} | {r['note']} |")
     return "\n".join(lines) + "\n"
 
@@ -440,8 +452,9 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
 
 # Heads a non-full profile's report (and the console, which prints the report).
 QUICK_WARNING = ("**Not results.** This profile checks that the pipeline runs: its training budgets are tiny and it has few initial "
-                 "conditions, so the ranking of the models means nothing, and its timings (single runs on a shared machine) vary "
-                 "several-fold between runs (a Lagrangian/MuJoCo ratio of 3.05 in one run, 0.41 in the next). "
+                 "conditions, so the ranking of the models means nothing, and so do its timings: a few runs of a short horizon on a "
+                 "shared machine, which vary several-fold between benchmark runs (single runs gave a Lagrangian/MuJoCo ratio of 3.05 "
+                 "in one, 0.41 in the next; the speed table's spread column shows the runs of this one). "
                  "Numbers: `lgnn benchmark --full`, or the committed `results/`.")
 
 

@@ -1,7 +1,7 @@
 """Training data from the ground truth, cached on disk.
 
 Paper text (SPEC): 100 trajectories of the scene from the paper's chain sampler
-(`physics.initial_states`; a user's scene gets `physics.sample_initial_conditions`),
+(`physics.benchmark_initial_states`; a user's scene gets `physics.sample_initial_conditions`),
 each 1 s with a state every 0.01 s (100 states, t = 0 .. 0.99 s), 10 000 states in
 all, split at random 75:25 into training and validation states. Trajectories are integrated with the ground-truth engine's RK4 at dt 1e-4 with
 projection onto the constraints. The targets are the exact accelerations
@@ -107,7 +107,7 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
 
     scene = get_scene(config.scene)
     run, targets = _compiled(scene, config.simulation)
-    initial_q, initial_qd = physics.initial_states(scene, config.n_trajectories, config.seed)
+    initial_q, initial_qd = physics.benchmark_initial_states(scene, config.n_trajectories, config.seed)
     # One batch shape for every call (the last batch padded): one compile, sharded over
     # every local device.
     size = sharding.padded_size(min(config.chunk, config.n_trajectories))

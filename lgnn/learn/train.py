@@ -14,7 +14,10 @@ data shared), each seed's run equal to its own `train` run to round-off.
 
 The optimiser is the paper's Adam (peak learning rate 1e-3, batch 10) with a linear
 warm-up, a per-step exponential decay and optional global-norm gradient clipping
-(`TrainConfig`, `optimizer`; off by default, see `CLIP_NORM`). Why: plain Adam from the paper's random start swung
+(`TrainConfig`, `optimizer`; off by default, see `CLIP_NORM`). A rate or warm-up the
+config leaves None follows one rule for the budget (`scheduled`: 1e-2 under 1000 Adam
+steps, a warm-up of a fifth of them but at most 1000), filled in by `train_seeds` and
+the benchmark's `TrainSettings`, so checkpoints hold the values trained with. Why: plain Adam from the paper's random start swung
 the validation loss by orders of magnitude in the first epochs (issue 13). The cause
 was the start, a learned mass matrix indefinite on the constraint tangent space (fixed
 in `models`: LGNN's kinetic energy starts strictly convex, and the initial validation
@@ -67,6 +70,14 @@ MIN_LEARNING_RATE = 1e-5
 # seed 1, clipping at global norm 1 blew up at epoch 15 (validation 4.1 -> 7.6e4),
 # while the same run unclipped fell smoothly to 0.75. The fix is the start (`models`).
 CLIP_NORM = None
+# The paper's Adam learning rate: the schedule's peak (`scheduled`).
+PAPER_LEARNING_RATE = 1e-3
+# A budget of fewer Adam steps than this (the quick profile's 30: a check of the
+# machinery, not a result) peaks at SHORT_BUDGET_RATE: at the paper's 1e-3 LGNN gained
+# only 10 % on the untrained model in 30 steps; at 1e-2 seeds 0 and 1 reach 0.70 and
+# 0.53 of it, GNS 0.50 and 0.60, LGN 0.47 and 0.77, CLNN 0.02 and 0.01.
+SHORT_BUDGET_STEPS = 1000
+SHORT_BUDGET_RATE = 1e-2
 # What checkpoints written before these fields existed were trained with: the paper's
 # plain Adam (no warm-up, no decay, no clipping), so they load with their own optimiser.
 LEGACY_OPTIMISATION = {"warmup_steps": 0, "decay_steps": 1, "decay_rate": 1.0, "min_learning_rate": 0.0, "clip_norm": None}
@@ -75,7 +86,8 @@ LEGACY_OPTIMISATION = {"warmup_steps": 0, "decay_steps": 1, "decay_rate": 1.0, "
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     # Paper: Adam, learning rate 1e-3, batch size 10 (the peak of the schedule below).
-    learning_rate: float = 1e-3
+    # None: by the schedule rule (`scheduled`, which needs the budget in Adam steps).
+    learning_rate: float | None = None
     batch_size: int = 10
     # Paper budget: 10 000 epochs with early stopping.
     epochs: int = 10_000
@@ -91,8 +103,8 @@ class TrainConfig:
     checkpoint_every: int = 1
     # Deviations from the paper's plain Adam (issue 13: its first epochs swung over
     # orders of magnitude): a linear warm-up from 0 over this many steps, so Adam's
-    # moment estimates settle before full-size steps (0: none).
-    warmup_steps: int = WARMUP_STEPS
+    # moment estimates settle before full-size steps (0: none; None: by the rule).
+    warmup_steps: int | None = None
     # Then the learning rate times `decay_rate` every `decay_steps` steps (exponential,
     # per step, so it does not depend on the epoch budget and a resumed run with a
     # longer budget keeps its schedule), never below `min_learning_rate`.
@@ -107,9 +119,10 @@ class TrainConfig:
     min_improvement: float = 0.0
 
     def __post_init__(self):
-        if not self.learning_rate > 0:
+        if self.learning_rate is not None and not self.learning_rate > 0:
             raise ConfigError(f"learning rate must be > 0, got {self.learning_rate}")
-        if self.warmup_steps < 0 or self.decay_steps < 1 or not 0 < self.decay_rate <= 1 or not 0 <= self.min_learning_rate <= self.learning_rate:
+        peak = PAPER_LEARNING_RATE if self.learning_rate is None else self.learning_rate
+        if (self.warmup_steps or 0) < 0 or self.decay_steps < 1 or not 0 < self.decay_rate <= 1 or not 0 <= self.min_learning_rate <= peak:
             raise ConfigError("warm-up steps must be >= 0, decay steps >= 1, decay rate in (0, 1], 0 <= minimum learning rate <= learning rate")
         if self.clip_norm is not None and not self.clip_norm > 0:
             raise ConfigError(f"clip norm must be > 0, got {self.clip_norm}")
@@ -119,6 +132,32 @@ class TrainConfig:
             raise ConfigError(f"minimum improvement must be in [0, 1), got {self.min_improvement}")
         if self.minutes is not None and not self.minutes > 0:
             raise ConfigError(f"minutes must be > 0, got {self.minutes}")
+
+
+def adam_steps_per_epoch(data: DataConfig, config: TrainConfig) -> int:
+    """Adam steps in one epoch of `data` (`lgnn.learn.data`'s split; the remainder of
+    a shuffle is dropped)."""
+    return round(data.train_fraction * data.n_trajectories * data.states_per_trajectory) // config.batch_size
+
+
+def scheduled(config: TrainConfig, steps_per_epoch: int) -> TrainConfig:
+    """`config` with the one schedule rule for every model (README, "Training budgets")
+    filling what it leaves None: the peak rate PAPER_LEARNING_RATE (SHORT_BUDGET_RATE
+    for a budget under SHORT_BUDGET_STEPS Adam steps), a warm-up over a fifth of the
+    budget's steps but at most WARMUP_STEPS (Adam's moments settle; a short budget is
+    not spent warming up). A value the config gives is kept."""
+    steps = config.epochs * steps_per_epoch
+    rate = SHORT_BUDGET_RATE if steps < SHORT_BUDGET_STEPS else PAPER_LEARNING_RATE
+    return dataclasses.replace(
+        config,
+        learning_rate=rate if config.learning_rate is None else config.learning_rate,
+        warmup_steps=max(1, min(WARMUP_STEPS, steps // 5)) if config.warmup_steps is None else config.warmup_steps,
+    )
+
+
+def _check_scheduled(config: TrainConfig) -> None:
+    if config.learning_rate is None or config.warmup_steps is None:
+        raise ConfigError("the learning rate or warm-up is left to the schedule rule: resolve it with train.scheduled(config, steps_per_epoch)")
 
 
 class TrainState(NamedTuple):
@@ -154,6 +193,7 @@ def last_improvement(state: TrainState, config: TrainConfig) -> int:
 def learning_rate_schedule(config: TrainConfig) -> optax.Schedule | float:
     """The learning rate per step: warm-up, then exponential decay to the floor (a
     plain number when neither is set, as for the paper's Adam)."""
+    _check_scheduled(config)
     if config.warmup_steps == 0 and config.decay_rate == 1:
         return config.learning_rate
     return optax.warmup_exponential_decay_schedule(
@@ -230,7 +270,9 @@ def evaluate_fn(model: models.ModelConfig, scene: Scene, chunk: int = 500):
 
 def initial_state(model: models.ModelConfig, config: TrainConfig) -> TrainState:
     params = models.init(jax.random.fold_in(jax.random.PRNGKey(config.seed), 0), model)
-    return TrainState(params, optimizer(config).init(params), params, float("inf"), -1, 0, [], 0.0)
+    # Adam's initial state holds no rate or warm-up, only whether there is a schedule
+    # (always, by the rule), so a config that leaves them to the rule has one too.
+    return TrainState(params, optimizer(scheduled(config, 1)).init(params), params, float("inf"), -1, 0, [], 0.0)
 
 
 @in_float64
@@ -268,7 +310,9 @@ def train_seeds(
     from different epochs. Each seed's `elapsed_s` counts the group's wall-clock time."""
     from tqdm.auto import tqdm
 
-    configs = list(configs)
+    # The schedule rule needs the budget, known from here on (the benchmark's profiles
+    # arrive resolved: `lgnn.bench.grid.TrainSettings`).
+    configs = [scheduled(c, len(dataset.train) // c.batch_size) for c in configs]
     if not configs or any(_optimisation_only(c) != _optimisation_only(configs[0]) or _budget(c) != _budget(configs[0]) for c in configs):
         raise ConfigError("seeds trained together must share every training setting but the seed")
     if outs is not None and len(outs) != len(configs):
@@ -393,7 +437,7 @@ def load_checkpoint(path) -> tuple[TrainState, dict]:
     if source and meta["model"].get("name") not in models.model_names():
         # Never imported from a file's say-so: loading code is the user's decision.
         raise CheckpointError(f"{path}: model {meta['model'].get('name')!r} is defined outside lgnn ({source}): load it first "
-                              "(lgnn.learn.models.load_spec, or the config's model reference)")
+                              f"(lgnn.learn.models.load_spec, the config's model reference, or the command's --model-code {source})")
     try:
         model = models.ModelConfig.from_dict(meta["model"])
         config = TrainConfig(**{**LEGACY_OPTIMISATION, **meta["train_config"]})

@@ -22,7 +22,8 @@ One module per idea, from the bottom up:
 - `projection`: `projection_fn`, back onto the constraint manifold after a step;
 - `sampling`: `sample_initial_conditions(scene, count, seed)`, random initial states of
   any scene on its constraint manifold; `sample_states` (the paper's chain sampler where
-  it applies); `initial_states`, the benchmark's rule.
+  it applies); `own_or_sampled_states`, `lgnn evaluate`'s rule; `benchmark_initial_states`,
+  the benchmark's rule.
 """
 
 from lgnn.physics.constraints import Constraints, constraint_violation, velocity_constraint_violation
@@ -47,7 +48,7 @@ from lgnn.physics.energies import (
     potential_energy_per_link,
 )
 from lgnn.physics.projection import projection_fn
-from lgnn.physics.sampling import initial_states, sample_initial_conditions, sample_states
+from lgnn.physics.sampling import benchmark_initial_states, own_or_sampled_states, sample_initial_conditions, sample_states
 from lgnn.physics.solvers import refine
 from lgnn.physics.system import System, prepare
 
@@ -59,16 +60,17 @@ __all__ = [
     "System",
     "acceleration_fn",
     "angular_speed_squared",
+    "benchmark_initial_states",
     "constant_mass_lagrangian_fn",
     "constant_node_mass",
     "constraint_violation",
     "drag_force_fn",
     "energy_fn",
     "hamiltonian_fn",
-    "initial_states",
     "kinetic_energy_per_link",
     "lagrangian_fn",
     "mass_matrix_fn",
+    "own_or_sampled_states",
     "potential_energy_per_link",
     "prepare",
     "projection_fn",

@@ -12,9 +12,10 @@ pins stay put and at rest. It is the sampler for scenes the paper's chain sample
 file gets `count` different trajectories, not `count` copies of one.
 
 `sample_states(scene, count, seed)`: the paper's chain sampler on a pinned chain,
-`sample_initial_conditions` otherwise (`lgnn evaluate`'s sampled initial conditions).
-`initial_states(scene, count, seed)` is the one rule the training data and the
-benchmark's evaluation use: the paper's chain sampler on a pinned chain, the scene's
+`sample_initial_conditions` otherwise. `own_or_sampled_states(scene, count, seed)`:
+`lgnn evaluate`'s rule, the scene's own state for one initial condition, `sample_states`
+for more. `benchmark_initial_states(scene, count, seed)` is the one rule the training
+data and the benchmark's evaluation use: the paper's chain sampler on a pinned chain, the scene's
 own state on the other catalogue scenes (T1-T3 start from the paper's rest states),
 `sample_initial_conditions` on any other scene.
 
@@ -115,7 +116,15 @@ def sample_states(scene: Scene, count: int, seed: int) -> State:
     return sample_initial_conditions(scene, count, seed)
 
 
-def initial_states(scene: Scene, count: int, seed: int) -> State:
+def own_or_sampled_states(scene: Scene, count: int, seed: int) -> State:
+    """The scene's own state (count 1) or `count` sampled initial conditions
+    (`sample_states` with `seed`), (count, N, D) float64: `lgnn evaluate`'s rule."""
+    if count == 1:
+        return State(np.asarray(scene.nodes, np.float64)[None], np.asarray(scene.velocities, np.float64)[None])
+    return sample_states(scene, count, seed)
+
+
+def benchmark_initial_states(scene: Scene, count: int, seed: int) -> State:
     """`count` initial states (count, N, D) of training data or the benchmark's evaluation
     (module docstring): `sample_states`, except that the catalogue's other scenes (T1-T3)
     start from their own state, as in the paper."""

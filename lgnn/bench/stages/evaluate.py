@@ -66,13 +66,13 @@ _PAIR_NEEDS = ("node_rms_error/per_ic_log",)
 SNAPSHOT_DT = 0.01
 
 
-def initial_states(profile: Profile, scene: Scene) -> State:
-    """The evaluation initial conditions (C, N, D), seed `ic_seed` (`physics.initial_states`):
+def evaluation_initial_states(profile: Profile, scene: Scene) -> State:
+    """The evaluation initial conditions (C, N, D), seed `ic_seed` (`physics.benchmark_initial_states`):
     `initial_conditions` samples of the paper's chain sampler on a chain, or of
     `physics.sample_initial_conditions` on a user's scene; a built-in scene's own
     state (C = 1) otherwise (T1-T3)."""
     count = profile.evaluate.initial_conditions if is_pinned_chain(scene) or not is_catalogue_scene(scene) else 1
-    return physics.initial_states(scene, count, profile.evaluate.ic_seed)
+    return physics.benchmark_initial_states(scene, count, profile.evaluate.ic_seed)
 
 
 def truth_key(profile: Profile, scene_name: str) -> str:
@@ -97,7 +97,7 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> di
 
     settings = profile.evaluate
     scene = get_scene(scene_name)
-    states = initial_states(profile, scene)
+    states = evaluation_initial_states(profile, scene)
     config = settings.simulation(scene_name)
     log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s")
     q, qd, compile_s, run_s = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, states, settings.chunk, f"truth {scene_name}", progress)
@@ -268,7 +268,7 @@ def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
     on its first chunk of initial conditions (the function `evaluate_pair` used), and
     the RK4 steps it takes; for pytest-benchmark."""
     scene = get_scene(pair.scene)
-    states = initial_states(profile, scene)
+    states = evaluation_initial_states(profile, scene)
     chunk = sharding.padded_size(min(profile.evaluate.chunk, len(states.q)))
     checkpoint = Layout(out).checkpoint(pair.job)
     accel_factory = _model_accel_factory(checkpoint, records.file_digest(checkpoint))

@@ -20,9 +20,9 @@ from lgnn import metrics, records
 from lgnn.bench import store
 from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX
 from lgnn.engines import get_engine
-from lgnn.engines.timing import time_compiled
+from lgnn.engines.timing import compile_timed, time_runs
 from lgnn.bench.grid import TRAINING_SCENE, Profile, TrainingJob, settings_key, training_jobs
-from lgnn.bench.stages.evaluate import initial_states
+from lgnn.bench.stages.evaluate import evaluation_initial_states
 from lgnn.bench.store import Layout, log
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 from lgnn.learn import models, train
@@ -43,17 +43,22 @@ def _checkpoint_digests(profile: Profile, scene_name: str, out: Path, jobs: list
 
 def speed_key(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> str:
     """Settings a scene's speed record depends on (module docstring)."""
-    return records.digest({"speed": settings_key(profile.speed), "evaluate": settings_key(profile.evaluate.for_scene(scene_name)),
+    speed = settings_key(profile.speed)
+    if speed["repeats"] == 1:
+        del speed["repeats"]  # single-run records made before the field keep their key
+    return records.digest({"speed": speed, "evaluate": settings_key(profile.evaluate.for_scene(scene_name)),
                            "scene": scene_to_dict(get_scene(scene_name)), "checkpoints": _checkpoint_digests(profile, scene_name, out, jobs)})
 
 
 def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> Path:
-    """Rows `scene, solver, kind, dt, wall_s_per_sim_s, evaluations_per_sim_s,
-    compile_s, rollout_error, note` (JSON record): every ground-truth engine at each of
-    `SpeedSettings.dts` and every timed model (`timed_jobs`) at the scene's evaluation
-    dt, single trajectory from the scene's first initial condition over `horizon` s,
-    frames every `frame_dt`; error: geometric mean of the rollout error against MuJoCo
-    C at a tenth of the smallest step."""
+    """Rows `scene, solver, kind, dt, wall_s_per_sim_s, wall_s_min_per_sim_s,
+    wall_s_max_per_sim_s, runs, evaluations_per_sim_s, compile_s, rollout_error, note`
+    (JSON record): every ground-truth engine at each of `SpeedSettings.dts` and every
+    timed model (`timed_jobs`) at the scene's evaluation dt, single trajectory from the
+    scene's first initial condition over `horizon` s, frames every `frame_dt`; wall time:
+    the median (and min, max) of `SpeedSettings.repeats` timed runs; compile: the
+    first's; error: geometric mean of the rollout error against MuJoCo C at a tenth of
+    the smallest step."""
     from lgnn.engines import mujoco as lm
 
     settings = profile.speed
@@ -63,7 +68,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     path, key = layout.speed_record(scene_name), speed_key(profile, scene_name, out, jobs)
     if store.load_json(path, key) is not None:
         return path
-    states = initial_states(profile, scene)
+    states = evaluation_initial_states(profile, scene)
     single = State(states.q[:1], states.qd[:1])
     horizon, frame_dt = settings.horizon, profile.evaluate.frame_dt
     reference_config = SimulationConfig("rk4", min(settings.dts) / 10, frame_dt, horizon, True)
@@ -72,8 +77,10 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     depth = lm.scene_layout(scene).depth
     rows = []
 
-    def row(solver, kind, dt, **values):
-        base = dict(scene=scene_name, solver=solver, kind=kind, dt=dt, wall_s_per_sim_s=float("nan"), evaluations_per_sim_s=4 / dt,
+    def row(solver, kind, dt, run_s=(), **values):
+        wall = [s / horizon for s in run_s] or [float("nan")]
+        base = dict(scene=scene_name, solver=solver, kind=kind, dt=dt, wall_s_per_sim_s=float(np.median(wall)),
+                    wall_s_min_per_sim_s=min(wall), wall_s_max_per_sim_s=max(wall), runs=len(run_s), evaluations_per_sim_s=4 / dt,
                     compile_s=float("nan"), rollout_error=float("nan"), note="")
         rows.append({**base, **values})
 
@@ -89,9 +96,10 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
                 row(engine, "engine", dt, note=f"not run: over {settings.max_link_steps:g} link-steps")
                 continue
             config = SimulationConfig("rk4", dt, frame_dt, horizon, True)
-            compile_s, run_s, q = get_engine(engine).timed_rollout(scene, config, single)
-            row(engine, "engine", dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference))
-            log(f"speed/error {scene_name} {engine} dt {dt:g}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
+            timed = [get_engine(engine).timed_rollout(scene, config, single) for _ in range(settings.repeats)]
+            compile_s, _, q = timed[0]
+            row(engine, "engine", dt, run_s=[t[1] for t in timed], compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference))
+            log(f"speed/error {scene_name} {engine} dt {dt:g}: {rows[-1]['wall_s_per_sim_s']:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     config = SimulationConfig("rk4", profile.evaluate.dt_for(scene_name), frame_dt, horizon, True)
     for job in timed_jobs(profile, scene_name, jobs):
         if job.name not in checkpoints:
@@ -99,10 +107,12 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
             continue
         model, params = train.load_model(layout.checkpoint(job))
         run = jax.jit(rollout_fn(scene, config, lambda s: models.acceleration_fn(model, params, s)))
-        compile_s, run_s, out_state = time_compiled(run, jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
+        args = jnp.asarray(single.q[0]), jnp.asarray(single.qd[0])
+        compiled, compile_s = compile_timed(run, *args)
+        run_s, out_state = time_runs(lambda: compiled(*args), settings.repeats)
         q = np.asarray(out_state.q)
-        row(job.label, "learned", config.dt, wall_s_per_sim_s=run_s / horizon, compile_s=compile_s, rollout_error=metrics.gmean_error(q, reference))
-        log(f"speed/error {scene_name} {job.label}: {run_s / horizon:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
+        row(job.label, "learned", config.dt, run_s=run_s, compile_s=compile_s, rollout_error=metrics.gmean_error(q, reference))
+        log(f"speed/error {scene_name} {job.label}: {rows[-1]['wall_s_per_sim_s']:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     store.save_json(path, key, horizon=horizon, rows=rows)
     return path
 

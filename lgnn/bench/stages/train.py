@@ -38,10 +38,10 @@ def train_job(profile: Profile, job: TrainingJob, out: Path, progress: bool = Tr
     return train_jobs(profile, [job], out, progress)[0]
 
 
-def _resumable(profile: Profile, job: TrainingJob, path: Path) -> bool | None:
-    """None if the job's checkpoint is finished with the profile's settings (reuse it),
-    True if it can be resumed, False if training starts afresh."""
-    scene, model, data_config, train_config = _job_settings(profile, job)
+def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
+    """None if the job's checkpoint is finished with its `settings` (`_job_settings`:
+    reuse it), True if it can be resumed, False if training starts afresh."""
+    _, model, data_config, train_config = settings
     if not path.exists():
         return False
     try:
@@ -72,23 +72,26 @@ def train_jobs(profile: Profile, jobs: list[TrainingJob], out: Path, progress: b
         paths = [layout.checkpoint(job) for job in group]
         for path in paths:
             path.parent.mkdir(parents=True, exist_ok=True)
-        plans = [_resumable(profile, job, path) for job, path in zip(group, paths)]
-        todo = [(job, path, plan) for job, path, plan in zip(group, paths, plans) if plan is not None]
+        settings = [_job_settings(profile, job) for job in group]
+        plans = [_resumable(job, path, setting) for job, path, setting in zip(group, paths, settings)]
+        todo = [(job, path, plan, setting) for job, path, plan, setting in zip(group, paths, plans, settings) if plan is not None]
         if not todo:
             continue
-        fresh = [job for job, _, plan in todo if not plan]
-        for job, path, plan in todo:
+        fresh = [job for job, _, plan, _ in todo if not plan]
+        for job, path, plan, _ in todo:
             if not plan and path.exists():
                 path.unlink()  # replaced: other settings or unreadable
-        scene, model, data_config, train_config = _job_settings(profile, todo[0][0])
+        # The seeds of a group share everything but the seed: the first one's scene,
+        # model and data serve them all.
+        scene, model, data_config, train_config = todo[0][3]
         dataset = data.load_or_generate(data_config, layout.datasets, progress=progress)
         if fresh:
             log(f"train {', '.join(j.name for j in fresh)}: {len(dataset.train)} training states, budget {train_config.epochs} epochs"
                 + (f", plateau: no {train_config.min_improvement:.0%} gain in {train_config.patience} epochs" if train_config.min_improvement else "")
                 + (f" / {train_config.minutes:g} min" if train_config.minutes else ""))
-        configs = [_job_settings(profile, job)[3] for job, _, _ in todo]
-        states = train.train_seeds(model, configs, dataset, scene, outs=[path for _, path, _ in todo], data_config=data_config, resume=True, progress=progress)
-        for (job, _, _), state in zip(todo, states):
+        configs = [setting[3] for _, _, _, setting in todo]
+        states = train.train_seeds(model, configs, dataset, scene, outs=[path for _, path, _, _ in todo], data_config=data_config, resume=True, progress=progress)
+        for (job, _, _, _), state in zip(todo, states):
             log(f"train {job.name}: {state.epoch} epochs in {state.elapsed_s / 60:.1f} min, best validation MSE {state.best_val:.3g} (epoch {state.best_epoch})")
     return [layout.checkpoint(job) for job in jobs]
 
