@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from lgnn import metrics
+from lgnn.bench import gpu_truth
 from lgnn.bench.grid import TRAINING_SCENE, TRANSFER_SCENES, Profile, evaluation_scenes
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
@@ -47,7 +48,7 @@ from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
 from lgnn.bench.stages.train import default_lgnn, load_checkpoints
-from lgnn.bench.tables import write_csv
+from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.scene import get_scene
 
@@ -587,6 +588,28 @@ def _gpu_section(out: Path) -> list[str]:
     return lines
 
 
+def _gpu_truth_section(out: Path) -> list[str]:
+    """The GPU ground-truth tables under `out/gpu/truth/` (`lgnn gpu-truth`) read as
+    issue 14's goal: the float32 Lagrangian against the fastest finite MuJoCo GPU
+    engine, per scene and batch (`gpu_truth.against_mujoco`)."""
+    rows = gpu_truth.against_mujoco(gpu_truth.load(out / "gpu" / "truth"))
+    if not rows:
+        return ["Not measured in this output directory (no `gpu/truth/` tables)."]
+    lines = [f"lgnn's Lagrangian engine in float32 against the fastest MuJoCo GPU engine (MJX, MuJoCo Warp; either MJCF form) "
+             f"that stayed finite in every world, from the tables in `gpu/truth/` (`lgnn gpu-truth`: RK4 at dt 1e-3, 100 steps; "
+             f"commands, machine and versions in each table and in `gpu/truth/README.md`). Error: max node error after the last "
+             f"step against the float64 Lagrangian engine. Issue 14's goal is a ratio of at least {gpu_truth.GOAL_RATIO:g}.", "",
+             "| scene | batch | Lagrangian f32 steps/s | its error | fastest finite MuJoCo GPU engine | its steps/s | its error | "
+             f"ratio | >= {gpu_truth.GOAL_RATIO:g}? | tables | left out |", "|---" * 11 + "|"]
+    for r in rows:
+        ratio = "—" if math.isnan(r["ratio"]) else f"{r['ratio']:.3g}"
+        goal = "—" if math.isnan(r["ratio"]) else ("yes" if r["meets_goal"] else "no")
+        lines.append(f"| {r['scene']} | {r['batch']} | {_fmt(r['lagrangian_steps_per_s'])} | {_fmt(r['lagrangian_error'])} | "
+                     f"{r['mujoco_engine'] or '—'} | {_fmt(r['mujoco_steps_per_s'])} | {_fmt(r['mujoco_error'])} | {ratio} | {goal} | "
+                     f"{r['tables']} | {escape_markdown_cell(r['note']) or '—'} |")
+    return lines
+
+
 def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dict | None = None, out: Path | None = None) -> str:
     """`performance.md`: the speed records read as issue 7's ratios, the scaling record
     as cost against size and batched throughput, and the GPU tables."""
@@ -650,6 +673,10 @@ def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dic
         "## GPUs",
         "",
         *(_gpu_section(out) if out is not None else ["Not measured."]),
+        "",
+        "## Ground truth on GPUs against MuJoCo's GPU engines",
+        "",
+        *(_gpu_truth_section(out) if out is not None else ["Not measured."]),
         "",
     ]
     return "\n".join(lines)
