@@ -540,7 +540,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
     lines += [f"| `figures/{name}` | figure |" for name in figures]
     if p.name == "full":
         lines += [
-            "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 chain100 T1 T2 T3 --duration 0.1 --out-dir results`: 0.1 s to fit a shared 2-core CPU, where MJX's compile alone took 205 s on chain4) |",
+            "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 chain100 T1 T2 T3 --duration 0.1 --out-dir results`: 0.1 s to fit a shared 2-core CPU, where MJX took 205 s on chain4 and 766 s on chain8, compile included) |",
             "| `engines_speed_error.csv`, `.md` | engines' steps/s and error at dt 1e-3..1e-5 (`lgnn crosscheck --speed chain4 chain16 chain100 T1 --out-dir results`) |",
             "| `stability.md`, `.csv` | hard cases: long horizons, 1000 links, large steps, near-singular geometry, diverging models (`lgnn stability --out results/stability.md`) |",
         ]
