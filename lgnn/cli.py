@@ -236,7 +236,7 @@ def _cmd_crosscheck(args) -> None:
     else:
         config = _simulation_config(args)
         rows = []
-        for name in args.scenes or ["chain4", "chain8", "chain16", "T1", "T2", "T3"]:
+        for name in args.scenes or cc.SCENES:
             scene = get_scene(name)
             rows += cc.crosscheck(scene, config, engines, args.mjx_max_depth, progress=True)
             # Rows name the scene, not the argument (a scene file's path).
@@ -259,7 +259,7 @@ def _add_mujoco_commands(commands) -> None:
     mjcf.add_argument("--check", action="store_true", help="fail if a file differs from the rendered text")
     mjcf.set_defaults(run=_cmd_mjcf)
     check = commands.add_parser("crosscheck", help="run every engine on the same scenes and compare them")
-    check.add_argument("scenes", nargs="*", help="built-in names or scene files (default: chain4 chain8 chain16 T1 T2 T3)")
+    check.add_argument("scenes", nargs="*", help="built-in names or scene files (default: chain4 chain8 chain16 chain100 T1 T2 T3)")
     check.add_argument("--engines", default="lagrangian,mujoco,mjx", help="comma-separated engines")
     check.add_argument("--mjx-max-depth", type=int, help="skip MJX on deeper trees (default: skip none)")
     check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")

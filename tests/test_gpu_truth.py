@@ -14,10 +14,13 @@ import numpy as np
 import pytest
 
 from lgnn import physics
-from lgnn.bench import gpu_truth
+from lgnn.bench import gpu_truth, report
+from lgnn.bench.grid import get_profile
+from lgnn.bench.tables import write_table
 from lgnn.cli import main
 from lgnn.engines import mjwarp
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.errors import ConfigError
 from lgnn.scene import get_scene
 
 
@@ -81,3 +84,50 @@ def test_bad_engine_is_one_line(spec, tmp_path, capsys):
     assert main(["gpu-truth", "--scenes", "chain4", "--engines", spec, "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("lgnn: error: ") and err.count("\n") == 1 and not list(tmp_path.iterdir())
+
+
+def write_gpu_table(directory, name, rows):
+    """A gpu-truth table as `gpu_truth.write` lays it out (header lines, then COLUMNS)."""
+    defaults = dict(scene="chain4", dtype="float32", form="", steps=100, steps_per_s_min=0.0, steps_per_s_max=0.0, compile_s=1.0, note="")
+    full = [{**defaults, **row} for row in rows]
+    for row in full:
+        row.setdefault("finite_worlds", row["batch"])
+    write_table(full, gpu_truth.COLUMNS, directory / f"gpu_truth_{name}.csv", directory / f"gpu_truth_{name}.md", name, ["command: test"])
+
+
+def test_performance_reads_the_gpu_truth_tables(tmp_path):
+    """The report's GPU-truth section: per scene and batch the float32 Lagrangian against
+    the fastest MuJoCo GPU engine that is finite in every world, the Lagrangian row taken
+    from that engine's own run where it has one, and no ratio where MuJoCo has no finite run."""
+    truth = tmp_path / "gpu" / "truth"
+    truth.mkdir(parents=True)
+    nan = float("nan")
+    write_gpu_table(truth, "chain4", [
+        dict(engine="lagrangian", dtype="float64", batch=8, steps_per_s=1e6, max_node_error=0.0, note="reference"),
+        dict(engine="lagrangian", batch=8, steps_per_s=9e6, max_node_error=2e-6),
+        dict(engine="lagrangian", batch=64, steps_per_s=5e7, max_node_error=3e-6),
+    ])
+    write_gpu_table(truth, "chain4_mujoco", [
+        dict(engine="lagrangian", batch=8, steps_per_s=3e6, max_node_error=2e-6),
+        dict(engine="mjx", form="maximal", batch=8, steps_per_s=1e6, max_node_error=1e-5),
+        # Faster but non-finite in one world: never the comparison.
+        dict(engine="mjwarp", form="nested", batch=8, steps_per_s=9e9, max_node_error=nan, finite_worlds=7, note="non-finite in 1 of 8 worlds"),
+        dict(engine="mjwarp", form="maximal", batch=64, steps_per_s=nan, max_node_error=nan, finite_worlds=0, note="not run: out of device memory"),
+    ])
+    rows = gpu_truth.against_mujoco(gpu_truth.load(truth))
+    assert [(r["scene"], r["batch"]) for r in rows] == [("chain4", 8), ("chain4", 64)]
+    small, large = rows
+    # The Lagrangian's 3e6 of the MJX run's own table, not the 9e6 of another run.
+    assert small["mujoco_engine"] == "mjx float32 maximal" and small["ratio"] == pytest.approx(3.0) and small["meets_goal"]
+    assert small["tables"] == "gpu_truth_chain4_mujoco" and "mjwarp nested: non-finite in 1 of 8 worlds" in small["note"]
+    assert np.isnan(large["ratio"]) and not large["meets_goal"] and "out of device memory" in large["note"]
+    text = report.performance_markdown(get_profile("full"), [], None, tmp_path)
+    section = text.split("## Ground truth on GPUs against MuJoCo's GPU engines")[1]
+    assert "| chain4 | 8 | 3.00e+06 | 2.00e-06 | mjx float32 maximal | 1.00e+06 | 1.00e-05 | 3 | yes |" in section
+    assert "| chain4 | 64 | 5.00e+07 |" in section and "| — | — |" in section
+
+
+def test_gpu_truth_reader_refuses_other_tables(tmp_path):
+    (tmp_path / "gpu_truth_x.csv").write_text("scene,engine\nchain4,mjx\n")
+    with pytest.raises(ConfigError, match="not a gpu-truth table"):
+        gpu_truth.load(tmp_path)

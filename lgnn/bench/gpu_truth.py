@@ -23,6 +23,10 @@ engine. `write(rows, out_dir, scene, command)` writes `gpu_truth_<scene>.csv` an
 (`lgnn.bench.tables`) with the command, machine, versions and commit
 (`lgnn.provenance`).
 
+`load(directory)` reads the tables back, and `against_mujoco(rows)` sets the float32
+Lagrangian beside the fastest finite MuJoCo GPU engine per scene and batch, with the
+ratio against issue 14's goal (`GOAL_RATIO`): the report's `performance.md` section.
+
 Precision (issue 14: "float32 on a GPU: chosen how?"): the process runs with JAX's
 float64 on (`lgnn.configure()`), and an engine's precision is that of its inputs: a
 float32 Lagrangian run is traced from float32 states, and its compiled program holds
@@ -36,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import statistics
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -201,3 +206,69 @@ def write(rows: list[dict], out_dir, name: str, command: str, settings: GpuTruth
     notes = NOTES + (f"settings: steps {settings.steps}, dt {settings.dt:g}, repeats {settings.repeats}, form {settings.form}, seed {settings.seed}",)
     write_table(rows, COLUMNS, f"{stem}.csv", f"{stem}.md", f"GPU ground truth: {name}", header(command), notes)
     return f"{stem}.md"
+
+
+# ---------------------------------------------------------------------------------
+# Reading the tables back: lgnn's float32 Lagrangian against the MuJoCo GPU engines
+# ---------------------------------------------------------------------------------
+
+# Issue 14's goal: lgnn's Lagrangian engine in float32 at least this many times the
+# steps/s of the fastest MuJoCo GPU engine that stays finite on the same batch.
+GOAL_RATIO = 1.5
+MUJOCO_GPU_ENGINES = ("mjx", "mjwarp")
+
+
+def load(directory) -> list[dict]:
+    """Every row of the `gpu_truth_*.csv` tables in `directory` (sorted by file name),
+    numbers as numbers, each with `table`: its file's stem. [] when there are none."""
+    import pandas as pd
+
+    rows = []
+    for path in sorted(Path(directory).glob("gpu_truth_*.csv")):
+        frame = pd.read_csv(path, comment="#", keep_default_na=False, na_values=["nan"])
+        missing = set(COLUMNS) - set(frame.columns)
+        if missing:
+            raise ConfigError(f"{path}: not a gpu-truth table (no column {', '.join(sorted(missing))})")
+        rows += [dict(row, table=path.stem, form=str(row["form"])) for row in frame.to_dict("records")]
+    return rows
+
+
+def _finite(row: dict) -> bool:
+    return row["finite_worlds"] == row["batch"] and np.isfinite(row["steps_per_s"]) and np.isfinite(row["max_node_error"])
+
+
+def against_mujoco(rows: list[dict]) -> list[dict]:
+    """Per scene and batch (in the order met): the float32 Lagrangian against the fastest
+    finite MuJoCo GPU engine. Rows `scene, batch, lagrangian_steps_per_s,
+    lagrangian_error, mujoco_engine, mujoco_steps_per_s, mujoco_error, ratio,
+    meets_goal, tables, note`.
+
+    Timings swing between sessions, so the Lagrangian row is taken from the MuJoCo
+    row's own table (the same run) when that has one, else from another table of the
+    scene (`tables` names both). `ratio` is NaN, and `note` says why, where either
+    side has no finite run; the MuJoCo runs left out (non-finite, not run) are named."""
+    keys = dict.fromkeys((r["scene"], r["batch"]) for r in rows)
+    out = []
+    for scene, batch in keys:
+        here = [r for r in rows if r["scene"] == scene and r["batch"] == batch]
+        ours = [r for r in here if r["engine"] == "lagrangian" and r["dtype"] == "float32" and _finite(r)]
+        theirs = [r for r in here if r["engine"] in MUJOCO_GPU_ENGINES]
+        finite = [r for r in theirs if _finite(r)]
+        best = max(finite, key=lambda r: r["steps_per_s"]) if finite else None
+        if best is not None and any(r["table"] == best["table"] for r in ours):
+            ours = [r for r in ours if r["table"] == best["table"]]
+        own = ours[0] if ours else None
+        left_out = [f"{r['engine']} {r['form']}: {r['note'] or 'non-finite'}" for r in theirs if not _finite(r)]
+        notes = ([] if own else ["no finite float32 Lagrangian run"]) + ([] if best else ["no finite MuJoCo GPU run"]) + left_out
+        ratio = own["steps_per_s"] / best["steps_per_s"] if own and best else float("nan")
+        out.append(dict(
+            scene=scene, batch=batch,
+            lagrangian_steps_per_s=own["steps_per_s"] if own else float("nan"),
+            lagrangian_error=own["max_node_error"] if own else float("nan"),
+            mujoco_engine=f"{best['engine']} {best['dtype']} {best['form']}" if best else "",
+            mujoco_steps_per_s=best["steps_per_s"] if best else float("nan"),
+            mujoco_error=best["max_node_error"] if best else float("nan"),
+            ratio=ratio, meets_goal=bool(ratio >= GOAL_RATIO),
+            tables=", ".join(dict.fromkeys(r["table"] for r in (own, best) if r is not None)),
+            note="; ".join(notes)))
+    return out

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from lgnn import metrics
+from lgnn.bench import gpu_truth
 from lgnn.bench.grid import TRAINING_SCENE, TRANSFER_SCENES, Profile, evaluation_scenes
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
@@ -47,7 +48,7 @@ from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
 from lgnn.bench.stages.train import default_lgnn, load_checkpoints
-from lgnn.bench.tables import write_csv
+from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.scene import get_scene
 
@@ -552,7 +553,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
     lines += [f"| `figures/{name}` | figure |" for name in figures]
     if p.name == "full":
         lines += [
-            "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 T1 T2 T3 --out-dir results`) |",
+            "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 chain100 T1 T2 T3 --duration 0.1 --out-dir results`: 0.1 s to fit a shared 2-core CPU, where MJX took 205 s on chain4 and 766 s on chain8, compile included) |",
             "| `engines_speed_error.csv`, `.md` | engines' steps/s and error at dt 1e-3..1e-5 (`lgnn crosscheck --speed chain4 chain16 chain100 T1 --out-dir results`) |",
             "| `stability.md`, `.csv` | hard cases: long horizons, 1000 links, large steps, near-singular geometry, diverging models (`lgnn stability --out results/stability.md`) |",
         ]
@@ -597,6 +598,28 @@ def _gpu_section(out: Path) -> list[str]:
         lines += ["", f"LGNN training on a GPU (`{path.name}`, written by `lgnn benchmark --full --stage train --job lgnn-chain4-s0` "
                   "in a fresh output directory, then `lgnn checkpoint ... --reference results/benchmark/checkpoints/lgnn-chain4-s0.npz`):",
                   "", "```", path.read_text().strip(), "```"]
+    return lines
+
+
+def _gpu_truth_section(out: Path) -> list[str]:
+    """The GPU ground-truth tables under `out/gpu/truth/` (`lgnn gpu-truth`) read as
+    issue 14's goal: the float32 Lagrangian against the fastest finite MuJoCo GPU
+    engine, per scene and batch (`gpu_truth.against_mujoco`)."""
+    rows = gpu_truth.against_mujoco(gpu_truth.load(out / "gpu" / "truth"))
+    if not rows:
+        return ["Not measured in this output directory (no `gpu/truth/` tables)."]
+    lines = [f"lgnn's Lagrangian engine in float32 against the fastest MuJoCo GPU engine (MJX, MuJoCo Warp; either MJCF form) "
+             f"that stayed finite in every world, from the tables in `gpu/truth/` (`lgnn gpu-truth`: RK4 at dt 1e-3, 100 steps; "
+             f"commands, machine and versions in each table and in `gpu/truth/README.md`). Error: max node error after the last "
+             f"step against the float64 Lagrangian engine. Issue 14's goal is a ratio of at least {gpu_truth.GOAL_RATIO:g}.", "",
+             "| scene | batch | Lagrangian f32 steps/s | its error | fastest finite MuJoCo GPU engine | its steps/s | its error | "
+             f"ratio | >= {gpu_truth.GOAL_RATIO:g}? | tables | left out |", "|---" * 11 + "|"]
+    for r in rows:
+        ratio = "—" if math.isnan(r["ratio"]) else f"{r['ratio']:.3g}"
+        goal = "—" if math.isnan(r["ratio"]) else ("yes" if r["meets_goal"] else "no")
+        lines.append(f"| {r['scene']} | {r['batch']} | {_fmt(r['lagrangian_steps_per_s'])} | {_fmt(r['lagrangian_error'])} | "
+                     f"{r['mujoco_engine'] or '—'} | {_fmt(r['mujoco_steps_per_s'])} | {_fmt(r['mujoco_error'])} | {ratio} | {goal} | "
+                     f"{r['tables']} | {escape_markdown_cell(r['note']) or '—'} |")
     return lines
 
 
@@ -663,6 +686,10 @@ def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dic
         "## GPUs",
         "",
         *(_gpu_section(out) if out is not None else ["Not measured."]),
+        "",
+        "## Ground truth on GPUs against MuJoCo's GPU engines",
+        "",
+        *(_gpu_truth_section(out) if out is not None else ["Not measured."]),
         "",
     ]
     return "\n".join(lines)

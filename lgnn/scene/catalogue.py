@@ -119,10 +119,10 @@ def sample_initial_states(scene: Scene, key: jax.Array, count: int) -> State:
     return State(q, jnp.zeros_like(q))
 
 
-def _chain_dict(name: str, lengths, masses, inertias, seed: int, drag: float = 0.0) -> dict:
+def _chain_dict(name: str, lengths, masses, inertias, seed: int, drag: float = 0.0, rotation: float = CHAIN_ROTATION) -> dict:
     rng = np.random.default_rng(seed)
     angles = rng.uniform(-CHAIN_LINK_ANGLE, CHAIN_LINK_ANGLE, len(lengths))
-    nodes = chain_positions(np.asarray(lengths, np.float64), angles)
+    nodes = chain_positions(np.asarray(lengths, np.float64), angles, rotation)
     links = [
         {"nodes": [k, k + 1], "mass": m, "inertia": inertia, "length": length}
         for k, (length, m, inertia) in enumerate(zip(lengths, masses, inertias, strict=True))
@@ -305,6 +305,22 @@ def double_pinned_chain(n_links: int = 4, sag: float = 0.5):
     )
 
 
+# A chain of alternately long, heavy and short, light links (issue 14, item 6: the
+# Lagrangian engine against MuJoCo C at equal dt on mixed lengths and masses): a 20x
+# spread of lengths and a 1000x spread of masses, released from rest near horizontal
+# so that it swings fast enough for RK4's error at dt 1e-3 to be far above round-off.
+MIXED_LENGTHS = (2.0, 0.1, 1.5, 0.15, 1.0, 0.1, 1.8, 0.2)
+MIXED_MASSES = (10.0, 0.01, 5.0, 0.02, 8.0, 0.01, 3.0, 0.05)
+
+
+def mixed_chain(seed: int = 0) -> Scene:
+    """8 links of mixed lengths and masses (`MIXED_LENGTHS`, `MIXED_MASSES`; uniform rods,
+    `I = m l^2 / 12`), pinned at node 0, each link within 15 degrees of a line 0.2 rad
+    below the horizontal (seeded), at rest."""
+    inertias = [m * length**2 / 12 for length, m in zip(MIXED_LENGTHS, MIXED_MASSES, strict=True)]
+    return scene_from_dict(_chain_dict("chain8-mixed", MIXED_LENGTHS, MIXED_MASSES, inertias, seed, rotation=np.pi / 2 - 0.2))
+
+
 # Slack of the ropes of the slackened structures (a fraction of each rope link's length).
 ROPE_SLACK = 1e-3
 
@@ -351,6 +367,7 @@ HARD_SCENES: dict[str, BuiltinScene] = {
         BuiltinScene("taut4-exact", "4 links pulled exactly taut between two pins (one self-stress)", lambda: taut_chain(4, 1.0)),
         BuiltinScene("folded4", "4 links folded flat on each other (singular rod mass matrix)", lambda: folded_chain(4)),
         BuiltinScene("pinned-triangle", "a rigid triangle pinned at two corners (a redundant constraint)", pinned_triangle),
+        BuiltinScene("chain8-mixed", "8 links of mixed lengths (0.1-2) and masses (0.01-10) released near horizontal", mixed_chain),
         BuiltinScene("pendulum", "one rod pinned at one end, released at 0.3 rad", pendulum),
         BuiltinScene("free-triangle", "an unpinned spinning triangle (a free rigid body)", free_triangle),
         BuiltinScene("double-pinned", "4 links hanging between two pins (a loop through the ground)", double_pinned_chain),
