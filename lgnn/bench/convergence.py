@@ -266,6 +266,17 @@ def _ranking(row: dict) -> str:
     return ""
 
 
+def unrankable(rows: Sequence[dict]) -> dict[str, str]:
+    """`{scene: why}` for the scenes whose reference cannot rank models at the
+    benchmark's step (the first, coarsest row of each scene; `rows` as `reference_convergence`
+    gives them or as read back from the CSV, numbers as text)."""
+    found = {}
+    for row in rows:
+        if row["scene"] not in found:
+            found[row["scene"]] = _ranking({**row, "displacement": float(row["displacement"])}).removeprefix("; NOT RANKABLE").lstrip(": ")
+    return {scene: why for scene, why in found.items() if why}
+
+
 def summary(rows: Sequence[dict]) -> list[str]:
     """One line per scene: the estimated error and verdict of its first (coarsest: the
     benchmark's) step."""

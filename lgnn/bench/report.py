@@ -30,6 +30,7 @@ pandas and matplotlib are imported here only (the library's numerics do not need
 
 from __future__ import annotations
 
+import csv
 import io
 import json
 import math
@@ -38,8 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from lgnn import metrics
-from lgnn.bench import gpu_truth
-from lgnn.bench.grid import TRAINING_SCENE, TRANSFER_SCENES, Profile, evaluation_scenes
+from lgnn.bench import convergence, gpu_truth
+from lgnn.bench.grid import TRAINING_SCENE, TRANSFER_SCENES, Profile, evaluation_pairs, evaluation_scenes
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
 from lgnn.bench.stages.evaluate import NO_DRAG
@@ -48,6 +49,7 @@ from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
 from lgnn.bench.stages.train import default_lgnn, load_checkpoints
+from lgnn.learn.train import last_improvement
 from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.scene import get_scene
@@ -196,11 +198,13 @@ TRUTH_COLUMNS = {
 TRUTH_NAMES = {FLOOR: "chaos floor", FLOOR_RMS: "chaos floor", "truth_vs_mujoco": "Lagrangian vs MuJoCo"}
 
 
-def summary_markdown(summary, metric: str) -> str:
+def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = frozenset(), unrankable: dict[str, str] | None = None) -> str:
     """A markdown table: scene rows, model columns (the rest baseline last), `gmean
     [95% interval]` cells, and the scene's chaos floor (and, for the rollout error,
     Lagrangian-vs-MuJoCo) beside. A record that exists but lacks the metric (written
-    before it was computed) shows "not computed", never a number."""
+    before it was computed) shows "not computed", never a number; a `(scene, model)`
+    of `expected` (the profile's pairs) with no record "not evaluated". A scene of
+    `unrankable` is named "(not rankable)": its reference does not converge in dt."""
     if summary.empty:
         return "(no results)\n"
     wide = summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
@@ -221,12 +225,13 @@ def summary_markdown(summary, metric: str) -> str:
             if (match.seed == ALL_SEEDS).any():  # several seeds: the interval over seeds and ICs
                 match = match[match.seed == ALL_SEEDS]
             record = (scene, "ground truth" if model == REST else model) in present
-            cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "not computed" if record else "")
+            cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "not computed" if record
+                         else "not evaluated" if (scene, model) in expected else "")
         for truth_metric in truth_metrics:
             match = wide[(wide.scene == scene) & (wide.model == "ground truth") & (wide.metric == truth_metric)]
             cells.append(_truth_cell(match.iloc[0].to_dict(), truth_metric) if len(match) else
                          "not computed" if (scene, "ground truth") in present else "")
-        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+        lines.append(f"| {scene}{' (not rankable)' if scene in (unrankable or {}) else ''} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -420,10 +425,23 @@ def _command(profile: Profile) -> str:
     return "pytest bench/ --benchmark" if profile.name == "full" else "pytest bench/  (or: lgnn benchmark)"
 
 
+def _stopped_by(state, config) -> str:
+    """Why a run's training ended, or that it has not (`lgnn.learn.train.finished`'s rules)."""
+    if state.epoch >= config.epochs:
+        return "epoch budget"
+    since = last_improvement(state, config)
+    if state.epoch - since > config.patience:
+        return f"plateau (last {config.min_improvement:.0%} gain at epoch {since})" if config.min_improvement else f"patience (best at epoch {since})"
+    if config.minutes is not None and state.elapsed_s >= 60 * config.minutes:
+        return "minutes cap"
+    return "not finished: cut off, resumable"
+
+
 def _training_lines(profile: Profile, out: Path) -> list[str]:
-    lines = ["| model | training scene | epochs | minutes | best validation MSE (epoch) |", "|---|---|---|---|---|"]
+    lines = ["| model | training scene | seed | epochs | minutes | best validation MSE (epoch) | stopped by |", "|---|---|---|---|---|---|---|"]
     for job, state in load_checkpoints(profile, out):
-        lines.append(f"| {job.model} | {job.scene} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) |")
+        lines.append(f"| {job.model} | {job.scene} | {job.seed} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) "
+                     f"| {_stopped_by(state, profile.training.train)} |")
     chosen, scores = default_lgnn(profile, out)
     if scores:
         lines += ["", f"Default LGNN (lowest geometric mean over seeds of the best validation MSE among the variants with every seed trained): "
@@ -459,12 +477,26 @@ QUICK_WARNING = ("**Not results.** This profile checks that the pipeline runs: i
                  "Numbers: `lgnn benchmark --full`, or the committed `results/`.")
 
 
+def _unrankable(out: Path) -> dict[str, str]:
+    """`{scene: why}` from the reference convergence table beside the report
+    (`<out>/convergence.csv`, written by `lgnn convergence`), if there is one."""
+    path = out / "convergence.csv"
+    if not path.exists():
+        return {}
+    with path.open() as handle:
+        return convergence.unrankable(list(csv.DictReader(line for line in handle if not line.startswith("#"))))
+
+
 def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str]) -> str:
     from lgnn.provenance import environment
 
     env = environment()
     p, t, e = profile, profile.training, profile.evaluate
     envs = sorted(set(summary["device"])) if not summary.empty else []
+    expected = {(pair.scene, pair.label) for pair in evaluation_pairs(p)}
+    unrankable = _unrankable(out)
+    tables = {metric: summary_markdown(summary, metric, expected, unrankable) for metric in
+              ("rollout_error", "node_rms_error", "energy_error", "rollout_error_vs_mujoco")}
     lines = [
         f"# Benchmark results ({p.name} profile)",
         "",
@@ -501,7 +533,11 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "(GNS's own accelerations know no constraints); `gns (unprojected)` is the same checkpoint without projection. "
         f"`{EXACT_NO_DRAG}` (drag scenes): the exact physics with the drag term removed, from the same states: what ignoring drag scores.",
         "- Several training seeds: a cell is the geometric mean over seeds and initial conditions with a two-level bootstrap 95% interval "
-        "(seeds, then each seed's initial conditions), `(n seeds)`; each seed's own numbers are rows of `benchmark/summary.csv`.",
+        "(seeds, then each seed's initial conditions), `(n seeds)`; each seed's own numbers are rows of `benchmark/summary.csv`. "
+        "\"not evaluated\": a pair of the grid with no record yet (`lgnn benchmark --stage evaluate` resumes there).",
+        *(["- Not rankable (`results/convergence.md`, `lgnn convergence`): the reference itself does not converge in dt, so no "
+           "model number on these scenes ranks models: " + "; ".join(f"{scene}: {why}" for scene, why in unrankable.items()) + "."]
+          if unrankable else []),
         "",
         "## Training",
         "",
@@ -509,16 +545,16 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "",
         "## Rollout error against the Lagrangian ground truth",
         "",
-        summary_markdown(summary, "rollout_error"),
+        tables["rollout_error"],
         "## Per-node RMS position error against the Lagrangian ground truth",
         "",
-        summary_markdown(summary, "node_rms_error"),
+        tables["node_rms_error"],
         "## Energy error",
         "",
-        summary_markdown(summary, "energy_error"),
+        tables["energy_error"],
         "## Rollout error against MuJoCo",
         "",
-        summary_markdown(summary, "rollout_error_vs_mujoco"),
+        tables["rollout_error_vs_mujoco"],
     ]
     if mass_records:
         lines += ["## Learned mass matrix (LGNN trained on chain4)", "",
