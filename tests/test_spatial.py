@@ -10,7 +10,7 @@ import pytest
 from lgnn import integrate, physics
 from lgnn.engines.lagrangian import SimulationConfig, simulate
 from lgnn.scene import SPATIAL_SCENES, embedded_in_3d, get_scene, sample_initial_states, spatial_chain, spatial_net
-from lgnn.scene.catalogue import SPATIAL_CHAIN_CONE, double_pinned_chain
+from lgnn.scene.catalogue import SPATIAL_CHAIN_CONE, SPATIAL_CHAIN_SPIN, double_pinned_chain
 
 
 def random_state(scene, seed=0, speed=1.0):
@@ -289,7 +289,13 @@ def test_spatial_chain_sampler():
     azimuth = np.arctan2(dq[..., 2], dq[..., 0])
     assert np.histogram(azimuth, bins=8, range=(-np.pi, np.pi))[0].min() > 0
     np.testing.assert_allclose(np.sum(dq * dqd, -1), 0.0, atol=1e-12)
-    assert np.abs(dqd).max() > 1.0
+    # With dq . dqd = 0, the link's angular velocity is dq x dqd / l^2, perpendicular
+    # to it; its rate spans [0, SPATIAL_CHAIN_SPIN] and its axis every direction.
+    omega = np.cross(dq, dqd)
+    rate = np.linalg.norm(omega, axis=-1)
+    assert rate.max() <= SPATIAL_CHAIN_SPIN + 1e-12 and rate.max() > 0.95 * SPATIAL_CHAIN_SPIN and rate.min() < 0.05 * SPATIAL_CHAIN_SPIN
+    assert np.all(np.abs(np.sum(omega * dq, -1)) <= 1e-12)
+    np.testing.assert_allclose(np.abs(np.mean(omega / rate[..., None], axis=(0, 1))), 0.0, atol=0.05)
     np.testing.assert_array_equal(states.q[:, 0], 0.0)
     np.testing.assert_array_equal(states.qd[:, 0], 0.0)
     assert not np.allclose(states.q, sample_initial_states(scene, jax.random.PRNGKey(1), 100).q)

@@ -67,8 +67,8 @@ def spatial_chain_state(lengths, polar, azimuth, spin_direction, spin):
     """Node positions and velocities, each (n+1, 3), of a chain hanging from the origin.
 
     Link k points along -y tilted by `polar[k]` towards the azimuth `azimuth[k]` (in the
-    x-z plane, from +x towards +z). It turns at `spin[k]` rad/s (relative to link k-1)
-    about an axis perpendicular to it, at the angle `spin_direction[k]` from the
+    x-z plane, from +x towards +z). It turns at `spin[k]` rad/s (its own angular
+    velocity, not relative to link k-1) about an axis perpendicular to it, at the angle `spin_direction[k]` from the
     direction of increasing tilt: no spin about its own axis (the node description
     cannot see it), and every link length stationary (`dq . dqd = 0` exactly). Works
     on NumPy or JAX arrays (so it can be vmapped); radians throughout.
