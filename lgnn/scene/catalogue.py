@@ -1,6 +1,6 @@
 """The one catalogue of scenes: the built-ins of the paper, the hard cases, small test
 scenes, the spatial (3D) scenes (`SPATIAL_SCENES`, a group of their own until the
-MuJoCo engines and the benchmark take 3D), and the initial-condition samplers.
+benchmark takes 3D), and the initial-condition samplers.
 
 Each built-in is constructed by one function from a seed; `get_scene(name_or_path)`
 resolves a built-in or hard-case name or a user's scene JSON file.
@@ -370,8 +370,8 @@ def is_catalogue_scene(scene: Scene) -> bool:
 
 
 # ---------------------------------------------------------------------------------
-# Spatial (3D) scenes: a group of their own, since the MuJoCo engines, `mjcf/` and the
-# benchmark grid (which iterate `BUILTIN_SCENES`) are planar so far
+# Spatial (3D) scenes: a group of their own, since the benchmark grid (which iterates
+# `BUILTIN_SCENES`) is planar so far; `mjcf/` holds them beside the built-ins
 # ---------------------------------------------------------------------------------
 
 
