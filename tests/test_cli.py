@@ -155,3 +155,28 @@ def test_crosscheck_of_a_scene_file_writes_beside_the_user_and_summarises(capsys
     table = [line for line in (tmp_path / "lgnn-out" / "crosscheck.md").read_text().splitlines() if line.startswith("| ")]
     assert len(table) > 2 and any("\\|E-E0\\|" in line for line in table)
     assert {len(re.findall(r"(?<!\\)\|", line)) for line in table} == {7}  # 6 columns (scene, engine, form, metric, value, note)
+
+
+def test_crosscheck_runs_a_mujoco_engine_in_both_forms(capsys, tmp_path):
+    """`--engines lagrangian,mujoco:nested,mujoco:maximal` on a 3D net with one loop:
+    each form gets its rows, the pair of forms its error, and a bad form or a form
+    on the Lagrangian engine is a one-line error before any run."""
+    import pandas as pd
+
+    from lgnn.scene import scene_to_json, spatial_net
+
+    scene_file = tmp_path / "net.json"
+    scene_file.write_text(scene_to_json(spatial_net(2, 2)))
+    (tmp_path / "out").mkdir()
+    (tmp_path / "bad").mkdir()
+    code, out, err = run(capsys, "crosscheck", str(scene_file), "--engines", "lagrangian,mujoco:nested,mujoco:maximal",
+                         "--dt", "1e-3", "--frame-dt", "1e-2", "--duration", "0.05", "--out-dir", str(tmp_path / "out"))
+    assert code == 0, err
+    table = pd.read_csv(tmp_path / "out" / "crosscheck.csv", comment="#", keep_default_na=False)
+    errors = table[table.metric == "max_node_error"].set_index(["engine", "form"]).value
+    assert set(errors.index) == {("lagrangian~mujoco", "-~nested"), ("lagrangian~mujoco", "-~maximal"), ("mujoco~mujoco", "nested~maximal")}
+    assert errors.max() < 1e-6
+    assert set(table[table.metric == "wall_s"].form) == {"", "nested", "maximal"}
+    for engines, message in (("mujoco:sideways", "unknown MJCF form"), ("lagrangian:nested", "has no MJCF form")):
+        code, _, err = run(capsys, "crosscheck", str(scene_file), "--engines", engines, "--out-dir", str(tmp_path / "bad"))
+        assert code == 2 and message in err and not (tmp_path / "bad" / "crosscheck.csv").exists()
