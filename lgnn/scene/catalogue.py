@@ -68,10 +68,11 @@ def spatial_chain_state(lengths, polar, azimuth, spin_direction, spin):
 
     Link k points along -y tilted by `polar[k]` towards the azimuth `azimuth[k]` (in the
     x-z plane, from +x towards +z). It turns at `spin[k]` rad/s (its own angular
-    velocity, not relative to link k-1) about an axis perpendicular to it, at the angle `spin_direction[k]` from the
-    direction of increasing tilt: no spin about its own axis (the node description
-    cannot see it), and every link length stationary (`dq . dqd = 0` exactly). Works
-    on NumPy or JAX arrays (so it can be vmapped); radians throughout.
+    velocity, not relative to link k-1) about an axis perpendicular to it, at the angle
+    `spin_direction[k]` from the direction of increasing tilt: no spin about its own
+    axis (the node description cannot see it), and every link length stationary
+    (`dq . dqd = 0` exactly). Works on NumPy or JAX arrays (so it can be vmapped);
+    radians throughout.
     """
     xp = jnp if isinstance(polar, jax.Array) else np
     sin_p, cos_p, sin_a, cos_a = xp.sin(polar), xp.cos(polar), xp.sin(azimuth), xp.cos(azimuth)
