@@ -74,7 +74,7 @@ def _cmd_scenes(args) -> None:
 
     width = max(map(len, {**BUILTIN_SCENES, **HARD_SCENES, **SPATIAL_SCENES}))
     groups = (("built-in scenes", BUILTIN_SCENES), ("hard cases (lgnn stability, tests)", HARD_SCENES),
-              ("spatial (3D) scenes: Lagrangian engine only so far", SPATIAL_SCENES))
+              ("spatial (3D) scenes: every engine, mjcf/; not in the benchmark yet", SPATIAL_SCENES))
     for title, catalogue in groups:
         print(f"# {title}")
         for entry in catalogue.values():
