@@ -88,7 +88,7 @@ def _cmd_scenes(args) -> None:
 
     width = max(map(len, {**BUILTIN_SCENES, **HARD_SCENES, **SPATIAL_SCENES}))
     groups = (("built-in scenes", BUILTIN_SCENES), ("hard cases (lgnn stability, tests)", HARD_SCENES),
-              ("spatial (3D) scenes: Lagrangian engine only so far", SPATIAL_SCENES))
+              ("spatial (3D) scenes: every engine, mjcf/; not in the benchmark yet", SPATIAL_SCENES))
     for title, catalogue in groups:
         print(f"# {title}")
         for entry in catalogue.values():
@@ -216,7 +216,7 @@ def _cmd_mjcf(args) -> None:
 def _cmd_crosscheck(args) -> None:
     from lgnn.bench import crosscheck as cc
     from lgnn.bench.tables import write_table
-    from lgnn.engines import ENGINES
+    from lgnn.engines import ENGINES, get_engine
     from lgnn.files import check_writable, out_dir
     from lgnn.scene import get_scene
 
@@ -224,8 +224,12 @@ def _cmd_crosscheck(args) -> None:
     args.out_dir = out_dir(args.out_dir)
     check_writable(f"{args.out_dir}/engines_speed_error.md" if args.speed else f"{args.out_dir}/crosscheck.md")
     engines = tuple(args.engines.split(","))
-    if set(engines) - set(ENGINES) or not engines:
-        raise ConfigError(f"--engines: choose from {', '.join(ENGINES)}, got {args.engines!r}")
+    if {cc.engine_spec(spec)[0] for spec in engines} - set(ENGINES) or not engines:
+        raise ConfigError(f"--engines: choose from {', '.join(ENGINES)} (each optionally NAME:FORM), got {args.engines!r}")
+    for spec in engines:
+        get_engine(*cc.engine_spec(spec)[:1], form=cc.engine_spec(spec)[1])  # a bad form fails before any run
+    if args.speed and any(cc.engine_spec(spec)[1] for spec in engines):
+        raise ConfigError(f"--engines: --speed takes engine names only (each MuJoCo engine in its own form), got {args.engines!r}")
     if args.speed:
         rows = cc.speed_error(args.scenes or ["chain4", "chain16", "chain100", "T1"], engines, dts=tuple(args.speed_dts), batches=tuple(args.batch),
                               batch_dts=tuple(args.batch_dts), mjx_max_depth=args.mjx_max_depth, max_steps=args.max_steps, dtype=args.dtype)
@@ -260,7 +264,8 @@ def _add_mujoco_commands(commands) -> None:
     mjcf.set_defaults(run=_cmd_mjcf)
     check = commands.add_parser("crosscheck", help="run every engine on the same scenes and compare them")
     check.add_argument("scenes", nargs="*", help="built-in names or scene files (default: chain4 chain8 chain16 chain100 T1 T2 T3)")
-    check.add_argument("--engines", default="lagrangian,mujoco,mjx", help="comma-separated engines")
+    check.add_argument("--engines", default="lagrangian,mujoco,mjx",
+                       help="comma-separated engines, each NAME or NAME:FORM (e.g. mujoco:nested,mujoco:maximal: both MJCF forms in one table)")
     check.add_argument("--mjx-max-depth", type=int, help="skip MJX on deeper trees (default: skip none)")
     check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")
     check.add_argument("--speed-dts", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="--speed: steps of the single-state runs")

@@ -179,3 +179,28 @@ def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_on
     message = str(failed.value)
     assert "\n" not in message and "1 of 1 parts failed" in message and str(bench / "logs" / "train-nonsense.log") in message
     assert "unknown training job 'no-such-job'" in (bench / "logs" / "train-nonsense.log").read_text()
+
+
+def test_crosscheck_runs_a_mujoco_engine_in_both_forms(capsys, tmp_path):
+    """`--engines lagrangian,mujoco:nested,mujoco:maximal` on a 3D net with one loop:
+    each form gets its rows, the pair of forms its error, and a bad form or a form
+    on the Lagrangian engine is a one-line error before any run."""
+    import pandas as pd
+
+    from lgnn.scene import scene_to_json, spatial_net
+
+    scene_file = tmp_path / "net.json"
+    scene_file.write_text(scene_to_json(spatial_net(2, 2)))
+    (tmp_path / "out").mkdir()
+    (tmp_path / "bad").mkdir()
+    code, out, err = run(capsys, "crosscheck", str(scene_file), "--engines", "lagrangian,mujoco:nested,mujoco:maximal",
+                         "--dt", "1e-3", "--frame-dt", "1e-2", "--duration", "0.05", "--out-dir", str(tmp_path / "out"))
+    assert code == 0, err
+    table = pd.read_csv(tmp_path / "out" / "crosscheck.csv", comment="#", keep_default_na=False)
+    errors = table[table.metric == "max_node_error"].set_index(["engine", "form"]).value
+    assert set(errors.index) == {("lagrangian~mujoco", "-~nested"), ("lagrangian~mujoco", "-~maximal"), ("mujoco~mujoco", "nested~maximal")}
+    assert errors.max() < 1e-6
+    assert set(table[table.metric == "wall_s"].form) == {"", "nested", "maximal"}
+    for engines, message in (("mujoco:sideways", "unknown MJCF form"), ("lagrangian:nested", "has no MJCF form")):
+        code, _, err = run(capsys, "crosscheck", str(scene_file), "--engines", engines, "--out-dir", str(tmp_path / "bad"))
+        assert code == 2 and message in err and not (tmp_path / "bad" / "crosscheck.csv").exists()

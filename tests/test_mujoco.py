@@ -26,7 +26,7 @@ from lgnn.engines import ENGINES, batch_of_one, get_engine, mjcf
 from lgnn.engines import mujoco as lm
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.scene import State, scene_from_dict, scene_to_dict
-from lgnn.scene import BUILTIN_SCENES, chain, get_scene, sample_initial_states
+from lgnn.scene import BUILTIN_SCENES, SPATIAL_SCENES, chain, get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
 
 ONE_SECOND = SimulationConfig(integrator="rk4", dt=1e-4, frame_dt=1e-3, duration=1.0)
@@ -150,12 +150,13 @@ def test_mass_matrix_matches_kinetic_energy(name, form):
 
 
 def test_mjcf_files_match_rendering():
-    """mjcf/ holds both forms of every built-in (maximal ones under mjcf/maximal/)."""
+    """mjcf/ holds both forms of every built-in and spatial scene (maximal ones under
+    mjcf/maximal/)."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1] / "mjcf"
     files = mjcf.builtin_files()
-    assert len(files) == len(mjcf.FORMS) * len(BUILTIN_SCENES)
+    assert len(files) == len(mjcf.FORMS) * (len(BUILTIN_SCENES) + len(SPATIAL_SCENES))
     for name, text in files.items():
         path = root / name
         assert path.exists(), f"{path} missing: run `python -m lgnn.cli mjcf`"

@@ -2,7 +2,8 @@
 
 Every engine is an `lgnn.engines.Engine` from `get_engine`, so each stage treats them
 alike. `crosscheck(scene, config, engines)` runs every engine from the scene's initial state
-and returns tidy rows `scene, engine, form, metric, value, note`: per engine the
+(an engine named `NAME` or `NAME:FORM`, e.g. `mujoco:maximal`, so one table holds a
+MuJoCo engine in both MJCF forms) and returns tidy rows `scene, engine, form, metric, value, note`: per engine the
 relative energy drift and the constraint violation (`lgnn.metrics`: max over frames;
 the latter includes loop closure) and the wall time; per pair `a~b` the max node error
 over the run. `form` is the MJCF form a MuJoCo engine ran the scene in (each picks
@@ -46,21 +47,31 @@ def form_of(engine, scene: Scene) -> str:
     return engine.form_of(scene) if hasattr(engine, "form_of") else getattr(engine, "form", "")
 
 
+def engine_spec(spec: str) -> tuple[str, str | None]:
+    """`(name, form)` of an engine spec `NAME` (form None: the engine's own) or
+    `NAME:FORM` (a MuJoCo engine in the MJCF form FORM)."""
+    name, _, form = spec.partition(":")
+    return name, form or None
+
+
 def crosscheck(scene: Scene, config: SimulationConfig, engines=tuple(ENGINES), mjx_max_depth: int | None = None,
                progress: bool = False) -> list[dict]:
-    """Tidy rows (module docstring). Wall time of MJX includes its compile (once per
-    process); `progress` lets the engines say so before compiling."""
-    rows, trajectories, forms = [], {}, {}
-    for name in engines:
-        engine = get_engine(name, progress=progress and name == "mjx")
-        form = forms[name] = form_of(engine, scene)
+    """Tidy rows (module docstring) of the engine specs `engines` (`engine_spec`). Wall
+    time of MJX includes its compile (once per process); `progress` lets the engines
+    say so before compiling."""
+    rows, trajectories, forms, names = [], {}, {}, {}
+    for spec in engines:
+        name, chosen = engine_spec(spec)
+        names[spec] = name
+        engine = get_engine(name, progress=progress and name == "mjx", form=chosen)
+        form = forms[spec] = form_of(engine, scene)
         depth = scene_layout(scene).depth
         if name == "mjx" and mjx_max_depth is not None and depth > mjx_max_depth:
             rows.append(dict(scene=scene.name, engine=name, form=form, metric="skipped", value=float("nan"),
                              note=SKIP_MJX.format(depth=depth, limit=mjx_max_depth)))
             continue
         start = time.perf_counter()
-        traj = trajectories[name] = engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0)
+        traj = trajectories[spec] = engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0)
         wall = time.perf_counter() - start
         rows += [
             dict(scene=scene.name, engine=name, form=form, metric="energy_drift", value=metrics.energy_drift(scene, traj), note="max |E-E0| / energy scale"),
@@ -69,7 +80,7 @@ def crosscheck(scene: Scene, config: SimulationConfig, engines=tuple(ENGINES), m
         ]
     for a, b in itertools.combinations(trajectories, 2):
         err = float(np.max(np.abs(trajectories[a].q - trajectories[b].q)))
-        rows.append(dict(scene=scene.name, engine=f"{a}~{b}", form=f"{forms[a] or '-'}~{forms[b] or '-'}", metric="max_node_error", value=err,
+        rows.append(dict(scene=scene.name, engine=f"{names[a]}~{names[b]}", form=f"{forms[a] or '-'}~{forms[b] or '-'}", metric="max_node_error", value=err,
                          note=f"over {config.duration:g} s"))
     return rows
 

@@ -41,6 +41,8 @@ from lgnn.scene.catalogue import (
     spatial_chain,
     spatial_chain_state,
     spatial_net,
+    spatial_rope,
+    spatial_tensegrity,
     taut_chain,
 )
 
@@ -71,6 +73,8 @@ __all__ = [
     "spatial_chain",
     "spatial_chain_state",
     "spatial_net",
+    "spatial_rope",
+    "spatial_tensegrity",
     "scene_from_dict",
     "scene_to_dict",
     "scene_to_json",

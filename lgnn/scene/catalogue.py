@@ -1,6 +1,6 @@
 """The one catalogue of scenes: the built-ins of the paper, the hard cases, small test
 scenes, the spatial (3D) scenes (`SPATIAL_SCENES`, a group of their own until the
-MuJoCo engines and the benchmark take 3D), and the initial-condition samplers.
+benchmark takes 3D), and the initial-condition samplers.
 
 Each built-in is constructed by one function from a seed; `get_scene(name_or_path)`
 resolves a built-in or hard-case name or a user's scene JSON file.
@@ -67,11 +67,12 @@ def spatial_chain_state(lengths, polar, azimuth, spin_direction, spin):
     """Node positions and velocities, each (n+1, 3), of a chain hanging from the origin.
 
     Link k points along -y tilted by `polar[k]` towards the azimuth `azimuth[k]` (in the
-    x-z plane, from +x towards +z). It turns at `spin[k]` rad/s (relative to link k-1)
-    about an axis perpendicular to it, at the angle `spin_direction[k]` from the
-    direction of increasing tilt: no spin about its own axis (the node description
-    cannot see it), and every link length stationary (`dq . dqd = 0` exactly). Works
-    on NumPy or JAX arrays (so it can be vmapped); radians throughout.
+    x-z plane, from +x towards +z). It turns at `spin[k]` rad/s (its own angular
+    velocity, not relative to link k-1) about an axis perpendicular to it, at the angle
+    `spin_direction[k]` from the direction of increasing tilt: no spin about its own
+    axis (the node description cannot see it), and every link length stationary
+    (`dq . dqd = 0` exactly). Works on NumPy or JAX arrays (so it can be vmapped);
+    radians throughout.
     """
     xp = jnp if isinstance(polar, jax.Array) else np
     sin_p, cos_p, sin_a, cos_a = xp.sin(polar), xp.cos(polar), xp.sin(azimuth), xp.cos(azimuth)
@@ -387,8 +388,8 @@ def is_catalogue_scene(scene: Scene) -> bool:
 
 
 # ---------------------------------------------------------------------------------
-# Spatial (3D) scenes: a group of their own, since the MuJoCo engines, `mjcf/` and the
-# benchmark grid (which iterate `BUILTIN_SCENES`) are planar so far
+# Spatial (3D) scenes: a group of their own, since the benchmark grid (which iterates
+# `BUILTIN_SCENES`) is planar so far; `mjcf/` holds them beside the built-ins
 # ---------------------------------------------------------------------------------
 
 
@@ -439,6 +440,91 @@ def spatial_net(rows: int = 4, columns: int = 4, seed: int = 0) -> Scene:
     })
 
 
+# Rope and rope chains of the spatial scenes: uniform line density 1 (a link's mass is
+# its length, its inertia that of a uniform rod, m l^2 / 12), as for the rods.
+ROPE_LINKS = 30
+ROPE_LINK_LENGTH = 0.1
+
+
+def _uniform_links(flat: np.ndarray, edges, types=None) -> list[dict]:
+    """Links of density 1 along `edges` of the nodes `flat` (M, 3), each as long as its
+    initial distance (math.hypot: the same last bit everywhere, as in `paper_structure`)."""
+    links = []
+    for k, (i, j) in enumerate(edges):
+        length = math.hypot(*(float(x) for x in flat[i] - flat[j]))
+        link = {"nodes": [int(i), int(j)], "mass": length, "inertia": length**3 / 12}
+        if types is not None:
+            link["type"] = types[k]
+        links.append(link)
+    return links
+
+
+def spatial_rope(n_links: int = ROPE_LINKS, link_length: float = ROPE_LINK_LENGTH, name: str = "rope-3d") -> Scene:
+    """A rope of `n_links` short links (density 1) pinned at the origin, released from
+    rest as a loose helix: each link 60 degrees from -y, its azimuth turning by 1.5
+    turns along the rope, so the rope starts curved, never straight or taut, and falls
+    and swings in all three directions."""
+    if n_links < 1:
+        raise SceneError(f"spatial rope: need at least one link, got {n_links}")
+    k = np.arange(n_links)
+    nodes, _ = spatial_chain_state(np.full(n_links, link_length), np.full(n_links, np.deg2rad(60.0)),
+                                   3 * np.pi * k / n_links, np.zeros(n_links), np.zeros(n_links))
+    return scene_from_dict({
+        "name": name, "gravity": PAPER_GRAVITY, "nodes": nodes.tolist(), "pinned": [0],
+        "links": _uniform_links(nodes, [(j, j + 1) for j in range(n_links)]),
+    })
+
+
+def _sagging_rope(start: np.ndarray, end: np.ndarray, n_links: int, sag: float, rng) -> np.ndarray:
+    """The n_links - 1 inner nodes (n_links - 1, 3) of a rope from `start` to `end`
+    hanging in a bow: `sag` times the span below the straight run at mid-span (sideways
+    for a vertical run), each node moved by up to 2 % of the span so no rope is planar."""
+    span = end - start
+    along = span / np.linalg.norm(span)
+    down = np.array([0.0, -1.0, 0.0]) - along[1] * along
+    if np.linalg.norm(down) < 0.3:  # a nearly vertical run bows sideways
+        down = np.cross(along, [0.0, 0.0, 1.0])
+    down /= np.linalg.norm(down)
+    t = np.arange(1, n_links)[:, None] / n_links
+    return start + t * span + sag * np.linalg.norm(span) * np.sin(np.pi * t) * down + 0.02 * np.linalg.norm(span) * rng.uniform(-1, 1, (n_links - 1, 3))
+
+
+def spatial_tensegrity(rope_links: int = 3, seed: int = 0) -> Scene:
+    """A three-rod tensegrity prism of rope chains, hung from three pins, released from
+    rest: rods (density 1, type "rod") from each bottom corner to the next top corner of
+    a twisted triangular prism (radius 1, height 1.5, twist 150 degrees); the two
+    triangles, the three verticals and three hangers (from pins 1 above the top
+    corners) are rope chains of `rope_links` links (type "link").
+
+    Every rope starts slack, bowed by 15 % of its span (`_sagging_rope`): a straight
+    rope run between pinned or rod-held nodes would be self-stressed, singular for the
+    inextensible model (T2, T3). So the prism is loose, not prestressed: it sags and
+    swings into its hangers."""
+    rng = np.random.default_rng(seed)
+    angles = 2 * np.pi * np.arange(3) / 3
+    circle = lambda y, turn: np.stack([np.cos(angles + turn), np.full(3, y), np.sin(angles + turn)], -1)  # noqa: E731
+    top, bottom = circle(-1.0, np.deg2rad(150.0)), circle(-2.5, 0.0)
+    pins = top + [0.0, 1.0, 0.0]
+    nodes = [*pins, *top, *bottom]  # pins 0-2, top corners 3-5, bottom corners 6-8
+    edges, types = [], []
+    for i in range(3):
+        edges.append((6 + i, 3 + (i + 1) % 3))
+        types.append("rod")
+    runs = [(i, 3 + i) for i in range(3)]  # hangers
+    runs += [(3 + i, 3 + (i + 1) % 3) for i in range(3)] + [(6 + i, 6 + (i + 1) % 3) for i in range(3)] + [(6 + i, 3 + i) for i in range(3)]
+    for a, b in runs:
+        inner = _sagging_rope(np.asarray(nodes[a]), np.asarray(nodes[b]), rope_links, 0.15, rng)
+        chain_nodes = [a, *range(len(nodes), len(nodes) + len(inner)), b]
+        nodes += list(inner)
+        edges += list(zip(chain_nodes[:-1], chain_nodes[1:]))
+        types += ["link"] * rope_links
+    flat = np.asarray(nodes, np.float64)
+    return scene_from_dict({
+        "name": "tensegrity-3d", "gravity": PAPER_GRAVITY, "nodes": flat.tolist(), "pinned": [0, 1, 2],
+        "links": _uniform_links(flat, edges, types),
+    })
+
+
 def embedded_in_3d(scene: Scene) -> Scene:
     """A planar scene as a spatial one at z = 0 (gravity along -y in both): the same
     motion, exactly (tested to round-off)."""
@@ -457,6 +543,8 @@ SPATIAL_SCENES: dict[str, BuiltinScene] = {
         BuiltinScene("chain16-3d", "16 unit links in 3D pinned at one end", lambda: spatial_chain(16)),
         BuiltinScene("chain100-3d", "100 unit links in 3D pinned at one end", lambda: spatial_chain(100)),
         BuiltinScene("net4x4-3d", "a 4 x 4 net of links (9 closed loops) hung from two corners", spatial_net),
+        BuiltinScene("rope-3d", "a rope of 30 links 0.1 long pinned at one end, released as a loose helix", spatial_rope),
+        BuiltinScene("tensegrity-3d", "a loose three-rod tensegrity prism of slack rope chains hung from three pins", spatial_tensegrity),
     ]
 }
 
