@@ -326,6 +326,10 @@ def mixed_chain(seed: int = 0) -> Scene:
 ROPE_SLACK = 1e-3
 
 
+# Decimals kept of a slackened scene's solved node positions (`slackened`).
+SLACK_DECIMALS = 12
+
+
 def slackened(scene: Scene, slack: float = ROPE_SLACK, seed: int = 0) -> Scene:
     """`scene` with every rope link (type "link") `1 + slack` times longer, started from
     a configuration that satisfies the new lengths: each free node lowered by
@@ -357,7 +361,10 @@ def slackened(scene: Scene, slack: float = ROPE_SLACK, seed: int = 0) -> Scene:
         raise SceneError(f"{scene.name}: no configuration found with the ropes {slack:g} slack")
     for link, length in zip(data["links"], lengths):
         link["length"] = float(length)
-    return scene_from_dict({**data, "name": f"{scene.name}-slack", "nodes": q.tolist()})
+    # Rounded: LAPACK's least squares differs between machines in the last bits, and a
+    # scene is keyed by its content (records made on a GPU machine must match here).
+    # The links then close to ~1e-12, which the engines' projection absorbs.
+    return scene_from_dict({**data, "name": f"{scene.name}-slack", "nodes": np.round(q, SLACK_DECIMALS).tolist()})
 
 
 HARD_SCENES: dict[str, BuiltinScene] = {
