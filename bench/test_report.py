@@ -140,6 +140,44 @@ def test_several_seeds_give_one_cell_over_seeds_and_initial_conditions():
     assert set(summary[summary.model == "lgnn"].seed) == {0, 1, report.ALL_SEEDS}
 
 
+def test_missing_pairs_say_not_evaluated_and_unconverged_references_not_rankable():
+    """A grid pair with no record is "not evaluated" (an empty cell is a pair the grid
+    does not hold); a scene whose reference does not converge in dt (the convergence
+    table's verdict) is named "(not rankable)", one that converges is not."""
+    from lgnn.bench import convergence
+
+    arrays = {"t": T, "diverged_at": np.array([np.nan, np.nan])}
+    for metric in evaluate.METRICS:
+        arrays.update(_metric(metric, [1e-3, 1e-3]))
+    pairs = [(grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), "chain4"), (arrays, {}))]
+    summary, _ = report.tables({"chain4": _truth(True, False), "T3": _truth(True, False)}, pairs)
+    rows = [dict(scene="T3", note="singular at rest", verdict="not-converged", displacement="0.05"),
+            dict(scene="T3", note="", verdict="", displacement="0.05"),
+            dict(scene="T3-slack", note="", verdict="asymptotic", displacement="0.047")]
+    unrankable = convergence.unrankable(rows)
+    assert list(unrankable) == ["T3"] and "unknown" in unrankable["T3"]
+    table = report.summary_markdown(summary, "rollout_error", {("T3", "lgnn"), ("chain4", "lgnn")}, unrankable)
+    assert _row(table, "T3 (not rankable)")["lgnn"] == "not evaluated"
+    assert _row(table, "chain4")["lgnn"].startswith("1.00e-03")
+    assert _row(report.summary_markdown(summary, "rollout_error"), "T3")["lgnn"] == ""
+
+
+def test_training_table_says_why_each_run_stopped():
+    """Epoch budget, plateau (no 1 % gain in `patience` epochs), or cut off and resumable."""
+    from lgnn.learn import train
+
+    config = train.TrainConfig(learning_rate=1e-3, warmup_steps=1, epochs=100, patience=10, min_improvement=0.01)
+
+    def state(losses):
+        history = [(k + 1, 0.0, v, 0.0) for k, v in enumerate(losses)]
+        best = int(np.argmin(losses))
+        return train.TrainState({}, (), {}, float(losses[best]), best + 1, len(losses), history)
+
+    assert report._stopped_by(state(list(np.geomspace(1, 1e-3, 100))), config) == "epoch budget"
+    assert report._stopped_by(state([1.0, 0.5] + [0.499] * 20), config) == "plateau (last 1% gain at epoch 2)"
+    assert report._stopped_by(state([1.0, 0.5, 0.4]), config) == "not finished: cut off, resumable"
+
+
 def test_default_lgnn_is_read_from_the_training_records(tmp_path):
     """The variant with the lowest geometric mean over seeds of the best validation MSE
     (mp1: 1e-3 and 1e-5, mean 1e-4, against lgnn's 2e-4 and 2e-4); a variant missing a

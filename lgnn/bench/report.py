@@ -49,9 +49,9 @@ from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
 from lgnn.bench.stages.train import default_lgnn, load_checkpoints
-from lgnn.learn.train import last_improvement
 from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
+from lgnn.learn.train import last_improvement
 from lgnn.scene import get_scene
 
 MODEL_ORDER = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn")
