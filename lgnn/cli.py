@@ -224,11 +224,12 @@ def _cmd_crosscheck(args) -> None:
     args.out_dir = out_dir(args.out_dir)
     check_writable(f"{args.out_dir}/engines_speed_error.md" if args.speed else f"{args.out_dir}/crosscheck.md")
     engines = tuple(args.engines.split(","))
-    if {cc.engine_spec(spec)[0] for spec in engines} - set(ENGINES) or not engines:
+    parsed = [cc.engine_spec(spec) for spec in engines]
+    if {name for name, _ in parsed} - set(ENGINES) or not engines:
         raise ConfigError(f"--engines: choose from {', '.join(ENGINES)} (each optionally NAME:FORM), got {args.engines!r}")
-    for spec in engines:
-        get_engine(*cc.engine_spec(spec)[:1], form=cc.engine_spec(spec)[1])  # a bad form fails before any run
-    if args.speed and any(cc.engine_spec(spec)[1] for spec in engines):
+    for name, form in parsed:
+        get_engine(name, form=form)  # a bad form fails before any run
+    if args.speed and any(form for _, form in parsed):
         raise ConfigError(f"--engines: --speed takes engine names only (each MuJoCo engine in its own form), got {args.engines!r}")
     if args.speed:
         rows = cc.speed_error(args.scenes or ["chain4", "chain16", "chain100", "T1"], engines, dts=tuple(args.speed_dts), batches=tuple(args.batch),

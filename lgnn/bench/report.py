@@ -51,7 +51,7 @@ from lgnn.bench.stages.speed import speed_rows as load_speed_rows
 from lgnn.bench.stages.train import default_lgnn, load_checkpoints
 from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
-from lgnn.learn.train import last_improvement
+from lgnn.learn.train import stop_reason
 from lgnn.scene import get_scene
 
 MODEL_ORDER = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn")
@@ -426,15 +426,8 @@ def _command(profile: Profile) -> str:
 
 
 def _stopped_by(state, config) -> str:
-    """Why a run's training ended, or that it has not (`lgnn.learn.train.finished`'s rules)."""
-    if state.epoch >= config.epochs:
-        return "epoch budget"
-    since = last_improvement(state, config)
-    if state.epoch - since > config.patience:
-        return f"plateau (last {config.min_improvement:.0%} gain at epoch {since})" if config.min_improvement else f"patience (best at epoch {since})"
-    if config.minutes is not None and state.elapsed_s >= 60 * config.minutes:
-        return "minutes cap"
-    return "not finished: cut off, resumable"
+    """Why a run's training ended (`lgnn.learn.train.stop_reason`), or that it has not."""
+    return stop_reason(state, config) or "not finished: cut off, resumable"
 
 
 def _training_lines(profile: Profile, out: Path) -> list[str]:

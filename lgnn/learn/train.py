@@ -173,10 +173,22 @@ class TrainState(NamedTuple):
     elapsed_s: float = 0.0
 
 
+def stop_reason(state: TrainState, config: TrainConfig) -> str | None:
+    """Why training has ended (the epoch budget, the plateau or patience rule, the
+    minutes cap), or None while it has not."""
+    if state.epoch >= config.epochs:
+        return "epoch budget"
+    since = last_improvement(state, config)
+    if state.epoch - since > config.patience:
+        return f"plateau (last {config.min_improvement:.0%} gain at epoch {since})" if config.min_improvement else f"patience (best at epoch {since})"
+    if config.minutes is not None and state.elapsed_s >= 60 * config.minutes:
+        return "minutes cap"
+    return None
+
+
 def finished(state: TrainState, config: TrainConfig) -> bool:
     """Whether training has ended by one of `config`'s budgets or early stopping."""
-    out_of_time = config.minutes is not None and state.elapsed_s >= 60 * config.minutes
-    return state.epoch >= config.epochs or state.epoch - last_improvement(state, config) > config.patience or out_of_time
+    return stop_reason(state, config) is not None
 
 
 def last_improvement(state: TrainState, config: TrainConfig) -> int:
