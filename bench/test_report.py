@@ -95,10 +95,11 @@ def test_the_committed_full_records_render_with_the_new_columns_not_computed():
         for scene in grid.evaluation_scenes(profile):
             row = _row(table, scene)
             assert row["rest"] in ("not computed", "") or "e-" in row["rest"]
-    # Committed numbers are read as before: LGNN on chain4, and T2's diverged floor.
-    row = _row(report.summary_markdown(summary, "rollout_error"), "chain4")
+    # Committed numbers are read as before: LGNN on chain4 and T2-slack.
+    table = report.summary_markdown(summary, "rollout_error")
+    row = _row(table, "chain4")
     assert row["lgnn"].startswith("7.42e-05") and row["chaos floor"] == "1.10e-05"
-    assert _row(report.summary_markdown(summary, "rollout_error"), "T2")["chaos floor"].startswith("diverged (1 of 1")
+    assert _row(table, "T2-slack")["lgnn"].startswith("4.29e-04")
 
 
 def test_error_figures_label_their_axes_legend_every_panel_and_title_what_they_show(monkeypatch, tmp_path):
@@ -143,13 +144,15 @@ def test_several_seeds_give_one_cell_over_seeds_and_initial_conditions():
 def test_missing_pairs_say_not_evaluated_and_unconverged_references_not_rankable():
     """A grid pair with no record is "not evaluated" (an empty cell is a pair the grid
     does not hold); a scene whose reference does not converge in dt (the convergence
-    table's verdict) is named "(not rankable)", one that converges is not."""
+    table's verdict) is named "(not rankable)" and shows no model number, one that
+    converges is not."""
     from lgnn.bench import convergence
 
     arrays = {"t": T, "diverged_at": np.array([np.nan, np.nan])}
     for metric in evaluate.METRICS:
         arrays.update(_metric(metric, [1e-3, 1e-3]))
     pairs = [(grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), "chain4"), (arrays, {}))]
+    pairs.append((grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), "T3"), (arrays, {})))
     summary, _ = report.tables({"chain4": _truth(True, False), "T3": _truth(True, False)}, pairs)
     rows = [dict(scene="T3", note="singular at rest", verdict="not-converged", displacement="0.05"),
             dict(scene="T3", note="", verdict="", displacement="0.05"),
@@ -157,9 +160,12 @@ def test_missing_pairs_say_not_evaluated_and_unconverged_references_not_rankable
     unrankable = convergence.unrankable(rows)
     assert list(unrankable) == ["T3"] and "unknown" in unrankable["T3"]
     table = report.summary_markdown(summary, "rollout_error", {("T3", "lgnn"), ("chain4", "lgnn")}, unrankable)
-    assert _row(table, "T3 (not rankable)")["lgnn"] == "not evaluated"
+    assert _row(table, "T3 (not rankable)")["lgnn"] == "not rankable"
+    assert _row(table, "T3 (not rankable)")["rest"] == "not rankable"
     assert _row(table, "chain4")["lgnn"].startswith("1.00e-03")
-    assert _row(report.summary_markdown(summary, "rollout_error"), "T3")["lgnn"] == ""
+    assert _row(report.summary_markdown(summary, "rollout_error"), "T3")["lgnn"].startswith("1.00e-03")
+    without = summary[(summary.scene != "T3") | (summary.model != "lgnn")]
+    assert _row(report.summary_markdown(without, "rollout_error", {("T3", "lgnn")}), "T3")["lgnn"] == "not evaluated"
 
 
 def test_training_table_says_why_each_run_stopped():

@@ -18,8 +18,11 @@ Files under `<out>` (`results/` for the full profile, `lgnn-out/quick/` for the 
   geometric mean over seeds and initial conditions with a two-level bootstrap interval
   (`lgnn.metrics.summarise_seeds`), `seeds`, and the summed divergences; the markdown
   tables show these.
-- `benchmark/curves.csv`: the same metrics per frame (every 0.01 s): geometric mean
-  over initial conditions with a normal-approximation 95% band (`t` column).
+- `benchmark/curves.csv.gz`: the same metrics per frame (every 0.01 s): geometric mean
+  over initial conditions with a normal-approximation 95% band (`t` column); columns
+  `scene, model, seed, metric, statistic, t, value`. Each curve's commit, versions and
+  device are those of its `summary.csv` rows (same scene, model, seed): repeated on
+  each of 200 000 frames they made the file 56 MB. Gzipped (pandas reads it as is).
 - `benchmark/speed_error.csv`, `.md`: wall time per simulated second against rollout
   error (`lgnn.bench.stages.speed`).
 - `benchmark/mass_matrix.csv`: percentage errors of the learned mass matrix.
@@ -63,6 +66,8 @@ EXACT_NO_DRAG = "exact, no drag"
 # The chaos floor's metrics: its rollout error (first name kept) and per-node RMS error.
 FLOOR, FLOOR_RMS = "chaos_floor", "chaos_floor_node_rms_error"
 CURVE_STEP_S = 0.01
+# The per-frame curves' file under `benchmark/` (gzipped: module docstring).
+CURVES = "curves.csv.gz"
 # The `seed` of summary rows over every training seed of a model.
 ALL_SEEDS = -1
 MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale", "scaled_percent_error", "scaled_tangent_percent_error")
@@ -87,15 +92,14 @@ def _summary_rows(scene, model, seed, metric, arrays, meta, prefix, diverged=Non
     return [{**base, "statistic": k, "value": v} for k, v in stats.items()]
 
 
-def _curve_rows(scene, model, seed, metric, arrays, meta, prefix):
+def _curve_rows(scene, model, seed, metric, arrays, prefix):
     t = arrays["t"]
     stride = max(1, round(CURVE_STEP_S / (t[1] - t[0]))) if len(t) > 1 else 1
     rows = []
-    env = _env_columns(meta)
     for statistic in ("gmean", "low", "high"):
         values = arrays[f"{prefix}/{statistic}"]
         for k in range(stride - 1, len(t), stride):
-            rows.append(dict(scene=scene, model=model, seed=seed, metric=metric, statistic=statistic, t=round(float(t[k]), 9), value=float(values[k]), **env))
+            rows.append(dict(scene=scene, model=model, seed=seed, metric=metric, statistic=statistic, t=round(float(t[k]), 9), value=float(values[k])))
     return rows
 
 
@@ -120,7 +124,7 @@ def tables(truths: dict, pairs: list):
             is_floor = metric != "truth_vs_mujoco"
             summary += _summary_rows(scene, "ground truth", 0, metric, arrays, meta, prefix, diverged, value=floor_ok or not is_floor)
             if floor_ok or not is_floor:
-                curves += _curve_rows(scene, "ground truth", 0, metric, arrays, meta, prefix)
+                curves += _curve_rows(scene, "ground truth", 0, metric, arrays, prefix)
         if floor_ok and f"{FLOOR}/node_rms_error/per_ic_log" in arrays:
             floor_rms[scene] = metrics.summarise(arrays[f"{FLOOR}/node_rms_error/per_ic_log"])[0]
     rows = [(scene, REST, 0, arrays, meta, f"{REST_PREFIX}/", arrays.get(f"{REST_PREFIX}/diverged_at")) for scene, (arrays, meta) in truths.items()]
@@ -132,7 +136,7 @@ def tables(truths: dict, pairs: list):
             if f"{prefix}{metric}/per_ic_log" not in arrays:
                 continue
             summary += _summary_rows(scene, model, seed, metric, arrays, meta, prefix + metric, diverged)
-            curves += _curve_rows(scene, model, seed, metric, arrays, meta, prefix + metric)
+            curves += _curve_rows(scene, model, seed, metric, arrays, prefix + metric)
             if metric == "node_rms_error" and scene in floor_rms:
                 ratio = metrics.summarise(arrays[f"{prefix}{metric}/per_ic_log"])[0] / floor_rms[scene]
                 summary.append(dict(scene=scene, model=model, seed=seed, metric=metric, **_env_columns(meta), statistic="chaos_floor_ratio", value=ratio))
@@ -204,14 +208,18 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
     Lagrangian-vs-MuJoCo) beside. A record that exists but lacks the metric (written
     before it was computed) shows "not computed", never a number; a `(scene, model)`
     of `expected` (the profile's pairs) with no record "not evaluated". A scene of
-    `unrankable` is named "(not rankable)": its reference does not converge in dt."""
+    `unrankable` is named "(not rankable)" and shows no model number, only "not
+    rankable": its reference does not converge in dt, so its reference error may exceed
+    the spread between models (the reason is in the report's settings)."""
     if summary.empty:
         return "(no results)\n"
     wide = summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
     models = [m for m in wide["model"].unique() if m not in ("ground truth", REST)]
     models.sort(key=lambda m: (MODEL_ORDER.index(m.split()[0]) if m.split()[0] in MODEL_ORDER else 9, m))
     models.append(REST)
-    scenes = [s for s in TRANSFER_SCENES + ("chain4-varied", "chain4-drag") if s in set(wide["scene"])]
+    # The grid's scenes in table order, then any other (a user's grid) as recorded.
+    known = TRANSFER_SCENES + ("chain4-varied", "chain4-drag")
+    scenes = [s for s in known if s in set(wide["scene"])] + [s for s in dict.fromkeys(wide["scene"]) if s not in known]
     # Which records exist: a model with any metric on a scene; the rest baseline and
     # the scene-level columns wherever the scene's ground-truth record does.
     present = {(scene, "ground truth" if model == REST else model) for scene, model in zip(wide["scene"], wide["model"])}
@@ -225,6 +233,9 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
             if (match.seed == ALL_SEEDS).any():  # several seeds: the interval over seeds and ICs
                 match = match[match.seed == ALL_SEEDS]
             record = (scene, "ground truth" if model == REST else model) in present
+            if scene in (unrankable or {}) and (len(match) or (scene, model) in expected):
+                cells.append("not rankable")
+                continue
             cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "not computed" if record
                          else "not evaluated" if (scene, model) in expected else "")
         for truth_metric in truth_metrics:
@@ -529,7 +540,9 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "(seeds, then each seed's initial conditions), `(n seeds)`; each seed's own numbers are rows of `benchmark/summary.csv`. "
         "\"not evaluated\": a pair of the grid with no record yet (`lgnn benchmark --stage evaluate` resumes there).",
         *(["- Not rankable (`results/convergence.md`, `lgnn convergence`): the reference itself does not converge in dt, so no "
-           "model number on these scenes ranks models: " + "; ".join(f"{scene}: {why}" for scene, why in unrankable.items()) + "."]
+           "model number on these scenes could rank models and none is reported"
+           + (" (the full grid does not evaluate them; T2-slack and T3-slack, their ropes 0.1 % slack, converge and stand in for them)"
+              if p.name == "full" else "") + ": " + "; ".join(f"{scene}: {why}" for scene, why in unrankable.items()) + "."]
           if unrankable else []),
         "",
         "## Training",
@@ -573,7 +586,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
               *_provenance_lines(*records, speed_rows, mass_records), ""]
     lines += ["## Files", "", "| file | what |", "|---|---|",
               "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
-              "| `benchmark/curves.csv` | per-frame geometric means and 95% bands (every 0.01 s) |",
+              "| `benchmark/curves.csv.gz` | per-frame geometric means and 95% bands (every 0.01 s; provenance: the matching `summary.csv` rows) |",
               "| `benchmark/speed_error.csv`, `.md` | speed against error |",
               "| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, and cost against chain length |",
               "| `benchmark/mass_matrix.csv` | learned mass matrix errors |",
@@ -737,7 +750,7 @@ def write(profile: Profile, out: Path) -> Path:
     bench_dir = out / "benchmark"
     bench_dir.mkdir(parents=True, exist_ok=True)
     write_csv(summary, bench_dir / "summary.csv")
-    write_csv(curves, bench_dir / "curves.csv")
+    write_csv(curves, bench_dir / CURVES)
     speed_rows = load_speed_rows(profile, out)
     write_csv(pd.DataFrame(speed_rows), bench_dir / "speed_error.csv")
     write_text_atomic(bench_dir / "speed_error.md", speed_markdown(speed_rows))
@@ -751,7 +764,7 @@ def write(profile: Profile, out: Path) -> Path:
     plots = [
         ("error_vs_time_chain4_8_16.png", lambda p: _plot_error_vs_time(curves, ["chain4", "chain8", "chain16"], p, "chain4")),
         ("error_vs_time_chain100.png", lambda p: _plot_error_vs_time(curves, ["chain100"], p, "chain4")),
-        ("error_vs_time_T1_T2_T3.png", lambda p: _plot_error_vs_time(curves, ["T1", "T2", "T3"], p, "chain4")),
+        ("error_vs_time_T1_T2slack_T3slack.png", lambda p: _plot_error_vs_time(curves, ["T1", "T2-slack", "T3-slack"], p, "chain4")),
         ("error_vs_time_varied_drag.png", lambda p: _plot_error_vs_time(curves, ["chain4-varied", "chain4-drag"], p, "each")),
         ("mass_matrix.png", lambda p: _plot_mass_matrices(mass_records, p)),
         ("snapshots_chain8.png", lambda p: _plot_snapshots("chain8", truths, pairs, p)),

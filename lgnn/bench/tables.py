@@ -1,7 +1,7 @@
 """Table writers, defined once: tidy CSV and markdown, written atomically.
 
-- `write_csv(frame, path)`: a pandas DataFrame as CSV (floats to 6 significant digits),
-  the benchmark report's tables;
+- `write_csv(frame, path)`: a pandas DataFrame as CSV (floats to 6 significant digits,
+  gzipped for a `.gz` path), the benchmark report's tables;
 - `write_table(rows, columns, csv_path, md_path, title, header, notes)`: rows (dicts) as
   a CSV whose first lines are `# header` comments, and a markdown file with the title,
   the header and notes as a list, then the table; the crosscheck and stability reports.
@@ -10,18 +10,24 @@
 from __future__ import annotations
 
 import csv
+import gzip
 import io
 import os
 from typing import Callable, Sequence
 
-from lgnn.files import write_text_atomic
+from lgnn.files import atomic_path, write_text_atomic
 
 
 def write_csv(frame, path: str | os.PathLike) -> None:
-    """A DataFrame as CSV (no index, floats `%.6g`), atomically."""
+    """A DataFrame as CSV (no index, floats `%.6g`), atomically; gzipped if `path` ends
+    in `.gz`, with no timestamp in the header, so the same table gives the same bytes."""
     buffer = io.StringIO()
     frame.to_csv(buffer, index=False, float_format="%.6g")
-    write_text_atomic(path, buffer.getvalue())
+    if str(path).endswith(".gz"):
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(gzip.compress(buffer.getvalue().encode(), mtime=0))
+    else:
+        write_text_atomic(path, buffer.getvalue())
 
 
 def _csv_cell(value):
