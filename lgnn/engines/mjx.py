@@ -71,8 +71,8 @@ NESTED_MAX_DEPTH = 8
 # 2. Connect and weld equality rows. MuJoCo C (since 3.7.0, commit 412cee20) adds the
 #    centripetal term `Jdot v` to their reference acceleration
 #    (`aref = -b J v - k r - Jdot v`); MJX's `make_constraint` does not, so a `connect`
-#    on a turning body is pulled towards a different trajectory (2e-9 in qvel after one
-#    step of a maximal four-bar, 1e-6 .. 1e-4 over 0.1 s of lgnn's loop scenes).
+#    on a turning body is pulled towards a different trajectory (a maximal four-bar
+#    started with velocities 0.3 x N(0, 1): 1e-6 in qvel after one step).
 #
 # `forward(m, d)` is MJX's `forward` (no sensors: lgnn's models have none) with
 # `-Jdot v` added to the equality rows' `efc_aref` before the solve (`Jdot v` as a
