@@ -12,12 +12,15 @@ of CPU time; MJX has no tree depth there), so the engine runs the nested form to
 compiling (`log`), and `runner` is cached.
 
 Spatial scenes run the same way (ball and free joints; `qpos_rate` turns qvel into
-the quaternions' rates for the velocity `jvp`). Measured on chain4-3d, float64, 0.05 s
-at dt 1e-4 (2-core CPU under load): nested compiles in ~50 s wall and departs from
-MuJoCo C and the Lagrangian engine alike by 3e-9 (MJX steps ball joints a little
-differently: 3e-12 after 1 ms on chain2-3d, growing about linearly; hinges agree to
-round-off); maximal compiles in ~37 s and departs by 3e-7 (MJX's `connect`, as in 2D;
-MuJoCo C's maximal form: 1e-9).
+the quaternions' rates for the velocity `jvp`).
+
+Steps are not MJX's `mjx.step` but `make_step`: MuJoCo C 4.0's RK4 (with its
+Runge-Kutta-Munthe-Kaas correction for ball and free joints) and its connect rows
+(with the `Jdot v` term in their reference acceleration) on MJX's own stages, which
+mujoco-mjx 3.17 lacks (section "MuJoCo C's step on MJX's stages" below). With
+`mjx.step`, chain4-3d departed from MuJoCo C by 3e-8 over 0.5 s and the maximal
+loops by 1e-6 .. 2e-4 over 0.1 s; with `make_step` both agree with MuJoCo C to
+round-off per step (`tools/mjx_vs_c.py`).
 
 `dtype` float32 runs with JAX's x64 off, float64 with it on (`lgnn.runtime.precision`,
 entered here whatever the global setting).
@@ -34,6 +37,7 @@ from typing import Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from lgnn.engines.lagrangian import DTYPES, SimulationConfig, Trajectory
@@ -51,6 +55,200 @@ from lgnn.scene import Scene, State
 NESTED_MAX_DEPTH = 8
 
 
+# ------------------------------------------------- MuJoCo C's step on MJX's stages
+# MJX's forward dynamics and RK4 step, brought up to MuJoCo C's (4.0) arithmetic.
+#
+# mujoco-mjx 3.17 (its JAX implementation) departs from MuJoCo C 4.0 in two places that
+# matter to lgnn's models (measured, `tools/mjx_vs_c.py`):
+#
+# 1. RK4 for ball and free joints. MuJoCo C (since 4.0, commit 9a7f240f0, changelog
+#    "fourth-order accurate for the orientations") maps each RK stage's angular
+#    velocity to the rate of the stage's rotation vector (the Runge-Kutta-Munthe-Kaas
+#    correction, `dexp^-1`: `w + 1/2 r x w + c(|r|) r x (r x w)`, `c` the Bortz
+#    coefficient) before combining the stages; MJX's `rungekutta4` sums the raw angular
+#    velocities (second order in the orientation). On chain4-3d (dt 1e-4) that is
+#    7e-13 in qpos per step, 3e-8 over 0.5 s.
+# 2. Connect and weld equality rows. MuJoCo C (since 3.7.0, commit 412cee20) adds the
+#    centripetal term `Jdot v` to their reference acceleration
+#    (`aref = -b J v - k r - Jdot v`); MJX's `make_constraint` does not, so a `connect`
+#    on a turning body is pulled towards a different trajectory (a maximal four-bar
+#    started with velocities 0.3 x N(0, 1): 1e-6 in qvel after one step).
+#
+# `forward(m, d)` is MJX's `forward` (no sensors: lgnn's models have none) with
+# `-Jdot v` added to the equality rows' `efc_aref` before the solve (`Jdot v` as a
+# `jvp` of `efc_J v` along the rate of `qpos`), and `rk4(m, d)` is MuJoCo C's RK4 with
+# the RKMK correction on `forward`. Both are built from MJX's public stages
+# (`fwd_position` .. `solve`); `make_step(model)` returns `step(mx, d)` for an
+# `MjModel` whose equalities are connects and welds (the only ones MuJoCo C adds the
+# term to). With both, MJX matches MuJoCo C to round-off over one step.
+
+@functools.cache
+def _mjx():
+    # `mujoco.mjx`, imported on first use: it prints "Failed to import mujoco_warp: ..."
+    # without the optional `warp` package, which lgnn does not use.
+    with contextlib.redirect_stdout(io.StringIO()):
+        from mujoco import mjx
+    return mjx
+
+
+# MuJoCo's classic RK4 tableau: stage i (1..3) is evaluated at h * A[i-1] along the
+# previous stage's rate; B weights the four stages.
+RK4_A = (0.5, 0.5, 1.0)
+RK4_B = (1.0 / 6.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 6.0)
+# Below this squared angle the Bortz coefficient is its Taylor series (the closed form
+# cancels); its next term, 2.1e-8 x^8, is below 1e-19 there.
+BORTZ_SERIES_MAX = 0.25
+
+
+class JointMaps:
+    """Static index arrays of an `MjModel`'s joints: `lin_q`, `lin_v` the qpos / qvel
+    numbers integrated linearly (hinges, slides, free positions); `quat_q` (K, 4) the
+    quaternions (ball and free joints), `rot_v` (K, 3) their angular velocities (in
+    the body's frame)."""
+
+    def __init__(self, model: mujoco.MjModel):
+        lin_q, lin_v, quat_q, rot_v = [], [], [], []
+        for j in range(model.njnt):
+            kind, q, v = model.jnt_type[j], int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
+            if kind == mujoco.mjtJoint.mjJNT_FREE:
+                lin_q += range(q, q + 3)
+                lin_v += range(v, v + 3)
+                quat_q.append(range(q + 3, q + 7))
+                rot_v.append(range(v + 3, v + 6))
+            elif kind == mujoco.mjtJoint.mjJNT_BALL:
+                quat_q.append(range(q, q + 4))
+                rot_v.append(range(v, v + 3))
+            else:
+                lin_q.append(q)
+                lin_v.append(v)
+        self.lin_q, self.lin_v = np.array(lin_q, np.int64), np.array(lin_v, np.int64)
+        self.quat_q = np.array(quat_q, np.int64).reshape(-1, 4)
+        self.rot_v = np.array(rot_v, np.int64).reshape(-1, 3)
+
+
+def _quat_mul(a, b):
+    w1, v1, w2, v2 = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
+    return jnp.concatenate([w1 * w2 - jnp.sum(v1 * v2, -1, keepdims=True), w1 * v2 + w2 * v1 + jnp.cross(v1, v2)], -1)
+
+
+def integrate_pos(maps: JointMaps, qpos, qvel, h):
+    """`qpos` advanced by `qvel` over time `h` (MuJoCo's `mj_integratePos`): linear
+    coordinates by `h qvel`, quaternions (normalized first) rotated by the body-frame
+    angle `h |omega|` about `omega`."""
+    out = qpos.at[maps.lin_q].add(h * qvel[maps.lin_v])
+    if not len(maps.quat_q):
+        return out
+    quat, omega = qpos[maps.quat_q], qvel[maps.rot_v]
+    quat = quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)
+    norm = jnp.linalg.norm(omega, axis=-1, keepdims=True)
+    axis = omega / jnp.where(norm > 0, norm, 1)
+    half = 0.5 * h * norm
+    rotation = jnp.concatenate([jnp.cos(half), jnp.sin(half) * axis], -1)
+    return out.at[maps.quat_q].set(_quat_mul(quat, rotation))
+
+
+def joint_qpos_rate(maps: JointMaps, qpos, qvel):
+    """d qpos / dt at `qvel`: `qvel` for linear coordinates, `1/2 quat * (0, omega)`
+    for quaternions (the tangent a `jvp` in qpos takes)."""
+    rate = jnp.zeros_like(qpos).at[maps.lin_q].set(qvel[maps.lin_v])
+    if not len(maps.quat_q):
+        return rate
+    omega = qvel[maps.rot_v]
+    pure = jnp.concatenate([jnp.zeros_like(omega[:, :1]), omega], -1)
+    return rate.at[maps.quat_q].set(0.5 * _quat_mul(qpos[maps.quat_q], pure))
+
+
+def _bortz(xx):
+    # c(x) = (1 - (x/2) cot(x/2)) / x^2 at x^2 = xx: Taylor series near 0, else closed.
+    series = 1 / 12 + xx * (1 / 720 + xx * (1 / 30240 + xx / 1209600))
+    safe = jnp.where(xx < BORTZ_SERIES_MAX, 1.0, xx)
+    x = jnp.sqrt(safe)
+    return jnp.where(xx < BORTZ_SERIES_MAX, series, (1 - 0.5 * x / jnp.tan(0.5 * x)) / safe)
+
+
+def rkmk_velocity(maps: JointMaps, rotation, qvel):
+    """`qvel` with each angular velocity `w` replaced by the rate of the rotation
+    vector `r` (`rotation`, rows of `maps.rot_v`) of a body at `quat0 * exp(r)`:
+    `w + 1/2 r x w + c(|r|) r x (r x w)` (`dexp^-1`), `r` first reduced to an angle
+    in (-pi, pi]."""
+    if not len(maps.rot_v):
+        return qvel
+    r, w = rotation[maps.rot_v], qvel[maps.rot_v]
+    xx = jnp.sum(r * r, -1, keepdims=True)
+    x = jnp.sqrt(jnp.where(xx > np.pi**2, xx, 1.0))
+    r = jnp.where(xx > np.pi**2, r * (x - 2 * np.pi * jnp.floor(x / (2 * np.pi) + 0.5)) / x, r)
+    xx = jnp.sum(r * r, -1, keepdims=True)
+    rxw = jnp.cross(r, w)
+    return qvel.at[maps.rot_v].set(w + 0.5 * rxw + _bortz(xx) * jnp.cross(r, rxw))
+
+
+def check_equalities(model: mujoco.MjModel) -> None:
+    """`ConfigError` unless every equality is a connect or a weld (the rows MuJoCo C
+    adds `Jdot v` to; `forward` adds it to every equality row)."""
+    kinds = {mujoco.mjtEq.mjEQ_CONNECT, mujoco.mjtEq.mjEQ_WELD}
+    other = sorted({mujoco.mjtEq(int(t)).name for t in model.eq_type} - {k.name for k in kinds})
+    if other:
+        raise ConfigError(f"lgnn's MJX step adds MuJoCo C's Jdot v to connect and weld equalities only, the model has {', '.join(other)}")
+
+
+def forward(mx, maps: JointMaps, d):
+    """MJX's `forward` without sensors, with MuJoCo C's `-Jdot v` in the equality rows'
+    reference acceleration."""
+    mjx = _mjx()
+    d = mjx.fwd_position(mx, d)
+    d = mjx.fwd_velocity(mx, d)
+    d = mjx.fwd_actuation(mx, d)
+    d = mjx.fwd_acceleration(mx, d)
+    if d._impl.efc_J.shape[0] == 0:
+        return d.replace(qacc=d.qacc_smooth)
+
+    def jacobian_times_qvel(qpos):
+        dq = mjx.com_pos(mx, mjx.kinematics(mx, d.replace(qpos=qpos)))
+        return mjx.make_constraint(mx, dq)._impl.efc_J @ d.qvel
+
+    _, jdot_v = jax.jvp(jacobian_times_qvel, (d.qpos,), (joint_qpos_rate(maps, d.qpos, d.qvel),))
+    equality = d._impl.efc_type == int(mujoco.mjtConstraint.mjCNSTR_EQUALITY)
+    d = d.tree_replace({"_impl.efc_aref": d._impl.efc_aref - jnp.where(equality, jdot_v, 0)})
+    return mjx.solve(mx, d)
+
+
+def rk4(mx, maps: JointMaps, d):
+    """One step of MuJoCo C's RK4 (`mj_RungeKutta`, 4.0): stages at `q0 (+) h A v`,
+    `v0 + h A a` of the previous stage's (corrected) velocity `v` and acceleration
+    `a`; each stage's angular velocities mapped by `rkmk_velocity` to rotation-vector
+    rates; the step `q0 (+) h sum B v`, `v0 + h sum B a`. `d` is forwarded first (as
+    MJX's `step` does); the returned `qacc` is the stages' weighted sum and
+    `qacc_warmstart` the last stage's, as in MuJoCo C."""
+    h = mx.opt.timestep
+    q0, v0, t0 = d.qpos, d.qvel, d.time
+    d = forward(mx, maps, d)
+    v_sum, a_sum = RK4_B[0] * v0, RK4_B[0] * d.qacc
+
+    def stage(carry, tableau):
+        d, v_prev, v_sum, a_sum = carry
+        a, b = tableau[0], tableau[1]
+        qpos = integrate_pos(maps, q0, v_prev, a * h)
+        qvel = v0 + a * h * d.qacc
+        d = forward(mx, maps, d.replace(qpos=qpos, qvel=qvel, time=t0 + a * h))
+        v_stage = rkmk_velocity(maps, a * h * v_prev, qvel)
+        return (d, v_stage, v_sum + b * v_stage, a_sum + b * d.qacc), None
+
+    tableau = jnp.array([RK4_A, RK4_B[1:]], dtype=v0.dtype).T
+    (d, _, v_sum, a_sum), _ = jax.lax.scan(stage, (d, v0, v_sum, a_sum), tableau)
+    return d.replace(qpos=integrate_pos(maps, q0, v_sum, h), qvel=v0 + h * a_sum, time=t0 + h,
+                     qacc=a_sum, qacc_warmstart=d.qacc)
+
+
+def make_step(model: mujoco.MjModel):
+    """`step(mx, d)`: one MuJoCo-C-equivalent RK4 step of MJX data `d` of `model`
+    (`mx` its `mjx.put_model`)."""
+    if model.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4:
+        raise ConfigError("lgnn's MJX step is RK4 only")
+    check_equalities(model)
+    maps = JointMaps(model)
+    return lambda mx, d: rk4(mx, maps, d)
+
+
 @functools.lru_cache(maxsize=16)
 def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form: Form = "nested"):
     """Compiled-on-first-call `run(q0, qd0) -> (q, qd)`: MJX trajectories of the
@@ -58,11 +256,7 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form:
     N, dim). Cached on the scene's content, config, dtype and form, so compilation (slow on
     CPU) happens once per process.
     Call it inside `lgnn.runtime.precision(dtype)`."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        # MJX prints "Failed to import mujoco_warp: ..." on import without the optional
-        # `warp` package, which lgnn does not use.
-        from mujoco import mjx
-
+    mjx = _mjx()
     check_rk4(config)
     if dtype not in DTYPES:
         raise ConfigError(f"MJX dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
@@ -82,6 +276,7 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form:
         return jax.tree.map(lambda x: x.astype(dt_) if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.floating) else x, tree)
 
     mx = cast(mjx.put_model(compiled.model))
+    mjc_step = make_step(compiled.model)
     d0 = cast(mjx.make_data(mx))
     sites = jnp.asarray(compiled.node_site)
     bodies = jnp.asarray(compiled.body_id)
@@ -103,7 +298,7 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form:
         if drag:
             _, v_cm = velocities(d.qpos, d.qvel, "com")
             d = d.replace(xfrc_applied=d.xfrc_applied.at[bodies, :3].set(-drag * v_cm))
-        return mjx.step(mx, d)
+        return mjc_step(mx, d)
 
     def one(q0, qd0):
         qpos, qvel = state_to_qpos_qvel(compiled, q0.astype(dt_), qd0.astype(dt_))
