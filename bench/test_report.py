@@ -278,10 +278,12 @@ def test_the_planar_and_spatial_grids_get_tables_of_their_own():
 
 
 def test_a_3d_snapshot_figure_shows_each_model_and_mujoco_from_the_front_and_from_above(monkeypatch, tmp_path):
-    """chain4-3d swinging out of the x-y plane: a row per model trained on chain4-3d
-    (a planar model's record on another scene is not drawn), at every time a front
+    """chain4-3d swinging out of the x-y plane: a row per model trained on chain4-3d,
+    first seed (neither a planar model's record nor another seed is drawn), at every time a front
     (x-y) and a top (x-z) view that draw those coordinates, MuJoCo and the model in
     each panel's lines; the file is a PNG."""
+    import dataclasses
+
     from lgnn.scene import get_scene
 
     scene = get_scene("chain4-3d")
@@ -290,7 +292,8 @@ def test_a_3d_snapshot_figure_shows_each_model_and_mujoco_from_the_front_and_fro
     truths = {"chain4-3d": ({"snapshot/mujoco": truth_q, "snapshot/truth": truth_q}, {})}
     pairs = [(grid.Pair(SPATIAL_JOB, "chain4-3d"), ({"snapshot/model": truth_q + 0.05}, {})),
              (grid.Pair(grid.TrainingJob("lgn", grid.SPATIAL_TRAINING_SCENE, 0), "chain4-3d"), ({"snapshot/model": truth_q - 0.05}, {})),
-             (grid.Pair(JOB, "chain4"), ({"snapshot/model": np.zeros((6, 5, 2))}, {}))]
+             (grid.Pair(JOB, "chain4"), ({"snapshot/model": np.zeros((6, 5, 2))}, {})),
+             (grid.Pair(dataclasses.replace(SPATIAL_JOB, seed=1), "chain4-3d"), ({"snapshot/model": truth_q}, {}))]
     figures = []
     save = report._savefig
     monkeypatch.setattr(report, "_savefig", lambda fig, path: (figures.append(fig), save(fig, path)))
@@ -305,4 +308,4 @@ def test_a_3d_snapshot_figure_shows_each_model_and_mujoco_from_the_front_and_fro
     np.testing.assert_allclose(np.sort(front), np.sort(truth_q[5][np.asarray(scene.edges)][..., 1].ravel()))
     np.testing.assert_allclose(np.sort(top), np.sort(truth_q[5][np.asarray(scene.edges)][..., 2].ravel()))
     assert axes[1, 0].get_legend().get_texts()[1].get_text() == "LGN"
-    assert "trained on chain4-3d" in fig._suptitle.get_text()
+    assert "trained on chain4-3d, seed 0" in fig._suptitle.get_text()

@@ -395,7 +395,8 @@ def _square_limits(points: np.ndarray, margin: float = 0.08) -> tuple[tuple[floa
 
 def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
     """Initial condition 0 at 5 times: a row per model trained on the main training
-    scene of the scene's dimension (`TRAINING_SCENES`), dashed in its colour, over
+    scene of the scene's dimension (`TRAINING_SCENES`), its first seed (more rows of a
+    model would not say which seed each is), dashed in its colour, over
     MuJoCo's trajectory in black; in 3D each time drawn from the front and from above.
     Each view's panels share the box of MuJoCo's whole trajectory (`_square_limits`)."""
     import matplotlib.pyplot as plt
@@ -407,12 +408,14 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
     learned = [(p, r) for p, r in pairs if p.scene == scene and p.job.scene == trained_on]
     if not learned:
         return False
+    seed = min(p.job.seed for p, _ in learned)
+    learned = [(p, r) for p, r in learned if p.job.seed == seed]
     mujoco_q = truths[scene][0]["snapshot/mujoco"]
     views = SNAPSHOT_VIEWS[structure.dim]
     limits = [_square_limits(mujoco_q[..., [x, y]]) for x, y, _ in views]
     frames = np.linspace(0, len(mujoco_q) - 1, 5).round().astype(int)
     n_cols = len(frames) * len(views)
-    fig, axes = plt.subplots(len(learned), n_cols, figsize=(2.6 * n_cols, 2.6 * len(learned)), squeeze=False)
+    fig, axes = plt.subplots(len(learned), n_cols, figsize=(2.6 * n_cols, 2.6 * len(learned)), squeeze=False, layout="constrained")
     edges = np.asarray(structure.edges)
     for row, (pair, (arrays, _)) in enumerate(learned):
         model_q = arrays["snapshot/model"]
@@ -434,9 +437,8 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
                 if k == v == 0:
                     ax.legend(fontsize=6, loc="lower left")
     views_text = "; ".join(view for _, _, view in views if view)
-    fig.suptitle(f"{scene}: learned (dashed, trained on {trained_on}) against MuJoCo (black), initial condition 0"
+    fig.suptitle(f"{scene}: learned (dashed, trained on {trained_on}, seed {seed}) against MuJoCo (black), initial condition 0"
                  + (f"\nviews: {views_text}, gravity along -y" if views_text else ""), fontsize=10)
-    fig.tight_layout()
     _savefig(fig, path)
     return True
 
@@ -595,7 +597,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         + (f", plateau: stop when the best validation MSE has not improved by {t.train.min_improvement:.0%} in {t.train.patience} epochs"
            if t.train.min_improvement else f", patience {t.train.patience}")
         + f", seeds {', '.join(map(str, p.seeds))}.",
-        f"- Evaluation: {e.initial_conditions} initial conditions per chain scene (paper sampler, seed {e.ic_seed}; T1-T3: their rest state), "
+        f"- Evaluation: {e.initial_conditions} initial conditions per chain scene (paper sampler, seed {e.ic_seed}; T1-T3: their rest state; the 3D net, rope and tensegrity: their own initial state), "
         f"{e.duration:g} s, frames every {e.frame_dt:g} s, RK4 at dt {e.dt:g} with projection for models and the Lagrangian ground truth"
         + "".join(f" ({scene}: dt {dt:g})" for scene, dt in e.scene_dts if scene in evaluation_scenes(p)) + "; "
         f"MuJoCo C at RK4 dt {e.mujoco_dt:g}. Chaos floor: initial positions perturbed by {e.floor_perturbation:g}.",
