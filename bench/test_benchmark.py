@@ -177,32 +177,39 @@ def test_scaling(profile, out):
 
 
 def _rod_mass_matrix(scene, q: np.ndarray) -> np.ndarray:
-    """The closed-form mass matrix (N*D, N*D) of a 2D scene's rods at positions `q`:
-    each rod adds `m/4 [[1, 1], [1, 1]] (x) 1 + I/l^2 [[1, -1], [-1, 1]] (x) t t^T` on its
-    ends, `t` its unit normal (tests/test_physics.py checks the formula by hand)."""
+    """The closed-form mass matrix (N*D, N*D) of a scene's rods at positions `q`: each
+    rod adds `m/4 [[1, 1], [1, 1]] (x) 1 + I/l^2 [[1, -1], [-1, 1]] (x) (1 - e e^T)` on
+    its ends, `e` its unit axis: only motion across the rod turns it (in 2D `1 - e e^T`
+    is `t t^T`, `t` the unit normal; in 3D a thin rod has no spin about its axis).
+    tests/test_physics.py and tests/test_spatial.py check the formula by hand."""
     n, dim = q.shape
     full = np.zeros((n * dim, n * dim))
     for (i, j), m, inertia in zip(np.asarray(scene.edge_index), scene.masses, scene.inertias):
         rod = q[i] - q[j]
-        normal = np.array([-rod[1], rod[0]]) / np.linalg.norm(rod)
-        block = m / 4 * np.kron(np.ones((2, 2)), np.eye(dim)) + inertia / (rod @ rod) * np.kron([[1, -1], [-1, 1]], np.outer(normal, normal))
+        axis = rod / np.linalg.norm(rod)
+        block = m / 4 * np.kron(np.ones((2, 2)), np.eye(dim)) + inertia / (rod @ rod) * np.kron([[1, -1], [-1, 1]], np.eye(dim) - np.outer(axis, axis))
         idx = np.concatenate([np.arange(i * dim, (i + 1) * dim), np.arange(j * dim, (j + 1) * dim)])
         full[np.ix_(idx, idx)] += block
     return full
 
 
+def _free_coordinates(scene) -> tuple[np.ndarray, np.ndarray]:
+    """`(free nodes, their coordinates' indices)`: the rows the mass stage keeps."""
+    free = np.setdiff1d(np.arange(scene.n_nodes), scene.pinned)
+    return free, (free[:, None] * scene.dim + np.arange(scene.dim)).reshape(-1)
+
+
 def test_mass_matrix(profile, out, mass_scene):
     arrays, meta = store.load(mass.mass_matrices(profile, mass_scene, out))
     scene = get_scene(mass_scene)
-    free = np.setdiff1d(np.arange(scene.n_nodes), scene.pinned)
-    coords = (free[:, None] * scene.dim + np.arange(scene.dim)).reshape(-1)
+    free, coords = _free_coordinates(scene)
     # The true matrix is the rods' closed form at the state the stage analysed.
     q = evaluate.load_truth(profile, mass_scene, out)[0]["mid_state"][0]
     np.testing.assert_allclose(arrays["true"], _rod_mass_matrix(scene, q)[np.ix_(coords, coords)], rtol=1e-12, atol=1e-14)
     # The learned matrix is banded: nodes farther apart in the graph than one link plus
     # two message-passing hops from each end share no energy term (LGNN's default,
     # no message passing: linked pairs only), so their block is zero to round-off.
-    model, _ = train.load_model(store.Layout(out).checkpoint(grid.lgnn_job(profile)))
+    model, _ = train.load_model(store.Layout(out).checkpoint(grid.lgnn_job(profile, mass_scene)))
     hops = np.full((scene.n_nodes, scene.n_nodes), scene.n_nodes)
     np.fill_diagonal(hops, 0)
     for i, j in np.asarray(scene.edge_index):
@@ -214,6 +221,33 @@ def test_mass_matrix(profile, out, mass_scene):
     assert far.any() and np.isfinite(learned).all()
     assert np.max(np.abs(learned[far])) <= 1e-12 * np.max(np.abs(learned)), "coupling between unlinked nodes"
     assert np.max(np.abs(learned[~far])) > 0
+
+
+def test_a_3d_chains_mass_matrix_is_the_3d_lgnns_against_the_rods_in_3d(tmp_path):
+    """The mass stage on a 3D chain analyses the LGNN trained on chain4-3d (on a planar
+    scene, the one trained on chain4) against the rods' mass matrix in 3D (no spin about
+    a rod's axis), at the state the scene's ground-truth record holds. Untrained
+    weights and a record holding only that state: no training, no rollout."""
+    from lgnn import physics
+    from lgnn.learn import models
+
+    profile = dataclasses.replace(QUICK, mass=dataclasses.replace(QUICK.mass, scenes=("chain4-3d",)))
+    job = grid.lgnn_job(profile, "chain4-3d")
+    assert job == grid.TrainingJob("lgnn", grid.SPATIAL_TRAINING_SCENE, 0)
+    assert grid.lgnn_job(profile, "chain8") == grid.lgnn_job(profile) == grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0)
+    layout, scene = store.Layout(tmp_path), get_scene("chain4-3d")
+    model, config = models.ModelConfig.for_scene("lgnn", get_scene(job.scene)), profile.training.train
+    layout.checkpoint(job).parent.mkdir(parents=True)
+    train.save_checkpoint(layout.checkpoint(job), train.initial_state(model, config), model, config)
+    q, qd = (np.asarray(a[0]) for a in physics.benchmark_initial_states(scene, 1, profile.evaluate.ic_seed))
+    assert np.ptp(q[:, 2]) > 0.1, "a state out of the x-y plane"
+    store.save(layout.truth_record("chain4-3d"), evaluate.truth_key(profile, "chain4-3d"), {"mid_state": np.stack([q, qd])}, {})
+    arrays, meta = store.load(mass.mass_matrices(profile, "chain4-3d", tmp_path))
+    assert meta["job"] == "lgnn-chain4-3d-s0"
+    assert [m["scene"] for _, m in mass.load_mass(profile, tmp_path)] == ["chain4-3d"]
+    _, coords = _free_coordinates(scene)
+    np.testing.assert_allclose(arrays["true"], _rod_mass_matrix(scene, q)[np.ix_(coords, coords)], rtol=1e-12, atol=1e-14)
+    assert arrays["learned"].shape == arrays["true"].shape == (12, 12) and np.isfinite(arrays["learned"]).all()
 
 
 def test_report(profile, out):

@@ -33,12 +33,12 @@ def _truth(new_arrays: bool, floor_diverged: bool) -> tuple[dict, dict]:
     return arrays, {}
 
 
-def _pair(scene: str, new_arrays: bool):
+def _pair(scene: str, new_arrays: bool, job: grid.TrainingJob = JOB, projected: bool = True):
     metrics = evaluate.METRICS if new_arrays else tuple(m for m in evaluate.METRICS if m != "node_rms_error")
     arrays = {"t": T, "diverged_at": np.full(2, np.nan)}
     for metric in metrics:
         arrays.update(_metric(metric, [1e-3, 1e-3]))
-    return grid.Pair(JOB, scene), (arrays, {})
+    return grid.Pair(job, scene, projected), (arrays, {})
 
 
 def _row(table: str, scene: str) -> dict:
@@ -88,11 +88,13 @@ def test_records_without_the_new_metrics_read_not_computed():
 
 def test_the_committed_full_records_render_with_the_new_columns_not_computed():
     profile, out = grid.PROFILES["full"], ROOT / "results"
-    summary, _ = report.tables(evaluate.load_truths(profile, out), evaluate.load_pairs(profile, out))
+    truths = evaluate.load_truths(profile, out)
+    summary, _ = report.tables(truths, evaluate.load_pairs(profile, out))
     for metric in report.TRUTH_COLUMNS:
         table = report.summary_markdown(summary, metric)
         assert "nan" not in table.lower()
-        for scene in grid.evaluation_scenes(profile):
+        # (the spatial grid's records come from a later run: scenes with a ground truth)
+        for scene in truths:
             row = _row(table, scene)
             assert row["rest"] in ("not computed", "") or "e-" in row["rest"]
     # Committed numbers are read as before: LGNN on chain4 and T2-slack.
@@ -234,3 +236,76 @@ def test_a_drag_scene_record_scores_the_exact_physics_without_drag(tmp_path):
     summary, _ = report.tables({"chain4-drag": (arrays, meta)}, [])
     assert _row(report.summary_markdown(summary, "rollout_error"), "chain4-drag")[report.EXACT_NO_DRAG].startswith(
         f"{np.exp(arrays[f'{evaluate.NO_DRAG}/rollout_error/per_ic_log'].mean()):.2e}")
+
+
+SPATIAL_JOB = grid.TrainingJob("gns", grid.SPATIAL_TRAINING_SCENE, 0)
+
+
+def _section(text: str, heading: str) -> str:
+    """The markdown under `## heading` up to the next heading."""
+    start = text.index(f"## {heading}\n") + len(heading) + 4
+    end = text.find("\n## ", start)
+    return text[start:] if end < 0 else text[start:end]
+
+
+def test_the_planar_and_spatial_grids_get_tables_of_their_own():
+    """A planar model (LGNN on chain4) and a spatial one (GNS on chain4-3d, also
+    unprojected): each grid's tables hold its scenes and its models only, headed by the
+    grid and its training scene (the 3D columns drop the `(chain4-3d)` the heading
+    names); a 3D pair of the grid without a record is "not evaluated" there."""
+    import dataclasses
+
+    profile = dataclasses.replace(grid.PROFILES["quick"], train_scenes=None, scenes=None, models=None, grid=(
+        grid.GridEntry("lgnn", grid.TRAINING_SCENE, ("chain4", "chain8")),
+        grid.GridEntry("gns", grid.SPATIAL_TRAINING_SCENE, ("tensegrity-3d", "chain4-3d"), unprojected=True)))
+    truths = {scene: _truth(True, False) for scene in ("chain4", "chain8", "chain4-3d", "tensegrity-3d")}
+    pairs = [_pair("chain4", True), _pair("chain8", True), _pair("chain4-3d", True, SPATIAL_JOB),
+             _pair("chain4-3d", True, SPATIAL_JOB, projected=False), _pair("tensegrity-3d", True, SPATIAL_JOB, projected=False)]
+    summary, _ = report.tables(truths, pairs)
+    text = "\n".join(report._summary_sections(profile, summary, {}))
+    for metric, heading in report.SUMMARY_TABLES:
+        planar = _section(text, f"{heading} (planar: trained on chain4)")
+        spatial = _section(text, f"{heading} (3D: trained on chain4-3d)")
+        head = lambda table: table.strip().splitlines()[0].strip("|").split(" | ")  # noqa: E731
+        truth_columns = [report.TRUTH_NAMES[m] for m in report.TRUTH_COLUMNS[metric]]
+        assert [c.strip() for c in head(planar)] == ["scene", "lgnn", "rest", *truth_columns]
+        assert [c.strip() for c in head(spatial)] == ["scene", "gns", "gns (unprojected)", "rest", *truth_columns]
+        assert [_row(planar, s)["scene"] for s in ("chain4", "chain8")] and "3d" not in planar
+        # Table order: the built-in grid's (chain4-3d before tensegrity-3d), not the entry's.
+        assert [line.split(" | ")[0] for line in spatial.strip().splitlines()[2:]] == ["| chain4-3d", "| tensegrity-3d"]
+        assert _row(spatial, "tensegrity-3d")["gns"] == "not evaluated"
+        assert _row(spatial, "tensegrity-3d")["gns (unprojected)"].startswith("1.00e-03")
+
+
+def test_a_3d_snapshot_figure_shows_each_model_and_mujoco_from_the_front_and_from_above(monkeypatch, tmp_path):
+    """chain4-3d swinging out of the x-y plane: a row per model trained on chain4-3d,
+    first seed (neither a planar model's record nor another seed is drawn), at every time a front
+    (x-y) and a top (x-z) view that draw those coordinates, MuJoCo and the model in
+    each panel's lines; the file is a PNG."""
+    import dataclasses
+
+    from lgnn.scene import get_scene
+
+    scene = get_scene("chain4-3d")
+    frames = np.arange(6)[:, None, None] * np.array([0.0, 0.0, 0.1])  # each frame 0.1 further along z
+    truth_q = (np.asarray(scene.nodes) + frames).astype(np.float32)
+    truths = {"chain4-3d": ({"snapshot/mujoco": truth_q, "snapshot/truth": truth_q}, {})}
+    pairs = [(grid.Pair(SPATIAL_JOB, "chain4-3d"), ({"snapshot/model": truth_q + 0.05}, {})),
+             (grid.Pair(grid.TrainingJob("lgn", grid.SPATIAL_TRAINING_SCENE, 0), "chain4-3d"), ({"snapshot/model": truth_q - 0.05}, {})),
+             (grid.Pair(JOB, "chain4"), ({"snapshot/model": np.zeros((6, 5, 2))}, {})),
+             (grid.Pair(dataclasses.replace(SPATIAL_JOB, seed=1), "chain4-3d"), ({"snapshot/model": truth_q}, {}))]
+    figures = []
+    save = report._savefig
+    monkeypatch.setattr(report, "_savefig", lambda fig, path: (figures.append(fig), save(fig, path)))
+    assert report._plot_snapshots("chain4-3d", truths, pairs, tmp_path / "snapshots.png")
+    assert (tmp_path / "snapshots.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (fig,) = figures
+    axes = np.array(fig.get_axes()).reshape(2, 10)
+    assert [ax.get_title().split(", ")[1] for ax in axes[0, :2]] == ["front (x-y)", "top (x-z)"]
+    last = axes[0, 8:]  # the last time (frame 5) of the GNS row, front and top
+    assert [line.get_label() for line in last[0].get_lines() if not line.get_label().startswith("_")] == ["MuJoCo", "GNS"]
+    front, top = (np.concatenate([line.get_ydata() for line in ax.get_lines()[:4]]) for ax in last)
+    np.testing.assert_allclose(np.sort(front), np.sort(truth_q[5][np.asarray(scene.edges)][..., 1].ravel()))
+    np.testing.assert_allclose(np.sort(top), np.sort(truth_q[5][np.asarray(scene.edges)][..., 2].ravel()))
+    assert axes[1, 0].get_legend().get_texts()[1].get_text() == "LGN"
+    assert "trained on chain4-3d, seed 0" in fig._suptitle.get_text()

@@ -120,9 +120,8 @@ def rekey(profile: grid.Profile, out: Path, dry_run: bool = False) -> dict[Path,
             done[path] = _rekey_json(path, old_speed_key(profile, scene, out), speed.speed_key(profile, scene, out), dry_run)
     if layout.scaling_record.exists():
         done[layout.scaling_record] = _rekey_json(layout.scaling_record, old_scaling_key(profile, out), scaling.scaling_key(profile, out), dry_run)
-    checkpoint = layout.checkpoint(grid.lgnn_job(profile))
     for scene in profile.mass.scenes:
-        path = layout.mass_record(scene)
+        path, checkpoint = layout.mass_record(scene), layout.checkpoint(grid.lgnn_job(profile, scene))
         if path.exists() and checkpoint.exists():
             done[path] = _rekey_arrays(path, old_mass_key(profile, scene, checkpoint), mass.mass_key(profile, scene, checkpoint), dry_run)
     return done

@@ -32,6 +32,7 @@ from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.learn.data import DataConfig
 from lgnn.learn.models import load_spec
 from lgnn.learn.train import TrainConfig, adam_steps_per_epoch, scheduled
+from lgnn.scene import get_scene
 
 # The scene every model of the main grid is trained on.
 TRAINING_SCENE = "chain4"
@@ -46,6 +47,9 @@ TRANSFER_SCENES = ("chain4", "chain8", "chain16", "chain100", "T1", "T2-slack", 
 # rods tied by bowed rope chains (`lgnn.scene`'s spatial catalogue), in table order.
 SPATIAL_TRAINING_SCENE = "chain4-3d"
 SPATIAL_TRANSFER_SCENES = ("chain4-3d", "chain8-3d", "chain16-3d", "chain100-3d", "net4x4-3d", "rope-3d", "tensegrity-3d")
+# The main training scene of each dimension's grid (a scene's `dim`): the models a
+# scene's snapshots and mass matrix are read from.
+TRAINING_SCENES = {2: TRAINING_SCENE, 3: SPATIAL_TRAINING_SCENE}
 # Field metadata of a setting that does not change what a record holds.
 NOT_IN_KEY = {"in_key": False}
 
@@ -230,8 +234,9 @@ class ScalingSettings:
 class MassSettings:
     """The learned LGNN mass matrix against the true one."""
 
-    # Scenes analysed (each must be evaluated: the state comes from its ground truth).
-    scenes: tuple[str, ...] = dataclasses.field(default=("chain16", "T1"), metadata=NOT_IN_KEY)
+    # Scenes analysed (each must be evaluated: the state comes from its ground truth),
+    # each with the LGNN of its dimension's grid (`lgnn_job`).
+    scenes: tuple[str, ...] = dataclasses.field(default=("chain16", "T1", "chain16-3d"), metadata=NOT_IN_KEY)
     # Version of what is derived from the matrices (2: the scale-fitted errors).
     analysis: int = 2
 
@@ -348,7 +353,9 @@ def evaluation_scenes(profile: Profile) -> list[str]:
     return list(dict.fromkeys(p.scene for p in evaluation_pairs(profile)))
 
 
-def lgnn_job(profile: Profile) -> TrainingJob:
-    """The model whose learned mass matrix and cost against size are measured: LGNN
-    trained on TRAINING_SCENE, first seed."""
-    return TrainingJob("lgnn", TRAINING_SCENE, profile.seeds[0])
+def lgnn_job(profile: Profile, scene_name: str | None = None) -> TrainingJob:
+    """The model whose learned mass matrix (on `scene_name`) and cost against size are
+    measured: LGNN trained on the main training scene of the scene's dimension
+    (`TRAINING_SCENES`: chain4, chain4-3d in 3D; chain4 without a scene), first seed."""
+    dim = 2 if scene_name is None else get_scene(scene_name).dim
+    return TrainingJob("lgnn", TRAINING_SCENES[dim], profile.seeds[0])

@@ -43,7 +43,7 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
-from lgnn.bench.grid import TRAINING_SCENE, TRANSFER_SCENES, Profile, evaluation_pairs, evaluation_scenes
+from lgnn.bench.grid import GRID, TRAINING_SCENES, Profile, evaluation_pairs, evaluation_scenes
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
 from lgnn.bench.stages.evaluate import NO_DRAG
@@ -71,6 +71,11 @@ CURVES = "curves.csv.gz"
 # The `seed` of summary rows over every training seed of a model.
 ALL_SEEDS = -1
 MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale", "scaled_percent_error", "scaled_tangent_percent_error")
+# Table order of scenes: the built-in grid's evaluation scenes as it declares them
+# (planar, then 3D); a user's grid's other scenes follow as recorded.
+SCENE_ORDER = tuple(dict.fromkeys(scene for entry in GRID for scene in entry.eval_scenes))
+# How headings name each dimension's grid.
+DIMENSION_NAMES = {2: "planar", 3: "3D"}
 
 
 def _env_columns(meta: dict) -> dict:
@@ -202,8 +207,28 @@ TRUTH_COLUMNS = {
 TRUTH_NAMES = {FLOOR: "chaos floor", FLOOR_RMS: "chaos floor", "truth_vs_mujoco": "Lagrangian vs MuJoCo"}
 
 
-def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = frozenset(), unrankable: dict[str, str] | None = None) -> str:
-    """A markdown table: scene rows, model columns (the rest baseline last), `gmean
+def scene_groups(scenes) -> dict[int, list[str]]:
+    """`{dim: scenes}`, dimensions ascending, each group in table order (`SCENE_ORDER`,
+    then as given): each dimension's grid gets its own tables, whose columns are the
+    models evaluated on its scenes (a model trained in 2D is never evaluated in 3D)."""
+    scenes = list(dict.fromkeys(scenes))
+    groups: dict[int, list[str]] = {}
+    for scene in [s for s in SCENE_ORDER if s in scenes] + [s for s in scenes if s not in SCENE_ORDER]:
+        groups.setdefault(get_scene(scene).dim, []).append(scene)
+    return dict(sorted(groups.items()))
+
+
+def _without_training_scene(label: str, training_scene: str | None) -> str:
+    """A model's label without its ` (training scene)`, where a heading or title names
+    that scene once (`lgnn (chain4-3d)` under "trained on chain4-3d" is `lgnn`)."""
+    return label if training_scene is None else label.replace(f" ({training_scene})", "", 1)
+
+
+def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = frozenset(), unrankable: dict[str, str] | None = None,
+                     scenes: list[str] | None = None, trained_on: str | None = None) -> str:
+    """A markdown table: rows the summary's `scenes` (default: all, in table order),
+    columns the models evaluated on them (the rest baseline last; `trained_on`, the one
+    training scene the heading names, dropped from their names), `gmean
     [95% interval]` cells, and the scene's chaos floor (and, for the rollout error,
     Lagrangian-vs-MuJoCo) beside. A record that exists but lacks the metric (written
     before it was computed) shows "not computed", never a number; a `(scene, model)`
@@ -214,18 +239,19 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
     if summary.empty:
         return "(no results)\n"
     wide = summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
+    recorded = list(wide["scene"].unique())
+    scenes = [s for group in scene_groups(recorded).values() for s in group] if scenes is None else [s for s in scenes if s in recorded]
+    wide = wide[wide.scene.isin(scenes)]
     models = [m for m in wide["model"].unique() if m not in ("ground truth", REST)]
     models.sort(key=lambda m: (MODEL_ORDER.index(m.split()[0]) if m.split()[0] in MODEL_ORDER else 9, m))
     models.append(REST)
-    # The grid's scenes in table order, then any other (a user's grid) as recorded.
-    known = TRANSFER_SCENES + ("chain4-varied", "chain4-drag")
-    scenes = [s for s in known if s in set(wide["scene"])] + [s for s in dict.fromkeys(wide["scene"]) if s not in known]
     # Which records exist: a model with any metric on a scene; the rest baseline and
     # the scene-level columns wherever the scene's ground-truth record does.
     present = {(scene, "ground truth" if model == REST else model) for scene, model in zip(wide["scene"], wide["model"])}
     truth_metrics = TRUTH_COLUMNS[metric]
     extra = [TRUTH_NAMES[m] for m in truth_metrics]
-    lines = ["| scene | " + " | ".join(models + extra) + " |", "|---" * (len(models) + len(extra) + 1) + "|"]
+    columns = [_without_training_scene(m, trained_on) for m in models]
+    lines = ["| scene | " + " | ".join(columns + extra) + " |", "|---" * (len(models) + len(extra) + 1) + "|"]
     for scene in scenes:
         cells = []
         for model in models:
@@ -303,10 +329,10 @@ def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str) 
             for model in sub["model"].unique():
                 if model == "ground truth":
                     continue
-                kind = model.split()[0]
+                kind, name = model.split()[0], _without_training_scene(model, trained_on)
                 m = sub[sub.model == model]
                 g = m[m.statistic == "gmean"]
-                ax.plot(g.t, g.value, color=COLORS.get(kind), label=model.upper() if kind == model else model)
+                ax.plot(g.t, g.value, color=COLORS.get(kind), label=name.upper() if kind == name else name)
                 lo, hi = m[m.statistic == "low"], m[m.statistic == "high"]
                 if np.isfinite(lo.value.to_numpy()).any():
                     ax.fill_between(lo.t, lo.value, hi.value, color=COLORS.get(kind), alpha=0.2, linewidth=0)
@@ -338,7 +364,7 @@ def _plot_mass_matrices(records, path: Path) -> bool:
         # The learned matrix times the fitted overall factor (a Lagrangian's scale is not identifiable).
         true_m, learned_m = arrays["true"], meta["scale"] * arrays["learned"]
         scale = np.max(np.abs(true_m))
-        for col, (matrix, name) in enumerate(((true_m, "true M"), (learned_m, f"learned M (LGNN) x {meta['scale']:.3g}"))):
+        for col, (matrix, name) in enumerate(((true_m, "true M"), (learned_m, f"learned M ({meta['job']}) x {meta['scale']:.3g}"))):
             image = axes[row, col].imshow(matrix, cmap="RdBu_r", vmin=-scale, vmax=scale)
             axes[row, col].set_title(f"{meta['scene']}: {name}", fontsize=9)
             fig.colorbar(image, ax=axes[row, col], shrink=0.8)
@@ -351,36 +377,68 @@ def _plot_mass_matrices(records, path: Path) -> bool:
     return True
 
 
+# The views a snapshot panel draws, per scene dimension: (horizontal, vertical)
+# coordinate and name. Gravity is along -y, so a front view shows the hang and, in 3D, a
+# top view the motion out of the x-y plane.
+SNAPSHOT_VIEWS = {2: ((0, 1, ""),), 3: ((0, 1, "front (x-y)"), (0, 2, "top (x-z)"))}
+
+
+def _square_limits(points: np.ndarray, margin: float = 0.08) -> tuple[tuple[float, float], tuple[float, float]]:
+    """`(xlim, ylim)`: the square around `points` (..., 2) with `margin` of its side
+    spare, so every panel of a view draws the same box at one scale and the motion
+    shows (a model that leaves the truth's box runs off the panel)."""
+    low, high = points.reshape(-1, 2).min(0), points.reshape(-1, 2).max(0)
+    half = (1 + 2 * margin) * max(high - low) / 2 or 1.0
+    centre = (low + high) / 2
+    return (centre[0] - half, centre[0] + half), (centre[1] - half, centre[1] + half)
+
+
 def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
+    """Initial condition 0 at 5 times: a row per model trained on the main training
+    scene of the scene's dimension (`TRAINING_SCENES`), its first seed (more rows of a
+    model would not say which seed each is), dashed in its colour, over
+    MuJoCo's trajectory in black; in 3D each time drawn from the front and from above.
+    Each view's panels share the box of MuJoCo's whole trajectory (`_square_limits`)."""
     import matplotlib.pyplot as plt
 
     if scene not in truths:
         return False
-    learned = [(p, r) for p, r in pairs if p.scene == scene and p.job.scene == TRAINING_SCENE]
+    structure = get_scene(scene)
+    trained_on = TRAINING_SCENES[structure.dim]
+    learned = [(p, r) for p, r in pairs if p.scene == scene and p.job.scene == trained_on]
     if not learned:
         return False
+    seed = min(p.job.seed for p, _ in learned)
+    learned = [(p, r) for p, r in learned if p.job.seed == seed]
     mujoco_q = truths[scene][0]["snapshot/mujoco"]
-    structure = get_scene(scene)
+    views = SNAPSHOT_VIEWS[structure.dim]
+    limits = [_square_limits(mujoco_q[..., [x, y]]) for x, y, _ in views]
     frames = np.linspace(0, len(mujoco_q) - 1, 5).round().astype(int)
-    fig, axes = plt.subplots(len(learned), len(frames), figsize=(2.6 * len(frames), 2.6 * len(learned)), squeeze=False)
+    n_cols = len(frames) * len(views)
+    fig, axes = plt.subplots(len(learned), n_cols, figsize=(2.6 * n_cols, 2.6 * len(learned)), squeeze=False, layout="constrained")
     edges = np.asarray(structure.edges)
     for row, (pair, (arrays, _)) in enumerate(learned):
         model_q = arrays["snapshot/model"]
-        for col, f in enumerate(frames):
-            ax = axes[row, col]
-            for q, style, color, label in ((mujoco_q[f], "-", "k", "MuJoCo"), (model_q[f], "--", COLORS.get(pair.job.model), pair.label.upper())):
-                if np.isfinite(q).all():
-                    for k, seg in enumerate(q[edges]):
-                        ax.plot(seg[:, 0], seg[:, 1], style, color=color, linewidth=1.2, label=label if k == 0 else None)
-            ax.set_aspect("equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if row == 0:
-                ax.set_title(f"t = {f * SNAPSHOT_DT:.2f} s", fontsize=9)
-            if col == 0:
-                ax.legend(fontsize=6, loc="lower left")
-    fig.suptitle(f"{scene}: learned (dashed) against MuJoCo (black), initial condition 0", fontsize=10)
-    fig.tight_layout()
+        label = _without_training_scene(pair.label, trained_on).upper()
+        for k, f in enumerate(frames):
+            for v, (x, y, view) in enumerate(views):
+                ax = axes[row, k * len(views) + v]
+                for q, style, color, name in ((mujoco_q[f], "-", "k", "MuJoCo"), (model_q[f], "--", COLORS.get(pair.job.model), label)):
+                    if np.isfinite(q).all():
+                        for e, seg in enumerate(q[edges]):
+                            ax.plot(seg[:, x], seg[:, y], style, color=color, linewidth=1.2, label=name if e == 0 else None)
+                ax.set_xlim(limits[v][0])
+                ax.set_ylim(limits[v][1])
+                ax.set_aspect("equal")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if row == 0:
+                    ax.set_title(f"t = {f * SNAPSHOT_DT:.2f} s" + (f", {view}" if view else ""), fontsize=9)
+                if k == v == 0:
+                    ax.legend(fontsize=6, loc="lower left")
+    views_text = "; ".join(view for _, _, view in views if view)
+    fig.suptitle(f"{scene}: learned (dashed, trained on {trained_on}, seed {seed}) against MuJoCo (black), initial condition 0"
+                 + (f"\nviews: {views_text}, gravity along -y" if views_text else ""), fontsize=10)
     _savefig(fig, path)
     return True
 
@@ -491,16 +549,37 @@ def _unrankable(out: Path) -> dict[str, str]:
         return convergence.unrankable(list(csv.DictReader(line for line in handle if not line.startswith("#"))))
 
 
+# The summary tables of each grid, in README order: metric, heading.
+SUMMARY_TABLES = (
+    ("rollout_error", "Rollout error against the Lagrangian ground truth"),
+    ("node_rms_error", "Per-node RMS position error against the Lagrangian ground truth"),
+    ("energy_error", "Energy error"),
+    ("rollout_error_vs_mujoco", "Rollout error against MuJoCo"),
+)
+
+
+def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> list[str]:
+    """The summary tables of each dimension's grid apart (`scene_groups`), each heading
+    naming the grid and the scenes its models were trained on."""
+    pairs = evaluation_pairs(profile)
+    expected = {(pair.scene, pair.label) for pair in pairs}
+    lines = []
+    for dim, scenes in (scene_groups(summary["scene"]) if not summary.empty else {2: []}).items():
+        trained = list(dict.fromkeys(pair.job.scene for pair in pairs if pair.scene in scenes))
+        grid_name = DIMENSION_NAMES.get(dim, f"{dim}D") + (f": trained on {', '.join(trained)}" if trained else "")
+        for metric, heading in SUMMARY_TABLES:
+            table = summary_markdown(summary, metric, expected, unrankable, scenes, trained[0] if len(trained) == 1 else None)
+            lines += [f"## {heading} ({grid_name})", "", table]
+    return lines
+
+
 def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str]) -> str:
     from lgnn.provenance import environment
 
     env = environment()
     p, t, e = profile, profile.training, profile.evaluate
     envs = sorted(set(summary["device"])) if not summary.empty else []
-    expected = {(pair.scene, pair.label) for pair in evaluation_pairs(p)}
     unrankable = _unrankable(out)
-    tables = {metric: summary_markdown(summary, metric, expected, unrankable) for metric in
-              ("rollout_error", "node_rms_error", "energy_error", "rollout_error_vs_mujoco")}
     lines = [
         f"# Benchmark results ({p.name} profile)",
         "",
@@ -518,7 +597,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         + (f", plateau: stop when the best validation MSE has not improved by {t.train.min_improvement:.0%} in {t.train.patience} epochs"
            if t.train.min_improvement else f", patience {t.train.patience}")
         + f", seeds {', '.join(map(str, p.seeds))}.",
-        f"- Evaluation: {e.initial_conditions} initial conditions per chain scene (paper sampler, seed {e.ic_seed}; T1-T3: their rest state), "
+        f"- Evaluation: {e.initial_conditions} initial conditions per chain scene (paper sampler, seed {e.ic_seed}; T1-T3: their rest state; the 3D net, rope and tensegrity: their own initial state), "
         f"{e.duration:g} s, frames every {e.frame_dt:g} s, RK4 at dt {e.dt:g} with projection for models and the Lagrangian ground truth"
         + "".join(f" ({scene}: dt {dt:g})" for scene, dt in e.scene_dts if scene in evaluation_scenes(p)) + "; "
         f"MuJoCo C at RK4 dt {e.mujoco_dt:g}. Chaos floor: initial positions perturbed by {e.floor_perturbation:g}.",
@@ -549,26 +628,18 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "",
         *_training_lines(p, out),
         "",
-        "## Rollout error against the Lagrangian ground truth",
-        "",
-        tables["rollout_error"],
-        "## Per-node RMS position error against the Lagrangian ground truth",
-        "",
-        tables["node_rms_error"],
-        "## Energy error",
-        "",
-        tables["energy_error"],
-        "## Rollout error against MuJoCo",
-        "",
-        tables["rollout_error_vs_mujoco"],
+        *_summary_sections(p, summary, unrankable),
     ]
     if mass_records:
-        lines += ["## Learned mass matrix (LGNN trained on chain4)", "",
+        lines += ["## Learned mass matrix (LGNN)", "",
+                  "Each scene's LGNN is the one trained on its dimension's training scene (" + ", ".join(
+                      f"{DIMENSION_NAMES.get(dim, f'{dim}D')}: {scene}" for dim, scene in TRAINING_SCENES.items()) + "; checkpoint "
+                  "column), against the rods' mass matrix (in 3D a thin rod has no spin about its own axis). "
                   "Percentage Frobenius error over the free node coordinates and on the constraint tangent space (the part the dynamics "
                   "see), as learned and after the least-squares overall factor: accelerations fix a Lagrangian only up to a factor.", "",
-                  "| scene | % error | % error, tangent space | factor | % error x factor | % error x factor, tangent space |",
-                  "|---|---|---|---|---|---|"]
-        lines += [f"| {m['scene']} | {m['percent_error']:.3g} | {m['tangent_percent_error']:.3g} | {m['scale']:.3g} | "
+                  "| scene | checkpoint | % error | % error, tangent space | factor | % error x factor | % error x factor, tangent space |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += [f"| {m['scene']} | {m['job']} | {m['percent_error']:.3g} | {m['tangent_percent_error']:.3g} | {m['scale']:.3g} | "
                   f"{m['scaled_percent_error']:.3g} | {m['scaled_tangent_percent_error']:.3g} |" for _, m in mass_records]
         lines.append("")
     if speed_rows:
@@ -737,6 +808,27 @@ def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dic
     return "\n".join(lines)
 
 
+# Error-against-time figures: file, scenes (those with curves are drawn), the training
+# scene the title names ("each": the scenes' own).
+ERROR_FIGURES = (
+    ("error_vs_time_chain4_8_16.png", ("chain4", "chain8", "chain16"), TRAINING_SCENES[2]),
+    ("error_vs_time_chain100.png", ("chain100",), TRAINING_SCENES[2]),
+    ("error_vs_time_T1_T2slack_T3slack.png", ("T1", "T2-slack", "T3-slack"), TRAINING_SCENES[2]),
+    ("error_vs_time_varied_drag.png", ("chain4-varied", "chain4-drag"), "each"),
+    ("error_vs_time_chain4_8_16_3d.png", ("chain4-3d", "chain8-3d", "chain16-3d"), TRAINING_SCENES[3]),
+    ("error_vs_time_chain100_3d.png", ("chain100-3d",), TRAINING_SCENES[3]),
+    ("error_vs_time_net_rope_tensegrity_3d.png", ("net4x4-3d", "rope-3d", "tensegrity-3d"), TRAINING_SCENES[3]),
+)
+# Snapshot figures of learned against MuJoCo (`_plot_snapshots`): file, scene.
+SNAPSHOT_FIGURES = (
+    ("snapshots_chain8.png", "chain8"),
+    ("snapshots_T1.png", "T1"),
+    ("snapshots_chain8_3d.png", "chain8-3d"),
+    ("snapshots_net4x4_3d.png", "net4x4-3d"),
+    ("snapshots_tensegrity_3d.png", "tensegrity-3d"),
+)
+
+
 def write(profile: Profile, out: Path) -> Path:
     """Write every report file under `out` from the records there; returns README.md's path."""
     import matplotlib
@@ -762,13 +854,10 @@ def write(profile: Profile, out: Path) -> Path:
     figures_dir = out / "figures"
     figures = []
     plots = [
-        ("error_vs_time_chain4_8_16.png", lambda p: _plot_error_vs_time(curves, ["chain4", "chain8", "chain16"], p, "chain4")),
-        ("error_vs_time_chain100.png", lambda p: _plot_error_vs_time(curves, ["chain100"], p, "chain4")),
-        ("error_vs_time_T1_T2slack_T3slack.png", lambda p: _plot_error_vs_time(curves, ["T1", "T2-slack", "T3-slack"], p, "chain4")),
-        ("error_vs_time_varied_drag.png", lambda p: _plot_error_vs_time(curves, ["chain4-varied", "chain4-drag"], p, "each")),
+        *((name, lambda p, scenes=scenes, trained_on=trained_on: _plot_error_vs_time(curves, list(scenes), p, trained_on))
+          for name, scenes, trained_on in ERROR_FIGURES),
         ("mass_matrix.png", lambda p: _plot_mass_matrices(mass_records, p)),
-        ("snapshots_chain8.png", lambda p: _plot_snapshots("chain8", truths, pairs, p)),
-        ("snapshots_T1.png", lambda p: _plot_snapshots("T1", truths, pairs, p)),
+        *((name, lambda p, scene=scene: _plot_snapshots(scene, truths, pairs, p)) for name, scene in SNAPSHOT_FIGURES),
         ("speed_error.png", lambda p: _plot_speed_error(speed_rows, p)),
     ]
     for name, plot in plots:

@@ -1,5 +1,8 @@
 """Mass-matrix stage: the learned LGNN mass matrix `d2L/dqd2` against the true one at a
-state of a ground-truth trajectory (`MassSettings.scenes`: chain16 and T1; quick: chain8).
+state of a ground-truth trajectory (`MassSettings.scenes`: chain16 and T1 with the LGNN
+trained on chain4, chain16-3d with the one trained on chain4-3d; quick: chain8). The
+true one is the rods' (`lgnn.physics`): in 3D a thin rod has no spin about its own
+axis, so only motion across the rod turns it.
 
 A scene's record depends on the profile's `MassSettings`, the scene's ground-truth key
 (`lgnn.bench.stages.evaluate.truth_key`) and the checkpoint's content (`mass_key`);
@@ -30,15 +33,15 @@ def mass_key(profile: Profile, scene_name: str, checkpoint: Path) -> str:
 
 
 def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob | None = None) -> Path:
-    """The true and learned (LGNN trained on chain4) mass matrices over the free node
-    coordinates at a ground-truth state (IC 0 at half the rollout, from the scene's
-    evaluation record), and their percentage errors `100 ||M_hat - M||_F / ||M||_F`:
-    over all free coordinates, and on the constraint tangent space (`P M P`, P the
-    orthogonal projector onto `A v = 0`: the part of M the dynamics see). Accelerations
-    determine a Lagrangian only up to an overall factor (`c L` has the same
-    Euler-Lagrange equations), so both are also given for `c M_hat`, `c` the
-    least-squares factor on the tangent space (recorded as `scale`)."""
-    job = job or lgnn_job(profile)
+    """The true and learned (`lgnn_job`: the LGNN of the scene's dimension) mass
+    matrices over the free node coordinates at a ground-truth state (IC 0 at half the
+    rollout, from the scene's evaluation record), and their percentage errors
+    `100 ||M_hat - M||_F / ||M||_F`: over all free coordinates, and on the constraint
+    tangent space (`P M P`, P the orthogonal projector onto `A v = 0`: the part of M the
+    dynamics see). Accelerations determine a Lagrangian only up to an overall factor
+    (`c L` has the same Euler-Lagrange equations), so both are also given for
+    `c M_hat`, `c` the least-squares factor on the tangent space (recorded as `scale`)."""
+    job = job or lgnn_job(profile, scene_name)
     layout = Layout(out)
     checkpoint = layout.checkpoint(job)
     scene = get_scene(scene_name)
@@ -52,7 +55,7 @@ def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob
     model, params = train.load_model(checkpoint)
     free = np.setdiff1d(np.arange(scene.n_nodes), scene.pinned)
     coords = (free[:, None] * scene.dim + np.arange(scene.dim)).reshape(-1)
-    true_m = np.asarray(physics.mass_matrix_fn(physics.lagrangian_fn(scene))(q, qd))[np.ix_(coords, coords)]
+    true_m = np.asarray(jax.jit(physics.mass_matrix_fn(physics.lagrangian_fn(scene)))(q, qd))[np.ix_(coords, coords)]
     learned_m = np.asarray(jax.jit(models.mass_matrix_fn(model, params, scene))(q, qd))[np.ix_(coords, coords)]
     constraints = physics.prepare(scene).constraints
     jac = np.asarray(constraints.jacobian(constraints.restrict(q)))
@@ -73,8 +76,9 @@ def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob
 def load_mass(profile: Profile, out: Path) -> list[tuple[dict, dict]]:
     """`(arrays, meta)` of every mass-matrix record that matches the profile and the
     LGNN checkpoint it analyses."""
-    checkpoint = Layout(out).checkpoint(lgnn_job(profile))
-    if not checkpoint.exists():
-        return []
-    found = [store.load(Layout(out).mass_record(scene), mass_key(profile, scene, checkpoint)) for scene in profile.mass.scenes]
+    found = []
+    for scene in profile.mass.scenes:
+        checkpoint = Layout(out).checkpoint(lgnn_job(profile, scene))
+        if checkpoint.exists():
+            found.append(store.load(Layout(out).mass_record(scene), mass_key(profile, scene, checkpoint)))
     return [record for record in found if record is not None]
