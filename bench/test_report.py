@@ -3,6 +3,7 @@ per-node RMS error beside the paper's metric, the ratio to the chaos floor, no f
 where the perturbed run diverged, and "not computed" (never a number) for a record
 written before a metric existed, as the committed full-profile records were."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -87,13 +88,15 @@ def test_records_without_the_new_metrics_read_not_computed():
 
 
 def test_the_committed_full_records_render_with_the_new_columns_not_computed():
-    profile, out = grid.PROFILES["full"], ROOT / "results"
+    # Three scenes of the committed run (all of it takes minutes of CI to summarise):
+    # the training scene, a stand-in for T2, and the spatial grid's training scene.
+    profile = dataclasses.replace(grid.PROFILES["full"], scenes=("chain4", "T2-slack", grid.SPATIAL_TRAINING_SCENE))
+    out = ROOT / "results"
     truths = evaluate.load_truths(profile, out)
     summary, _ = report.tables(truths, evaluate.load_pairs(profile, out))
     for metric in report.TRUTH_COLUMNS:
         table = report.summary_markdown(summary, metric)
         assert "nan" not in table.lower()
-        # (the spatial grid's records come from a later run: scenes with a ground truth)
         for scene in truths:
             row = _row(table, scene)
             assert row["rest"] in ("not computed", "") or "e-" in row["rest"]
@@ -168,6 +171,9 @@ def test_missing_pairs_say_not_evaluated_and_unconverged_references_not_rankable
     assert _row(report.summary_markdown(summary, "rollout_error"), "T3")["lgnn"].startswith("1.00e-03")
     without = summary[(summary.scene != "T3") | (summary.model != "lgnn")]
     assert _row(report.summary_markdown(without, "rollout_error", {("T3", "lgnn")}), "T3")["lgnn"] == "not evaluated"
+    # A scene of the grid with no record at all is a row of its own, not left out.
+    table = report.summary_markdown(summary, "rollout_error", {("chain8", "lgnn")}, None, ["chain4", "chain8"])
+    assert _row(table, "chain8")["lgnn"] == "not evaluated"
 
 
 def test_training_table_says_why_each_run_stopped():

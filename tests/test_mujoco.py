@@ -29,7 +29,9 @@ from lgnn.scene import State, scene_from_dict, scene_to_dict
 from lgnn.scene import BUILTIN_SCENES, SPATIAL_SCENES, chain, get_scene, sample_initial_states
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
 
-ONE_SECOND = SimulationConfig(integrator="rk4", dt=1e-4, frame_dt=1e-3, duration=1.0)
+# The engines' chain4 rollouts (0.25 s: MJX's CPU run of a whole second took most of a
+# 2-core CI minute; a quarter already swings every link through large angles).
+CHAIN4_ROLLOUT = SimulationConfig(integrator="rk4", dt=1e-4, frame_dt=1e-3, duration=0.25)
 
 
 def tree_scene():
@@ -321,14 +323,14 @@ def chain4_states():
 
 @functools.cache
 def engine_chain4(name):
-    """`name`'s float64 rollout of chain4 from 3 initial states over 1 s (MJX compiles
+    """`name`'s float64 rollout of chain4 from 3 initial states over 0.25 s (MJX compiles
     once: ~35 s)."""
-    return get_engine(name).rollout(scene("chain4"), ONE_SECOND, chain4_states())
+    return get_engine(name).rollout(scene("chain4"), CHAIN4_ROLLOUT, chain4_states())
 
 
 def test_mjx_float64_agrees_with_mujoco_c():
     states, ours = chain4_states(), engine_chain4("mjx")
-    reference = lm.rollout(scene("chain4"), ONE_SECOND, states)
+    reference = lm.rollout(scene("chain4"), CHAIN4_ROLLOUT, states)
     err = np.max(np.abs(ours.q - reference.q))
     assert err <= 1e-8, err
     assert np.max(np.abs(ours.qd - reference.qd)) <= 1e-7
@@ -372,8 +374,10 @@ def test_user_scene_through_all_engines(tmp_path, capsys):
         out[engine] = Trajectory.load(npz)
         assert out[engine].q.shape == (201, 4, 2) and out[engine].energy.shape == (201,)
     assert np.max(np.abs(out["mujoco"].q - out["lagrangian"].q)) <= 1e-6
-    # MJX's connect lacks the velocity term of MuJoCo C's: ~1000x looser loops.
-    assert np.max(np.abs(out["mjx"].q - out["mujoco"].q)) <= 1e-5
+    # MJX steps with MuJoCo C's arithmetic (`lgnn.engines.mjx.make_step`: mjx.step's
+    # connect rows lack C's Jdot v term and were 1e-6 off here): the same loop to round-off.
+    assert np.max(np.abs(out["mjx"].q - out["mujoco"].q)) <= 1e-12
+    assert np.max(np.abs(out["mjx"].q - out["lagrangian"].q)) <= 1e-6
     assert np.max(np.abs(out["mujoco"].energy - out["lagrangian"].energy)) <= 1e-5
 
 
@@ -406,17 +410,17 @@ def test_cli_rejects_verlet_for_mujoco(tmp_path, capsys):
 @pytest.mark.parametrize("name", [name for name in ENGINES if name != "mjwarp"])
 def test_every_engine_agrees_with_the_lagrangian_engine(name):
     """One interface: every registered engine's batched rollout of chain4 (float64, RK4,
-    dt 1e-4, 1 s) has the same shape and the same motion and energy as the Lagrangian
+    dt 1e-4, 0.25 s) has the same shape and the same motion and energy as the Lagrangian
     engine.s (measured: MuJoCo C within 4e-14 in positions, 5e-13 in energy)."""
     ours, reference = engine_chain4(name), engine_chain4("lagrangian")
     assert get_engine(name).name == name
-    assert ours.q.shape == ours.qd.shape == (3, 1001, 5, 2) and ours.energy.shape == (3, 1001) and ours.t.shape == (1001,)
+    assert ours.q.shape == ours.qd.shape == (3, 251, 5, 2) and ours.energy.shape == (3, 251) and ours.t.shape == (251,)
     np.testing.assert_array_equal(ours.t, reference.t)
     assert np.max(np.abs(ours.q - reference.q)) <= 1e-10
     assert np.max(np.abs(ours.energy - reference.energy)) <= 1e-10
     member = ours.member(1)
     np.testing.assert_array_equal(member.q, ours.q[1])
-    assert member.energy.shape == (1001,)
+    assert member.energy.shape == (251,)
 
 
 def test_mujoco_engine_is_the_c_rollout_with_energies():

@@ -240,7 +240,10 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
         return "(no results)\n"
     wide = summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
     recorded = list(wide["scene"].unique())
-    scenes = [s for group in scene_groups(recorded).values() for s in group] if scenes is None else [s for s in scenes if s in recorded]
+    # A scene of the grid with no record at all is still a row ("not evaluated").
+    expected_scenes = {scene for scene, _ in expected}
+    scenes = ([s for group in scene_groups(recorded).values() for s in group] if scenes is None else
+              [s for s in scenes if s in recorded or s in expected_scenes])
     wide = wide[wide.scene.isin(scenes)]
     models = [m for m in wide["model"].unique() if m not in ("ground truth", REST)]
     models.sort(key=lambda m: (MODEL_ORDER.index(m.split()[0]) if m.split()[0] in MODEL_ORDER else 9, m))
@@ -564,7 +567,7 @@ def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> 
     pairs = evaluation_pairs(profile)
     expected = {(pair.scene, pair.label) for pair in pairs}
     lines = []
-    for dim, scenes in (scene_groups(summary["scene"]) if not summary.empty else {2: []}).items():
+    for dim, scenes in (scene_groups([*summary["scene"], *(pair.scene for pair in pairs)]) if not summary.empty else {2: []}).items():
         trained = list(dict.fromkeys(pair.job.scene for pair in pairs if pair.scene in scenes))
         grid_name = DIMENSION_NAMES.get(dim, f"{dim}D") + (f": trained on {', '.join(trained)}" if trained else "")
         for metric, heading in SUMMARY_TABLES:
