@@ -94,3 +94,25 @@ def test_committed_full_records_match_the_current_settings():
     # chain16-3d's LGNN (trained on chain4-3d) comes with the spatial grid's GPU run.
     analysed = [scene for scene in profile.mass.scenes if store.Layout(out).checkpoint(grid.lgnn_job(profile, scene)).exists()]
     assert "chain16" in analysed and len(mass.load_mass(profile, out)) == len(analysed)
+
+
+def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_path, monkeypatch):
+    # Every process evaluating one of a scene's pairs reads the trajectories the first
+    # one computed (chain100-3d's MuJoCo C reference takes 15 minutes on 16 cores).
+    evaluate.ground_truth.cache_clear()
+    computed = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
+    assert store.Layout(tmp_path).truth_trajectories(SCENE).exists()
+    evaluate.ground_truth.cache_clear()
+
+    def recompute(*args):
+        raise AssertionError("recomputed")
+
+    monkeypatch.setattr(evaluate, "_computed_ground_truth", recompute)
+    read = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
+    for name in evaluate.TRUTH_TRAJECTORIES:
+        assert read[name].dtype == computed[name].dtype and (read[name] == computed[name]).all(), name
+    assert (read["states"].q == computed["states"].q).all() and read["mujoco_s"] == computed["mujoco_s"]
+    other = dataclasses.replace(QUICK, evaluate=dataclasses.replace(QUICK.evaluate, ic_seed=QUICK.evaluate.ic_seed + 1))
+    with pytest.raises(AssertionError, match="recomputed"):
+        evaluate.ground_truth(other, SCENE, False, tmp_path)
+    evaluate.ground_truth.cache_clear()

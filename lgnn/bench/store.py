@@ -46,6 +46,10 @@ class Layout:
     def truth_record(self, scene: str) -> Path:
         return self.bench / "runs" / "ground-truth" / f"{file_name(scene)}.npz"
 
+    def truth_trajectories(self, scene: str) -> Path:
+        """A scene's ground-truth trajectories (`evaluate.ground_truth`): large, not a result."""
+        return self.datasets / "ground-truth" / f"{file_name(scene)}.npz"
+
     @property
     def scaling_record(self) -> Path:
         return self.bench / "runs" / "scaling.json"

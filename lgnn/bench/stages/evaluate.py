@@ -87,12 +87,41 @@ def pair_key(profile: Profile, pair: Pair, checkpoint: Path) -> str:
     return records.digest({"truth": truth_key(profile, pair.scene), "checkpoint": records.file_digest(checkpoint), **unprojected})
 
 
+# The trajectories `ground_truth` keeps on disk (with `states`, its initial conditions).
+TRUTH_TRAJECTORIES = ("q", "qd", "energy", "q_floor", "qd_floor", "q_mujoco")
+
+
 @functools.lru_cache(maxsize=2)
-def ground_truth(profile: Profile, scene_name: str, progress: bool = True) -> dict:
-    """In-memory ground truth of a scene's evaluation (not stored: large, cheap to
-    redo): `q`, `qd` (C, F, N, D) and true `energy` (C, F) of the Lagrangian ground truth,
-    the chaos floor's `q_floor`, `qd_floor` (scored, divergence included, by
-    `evaluate_scene`), MuJoCo's `q_mujoco`, the initial `states` and timings."""
+def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: Path | None = None) -> dict:
+    """The ground truth of a scene's evaluation: `q`, `qd` (C, F, N, D) and true `energy`
+    (C, F) of the Lagrangian ground truth, the chaos floor's `q_floor`, `qd_floor`
+    (scored, divergence included, by `evaluate_scene`), MuJoCo's `q_mujoco`, the initial
+    `states` and timings.
+
+    With `out`, the trajectories are kept in `Layout(out).truth_trajectories` (key
+    `truth_key`) and read back by every later process: MuJoCo C's reference alone takes
+    15 minutes on 16 cores for chain100-3d (a serial chain's joint-space mass matrix is
+    dense: O(nv^3) per step), which each process evaluating one of the scene's pairs
+    would otherwise redo. Float64 as computed (the reference agrees with MuJoCo to
+    1e-10 and better); about 1.2 GB for chain100-3d, in the git-ignored datasets folder."""
+    if out is not None:
+        path, key = Layout(out).truth_trajectories(scene_name), truth_key(profile, scene_name)
+        stored = store.load(path, key)
+        if stored is not None:
+            arrays, meta = stored
+            log(f"ground truth {scene_name}: read from {path}")
+            return dict(**{name: arrays[name] for name in TRUTH_TRAJECTORIES}, states=State(arrays["states/q"], arrays["states/qd"]),
+                        **{name: meta[name] for name in ("compile_s", "run_s", "mujoco_s")})
+        truth = _computed_ground_truth(profile, scene_name, progress)
+        store.save(path, key, {**{name: truth[name] for name in TRUTH_TRAJECTORIES}, "states/q": np.asarray(truth["states"].q),
+                                "states/qd": np.asarray(truth["states"].qd)},
+                   dict(scene=scene_name, **{name: truth[name] for name in ("compile_s", "run_s", "mujoco_s")}))
+        return truth
+    return _computed_ground_truth(profile, scene_name, progress)
+
+
+def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) -> dict:
+    """`ground_truth`, computed."""
     from lgnn.engines import mujoco as lm
 
     settings = profile.evaluate
@@ -164,7 +193,7 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
     scene = get_scene(scene_name)
     if _has(store.load(path, key), _TRUTH_NEEDS + ((f"{NO_DRAG}/rollout_error/per_ic_log",) if scene.drag > 0 else ())):
         return path
-    truth = ground_truth(profile, scene_name, progress)
+    truth = ground_truth(profile, scene_name, progress, out)
     frame_dt = profile.evaluate.frame_dt
     none = np.full(len(truth["q"]), -1)
     floor, floor_diverged = _scores(profile, scene, truth["q_floor"], truth["qd_floor"], truth)
@@ -214,7 +243,7 @@ def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True
         return path
     scene = get_scene(pair.scene)
     config = dataclasses.replace(profile.evaluate.simulation(pair.scene), project=pair.projected)
-    truth = ground_truth(profile, pair.scene, progress)
+    truth = ground_truth(profile, pair.scene, progress, out)
     log(f"evaluate {pair.label} on {pair.scene}: {len(truth['q'])} initial conditions")
     q, qd, compile_s, run_s = batched_rollouts(
         scene, config, _model_accel_factory(checkpoint, records.file_digest(checkpoint)), truth["states"], profile.evaluate.chunk,
