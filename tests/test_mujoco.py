@@ -313,6 +313,19 @@ def test_rollout_batch_equals_single():
         np.testing.assert_array_equal(batch.q[k], one.q[0])
 
 
+def test_rollout_in_several_calls_equals_one_call(monkeypatch):
+    # A long batched rollout runs in calls of a bounded buffer; the last, shorter call
+    # once left its frames stale (a non-contiguous buffer, silently copied by MuJoCo):
+    # frames 889-1000 of chain4's 100-IC reference were frames 1-112 again.
+    s = scene("chain4")
+    config = SimulationConfig(dt=1e-4, duration=0.05)
+    states = sample_initial_states(s, jax.random.key(3), 3)
+    states = State(np.asarray(states.q), np.asarray(states.qd))
+    whole = lm.rollout(s, config, states)
+    monkeypatch.setattr(lm, "ROLLOUT_BUFFER_VALUES", 3 * 10 * 9 * 7)  # 7 frames a call: 50 = 7 x 7 + 1
+    np.testing.assert_array_equal(lm.rollout(s, config, states).q, whole.q)
+
+
 # --------------------------------------------------------------------- MJX
 
 

@@ -459,9 +459,13 @@ def joint_rollout(scene: Scene, config, states: State | None = None, *, threads:
             with mj_rollout.Rollout(nthread=len(datas) if len(datas) > 1 else 0) as runner:
                 for first in range(0, config.n_frames, frames_per_call):
                     count = min(frames_per_call, config.n_frames - first)
-                    runner.rollout(model, datas, state, nstep=count * spf, state=out[:, : count * spf])
-                    _check_warnings(scene, config, datas, _reset_frame(config, state[:, 0], out[:, : count * spf], first))
-                    frames = out[:, spf - 1 : count * spf : spf]
+                    # A buffer of exactly this call's steps: `out[:, :count * spf]` of a
+                    # batch is not contiguous, and `mujoco.rollout` then writes into a copy
+                    # of it, silently leaving the last call's frames stale.
+                    steps = out if count == frames_per_call else np.empty((batch, count * spf, nstate))
+                    runner.rollout(model, datas, state, nstep=count * spf, state=steps)
+                    _check_warnings(scene, config, datas, _reset_frame(config, state[:, 0], steps, first))
+                    frames = steps[:, spf - 1 :: spf]
                     state = frames[:, -1].copy()
                     # FULLPHYSICS layout: time, qpos, qvel, ...
                     frames_qpos[:, first + 1 : first + count + 1] = frames[:, :, 1 : 1 + model.nq]
