@@ -116,3 +116,20 @@ def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_
     with pytest.raises(AssertionError, match="recomputed"):
         evaluate.ground_truth(other, SCENE, False, tmp_path)
     evaluate.ground_truth.cache_clear()
+
+
+@pytest.mark.parametrize("scene, initial_conditions, version, stale", [
+    ("chain4", 100, None, True), ("chain4", 100, evaluate.MUJOCO_REFERENCE, False),
+    ("chain4", 1, None, False), ("chain4-drag", 100, None, False),
+])
+def test_arrays_scored_against_a_stale_mujoco_reference_are_not_reported(scene, initial_conditions, version, stale):
+    # Records made before the fix of MuJoCo's stale last frames (several drag-free
+    # trajectories in one call) keep their other metrics but lose the MuJoCo-scored
+    # ones in the report, and the evaluate stage recomputes them.
+    arrays = {"rollout_error/per_ic_log": 1, "rollout_error_vs_mujoco/per_ic_log": 2, "rest/rollout_error_vs_mujoco/gmean": 3,
+              "truth_vs_mujoco/per_ic_log": 4, "snapshot/mujoco": 5, "snapshot/truth": 6, "node_rms_error/per_ic_log": 7}
+    meta = dict(scene=scene, initial_conditions=initial_conditions, **({} if version is None else {"mujoco_reference": version}))
+    reported, _ = evaluate._reported((arrays, meta))
+    kept = {"rollout_error/per_ic_log", "snapshot/truth", "node_rms_error/per_ic_log"}
+    assert set(reported) == (kept if stale else set(arrays))
+    assert evaluate._has((arrays, meta), ("node_rms_error/per_ic_log",)) is not stale

@@ -413,7 +413,11 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
         return False
     seed = min(p.job.seed for p, _ in learned)
     learned = [(p, r) for p, r in learned if p.job.seed == seed]
-    mujoco_q = truths[scene][0]["snapshot/mujoco"]
+    # MuJoCo's trajectory, or the Lagrangian ground truth's where the record's MuJoCo
+    # reference was stale (`evaluate.MUJOCO_REFERENCE`): the figure says which.
+    truth = truths[scene][0]
+    reference = "MuJoCo" if "snapshot/mujoco" in truth else "the Lagrangian ground truth"
+    mujoco_q = truth["snapshot/mujoco"] if "snapshot/mujoco" in truth else truth["snapshot/truth"]
     views = SNAPSHOT_VIEWS[structure.dim]
     limits = [_square_limits(mujoco_q[..., [x, y]]) for x, y, _ in views]
     frames = np.linspace(0, len(mujoco_q) - 1, 5).round().astype(int)
@@ -426,7 +430,7 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
         for k, f in enumerate(frames):
             for v, (x, y, view) in enumerate(views):
                 ax = axes[row, k * len(views) + v]
-                for q, style, color, name in ((mujoco_q[f], "-", "k", "MuJoCo"), (model_q[f], "--", COLORS.get(pair.job.model), label)):
+                for q, style, color, name in ((mujoco_q[f], "-", "k", "MuJoCo" if reference == "MuJoCo" else "ground truth"), (model_q[f], "--", COLORS.get(pair.job.model), label)):
                     if np.isfinite(q).all():
                         for e, seg in enumerate(q[edges]):
                             ax.plot(seg[:, x], seg[:, y], style, color=color, linewidth=1.2, label=name if e == 0 else None)
@@ -440,7 +444,7 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
                 if k == v == 0:
                     ax.legend(fontsize=6, loc="lower left")
     views_text = "; ".join(view for _, _, view in views if view)
-    fig.suptitle(f"{scene}: learned (dashed, trained on {trained_on}, seed {seed}) against MuJoCo (black), initial condition 0"
+    fig.suptitle(f"{scene}: learned (dashed, trained on {trained_on}, seed {seed}) against {reference} (black), initial condition 0"
                  + (f"\nviews: {views_text}, gravity along -y" if views_text else ""), fontsize=10)
     _savefig(fig, path)
     return True

@@ -62,6 +62,15 @@ NO_DRAG = "exact_no_drag"
 # record is still read by the report ("not computed") but recomputed by the stage.
 _TRUTH_NEEDS = (f"{REST}/node_rms_error/per_ic_log", "chaos_floor/node_rms_error/per_ic_log")
 _PAIR_NEEDS = ("node_rms_error/per_ic_log",)
+# Version of the MuJoCo C reference trajectories, in every record's meta. Version 1
+# (records without the field): the last `mujoco.rollout` call of a batch of several
+# drag-free trajectories left its frames stale (engines/mujoco.py, fixed at c0eb960), up
+# to the last 18 % of frames, so every array scored against MuJoCo (`MUJOCO_ARRAYS`) of
+# such a record is wrong; the rest of the record is not (MuJoCo enters nothing else).
+MUJOCO_REFERENCE = 2
+# Array name prefixes made from the MuJoCo reference.
+MUJOCO_ARRAYS = ("truth_vs_mujoco", "rollout_error_vs_mujoco", f"{REST}/rollout_error_vs_mujoco", f"{NO_DRAG}/rollout_error_vs_mujoco",
+                 "snapshot/mujoco")
 # Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s.
 SNAPSHOT_DT = 0.01
 
@@ -184,7 +193,24 @@ def _scores(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth
 
 
 def _has(record: tuple[dict, dict] | None, names: tuple[str, ...]) -> bool:
-    return record is not None and all(name in record[0] for name in names)
+    return record is not None and not _stale_mujoco(record[1]) and all(name in record[0] for name in names)
+
+
+def _stale_mujoco(meta: dict) -> bool:
+    """Whether a record's MuJoCo-scored arrays came from a stale reference
+    (`MUJOCO_REFERENCE`): version 1, several initial conditions, a drag-free scene (a
+    single trajectory's buffer was contiguous; drag scenes step in Python)."""
+    return meta.get("mujoco_reference", 1) < MUJOCO_REFERENCE and meta.get("initial_conditions", 1) > 1 and not get_scene(meta["scene"]).drag
+
+
+def _reported(record: tuple[dict, dict] | None) -> tuple[dict, dict] | None:
+    """A record as the report may read it: without the MuJoCo-scored arrays of a stale
+    reference (they show as "not computed"; `lgnn benchmark --stage evaluate` recomputes
+    the record)."""
+    if record is None or not _stale_mujoco(record[1]):
+        return record
+    arrays, meta = record
+    return {k: v for k, v in arrays.items() if not k.startswith(MUJOCO_ARRAYS)}, meta
 
 
 def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool = True) -> Path:
@@ -218,7 +244,7 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
         scores, diverged = _scores(profile, scene, q, qd, truth)
         arrays.update({k: v for metric in METRICS for k, v in _metric_arrays(f"{NO_DRAG}/{metric}", scores[metric]).items()})
         arrays[f"{NO_DRAG}/diverged_at"] = np.where(diverged >= 0, diverged * frame_dt, np.nan)
-    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), compile_s=truth["compile_s"], run_s=truth["run_s"], mujoco_s=truth["mujoco_s"])
+    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=MUJOCO_REFERENCE, compile_s=truth["compile_s"], run_s=truth["run_s"], mujoco_s=truth["mujoco_s"])
     store.save(path, key, arrays, meta)
     return path
 
@@ -258,7 +284,7 @@ def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True
     }
     steps = len(q) * config.n_frames * config.steps_per_frame
     meta = dict(job=pair.job.name, model=pair.job.model, label=pair.label, projected=pair.projected, train_scene=pair.job.scene, seed=pair.job.seed,
-                scene=pair.scene, initial_conditions=len(q), compile_s=compile_s, run_s=run_s, steps_per_s=steps / run_s)
+                scene=pair.scene, initial_conditions=len(q), mujoco_reference=MUJOCO_REFERENCE, compile_s=compile_s, run_s=run_s, steps_per_s=steps / run_s)
     store.save(path, key, arrays, meta)
     n_div = int(np.sum(diverged >= 0))
     log(f"evaluate {pair.label} on {pair.scene}: rollout error {metrics.summarise(arrays['rollout_error/per_ic_log'])[0]:.3g}"
@@ -267,17 +293,19 @@ def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True
 
 
 def load_truth(profile: Profile, scene_name: str, out: Path) -> tuple[dict, dict] | None:
-    """`(arrays, meta)` of a scene's ground-truth record if it matches the profile, else None."""
-    return store.load(Layout(out).truth_record(scene_name), truth_key(profile, scene_name))
+    """`(arrays, meta)` of a scene's ground-truth record if it matches the profile, else
+    None; without MuJoCo-scored arrays of a stale reference (`_reported`)."""
+    return _reported(store.load(Layout(out).truth_record(scene_name), truth_key(profile, scene_name)))
 
 
 def load_pair(profile: Profile, pair: Pair, out: Path) -> tuple[dict, dict] | None:
-    """`(arrays, meta)` of a pair's record if it matches the profile and checkpoint, else None."""
+    """`(arrays, meta)` of a pair's record if it matches the profile and checkpoint, else
+    None; without MuJoCo-scored arrays of a stale reference (`_reported`)."""
     layout = Layout(out)
     checkpoint = layout.checkpoint(pair.job)
     if not checkpoint.exists():
         return None
-    return store.load(layout.pair_record(pair), pair_key(profile, pair, checkpoint))
+    return _reported(store.load(layout.pair_record(pair), pair_key(profile, pair, checkpoint)))
 
 
 def load_truths(profile: Profile, out: Path) -> dict[str, tuple[dict, dict]]:
