@@ -196,13 +196,15 @@ class SpeedSettings:
     models, single trajectory, against a MuJoCo C reference."""
 
     # Scenes with a speed record (which records exist, not what each holds).
-    scenes: tuple[str, ...] = dataclasses.field(default=("chain4", "chain16", "chain100", "T1"), metadata=NOT_IN_KEY)
+    scenes: tuple[str, ...] = dataclasses.field(default=("chain4", "chain16", "chain100", "T1", "chain4-3d", "chain16-3d", "chain100-3d"),
+                                                metadata=NOT_IN_KEY)
     # Ground-truth engine steps; the reference runs at a tenth of the smallest.
     dts: tuple[float, ...] = (1e-3, 1e-4, 1e-5)
     horizon: float = 0.1
     # MJX on or off (its CPU compile takes minutes beyond small trees).
     mjx: bool = True
-    # Learned models timed (None: every one trained on TRAINING_SCENE).
+    # Learned models timed (None: every one `speed.timed_jobs` names: those the grid
+    # evaluates on the scene, trained on its dimension's training scene).
     models: tuple[str, ...] | None = None
     # Lagrangian engine runs longer than this many link-steps are skipped (with a row
     # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
@@ -351,6 +353,13 @@ def evaluation_pairs(profile: Profile) -> list[Pair]:
 
 def evaluation_scenes(profile: Profile) -> list[str]:
     return list(dict.fromkeys(p.scene for p in evaluation_pairs(profile)))
+
+
+def evaluated_jobs(profile: Profile, scene_name: str) -> list[TrainingJob]:
+    """The jobs the grid evaluates on `scene_name` (the entries whose `eval_scenes` name
+    it: the spatial entries on 3D scenes, CLNN on its own training scene only), whether
+    or not the profile's `scenes` keep it, in `training_jobs` order."""
+    return [TrainingJob(e.model, e.train_scene, seed) for e in _entries(profile) if scene_name in e.eval_scenes for seed in profile.seeds]
 
 
 def lgnn_job(profile: Profile, scene_name: str | None = None) -> TrainingJob:
