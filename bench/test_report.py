@@ -359,5 +359,9 @@ def test_a_scaling_record_made_before_3d_rows_reads_as_planar_and_old_speed_rows
     del rows[1]["form"]
     text = report.performance_markdown(profile, rows, {"rows": [_size_row("mujoco", 4, 1e-5), _size_row("mujoco", 16, 2e-5)]})
     assert _row(text, "chain4")["MuJoCo C MJCF form"] == "not recorded"
+    # A 3D record timed elsewhere: its ratios say so, and the old record's form is not guessed.
+    spatial = [{**_speed_row("chain4-3d", solver, wall, form="nested"), "device": "a GPU host"} for solver, wall in (("lagrangian", 0.1), ("mujoco", 0.08))]
+    third = report.performance_markdown(profile, rows + spatial)
+    assert "| chain4, chain4-3d | mujoco | 0.04 | 0.08 | 2 (different machines) | not recorded, nested |" in third
     assert "| mujoco | planar | 1e-05 | 2e-05 |" in text
     assert "| mujoco | 3D |" not in text and "3D / planar" not in text and "## The third dimension" not in text

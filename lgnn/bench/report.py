@@ -775,20 +775,27 @@ def _third_dimension_lines(rows: list[dict], dt: float) -> list[str]:
         for r in rows:
             if r["scene"] == scene and math.isclose(r["dt"], dt) and math.isfinite(r["wall_s_per_sim_s"]):
                 timed.setdefault(_without_training_scene(r["solver"], trained_on), []).append(r)
-        return {solver: (float(np.median([r["wall_s_per_sim_s"] for r in group])), group[0].get("form", "")) for solver, group in timed.items()}
+        return {solver: (float(np.median([r["wall_s_per_sim_s"] for r in group])), _form(group[0])) for solver, group in timed.items()}
+
+    def device(scene: str) -> str | None:
+        return next((r.get("device") for r in rows if r["scene"] == scene), None)
 
     lines = ["", f"## The third dimension's cost (single trajectory, RK4 at dt {dt:g})", "",
              "Each 3D chain beside the planar chain of as many links: wall s per simulated s in each and their ratio. A learned "
-             "model's cell is the median over its seeds, each trained on its own dimension's chain4 (MJX only where its CPU "
-             "compile is affordable, tree depth <= 8). MuJoCo's joints: hinges in the plane (one DOF a link), balls in 3D (three).",
+             "model's cell is the median over its seeds, each trained on its own dimension's chain4 (— : not in that dimension's "
+             "grid; MJX only where its CPU compile is affordable, tree depth <= 8). MuJoCo's joints: hinges in the plane (one DOF "
+             "a link), balls in 3D (three). The two cells of a row come from two records (two processes; commits and machines "
+             "in `README.md`), so a ratio carries their run-to-run noise (`benchmark/speed_error.md` gives each record's spread); "
+             "a pair timed on different machines says so.",
              "", "| chains | solver | planar: wall s per simulated s | 3D: wall s per simulated s | 3D / planar | MJCF form (planar, 3D) |",
              "|---|---|---|---|---|---|"]
     for planar, spatial in pairs:
         flat, deep = cost(planar), cost(spatial)
+        machines = "" if device(planar) == device(spatial) else " (different machines)"
         for solver in [s for s in ("lagrangian", "mujoco", "mjx") if s in flat or s in deep] + [
                 s for s in dict.fromkeys([*flat, *deep]) if s not in ("lagrangian", "mujoco", "mjx")]:
             a, b = flat.get(solver, (math.nan, "")), deep.get(solver, (math.nan, ""))
-            ratio = "—" if math.isnan(a[0]) or math.isnan(b[0]) else f"{b[0] / a[0]:.3g}"
+            ratio = "—" if math.isnan(a[0]) or math.isnan(b[0]) else f"{b[0] / a[0]:.3g}{machines}"
             forms = f"{a[1] or '—'}, {b[1] or '—'}" if solver in ("mujoco", "mjx") else "—"
             cells = ("—" if math.isnan(x) else f"{x:.3g}" for x in (a[0], b[0]))
             lines.append(f"| {planar}, {spatial} | {solver} | {' | '.join(cells)} | {ratio} | {forms} |")
