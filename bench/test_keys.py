@@ -101,3 +101,14 @@ def test_committed_full_records_match_the_current_settings():
     # chain16-3d's LGNN (trained on chain4-3d) comes with the spatial grid's GPU run.
     analysed = [scene for scene in profile.mass.scenes if store.Layout(out).checkpoint(grid.lgnn_job(profile, scene)).exists()]
     assert "chain16" in analysed and len(mass.load_mass(profile, out)) == len(analysed)
+
+
+def test_the_3d_lgnn_enters_the_scaling_key_only_with_3d_lengths(tmp_path):
+    checkpoint = store.Layout(tmp_path).checkpoint(grid.lgnn_job(QUICK, grid.SPATIAL_TRAINING_SCENE))
+    checkpoint.parent.mkdir(parents=True, exist_ok=True)
+    planar = dataclasses.replace(QUICK, scaling=dataclasses.replace(QUICK.scaling, spatial_lengths=()))
+    assert QUICK.scaling.spatial_lengths
+    before = scaling.scaling_key(QUICK, tmp_path), scaling.scaling_key(planar, tmp_path)
+    checkpoint.write_bytes(b"3d weights")
+    after = scaling.scaling_key(QUICK, tmp_path), scaling.scaling_key(planar, tmp_path)
+    assert before[0] != after[0] and before[1] == after[1]

@@ -19,7 +19,7 @@ from lgnn import physics, records
 from lgnn.bench import store
 from lgnn.engines import get_engine
 from lgnn.engines.timing import time_compiled
-from lgnn.bench.grid import SPATIAL_TRAINING_SCENE, TRAINING_SCENE, Profile, lgnn_job, settings_key
+from lgnn.bench.grid import TRAINING_SCENES, Profile, lgnn_job, settings_key
 from lgnn.bench.store import Layout, log
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 from lgnn.errors import ConfigError, SceneError, SimulationError
@@ -28,12 +28,10 @@ from lgnn.scene import State, chain, get_scene, sample_initial_states, spatial_c
 
 # Chains of n links per dimension: the planar chain and the 3D one (`spatial_chain`).
 CHAINS = {2: chain, 3: spatial_chain}
-# A scene of each dimension naming its grid's LGNN (`lgnn_job`).
-_GRID_SCENES = {2: TRAINING_SCENE, 3: SPATIAL_TRAINING_SCENE}
 
 
 def _checkpoint(profile: Profile, out: Path, dim: int = 2) -> tuple[Path, str | None]:
-    checkpoint = Layout(out).checkpoint(lgnn_job(profile, _GRID_SCENES[dim]))
+    checkpoint = Layout(out).checkpoint(lgnn_job(profile, TRAINING_SCENES[dim]))
     return checkpoint, records.file_digest(checkpoint) if checkpoint.exists() else None
 
 
