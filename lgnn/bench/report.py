@@ -663,7 +663,8 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
               "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
               "| `benchmark/curves.csv.gz` | per-frame geometric means and 95% bands (every 0.01 s; provenance: the matching `summary.csv` rows) |",
               "| `benchmark/speed_error.csv`, `.md` | speed against error |",
-              "| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, and cost against chain length |",
+              "| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, each 3D chain beside the planar one, "
+            "and cost against chain length in 2D and 3D |",
               "| `benchmark/mass_matrix.csv` | learned mass matrix errors |",
               "| `benchmark/checkpoints/` | the trained models (`lgnn rollout --model ...` runs them) |",
               "| `benchmark/runs/` | the per-stage records the tables are made from (resumable) |"]
@@ -841,8 +842,8 @@ def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dic
         "",
         f"Written by the benchmark's report stage (`lgnn benchmark{' --full' if profile.name == 'full' else ''} --stage report`) "
         "from the speed-against-error records (`benchmark/runs/speed-error/`, made by `--stage speed`) and the scaling record "
-        "(`benchmark/runs/scaling.json`, made by `--stage scaling`); nothing here is edited by hand. Every ratio compares rows "
-        "timed in the same process on the same machine, compile apart; MuJoCo C is timed on its stepping alone (not the map "
+        "(`benchmark/runs/scaling.json`, made by `--stage scaling`); nothing here is edited by hand. Every ratio but the third "
+        "dimension's (two records, said there) compares rows timed in the same process on the same machine, compile apart; MuJoCo C is timed on its stepping alone (not the map "
         "from its joint coordinates to node states). Machines per record in `README.md`.",
         "",
         f"## Ground truth against MuJoCo C at equal accuracy (rollout error <= {ACCURATE:g} against the reference)",
