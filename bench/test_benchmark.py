@@ -171,6 +171,8 @@ def test_scaling(profile, out):
     sizes = {(r["solver"], r["n_links"]) for r in rows if r["kind"] == "size"}
     assert {("lagrangian", n) for n in profile.scaling.lengths} <= sizes
     assert {("mujoco", n) for n in profile.scaling.lengths} <= sizes
+    spatial = {(r["solver"], r["n_links"]) for r in rows if r["kind"] == "size" and r["dim"] == 3}
+    assert {(solver, n) for solver in ("lagrangian", "mujoco") for n in profile.scaling.spatial_lengths} <= spatial
     batched = [r for r in rows if r["kind"] == "batch"]
     assert {r["scene"] for r in batched} == set(profile.scaling.throughput_scenes)
     assert all(np.isfinite(r["s_per_step"]) and r["s_per_step"] > 0 for r in rows)

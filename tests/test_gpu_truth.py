@@ -2,7 +2,7 @@
 float32 engines really in float32, and non-finite runs said plainly.
 
 The GPU runs themselves are made on a lent machine (README, "GPU ground truth"); here
-chain4, 2 worlds, 10 steps, with the engines this machine has (MJX is left out for its
+chain4 and chain4-3d, 2 worlds, 10 steps, with the engines this machine has (MJX is left out for its
 ~35 s CPU compile, tested in test_mujoco.py; MuJoCo Warp only where installed).
 """
 
@@ -40,14 +40,16 @@ def test_float32_lagrangian_program_holds_no_float64():
     assert "f32" in text and "f64" not in text
 
 
-def test_small_cpu_run_writes_the_table(tmp_path):
-    """chain4, 2 worlds, 10 RK4 steps: a row per engine with speed, compile and the error
-    against float64; float32 is ~1e-7 from it (not 1e-14: it is float32)."""
+@pytest.mark.parametrize("scene", ["chain4", "chain4-3d"])
+def test_small_cpu_run_writes_the_table(tmp_path, scene):
+    """chain4 (and the 3D chain: ball joints in MuJoCo Warp), 2 worlds, 10 RK4 steps: a
+    row per engine with speed, compile and the error against float64; float32 is ~1e-7
+    from it (not 1e-14: it is float32)."""
     engines = ["lagrangian:float32"] + (["mjwarp:float32"] if mjwarp.available() else [])
-    code = main(["gpu-truth", "--scenes", "chain4", "--batches", "2", "--steps", "10", "--repeats", "2",
+    code = main(["gpu-truth", "--scenes", scene, "--batches", "2", "--steps", "10", "--repeats", "2",
                  "--engines", *engines, "--out", str(tmp_path), "--quiet"])
     assert code == 0
-    rows = read_rows(tmp_path / "gpu_truth_chain4.csv")
+    rows = read_rows(tmp_path / f"gpu_truth_{scene}.csv")
     assert [(r["engine"], r["dtype"]) for r in rows] == [("lagrangian", "float64")] + [tuple(e.split(":")) for e in engines]
     for row in rows:
         assert float(row["steps_per_s_min"]) <= float(row["steps_per_s"]) <= float(row["steps_per_s_max"])
@@ -55,7 +57,7 @@ def test_small_cpu_run_writes_the_table(tmp_path):
     assert float(rows[0]["max_node_error"]) == 0 and rows[0]["note"] == "reference"
     for row in rows[1:]:
         assert 1e-9 < float(row["max_node_error"]) < 1e-5, row
-    markdown = (tmp_path / "gpu_truth_chain4.md").read_text()
+    markdown = (tmp_path / f"gpu_truth_{scene}.md").read_text()
     assert "commit: " in markdown and "machine: " in markdown and "mujoco" in markdown
 
 

@@ -124,7 +124,7 @@ def _mjwarp(scene: Scene, config: SimulationConfig, states: State, repeats: int,
 
 
 def _run(spec: str, scene: Scene, config: SimulationConfig, states: State, settings: GpuTruthSettings):
-    """`(compile_s, run_s list, final q (B, N, 2))` of engine `spec` (name:dtype)."""
+    """`(compile_s, run_s list, final q (B, N, dim))` of engine `spec` (name:dtype)."""
     name, _, dtype = spec.partition(":")
     if name == "lagrangian":
         return _lagrangian(scene, config, states, dtype, settings.repeats)

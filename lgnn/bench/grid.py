@@ -196,13 +196,15 @@ class SpeedSettings:
     models, single trajectory, against a MuJoCo C reference."""
 
     # Scenes with a speed record (which records exist, not what each holds).
-    scenes: tuple[str, ...] = dataclasses.field(default=("chain4", "chain16", "chain100", "T1"), metadata=NOT_IN_KEY)
+    scenes: tuple[str, ...] = dataclasses.field(default=("chain4", "chain16", "chain100", "T1", "chain4-3d", "chain16-3d", "chain100-3d"),
+                                                metadata=NOT_IN_KEY)
     # Ground-truth engine steps; the reference runs at a tenth of the smallest.
     dts: tuple[float, ...] = (1e-3, 1e-4, 1e-5)
     horizon: float = 0.1
     # MJX on or off (its CPU compile takes minutes beyond small trees).
     mjx: bool = True
-    # Learned models timed (None: every one trained on TRAINING_SCENE).
+    # Learned models timed (None: every one `speed.timed_jobs` names: those the grid
+    # evaluates on the scene, trained on its dimension's training scene).
     models: tuple[str, ...] | None = None
     # Lagrangian engine runs longer than this many link-steps are skipped (with a row
     # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
@@ -224,9 +226,15 @@ class ScalingSettings:
 
     # Chains of these many links, single trajectory, `steps` RK4 steps at the evaluation dt.
     lengths: tuple[int, ...] = (4, 16, 100, 1000)
+    # 3D chains (`lgnn.scene.spatial_chain`) of these many links, timed as `lengths`
+    # with the LGNN of the 3D grid. MuJoCo C runs chain100-3d nested (~21 ms a step:
+    # a serial chain's joint-space mass matrix is dense, O(nv^3) in its 300 ball-joint
+    # DOF) and chain1000-3d maximal. Empty: no 3D rows, and out of the key (records
+    # made before this field keep theirs, `scaling.scaling_key`).
+    spatial_lengths: tuple[int, ...] = (4, 16, 100, 1000)
     steps: int = 100
     # Batches of `throughput_batch` initial conditions of each of these scenes against MuJoCo C.
-    throughput_scenes: tuple[str, ...] = ("chain4", "chain16", "chain100", "T1")
+    throughput_scenes: tuple[str, ...] = ("chain4", "chain16", "chain100", "T1", "chain4-3d", "chain16-3d")
     throughput_batch: int = 100
 
 
@@ -351,6 +359,13 @@ def evaluation_pairs(profile: Profile) -> list[Pair]:
 
 def evaluation_scenes(profile: Profile) -> list[str]:
     return list(dict.fromkeys(p.scene for p in evaluation_pairs(profile)))
+
+
+def evaluated_jobs(profile: Profile, scene_name: str) -> list[TrainingJob]:
+    """The jobs the grid evaluates on `scene_name` (the entries whose `eval_scenes` name
+    it: the spatial entries on 3D scenes, CLNN on its own training scene only), whether
+    or not the profile's `scenes` keep it, in `training_jobs` order."""
+    return [TrainingJob(e.model, e.train_scene, seed) for e in _entries(profile) if scene_name in e.eval_scenes for seed in profile.seeds]
 
 
 def lgnn_job(profile: Profile, scene_name: str | None = None) -> TrainingJob:

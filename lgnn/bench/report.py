@@ -55,7 +55,7 @@ from lgnn.bench.stages.train import default_lgnn, load_checkpoints
 from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.learn.train import stop_reason
-from lgnn.scene import get_scene
+from lgnn.scene import get_scene, is_pinned_chain
 
 MODEL_ORDER = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn")
 COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5", "lgnn-mp1": "C4", "lgnn-mp2": "C5", "lgnn-notebook": "C6"}
@@ -291,8 +291,9 @@ def speed_markdown(rows: list[dict]) -> str:
              "|---" * 9 + "|"]
     for r in rows:
         compile_s = "—" if not math.isfinite(r["compile_s"]) else f"{r['compile_s']:.1f}"
+        note = "; ".join(filter(None, (f"{r['form']} MJCF" if r.get("form") else "", r["note"])))
         lines.append(f"| {r['scene']} | {r['solver']} | {r['dt']:g} | {_fmt(r['wall_s_per_sim_s'])} | {_spread(r)} | {r['evaluations_per_sim_s']:.0f} | "
-                     f"{compile_s} | {_fmt(r['rollout_error'])} | {r['note']} |")
+                     f"{compile_s} | {_fmt(r['rollout_error'])} | {note} |")
     return "\n".join(lines) + "\n"
 
 
@@ -666,7 +667,8 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
               "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
               "| `benchmark/curves.csv.gz` | per-frame geometric means and 95% bands (every 0.01 s; provenance: the matching `summary.csv` rows) |",
               "| `benchmark/speed_error.csv`, `.md` | speed against error |",
-              "| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, and cost against chain length |",
+              "| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, each 3D chain beside the planar one, "
+            "and cost against chain length in 2D and 3D |",
               "| `benchmark/mass_matrix.csv` | learned mass matrix errors |",
               "| `benchmark/checkpoints/` | the trained models (`lgnn rollout --model ...` runs them) |",
               "| `benchmark/runs/` | the per-stage records the tables are made from (resumable) |"]
@@ -743,6 +745,99 @@ def _gpu_truth_section(out: Path) -> list[str]:
     return lines
 
 
+def _form(row: dict) -> str:
+    """A MuJoCo speed row's MJCF form; records made before rows kept it say so."""
+    return row.get("form") or "not recorded"
+
+
+def _planar_twin(scene: str, scenes) -> str | None:
+    """The planar scene among `scenes` that 3D `scene` adds a dimension to: a pinned chain
+    of as many links (chain16 for chain16-3d); None for others."""
+    structure = get_scene(scene)
+    if structure.dim != 3 or not is_pinned_chain(structure):
+        return None
+    for other in scenes:
+        twin = get_scene(other)
+        if twin.dim == 2 and is_pinned_chain(twin) and twin.n_links == structure.n_links:
+            return other
+    return None
+
+
+def _third_dimension_lines(rows: list[dict], dt: float) -> list[str]:
+    """The speed records' 3D chains beside their planar twins (`_planar_twin`): each
+    engine and learned model at the evaluation step `dt`, wall s per simulated s in 2D
+    and 3D and their ratio (a model: the median over its seeds, each dimension's own
+    grid's model)."""
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    pairs = [(twin, scene) for scene in scenes if (twin := _planar_twin(scene, scenes)) is not None]
+    if not pairs:
+        return []
+
+    def cost(scene: str) -> dict[str, tuple[float, str]]:
+        """`{solver: (median wall s per simulated s, MJCF form)}` at `dt` on `scene`."""
+        trained_on = TRAINING_SCENES[get_scene(scene).dim]
+        timed: dict[str, list[dict]] = {}
+        for r in rows:
+            if r["scene"] == scene and math.isclose(r["dt"], dt) and math.isfinite(r["wall_s_per_sim_s"]):
+                timed.setdefault(_without_training_scene(r["solver"], trained_on), []).append(r)
+        return {solver: (float(np.median([r["wall_s_per_sim_s"] for r in group])), _form(group[0])) for solver, group in timed.items()}
+
+    def device(scene: str) -> str | None:
+        return next((r.get("device") for r in rows if r["scene"] == scene), None)
+
+    lines = ["", f"## The third dimension's cost (single trajectory, RK4 at dt {dt:g})", "",
+             "Each 3D chain beside the planar chain of as many links: wall s per simulated s in each and their ratio. A learned "
+             "model's cell is the median over its seeds, each trained on its own dimension's chain4 (— : not in that dimension's "
+             "grid; MJX only where its CPU compile is affordable, tree depth <= 8). MuJoCo's joints: hinges in the plane (one DOF "
+             "a link), balls in 3D (three). The two cells of a row come from two records (two processes; commits and machines "
+             "in `README.md`), so a ratio carries their run-to-run noise (`benchmark/speed_error.md` gives each record's spread); "
+             "a pair timed on different machines says so.",
+             "", "| chains | solver | planar: wall s per simulated s | 3D: wall s per simulated s | 3D / planar | MJCF form (planar, 3D) |",
+             "|---|---|---|---|---|---|"]
+    for planar, spatial in pairs:
+        flat, deep = cost(planar), cost(spatial)
+        machines = "" if device(planar) == device(spatial) else " (different machines)"
+        for solver in [s for s in ("lagrangian", "mujoco", "mjx") if s in flat or s in deep] + [
+                s for s in dict.fromkeys([*flat, *deep]) if s not in ("lagrangian", "mujoco", "mjx")]:
+            a, b = flat.get(solver, (math.nan, "")), deep.get(solver, (math.nan, ""))
+            ratio = "—" if math.isnan(a[0]) or math.isnan(b[0]) else f"{b[0] / a[0]:.3g}{machines}"
+            forms = f"{a[1] or '—'}, {b[1] or '—'}" if solver in ("mujoco", "mjx") else "—"
+            cells = ("—" if math.isnan(x) else f"{x:.3g}" for x in (a[0], b[0]))
+            lines.append(f"| {planar}, {spatial} | {solver} | {' | '.join(cells)} | {ratio} | {forms} |")
+    return lines
+
+
+def _size_lines(size: list[dict], dt: float) -> list[str]:
+    """The scaling record's size rows: per solver, a row of seconds per step against
+    chain length for each dimension, its fitted exponent, and a `3D / planar` row of
+    their ratios. A row without `dim` is planar (records made before 3D rows held only
+    planar chains: their key is that of no `spatial_lengths`, `scaling.scaling_key`)."""
+    lengths, dims = sorted({r["n_links"] for r in size}), sorted({r.get("dim", 2) for r in size})
+    lines = ["", f"## Cost per step against chain length (single trajectory, RK4 at dt {dt:g}, fitted exponent over "
+             f"n = {', '.join(map(str, lengths))} links)", ""]
+    if len(dims) > 1:
+        lines += ["Planar chains and 3D chains of as many links, each with the LGNN of its own dimension's grid; the "
+                  "`3D / planar` rows read off the third dimension's cost at each length.", ""]
+    lines += ["| solver | chains | " + " | ".join(f"n = {n}: s per step" for n in lengths) + " | exponent | compile s (largest n) |",
+              "|---" * (len(lengths) + 4) + "|"]
+    for solver in dict.fromkeys(r["solver"] for r in size):
+        per_dim = {}
+        for dim in dims:
+            timed = [r for r in size if r["solver"] == solver and r.get("dim", 2) == dim and math.isfinite(r["s_per_step"])]
+            costs = per_dim[dim] = {r["n_links"]: r["s_per_step"] for r in timed}
+            if not timed and not any(r["solver"] == solver and r.get("dim", 2) == dim for r in size):
+                continue
+            exponent = f"{fit_exponent(costs):.2f} (n = {min(costs)}..{max(costs)})" if len(costs) > 1 else "—"
+            compile_s = f"{max(timed, key=lambda r: r['n_links'])['compile_s']:.1f}" if timed else "—"
+            lines.append(f"| {solver} | {DIMENSION_NAMES.get(dim, f'{dim}D')} | " + " | ".join(f"{costs[n]:.3g}" if n in costs else "—" for n in lengths)
+                         + f" | {exponent} | {compile_s} |")
+        if per_dim.get(2) and per_dim.get(3):
+            lines.append(f"| {solver} | 3D / planar | " + " | ".join(
+                f"{per_dim[3][n] / per_dim[2][n]:.3g}" if n in per_dim[2] and n in per_dim[3] else "—" for n in lengths) + " | — | — |")
+    lines += [f"- {r['solver']} on {r['scene']}: {r['note']}" for r in size if r.get("note")]
+    return lines
+
+
 def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dict | None = None, out: Path | None = None) -> str:
     """`performance.md`: the speed records read as issue 7's ratios, the scaling record
     as cost against size and batched throughput, and the GPU tables."""
@@ -751,8 +846,8 @@ def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dic
         "",
         f"Written by the benchmark's report stage (`lgnn benchmark{' --full' if profile.name == 'full' else ''} --stage report`) "
         "from the speed-against-error records (`benchmark/runs/speed-error/`, made by `--stage speed`) and the scaling record "
-        "(`benchmark/runs/scaling.json`, made by `--stage scaling`); nothing here is edited by hand. Every ratio compares rows "
-        "timed in the same process on the same machine, compile apart; MuJoCo C is timed on its stepping alone (not the map "
+        "(`benchmark/runs/scaling.json`, made by `--stage scaling`); nothing here is edited by hand. Every ratio but the third "
+        "dimension's (two records, said there) compares rows timed in the same process on the same machine, compile apart; MuJoCo C is timed on its stepping alone (not the map "
         "from its joint coordinates to node states). Machines per record in `README.md`.",
         "",
         f"## Ground truth against MuJoCo C at equal accuracy (rollout error <= {ACCURATE:g} against the reference)",
@@ -760,16 +855,17 @@ def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dic
         f"Single trajectory, {rows[0]['horizon_s']:g} s simulated." if rows else "No speed records.",
         "",
         "| scene | Lagrangian: dt, wall s per simulated s | MuJoCo C: dt, wall s per simulated s | Lagrangian / MuJoCo | "
-        "Lagrangian compile s |",
-        "|---|---|---|---|---|",
+        "Lagrangian compile s | MuJoCo C MJCF form |",
+        "|---|---|---|---|---|---|",
     ]
     for scene in dict.fromkeys(r["scene"] for r in rows):
         ours, theirs = _fastest_accurate(rows, scene, "lagrangian"), _fastest_accurate(rows, scene, "mujoco")
         if ours is None or theirs is None:
-            lines.append(f"| {scene} | {'—' if ours is None else ours['dt']} | {'—' if theirs is None else theirs['dt']} | — | — |")
+            lines.append(f"| {scene} | {'—' if ours is None else ours['dt']} | {'—' if theirs is None else theirs['dt']} | — | — | — |")
             continue
         lines.append(f"| {scene} | {ours['dt']:g}, {ours['wall_s_per_sim_s']:.3g} | {theirs['dt']:g}, {theirs['wall_s_per_sim_s']:.3g} | "
-                     f"{ours['wall_s_per_sim_s'] / theirs['wall_s_per_sim_s']:.3g} | {ours['compile_s']:.1f} |")
+                     f"{ours['wall_s_per_sim_s'] / theirs['wall_s_per_sim_s']:.3g} | {ours['compile_s']:.1f} | {_form(theirs)} |")
+    lines += _third_dimension_lines(rows, profile.evaluate.dt)
     if scaling_record is not None:
         srows = scaling_record["rows"]
         batch = [r for r in srows if r["kind"] == "batch"]
@@ -780,20 +876,7 @@ def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dic
         for scene in dict.fromkeys(r["scene"] for r in batch):
             rate = {r["solver"]: r["batch"] / r["s_per_step"] for r in batch if r["scene"] == scene}
             lines.append(f"| {scene} | {rate['lagrangian']:.3g} | {rate['mujoco']:.3g} | {rate['lagrangian'] / rate['mujoco']:.3g} |")
-        size = [r for r in srows if r["kind"] == "size"]
-        lengths = sorted({r["n_links"] for r in size})
-        lines += ["", f"## Cost per step against chain length (single trajectory, RK4 at dt {profile.evaluate.dt:g}, fitted exponent over "
-                  f"n = {', '.join(map(str, lengths))} links)", "",
-                  "| solver | " + " | ".join(f"n = {n}: s per step" for n in lengths) + " | exponent | compile s (largest n) |",
-                  "|---" * (len(lengths) + 3) + "|"]
-        for solver in dict.fromkeys(r["solver"] for r in size):
-            timed = [r for r in size if r["solver"] == solver and math.isfinite(r["s_per_step"])]
-            costs = {r["n_links"]: r["s_per_step"] for r in timed}
-            exponent = f"{fit_exponent(costs):.2f} (n = {min(costs)}..{max(costs)})" if len(costs) > 1 else "—"
-            compile_s = f"{max(timed, key=lambda r: r['n_links'])['compile_s']:.1f}" if timed else "—"
-            lines.append(f"| {solver} | " + " | ".join(f"{costs[n]:.3g}" if n in costs else "—" for n in lengths)
-                         + f" | {exponent} | {compile_s} |")
-        lines += [f"- {r['solver']} on {r['scene']}: {r['note']}" for r in size if r.get("note")]
+        lines += _size_lines([r for r in srows if r["kind"] == "size"], profile.evaluate.dt)
     lines += [
         "",
         "## Learned rollouts",

@@ -8,7 +8,7 @@ still check it.
 
 - `Runner` holds the device model and a `Data` of B worlds for one (scene, config,
   batch, form); `runner(...)` builds it once per process (`lru_cache`).
-- `Runner.run(q0, qd0)`: node states (B, N, 2) -> MuJoCo `(qpos, qvel)` by MuJoCo C's
+- `Runner.run(q0, qd0)`: node states (B, N, dim) -> MuJoCo `(qpos, qvel)` by MuJoCo C's
   state map (`lgnn.engines.mujoco.state_to_qpos_qvel`), then `config.n_frames` frames
   of `steps_per_frame` `mjw.step`s (captured as one CUDA graph per frame on a GPU),
   the state of every frame kept on the device. `Runner.nodes(...)` maps them back
@@ -150,7 +150,7 @@ class Runner:
             wp.synchronize_device(self.device)
 
     def nodes(self, frames=None) -> State:
-        """Node states (B, len(frames), N, 2) (float64) of the last `run`'s `frames`
+        """Node states (B, len(frames), N, dim) (float64) of the last `run`'s `frames`
         (default: all), by MuJoCo Warp's kinematics (module docstring)."""
         wp, mjw, _ = _modules()
         frames = range(self.config.n_frames + 1) if frames is None else frames
@@ -210,14 +210,14 @@ def _to_mj_fn(compiled):
 
 
 def initial_qpos_qvel(compiled, states: State) -> tuple[np.ndarray, np.ndarray]:
-    """MuJoCo states (B, nq), (B, nv) of node states (B, N, 2), mapped in float64."""
+    """MuJoCo states (B, nq), (B, nv) of node states (B, N, dim), mapped in float64."""
     qpos, qvel = _to_mj_fn(compiled)(jnp.asarray(states.q, jnp.float64), jnp.asarray(states.qd, jnp.float64))
     return np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
 
 
 def rollout(scene: Scene, config: SimulationConfig, states: State, form: str = DEFAULT_FORM, device: str | None = None) -> State:
-    """Node trajectories (B, F+1, N, 2) (float64 of MuJoCo Warp's float32) from initial
-    node states (B, N, 2). Non-finite states are returned as they are."""
+    """Node trajectories (B, F+1, N, dim) (float64 of MuJoCo Warp's float32) from initial
+    node states (B, N, dim). Non-finite states are returned as they are."""
     run = runner(scene, config, len(states.q), form, device)
     run.run(*initial_qpos_qvel(run.compiled, states))
     return run.nodes()
@@ -234,7 +234,7 @@ class MjwarpEngine:
     device: str | None = None
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
-        """`Trajectory` of initial states (B, N, 2): q, qd (B, F+1, N, 2), energy (B, F+1)
+        """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1)
         (lgnn's exact energy of the node states); stopped at the first non-finite or
         exploding frame like every engine."""
         start = time.perf_counter()
@@ -248,7 +248,7 @@ class MjwarpEngine:
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
-        """`(compile_s, run_s, q (B, F+1, N, 2))`: compile is the kernels' compilation
+        """`(compile_s, run_s, q (B, F+1, N, dim))`: compile is the kernels' compilation
         (and graph capture) when the runner was built (as `lgnn.bench.timing` reports a
         cached compile); run is the stepping alone, after one untimed run
         (`lgnn.engines.timing.time_runs`); `q` may be non-finite."""

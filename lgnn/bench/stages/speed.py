@@ -21,7 +21,7 @@ from lgnn.bench import store
 from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX
 from lgnn.engines import get_engine
 from lgnn.engines.timing import compile_timed, time_runs
-from lgnn.bench.grid import TRAINING_SCENE, Profile, TrainingJob, settings_key, training_jobs
+from lgnn.bench.grid import TRAINING_SCENES, Profile, TrainingJob, evaluated_jobs, settings_key
 from lgnn.bench.stages.evaluate import evaluation_initial_states
 from lgnn.bench.store import Layout, log
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
@@ -30,9 +30,12 @@ from lgnn.scene import State, get_scene, scene_to_dict
 
 
 def timed_jobs(profile: Profile, scene_name: str, jobs: list[TrainingJob] | None = None) -> list[TrainingJob]:
-    """The learned models timed on a scene: those trained on TRAINING_SCENE (CLNN on
-    its own scene only), restricted to `SpeedSettings.models`."""
-    return [j for j in (jobs or training_jobs(profile)) if j.scene == TRAINING_SCENE and (j.model != "clnn" or scene_name == TRAINING_SCENE)
+    """The learned models timed on a scene: those the grid evaluates on it
+    (`grid.evaluated_jobs`: CLNN on its own scene only) trained on the main training
+    scene of the scene's dimension (`TRAINING_SCENES`: chain4, chain4-3d), restricted
+    to `jobs` if given and to `SpeedSettings.models`."""
+    trained_on = TRAINING_SCENES[get_scene(scene_name).dim]
+    return [j for j in evaluated_jobs(profile, scene_name) if j.scene == trained_on and (jobs is None or j in jobs)
             and (profile.speed.models is None or j.model in profile.speed.models)]
 
 
@@ -52,8 +55,9 @@ def speed_key(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJ
 
 def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> Path:
     """Rows `scene, solver, kind, dt, wall_s_per_sim_s, wall_s_min_per_sim_s,
-    wall_s_max_per_sim_s, runs, evaluations_per_sim_s, compile_s, rollout_error, note`
-    (JSON record): every ground-truth engine at each of `SpeedSettings.dts` and every
+    wall_s_max_per_sim_s, runs, evaluations_per_sim_s, compile_s, rollout_error, note,
+    form` (JSON record; `form`: the MJCF form, nested or maximal, a MuJoCo engine ran,
+    else ""): every ground-truth engine at each of `SpeedSettings.dts` and every
     timed model (`timed_jobs`) at the scene's evaluation dt, single trajectory from the
     scene's first initial condition over `horizon` s, frames every `frame_dt`; wall time:
     the median (and min, max) of `SpeedSettings.repeats` timed runs; compile: the
@@ -81,7 +85,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
         wall = [s / horizon for s in run_s] or [float("nan")]
         base = dict(scene=scene_name, solver=solver, kind=kind, dt=dt, wall_s_per_sim_s=float(np.median(wall)),
                     wall_s_min_per_sim_s=min(wall), wall_s_max_per_sim_s=max(wall), runs=len(run_s), evaluations_per_sim_s=4 / dt,
-                    compile_s=float("nan"), rollout_error=float("nan"), note="")
+                    compile_s=float("nan"), rollout_error=float("nan"), note="", form="")
         rows.append({**base, **values})
 
     for engine in ("lagrangian", "mujoco", "mjx"):
@@ -96,9 +100,11 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
                 row(engine, "engine", dt, note=f"not run: over {settings.max_link_steps:g} link-steps")
                 continue
             config = SimulationConfig("rk4", dt, frame_dt, horizon, True)
-            timed = [get_engine(engine).timed_rollout(scene, config, single) for _ in range(settings.repeats)]
+            runner = get_engine(engine)
+            timed = [runner.timed_rollout(scene, config, single) for _ in range(settings.repeats)]
             compile_s, _, q = timed[0]
-            row(engine, "engine", dt, run_s=[t[1] for t in timed], compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference))
+            row(engine, "engine", dt, run_s=[t[1] for t in timed], compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference),
+                form=runner.form_of(scene) if hasattr(runner, "form_of") else "")
             log(f"speed/error {scene_name} {engine} dt {dt:g}: {rows[-1]['wall_s_per_sim_s']:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     config = SimulationConfig("rk4", profile.evaluate.dt_for(scene_name), frame_dt, horizon, True)
     for job in timed_jobs(profile, scene_name, jobs):
