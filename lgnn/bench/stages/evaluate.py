@@ -117,7 +117,7 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     if out is not None:
         path, key = Layout(out).truth_trajectories(scene_name), truth_key(profile, scene_name)
         stored = store.load(path, key)
-        if stored is not None:
+        if stored is not None and stored[1].get("mujoco_reference") == MUJOCO_REFERENCE:
             arrays, meta = stored
             log(f"ground truth {scene_name}: read from {path}")
             return dict(**{name: arrays[name] for name in TRUTH_TRAJECTORIES}, states=State(arrays["states/q"], arrays["states/qd"]),
@@ -125,7 +125,7 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
         truth = _computed_ground_truth(profile, scene_name, progress)
         store.save(path, key, {**{name: truth[name] for name in TRUTH_TRAJECTORIES}, "states/q": np.asarray(truth["states"].q),
                                 "states/qd": np.asarray(truth["states"].qd)},
-                   dict(scene=scene_name, **{name: truth[name] for name in ("compile_s", "run_s", "mujoco_s")}))
+                   dict(scene=scene_name, mujoco_reference=MUJOCO_REFERENCE, **{name: truth[name] for name in ("compile_s", "run_s", "mujoco_s")}))
         return truth
     return _computed_ground_truth(profile, scene_name, progress)
 
