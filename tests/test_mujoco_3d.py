@@ -135,7 +135,8 @@ def test_axial_inertia_is_never_excited_and_does_not_matter(monkeypatch):
     """A rod's spin about its own axis stays zero (gravity and joint forces act on the
     axis): measured at most 4e-10 rad/s over 0.2 s (the loops' soft `connect`s; open
     chains 1e-12), against link angular speeds of order 1. So its axial inertia, 10x
-    up or down, changes nothing but round-off (measured 2e-14)."""
+    or 100x down (up is beyond MuJoCo's triangle inequality), changes nothing but
+    round-off (measured 6e-14)."""
     s, config = scene("net3x3-3d"), SimulationConfig(dt=1e-4, frame_dt=1e-2, duration=0.2)
     compiled, qpos, qvel = lm.joint_rollout(s, config)
     data, velocity = mujoco.MjData(compiled.model), np.empty(6)
@@ -147,7 +148,7 @@ def test_axial_inertia_is_never_excited_and_does_not_matter(monkeypatch):
         assert abs(velocity[:3] @ d) / np.linalg.norm(d) <= 1e-9 and np.linalg.norm(velocity[:3]) > 0.1
     reference = lm.node_trajectories(compiled, qpos, qvel).q
     try:
-        for factor in (10.0, 0.1):
+        for factor in (0.1, 0.01):
             monkeypatch.setattr(mjcf, "AXIAL_INERTIA_FRACTION", mjcf.AXIAL_INERTIA_FRACTION * factor)
             lm.compile_scene.cache_clear()
             assert np.max(np.abs(lm.rollout(s, config).q - reference)) <= 1e-12

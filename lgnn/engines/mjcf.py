@@ -71,14 +71,15 @@ MAXIMAL_SOLREF_STEPS = 2.0
 # A spatial rod's moment of inertia about its own axis, as a fraction of the one about
 # its normals. The node description has no spin about a rod's axis and no force
 # excites it (gravity and the joint forces act on the axis; the Euler equations of an
-# axisymmetric body keep a zero axial spin zero), but MuJoCo needs a positive-definite
-# body inertia. Measured (MuJoCo C, RK4, dt 1e-4, 0.5 s, both forms, chain4-3d and
-# net3x3-3d): fractions 1e-1 .. 1e-6 move node positions by at most 1.3e-13 from
-# 1e-3's, against 3e-14 .. 2e-8 from the Lagrangian engine. The axial spin stays at
-# round-off (open chains: 6e-14, 9e-13, 5e-12 rad/s at 1e-2, 1e-3, 1e-4) or at the
-# loops' `connect` softness (~4e-10 rad/s, 10x worse at 1e-4): 1e-3 is small enough
-# not to matter and large enough to keep that round-off small.
-AXIAL_INERTIA_FRACTION = 1e-3
+# axisymmetric body keep a zero axial spin zero), so the fraction does not change the
+# motion: measured (MuJoCo C, RK4, dt 1e-3, 0.1 s, chain4-3d and chain16-3d) 1e-3, 1e-1
+# and 1 agree with the Lagrangian engine alike (2.8e-12, 9.0e-11). But it sets the
+# conditioning of the joint-space mass matrix, whose smallest eigenvalues are the
+# rods' axial spins: at 1e-3 chain16-3d's was 2.2e8, beyond float32, and MuJoCo Warp's
+# accelerations were NaN from the first step. At 1 (an isotropic inertia, as planar
+# links get) 3D chains are conditioned as their planar ones (chain16 2.2e5, chain100
+# 3e8); MuJoCo's triangle inequality caps the fraction at 2.
+AXIAL_INERTIA_FRACTION = 1.0
 SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
 # Constraint solver: equality-only problems are quadratic, so Newton converges in one
 # or two iterations; the tolerance only stops it at round-off.
