@@ -27,7 +27,7 @@ import jax
 import numpy as np
 
 from lgnn import metrics
-from lgnn.engines import ENGINES, batch_of_one, get_engine
+from lgnn.engines import ENGINES, batch_of_one, form_of, get_engine
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.engines.mjcf import scene_layout
 from lgnn.scene import Scene, State
@@ -40,11 +40,6 @@ MJX_MAX_DEPTH = 8
 # engine on every built-in benchmark scene.
 SCENES = ("chain4", "chain8", "chain16", "chain100", "T1", "T2", "T3")
 SKIP_MJX = "skipped: MJX compile too slow on CPU (tree depth {depth} > {limit})"
-
-
-def form_of(engine, scene: Scene) -> str:
-    """The MJCF form `engine` runs `scene` in ("" for engines without one)."""
-    return engine.form_of(scene) if hasattr(engine, "form_of") else getattr(engine, "form", "")
 
 
 def engine_spec(spec: str) -> tuple[str, str | None]:

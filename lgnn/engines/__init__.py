@@ -22,7 +22,8 @@ An `Engine` has a `name`, the precision it computes in (`dtype`), and
   a one-line `ConfigError` when it is not installed.
 
 The MuJoCo engines take the MJCF form (`mjcf.Form`: "nested" or "maximal", or "auto"
-for the engine's own choice, `form_of(scene)`), through `get_engine(..., form=...)`.
+for the engine's own choice), through `get_engine(..., form=...)`; `form_of(engine,
+scene)` says which form an engine runs a scene in ("" for the others).
 
 A learned model answers the same interface as `lgnn.learn.models.ModelEngine(config,
 params)` (e.g. `ModelEngine(*load_model(checkpoint))`); it is not in `ENGINES`
@@ -57,6 +58,12 @@ class Engine(Protocol):
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory: ...
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]: ...
+
+
+def form_of(engine, scene: Scene) -> str:
+    """The MJCF form `engine` runs `scene` in: a MuJoCo engine's own choice for the
+    scene (`form_of`) or its fixed `form`; "" for engines without MJCF."""
+    return engine.form_of(scene) if hasattr(engine, "form_of") else getattr(engine, "form", "")
 
 
 def _lagrangian(dtype: str, progress: bool) -> Engine:

@@ -42,7 +42,7 @@ import numpy as np
 
 from lgnn.engines.lagrangian import DTYPES, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import Form, scene_layout
-from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, qpos_rate, resolve_form, state_to_qpos_qvel
+from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, qpos_rate, quat_mul, resolve_form, state_to_qpos_qvel
 from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.runtime import precision
@@ -126,11 +126,6 @@ class JointMaps:
         self.rot_v = np.array(rot_v, np.int64).reshape(-1, 3)
 
 
-def _quat_mul(a, b):
-    w1, v1, w2, v2 = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
-    return jnp.concatenate([w1 * w2 - jnp.sum(v1 * v2, -1, keepdims=True), w1 * v2 + w2 * v1 + jnp.cross(v1, v2)], -1)
-
-
 def integrate_pos(maps: JointMaps, qpos, qvel, h):
     """`qpos` advanced by `qvel` over time `h` (MuJoCo's `mj_integratePos`): linear
     coordinates by `h qvel`, quaternions (normalized first) rotated by the body-frame
@@ -144,7 +139,7 @@ def integrate_pos(maps: JointMaps, qpos, qvel, h):
     axis = omega / jnp.where(norm > 0, norm, 1)
     half = 0.5 * h * norm
     rotation = jnp.concatenate([jnp.cos(half), jnp.sin(half) * axis], -1)
-    return out.at[maps.quat_q].set(_quat_mul(quat, rotation))
+    return out.at[maps.quat_q].set(quat_mul(quat, rotation))
 
 
 def joint_qpos_rate(maps: JointMaps, qpos, qvel):
@@ -155,7 +150,7 @@ def joint_qpos_rate(maps: JointMaps, qpos, qvel):
         return rate
     omega = qvel[maps.rot_v]
     pure = jnp.concatenate([jnp.zeros_like(omega[:, :1]), omega], -1)
-    return rate.at[maps.quat_q].set(0.5 * _quat_mul(qpos[maps.quat_q], pure))
+    return rate.at[maps.quat_q].set(0.5 * quat_mul(qpos[maps.quat_q], pure))
 
 
 def _bortz(xx):

@@ -193,7 +193,7 @@ def _spatial_rotations(c: Compiled, d, dd, dtype):
     omega = jnp.cross(d, dd) / jnp.sum(d * d, -1, keepdims=True)
     absolute_ext = jnp.concatenate([absolute, jnp.array([[1.0, 0.0, 0.0, 0.0]], absolute.dtype)])
     omega_ext = jnp.concatenate([omega, jnp.zeros((1, 3), omega.dtype)])
-    relative = _quat_mul(_quat_conj(absolute_ext[c.parent]), absolute)
+    relative = quat_mul(_quat_conj(absolute_ext[c.parent]), absolute)
     local_omega = _quat_rotate(_quat_conj(absolute), omega - omega_ext[c.parent])
     qpos = jnp.zeros(c.model.nq, dtype).at[c.rotation_qpos[:, None] + np.arange(4)].set(relative)
     qvel = jnp.zeros(c.model.nv, dtype).at[c.rotation_dof[:, None] + np.arange(3)].set(local_omega)
@@ -214,11 +214,11 @@ def _shortest_rotation(rest: np.ndarray, d):
     start = jnp.where(far, -u0, u0)
     quat = jnp.concatenate([1 + jnp.sum(start * u, -1, keepdims=True), jnp.cross(start, u)], -1)
     quat = quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)
-    return jnp.where(far, _quat_mul(quat, jnp.asarray(half_turn, quat.dtype)), quat)
+    return jnp.where(far, quat_mul(quat, jnp.asarray(half_turn, quat.dtype)), quat)
 
 
-def _quat_mul(a, b):
-    # Hamilton product of (..., 4) quaternions (w, x, y, z).
+def quat_mul(a, b):
+    """Hamilton product of (..., 4) quaternions (w, x, y, z), MuJoCo's convention (jnp)."""
     aw, av, bw, bv = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
     return jnp.concatenate([aw * bw - jnp.sum(av * bv, -1, keepdims=True), aw * bv + bw * av + jnp.cross(av, bv)], -1)
 
@@ -246,7 +246,7 @@ def qpos_rate(compiled: Compiled, qpos, qvel):
     at_quat, at_omega = c.rotation_qpos[:, None] + np.arange(4), c.rotation_dof[:, None] + np.arange(3)
     omega = jnp.concatenate([jnp.zeros((len(at_omega), 1), qvel.dtype), qvel[at_omega]], -1)
     rate = jnp.zeros(c.model.nq, qvel.dtype).at[at_x].set(qvel[at_v])
-    return rate.at[at_quat].set(0.5 * _quat_mul(qpos[at_quat], omega))
+    return rate.at[at_quat].set(0.5 * quat_mul(qpos[at_quat], omega))
 
 
 def _kinematics(model: mujoco.MjModel, data: mujoco.MjData) -> None:

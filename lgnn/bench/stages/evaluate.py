@@ -99,6 +99,9 @@ def pair_key(profile: Profile, pair: Pair, checkpoint: Path) -> str:
 
 # The trajectories `ground_truth` keeps on disk (with `states`, its initial conditions).
 TRUTH_TRAJECTORIES = ("q", "qd", "energy", "q_floor", "qd_floor", "q_mujoco")
+# The ground truth's costs in seconds (JAX compile, JAX run, MuJoCo C's reference),
+# kept with its trajectories and in its record.
+TRUTH_TIMINGS = ("compile_s", "run_s", "mujoco_s")
 
 
 @functools.lru_cache(maxsize=2)
@@ -121,11 +124,11 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
             arrays, meta = stored
             log(f"ground truth {scene_name}: read from {path}")
             return dict(**{name: arrays[name] for name in TRUTH_TRAJECTORIES}, states=State(arrays["states/q"], arrays["states/qd"]),
-                        **{name: meta[name] for name in ("compile_s", "run_s", "mujoco_s")})
+                        **{name: meta[name] for name in TRUTH_TIMINGS})
         truth = _computed_ground_truth(profile, scene_name, progress)
         store.save(path, key, {**{name: truth[name] for name in TRUTH_TRAJECTORIES}, "states/q": np.asarray(truth["states"].q),
                                 "states/qd": np.asarray(truth["states"].qd)},
-                   dict(scene=scene_name, mujoco_reference=MUJOCO_REFERENCE, **{name: truth[name] for name in ("compile_s", "run_s", "mujoco_s")}))
+                   dict(scene=scene_name, mujoco_reference=MUJOCO_REFERENCE, **{name: truth[name] for name in TRUTH_TIMINGS}))
         return truth
     return _computed_ground_truth(profile, scene_name, progress)
 
@@ -263,7 +266,8 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
         scores, diverged = _scores(profile, scene, q, qd, truth)
         arrays.update({k: v for metric in METRICS for k, v in _metric_arrays(f"{NO_DRAG}/{metric}", scores[metric]).items()})
         arrays[f"{NO_DRAG}/diverged_at"] = np.where(diverged >= 0, diverged * frame_dt, np.nan)
-    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=MUJOCO_REFERENCE, compile_s=truth["compile_s"], run_s=truth["run_s"], mujoco_s=truth["mujoco_s"])
+    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=MUJOCO_REFERENCE,
+                **{name: truth[name] for name in TRUTH_TIMINGS})
     store.save(path, key, arrays, meta)
     return path
 

@@ -19,7 +19,7 @@ import numpy as np
 from lgnn import metrics, records
 from lgnn.bench import store
 from lgnn.bench.crosscheck import MJX_MAX_DEPTH, SKIP_MJX
-from lgnn.engines import get_engine
+from lgnn.engines import form_of, get_engine
 from lgnn.engines.timing import compile_timed, time_runs
 from lgnn.bench.grid import TRAINING_SCENES, Profile, TrainingJob, evaluated_jobs, settings_key
 from lgnn.bench.stages.evaluate import evaluation_initial_states
@@ -104,7 +104,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
             timed = [runner.timed_rollout(scene, config, single) for _ in range(settings.repeats)]
             compile_s, _, q = timed[0]
             row(engine, "engine", dt, run_s=[t[1] for t in timed], compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference),
-                form=runner.form_of(scene) if hasattr(runner, "form_of") else "")
+                form=form_of(runner, scene))
             log(f"speed/error {scene_name} {engine} dt {dt:g}: {rows[-1]['wall_s_per_sim_s']:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     config = SimulationConfig("rk4", profile.evaluate.dt_for(scene_name), frame_dt, horizon, True)
     for job in timed_jobs(profile, scene_name, jobs):
