@@ -512,10 +512,11 @@ def _training_lines(profile: Profile, out: Path) -> list[str]:
     for job, state in load_checkpoints(profile, out):
         lines.append(f"| {job.model} | {job.scene} | {job.seed} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) "
                      f"| {_stopped_by(state, profile.training.train)} |")
-    chosen, scores = default_lgnn(profile, out)
-    if scores:
-        lines += ["", f"Default LGNN (lowest geometric mean over seeds of the best validation MSE among the variants with every seed trained): "
-                  f"**{chosen}** ({', '.join(f'{v} {s:.3g}' for v, s in scores.items())})."]
+    for dim, training_scene in TRAINING_SCENES.items():
+        chosen, scores = default_lgnn(profile, out, training_scene)
+        if scores:
+            lines += ["", f"Default LGNN{' in 3D' if dim == 3 else ''} (trained on {training_scene}; lowest geometric mean over seeds of the best "
+                      f"validation MSE among the variants with every seed trained): **{chosen}** ({', '.join(f'{v} {s:.3g}' for v, s in scores.items())})."]
     return lines
 
 
@@ -675,7 +676,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
     lines += [f"| `figures/{name}` | figure |" for name in figures]
     if p.name == "full":
         lines += [
-            "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 chain100 T1 T2 T3 --duration 0.1 --out-dir results`: 0.1 s to fit a shared 2-core CPU, where MJX took 205 s on chain4 and 766 s on chain8, compile included) |",
+            "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 chain100 T1 T2 T3 --duration 0.1 --out-dir DIR`, float64 on a CPU: the table's header names the machine; 0.1 s, as MJX's CPU compile takes 15-25 s a scene) |",
             "| `engines_speed_error.csv`, `.md` | engines' steps/s and error at dt 1e-3..1e-5 (`lgnn crosscheck --speed chain4 chain16 chain100 T1 --out-dir results`) |",
             "| `stability.md`, `.csv` | hard cases: long horizons, 1000 links, large steps, near-singular geometry, diverging models (`lgnn stability --out results/stability.md`) |",
         ]
