@@ -99,8 +99,9 @@ def write_gpu_table(directory, name, rows):
 
 def test_performance_reads_the_gpu_truth_tables(tmp_path):
     """The report's GPU-truth section: per scene and batch the float32 Lagrangian against
-    the fastest MuJoCo GPU engine that is finite in every world, the Lagrangian row taken
-    from that engine's own run where it has one, and no ratio where MuJoCo has no finite run."""
+    the fastest MuJoCo GPU engine that is finite in every world and agrees with the
+    reference, the Lagrangian row taken from that engine's own run where it has one, and
+    no ratio where MuJoCo has no such run."""
     truth = tmp_path / "gpu" / "truth"
     truth.mkdir(parents=True)
     nan = float("nan")
@@ -115,6 +116,8 @@ def test_performance_reads_the_gpu_truth_tables(tmp_path):
         # Faster but non-finite in one world: never the comparison.
         dict(engine="mjwarp", form="nested", batch=8, steps_per_s=9e9, max_node_error=nan, finite_worlds=7, note="non-finite in 1 of 8 worlds"),
         dict(engine="mjwarp", form="maximal", batch=64, steps_per_s=nan, max_node_error=nan, finite_worlds=0, note="not run: out of device memory"),
+        # Faster and finite, but 15 m off (MuJoCo Warp on an ill-conditioned chain): not a ground truth.
+        dict(engine="mjwarp", form="maximal", batch=8, steps_per_s=8e9, max_node_error=15.0),
     ])
     rows = gpu_truth.against_mujoco(gpu_truth.load(truth))
     assert [(r["scene"], r["batch"]) for r in rows] == [("chain4", 8), ("chain4", 64)]
@@ -122,6 +125,7 @@ def test_performance_reads_the_gpu_truth_tables(tmp_path):
     # The Lagrangian's 3e6 of the MJX run's own table, not the 9e6 of another run.
     assert small["mujoco_engine"] == "mjx float32 maximal" and small["ratio"] == pytest.approx(3.0) and small["meets_goal"]
     assert small["tables"] == "gpu_truth_chain4_mujoco" and "mjwarp nested: non-finite in 1 of 8 worlds" in small["note"]
+    assert "mjwarp maximal: 15 from the reference" in small["note"]
     assert np.isnan(large["ratio"]) and not large["meets_goal"] and "out of device memory" in large["note"]
     text = report.performance_markdown(get_profile("full"), [], None, tmp_path)
     section = text.split("## Ground truth on GPUs against MuJoCo's GPU engines")[1]
