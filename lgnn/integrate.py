@@ -3,7 +3,16 @@
 An integrator is built from an acceleration function `accel(q, qd) -> qdd` and a step
 `dt`: `init_fn(state) -> carry`, `step_fn(carry) -> carry`, with `carry.state` the
 current `State`. Both optionally project `(q, qd)` back onto the constraint manifold
-after every step (`project(q, qd) -> (q, qd)`, see `physics.projection_fn`).
+after every step (`project(q, qd, q_low) -> (q, qd, q_low)`, see
+`physics.projection_fn`).
+
+Positions are summed with compensation (`compensated_add`): the carry holds, beside
+`state.q`, the part `q_low` of each position that its rounding lost, and feeds it back
+into the next step. In float32 the rounding of `q + dt * ...` to the positions' own
+scale (ulp 1e-6 at 12 m) is otherwise the largest error of a step: chain16, 100 RK4
+steps of 1e-3 against float64, 8.1e-6 of the 1.05e-5 total came from rounding the
+positions alone (everything else in float64), 1.2e-8 from rounding the velocities
+(whose increments are not small against them, so they get no compensation).
 
 `rollout` saves a frame every `steps_per_frame` steps with nested `lax.scan`s, so the
 integration step `dt` is decoupled from the saved frame interval.
@@ -18,7 +27,18 @@ import jax.numpy as jnp
 
 from lgnn.scene import State
 
-Projection = Callable[[jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+Projection = Callable[[jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array, jax.Array]]
+
+
+def compensated_add(q: jax.Array, q_low: jax.Array, increment: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """`(q + q_low) + increment` as a rounded sum and its exact remainder (Knuth's
+    two-sum of `q` and `q_low + increment`): the remainder is what the rounding to `q`'s
+    scale lost, exact in any dtype, so adding it into the next increment keeps the
+    positions' error at round-off of the increments instead of the positions."""
+    addend = q_low + increment
+    total = q + addend
+    addend_part = total - q
+    return total, (q - (total - addend_part)) + (addend - addend_part)
 
 
 class Carry(NamedTuple):
@@ -26,6 +46,9 @@ class Carry(NamedTuple):
     # Acceleration at `state`, reused by velocity Verlet (one evaluation per step);
     # None for integrators that do not carry it.
     qdd: jax.Array | None = None
+    # What rounding lost of `state.q` (module docstring): the positions are
+    # `state.q + q_low`, |q_low| at most half an ulp of `state.q`.
+    q_low: jax.Array | None = None
 
 
 class Integrator(NamedTuple):
@@ -34,17 +57,25 @@ class Integrator(NamedTuple):
     evaluations_per_step: int
 
 
-def _maybe_project(project: Projection | None, q, qd) -> State:
-    if project is None:
-        return State(q, qd)
-    return State(*project(q, qd))
+def _next_carry(project: Projection | None, q, q_low, increment, qd, qdd=None) -> Carry:
+    """The carry at positions `q + q_low + increment` (summed with compensation) and
+    velocities `qd`, projected when `project` is given."""
+    q, q_low = compensated_add(q, q_low, increment)
+    if project is not None:
+        q, qd, q_low = project(q, qd, q_low)
+    return Carry(State(q, qd), qdd, q_low)
+
+
+def _initial_carry(state: State, qdd=None) -> Carry:
+    q, qd = state
+    return Carry(State(q, qd), qdd, jnp.zeros_like(q))
 
 
 def rk4(accel, dt: float, project: Projection | None = None) -> Integrator:
     """Classical 4th-order Runge-Kutta on the first-order system (q, qd)."""
 
     def step(carry: Carry) -> Carry:
-        q, qd = carry.state
+        (q, qd), _, q_low = carry
         k1v, k1a = qd, accel(q, qd)
         k2v = qd + 0.5 * dt * k1a
         k2a = accel(q + 0.5 * dt * k1v, k2v)
@@ -52,11 +83,10 @@ def rk4(accel, dt: float, project: Projection | None = None) -> Integrator:
         k3a = accel(q + 0.5 * dt * k2v, k3v)
         k4v = qd + dt * k3a
         k4a = accel(q + dt * k3v, k4v)
-        q_next = q + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
         qd_next = qd + dt / 6 * (k1a + 2 * k2a + 2 * k3a + k4a)
-        return Carry(_maybe_project(project, q_next, qd_next))
+        return _next_carry(project, q, q_low, dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v), qd_next)
 
-    return Integrator(lambda state: Carry(State(*state)), step, 4)
+    return Integrator(_initial_carry, step, 4)
 
 
 def velocity_verlet(accel, dt: float, project: Projection | None = None) -> Integrator:
@@ -69,14 +99,14 @@ def velocity_verlet(accel, dt: float, project: Projection | None = None) -> Inte
     """
 
     def init(state: State) -> Carry:
-        return Carry(State(*state), accel(*state))
+        return _initial_carry(state, accel(*state))
 
     def step(carry: Carry) -> Carry:
-        (q, qd), a = carry
-        q_next = q + dt * qd + 0.5 * dt**2 * a
-        a_next = accel(q_next, qd + dt * a)
+        (q, qd), a, q_low = carry
+        increment = dt * qd + 0.5 * dt**2 * a
+        a_next = accel(q + increment, qd + dt * a)
         qd_next = qd + 0.5 * dt * (a + a_next)
-        return Carry(_maybe_project(project, q_next, qd_next), a_next)
+        return _next_carry(project, q, q_low, increment, qd_next, a_next)
 
     return Integrator(init, step, 1)
 

@@ -116,12 +116,20 @@ class Constraints:
         """(N, D) -> free coordinates (F,)."""
         return full.reshape(-1)[self.free]
 
-    def link_residual(self, q: Array) -> Array:
-        """Phi (K,) at node positions `q` (N, D): `(|dq|^2 - l^2) / 2l` per kept link,
-        zero on the manifold."""
+    def link_vectors(self, q: Array, q_low: Array | None = None) -> Array:
+        """(K, D) `q_i - q_j` of the kept links at positions `q` (N, D), plus the
+        difference of the positions' rounding remainders `q_low` where given
+        (`integrate.compensated_add`): a link's vector is then as accurate as its own
+        length allows, not only as the positions' larger scale does."""
         i, j = self.edge_index[self.links].T
-        length = jnp.asarray(self.lengths_all[self.links], q.dtype)
         dq = q[i] - q[j]
+        return dq if q_low is None else dq + (q_low[i] - q_low[j])
+
+    def link_residual(self, q: Array, q_low: Array | None = None) -> Array:
+        """Phi (K,) at node positions `q` (N, D) (plus `q_low`, see `link_vectors`):
+        `(|dq|^2 - l^2) / 2l` per kept link, zero on the manifold."""
+        length = jnp.asarray(self.lengths_all[self.links], q.dtype)
+        dq = self.link_vectors(q, q_low)
         return (jnp.sum(dq * dq, -1) - length**2) / (2 * length)
 
     def link_speed_terms(self, qd: Array) -> Array:
@@ -130,11 +138,11 @@ class Constraints:
         dv = qd[i] - qd[j]
         return jnp.sum(dv * dv, -1) / jnp.asarray(self.lengths_all[self.links], qd.dtype)
 
-    def link_directions(self, q: Array) -> Array:
-        """(K, D) `(q_i - q_j) / l` of the kept links at positions `q` (N, D): the
-        nonzero blocks of the Jacobian (row k is `+u_k` at node i, `-u_k` at node j)."""
-        i, j = self.edge_index[self.links].T
-        return (q[i] - q[j]) / jnp.asarray(self.lengths_all[self.links, None], q.dtype)
+    def link_directions(self, q: Array, q_low: Array | None = None) -> Array:
+        """(K, D) `(q_i - q_j) / l` of the kept links at positions `q` (N, D) (plus
+        `q_low`, see `link_vectors`): the nonzero blocks of the Jacobian (row k is `+u_k`
+        at node i, `-u_k` at node j)."""
+        return self.link_vectors(q, q_low) / jnp.asarray(self.lengths_all[self.links, None], q.dtype)
 
     def jacobian(self, x: Array) -> Array:
         """A(x) = dPhi/dx (K, F), assembled from the link directions (tested against AD)."""
