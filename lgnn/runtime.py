@@ -65,6 +65,24 @@ def precision(dtype: str = "float64") -> ContextManager:
     return jax.enable_x64(dtype == "float64")
 
 
+def full_precision_matmuls(fn: Callable) -> Callable:
+    """`fn` traced with JAX's default matmul precision "highest": its matrix products
+    (dot_general) carry full-precision operands wherever the caller traces it. XLA's
+    default on recent NVIDIA GPUs computes float32 products in TF32 (10-bit mantissa);
+    for the physics solves that cost accuracy at no speed gain: T1's float32 rollout on
+    an H100 (100 RK4 steps of 1e-3, batch 1024 and 8192) ended 7.4e-5 from float64 at
+    the default and 5.9e-7 at "highest", at the same steps/s (results/gpu/truth/README.md).
+    No effect in float64 or on CPUs."""
+    import jax
+
+    @functools.wraps(fn)
+    def full_precision_fn(*args, **kwargs):
+        with jax.default_matmul_precision("highest"):
+            return fn(*args, **kwargs)
+
+    return full_precision_fn
+
+
 def in_float64(fn: Callable) -> Callable:
     """`fn` run inside `precision("float64")` (a computing entry point's decorator)."""
 

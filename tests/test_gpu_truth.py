@@ -137,3 +137,25 @@ def test_gpu_truth_reader_refuses_other_tables(tmp_path):
     (tmp_path / "gpu_truth_x.csv").write_text("scene,engine\nchain4,mjx\n")
     with pytest.raises(ConfigError, match="not a gpu-truth table"):
         gpu_truth.load(tmp_path)
+
+
+@pytest.mark.parametrize("scene_name", ["chain16", "T1", "T2"])
+def test_float32_ground_truth_has_full_precision_matrix_products(scene_name):
+    """Every matrix product of the ground truth's accelerations (the chain, Schur and
+    generic solvers) is lowered at precision HIGHEST, so a GPU does not compute it in
+    TF32 (T1 on an H100: 7.4e-5 from float64 with TF32, 5.9e-7 without)."""
+    import re
+
+    import jax
+    import jax.numpy as jnp
+
+    from lgnn import physics
+    from lgnn.scene import get_scene
+
+    scene = get_scene(scene_name)
+    q, qd = (jnp.asarray(a, jnp.float32) for a in scene.initial_state)
+    text = jax.jit(physics.true_acceleration_fn(scene)).lower(q, qd).as_text()
+    products = re.findall(r"stablehlo\.dot_general[^\n]*", text)
+    assert products and all("HIGHEST" in p for p in products)
+    plain = jax.jit(lambda a: a @ a).lower(jnp.ones((3, 3), jnp.float32)).as_text()
+    assert "HIGHEST" not in plain  # the default, which the solvers must not keep

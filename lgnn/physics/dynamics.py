@@ -48,6 +48,7 @@ import numpy as np
 from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
 from lgnn.physics.solvers import chain_kkt_solve, regularised_spd_solve, solve_kkt
 from lgnn.physics.system import System, prepare
+from lgnn.runtime import full_precision_matmuls
 from lgnn.scene import Scene
 
 AccelerationFn = Callable[[Array, Array], Array]
@@ -99,7 +100,7 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
         xdd = solve_kkt(mass, constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
         return constraints.embed_velocity(xdd)
 
-    return accel
+    return full_precision_matmuls(accel)
 
 
 def mass_matrix_fn(lagrangian: LagrangianFn) -> Callable[[Array, Array], Array]:
@@ -140,9 +141,8 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool
     solver = system.solver(solver, vectorised)
     if solver == "generic":
         return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
-    if solver == "chain":
-        return _chain_acceleration_fn(system)
-    return _schur_acceleration_fn(system)
+    # Full-precision products: a ground truth in float32 on a GPU is otherwise TF32's.
+    return full_precision_matmuls(_chain_acceleration_fn(system) if solver == "chain" else _schur_acceleration_fn(system))
 
 
 def vectorised_true_acceleration_fn(scene: Scene) -> AccelerationFn:

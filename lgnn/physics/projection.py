@@ -17,6 +17,7 @@ from lgnn.integrate import compensated_add
 from lgnn.physics.energies import Array
 from lgnn.physics.solvers import refine
 from lgnn.physics.system import prepare
+from lgnn.runtime import full_precision_matmuls
 from lgnn.scene import Scene
 
 # Levenberg-Marquardt shift of the projection's Gauss-Newton steps (the Gram matrix of
@@ -88,4 +89,5 @@ def projection_fn(scene: Scene, iterations: int = 4) -> Callable[..., tuple[Arra
         qd = refine(lambda defect: -transpose_times(u, solve(defect)), lambda v: times(u, v), qd, passes)
         return (q, qd) if q_low is None else (q, qd, low)
 
-    return project
+    # Full-precision products: float32 on a GPU is otherwise TF32's (`lgnn.runtime`).
+    return full_precision_matmuls(project)
