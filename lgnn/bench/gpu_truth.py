@@ -25,8 +25,8 @@ engine. `write(rows, out_dir, scene, command)` writes `gpu_truth_<scene>.csv` an
 
 `load(directory)` reads the tables back, and `against_mujoco(rows)` sets the float32
 Lagrangian beside the fastest MuJoCo GPU engine that is finite and agrees with the
-reference (`AGREEMENT_MAX`) per scene and batch, with the
-ratio against issue 14's goal (`GOAL_RATIO`): the report's `performance.md` section.
+reference (`AGREEMENT_MAX`), per scene and batch, with the ratio against issue 14's
+goal (`GOAL_RATIO`): the report's `performance.md` section.
 
 Precision (issue 14: "float32 on a GPU: chosen how?"): the process runs with JAX's
 float64 on (`lgnn.configure()`), and an engine's precision is that of its inputs: a
@@ -214,7 +214,8 @@ def write(rows: list[dict], out_dir, name: str, command: str, settings: GpuTruth
 # ---------------------------------------------------------------------------------
 
 # Issue 14's goal: lgnn's Lagrangian engine in float32 at least this many times the
-# steps/s of the fastest MuJoCo GPU engine that stays finite on the same batch.
+# steps/s of the fastest MuJoCo GPU engine that stays finite (and agrees, below) on
+# the same batch.
 GOAL_RATIO = 1.5
 MUJOCO_GPU_ENGINES = ("mjx", "mjwarp")
 # A MuJoCo GPU run counts as a ground truth only within this max node error (length
@@ -251,9 +252,9 @@ def _why_left_out(row: dict) -> str:
 
 def against_mujoco(rows: list[dict]) -> list[dict]:
     """Per scene and batch (in the order met): the float32 Lagrangian against the fastest
-    MuJoCo GPU engine finite in every world and within `AGREEMENT_MAX` of the reference. Rows `scene, batch, lagrangian_steps_per_s,
-    lagrangian_error, mujoco_engine, mujoco_steps_per_s, mujoco_error, ratio,
-    meets_goal, tables, note`.
+    MuJoCo GPU engine finite in every world and within `AGREEMENT_MAX` of the reference.
+    Rows `scene, batch, lagrangian_steps_per_s, lagrangian_error, mujoco_engine,
+    mujoco_steps_per_s, mujoco_error, ratio, meets_goal, tables, note`.
 
     Timings swing between sessions, so the Lagrangian row is taken from the MuJoCo
     row's own table (the same run) when that has one, else from another table of the
