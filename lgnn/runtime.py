@@ -71,7 +71,7 @@ def full_precision_matmuls(fn: Callable) -> Callable:
     default on recent NVIDIA GPUs computes float32 products in TF32 (10-bit mantissa);
     for the physics solves that cost accuracy at no speed gain: T1's float32 rollout on
     an H100 (100 RK4 steps of 1e-3, batch 1024 and 8192) ended 7.4e-5 from float64 at
-    the default and 5.9e-7 at "highest", at the same steps/s (results/gpu/truth/README.md).
+    the default and 5.9e-7 at "highest", at the same steps/s (results/gpu/truth/earlier/README.md).
     No effect in float64 or on CPUs."""
     import jax
 
