@@ -188,7 +188,7 @@ def test_training_table_says_why_each_run_stopped():
         return train.TrainState({}, (), {}, float(losses[best]), best + 1, len(losses), history)
 
     assert report._stopped_by(state(list(np.geomspace(1, 1e-3, 100))), config) == "epoch budget"
-    assert report._stopped_by(state([1.0, 0.5] + [0.499] * 20), config) == "plateau (last 1% gain at epoch 2)"
+    assert report._stopped_by(state([1.0, 0.5] + [0.499] * 20), config) == "plateau (best improved by under 1% in epochs 12-22)"
     assert report._stopped_by(state([1.0, 0.5, 0.4]), config) == "not finished: cut off, resumable"
 
 

@@ -157,12 +157,22 @@ def test_crosscheck_of_a_scene_file_writes_beside_the_user_and_summarises(capsys
     assert {len(re.findall(r"(?<!\\)\|", line)) for line in table} == {7}  # 6 columns (scene, engine, form, metric, value, note)
 
 
-def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_ones_log(capsys, tmp_path):
-    """`lgnn benchmark --workers 2`: each (model, training scene) group trains in its own
-    child process, checkpoints and logs under the output directory; a part that fails
-    fails the stage with one line naming its log, the others' records kept."""
+def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_ones_log(capsys, tmp_path, monkeypatch):
+    """`lgnn benchmark --workers 2`: the training data are generated once, before the
+    children start; each (model, training scene) group trains in its own child process,
+    checkpoints and logs under the output directory; a part that fails fails the stage
+    with one line naming its log, the others' records kept."""
+    from lgnn.bench import run as bench_run
     from lgnn.bench.parallel import run_split
     from lgnn.errors import LgnnError
+
+    data_before_children = []
+
+    def spy(*args, **kwargs):
+        data_before_children.append(sorted(p.name.split("-")[1] for p in (tmp_path / "datasets").glob("data-*.npz")))
+        return run_split(*args, **kwargs)
+
+    monkeypatch.setattr(bench_run, "run_split", spy)
 
     # Two models, one epoch of 20 states integrated at dt 1e-3: the child processes are
     # the point here (each child's imports, data and compiles: ~35 s on 2 loaded cores).
@@ -173,6 +183,7 @@ def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_on
     bench = tmp_path / "benchmark"
     assert {p.name for p in (bench / "checkpoints").iterdir()} >= {"gns-chain4-s0.npz", "clnn-chain4-s0.npz"}
     assert {p.name for p in (bench / "logs").iterdir()} == {"train-gns-chain4.log", "train-clnn-chain4.log"}
+    assert data_before_children == [["chain4"]]
     # A part that fails (a child that stops at once: an unknown job).
     with pytest.raises(LgnnError) as failed:
         run_split("train", {"nonsense": ["no-such-job"]}, "--job", profile_argv, tmp_path, 2)

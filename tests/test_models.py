@@ -580,10 +580,20 @@ def test_seeds_trained_together_equal_separate_runs(tiny_dataset, tmp_path):
 
 
 def test_plateau_rule_stops_when_the_best_stops_improving_by_a_fraction():
+    """The gain counts over the whole window of `patience` epochs: steady progress of
+    0.5 % an epoch is no plateau, though no single epoch gains 1 %."""
+
+    def state(val):
+        history = [(e, 0.0, v, 0.0) for e, v in enumerate(val, 1)]
+        best = int(np.argmin(val))
+        return train.TrainState({}, (), {}, float(val[best]), best + 1, len(val), history)
+
     config = train.TrainConfig(patience=2, min_improvement=0.01)
-    val = [10.0, 5.0, 4.98, 4.96, 4.95]  # gains of < 1 % after epoch 2
-    history = [(e, 0.0, v, 0.0) for e, v in enumerate(val, 1)]
-    state = train.TrainState({}, (), {}, min(val), 5, 5, history)
-    assert train.last_improvement(state, config) == 2 and train.finished(state, config)
-    assert not train.finished(state, dataclasses.replace(config, min_improvement=0.0))  # best at 5
-    assert not train.finished(state._replace(epoch=4, history=history[:4]), config)
+    flat = state([10.0, 5.0, 4.98, 4.97, 4.965])  # 0.7 % from epoch 2 to 4, 0.3 % from 3 to 5
+    assert train.plateaued(flat, config) and train.stop_reason(flat, config) == "plateau (best improved by under 1% in epochs 3-5)"
+    assert not train.finished(state([10.0, 5.0, 4.98, 4.97]), dataclasses.replace(config, patience=3))  # 10 -> 4.97 in epochs 1-4
+    assert not train.finished(flat, dataclasses.replace(config, min_improvement=0.0))  # best at 5
+    steady = state(list(300.0 * 0.995 ** np.arange(300)))
+    assert not train.finished(steady, train.TrainConfig(patience=200, min_improvement=0.01))
+    stalled = state(list(300.0 * 0.995 ** np.arange(100)) + [182.0] * 201)
+    assert train.stop_reason(stalled, train.TrainConfig(patience=200, min_improvement=0.01)).startswith("plateau")

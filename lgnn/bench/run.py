@@ -20,7 +20,7 @@ from lgnn.bench.stages.evaluate import evaluate_pair, evaluate_scene
 from lgnn.bench.stages.mass import mass_matrices
 from lgnn.bench.stages.scaling import scaling
 from lgnn.bench.stages.speed import speed_error
-from lgnn.bench.stages.train import train_jobs
+from lgnn.bench.stages.train import prepare_datasets, train_jobs
 from lgnn.bench.store import default_out
 from lgnn.errors import ConfigError
 
@@ -56,6 +56,7 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
         groups: dict[str, list[str]] = {}
         for job in selected_jobs:
             groups.setdefault(f"{job.model}-{job.scene}", []).append(job.name)
+        prepare_datasets(profile, selected_jobs, out, progress)
         run_split("train", groups, "--job", profile_argv, out, workers)
     elif "train" in stages:
         train_jobs(profile, selected_jobs, out, progress)
