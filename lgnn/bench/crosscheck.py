@@ -32,10 +32,6 @@ from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.engines.mjcf import scene_layout
 from lgnn.scene import Scene, State
 
-# Deepest spanning tree the benchmark's speed stage compiles MJX for (nested form:
-# chain4 compiles in ~35 s on a 2-core CPU; chain16 20-60 s; 100 links kinematics
-# alone 459 s). The crosscheck skips nothing by default.
-MJX_MAX_DEPTH = 8
 # The scenes `lgnn crosscheck` runs when given none: issue 14's acceptance, every
 # engine on every built-in benchmark scene.
 SCENES = ("chain4", "chain8", "chain16", "chain100", "T1", "T2", "T3")
