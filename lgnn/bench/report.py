@@ -789,7 +789,7 @@ def _third_dimension_lines(rows: list[dict], dt: float) -> list[str]:
     lines = ["", f"## The third dimension's cost (single trajectory, RK4 at dt {dt:g})", "",
              "Each 3D chain beside the planar chain of as many links: wall s per simulated s in each and their ratio. A learned "
              "model's cell is the median over its seeds, each trained on its own dimension's chain4 (— : not in that dimension's "
-             "grid; MJX only where its CPU compile is affordable, tree depth <= 8). MuJoCo's joints: hinges in the plane (one DOF "
+             "grid; MJX in the MJCF form it picks, maximal past tree depth 8). MuJoCo's joints: hinges in the plane (one DOF "
              "a link), balls in 3D (three). The two cells of a row come from two records (two processes; commits and machines "
              "in `README.md`), so a ratio carries their run-to-run noise (`benchmark/speed_error.md` gives each record's spread); "
              "a pair timed on different machines says so.",
