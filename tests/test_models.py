@@ -290,7 +290,7 @@ def test_lgnn_with_message_passing_is_the_papers_equations(name):
 def test_lgnn_variants_train(tiny_dataset, name):
     """Each LGNN variant trains (a few epochs lower the validation loss) and its mass
     matrix starts positive definite where its start promises it (`lgnn-mp1` shares
-    `lgnn`'s; the notebook's `T` is a sum of squares, positive semi-definite)."""
+    `lgnn`'s; the notebook's `T`, a sum of squares, starts strictly convex too)."""
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene(name, scene)
     config = train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, epochs=4, warmup_steps=10)

@@ -39,7 +39,8 @@ Architectures (paper section 3 and appendix):
   and centre of mass `r_cm`, each with the edge type, go to three separate MLPs
   (hidden 10): `T_link = |MLP_v(v_cm)|^2 + |MLP_w(w)|^2`, `V_link = MLP_r(r_cm)`. The
   MLPs for T output a vector of `latent` (5) entries and T is its squared norm (a
-  scalar output squared has a rank-1 mass matrix, which cannot be `m I` in 2D).
+  scalar output squared has a rank-1 mass matrix, which cannot be `m I` in 2D); they
+  start with T strictly convex in the velocities (`_positive_convex_start`).
 - GNS: node (q, qd) and edge (type, dq, w) encoders to latent 8, the same message-passing
   layers with MLPs of 128 hidden units, a node decoder MLP to accelerations. No
   constraints.
@@ -489,9 +490,9 @@ def _positive_convex_start(mlp: list) -> list:
     trajectories, and at the full profile seeds 0 and 1 stalled from the first epochs at
     2e3 and 3e2 while seed 2 reached 7e-6. With this start every seed's tangent mass
     matrix is positive definite (smallest eigenvalue >= 0.5), the untrained MSE is
-    1e2-2e2, and all six seeds train alike. Here each hidden unit is strictly convex and positive
-    (squareplus is, of an affine map), so each `f_i`, a non-negative combination of
-    them, is positive and convex, with `Hess f_i = W1 diag(W2[:, i] squareplus'') W1^T`
+    1e2-2e2, and all six seeds train alike. Here each hidden unit is strictly convex
+    and positive (squareplus is, of an affine map), so each `f_i`, a non-negative
+    combination of them, is positive and convex, with `Hess f_i = W1 diag(W2[:, i] squareplus'') W1^T`
     positive definite (every `W2` entry positive, `W1`'s input rows of full rank):
     `f_i^2` is strictly convex. `v_cm` and `w = dq x dqd` are linear in the velocities
     and together fix both nodes' velocities on motions that keep the link's length, so
