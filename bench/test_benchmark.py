@@ -93,7 +93,7 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     # Training learns: far below the untrained model (same initial parameters) on the
     # same validation states. (Below its own first epoch would hold by construction.)
     scene, (model, _) = get_scene(job.scene), train.load_model(path)
-    dataset = data.load_or_generate(dataclasses.replace(profile.training.data, scene=job.scene), store.Layout(out).datasets)
+    dataset = data.load_or_generate(profile.training.data_for(job.scene), store.Layout(out).datasets)
     val = tuple(a[dataset.val] for a in (dataset.q, dataset.qd, dataset.qdd))
     untrained = train.initial_state(model, dataclasses.replace(profile.training.train, seed=job.seed)).params
     untrained_val = train.evaluate_fn(model, scene)(untrained, *val)

@@ -19,7 +19,7 @@ def export_scene(profile: Profile, scene_name: str, out: str | os.PathLike, cach
     evaluation initial conditions to `out`; returns the arrays' shapes."""
     export.check_path(out)
     scene = get_scene(scene_name)
-    config = dataclasses.replace(profile.training.data, scene=scene_name)
+    config = profile.training.data_for(scene_name)
     dataset = data.load_or_generate(config, cache_dir, progress=progress)
     evaluation = evaluation_initial_states(profile, scene)
     simulation = profile.evaluate.simulation(scene_name)

@@ -153,6 +153,10 @@ class TrainSettings:
     def __post_init__(self):
         object.__setattr__(self, "train", scheduled(self.train, adam_steps_per_epoch(self.data, self.train)))
 
+    def data_for(self, scene_name: str) -> DataConfig:
+        """The training data of one scene (`data` is every training scene's but for its name)."""
+        return dataclasses.replace(self.data, scene=scene_name)
+
 
 @dataclasses.dataclass(frozen=True)
 class EvaluateSettings:

@@ -27,7 +27,7 @@ from lgnn.scene import get_scene
 def _job_settings(profile: Profile, job: TrainingJob):
     scene = get_scene(job.scene)
     model = models.ModelConfig.for_scene(job.model, scene)
-    data_config = dataclasses.replace(profile.training.data, scene=job.scene)
+    data_config = profile.training.data_for(job.scene)
     train_config = dataclasses.replace(profile.training.train, seed=job.seed)
     return scene, model, data_config, train_config
 
@@ -103,7 +103,7 @@ def prepare_datasets(profile: Profile, jobs: list[TrainingJob], out: Path, progr
     full grid spent 10 minutes generating the four training scenes' data before their
     first epoch, 2026-11-24)."""
     for scene in dict.fromkeys(job.scene for job in jobs):
-        data.load_or_generate(dataclasses.replace(profile.training.data, scene=scene), Layout(out).datasets, progress=progress)
+        data.load_or_generate(profile.training.data_for(scene), Layout(out).datasets, progress=progress)
 
 
 def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, train.TrainState]]:
