@@ -1,6 +1,8 @@
 """The command line: outputs, and one clear line for every bad input."""
 
 import json
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -190,6 +192,41 @@ def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_on
     message = str(failed.value)
     assert "\n" not in message and "1 of 1 parts failed" in message and str(bench / "logs" / "train-nonsense.log") in message
     assert "unknown training job 'no-such-job'" in (bench / "logs" / "train-nonsense.log").read_text()
+
+
+def test_workers_share_a_gpu_through_a_private_mps_daemon_stopped_afterwards(tmp_path, monkeypatch, capsys):
+    """`gpu_sharing` (a stand-in `nvidia-cuda-mps-control` on the PATH records its
+    calls): a daemon is started with a private pipe directory that the children's
+    environment names, and told to quit with the same one on exit; nothing is started
+    for one child, with `LGNN_MPS=0`, or when the caller names its own daemon; a daemon
+    that fails to start leaves the environment as it was, with a warning."""
+    from lgnn.bench.parallel import MPS_CONTROL, gpu_sharing
+
+    calls = tmp_path / "calls.txt"
+    control = tmp_path / "bin" / MPS_CONTROL
+    control.parent.mkdir()
+    # Reads its standard input (the "quit" command) unless started as the daemon ("-d").
+    control.write_text(f'#!/bin/sh\nin=""; [ "$1" = "-d" ] || in=$(cat)\necho "$* stdin=$in pipe=$CUDA_MPS_PIPE_DIRECTORY" >> {calls}\nexit ${{FAKE_MPS_EXIT:-0}}\n')
+    control.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{control.parent}:{os.environ['PATH']}")
+    env = {"PATH": os.environ["PATH"], "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+
+    with gpu_sharing(env) as shared:
+        pipe = shared["CUDA_MPS_PIPE_DIRECTORY"]
+        assert Path(pipe).is_dir() and shared["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+        assert calls.read_text().splitlines() == [f"-d stdin= pipe={pipe}"]
+    assert calls.read_text().splitlines()[1] == f" stdin=quit pipe={pipe}"
+    assert not Path(pipe).exists()
+
+    calls.unlink()
+    for kept in (dict(env=env, enabled=False), dict(env={**env, "LGNN_MPS": "0"}), dict(env={**env, "CUDA_MPS_PIPE_DIRECTORY": "/theirs"})):
+        with gpu_sharing(**kept) as shared:
+            assert shared == kept["env"]
+    assert not calls.exists()
+
+    with gpu_sharing({**env, "FAKE_MPS_EXIT": "1"}) as shared:
+        assert "CUDA_MPS_PIPE_DIRECTORY" not in shared
+    assert "warning: no MPS daemon" in capsys.readouterr().err
 
 
 def test_crosscheck_runs_a_mujoco_engine_in_both_forms(capsys, tmp_path):

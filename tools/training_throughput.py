@@ -1,0 +1,67 @@
+"""Seconds per training epoch of the full profile's jobs: one JSON line per (model,
+precision, batch size), 3 seeds vmapped in one program (`lgnn.learn.train.train_seeds`),
+the job's training scene's full-profile data (generated into --data on first use),
+from the initial parameters, compile apart; issue 13, item 2.
+
+    python tools/training_throughput.py --models lgnn gns --batches 100 7500 --dtype float64
+    python tools/training_throughput.py --models lgnn --batches 100 --epochs 100   # x4 at once: contention
+
+One precision per process (`--dtype`): jit caches built in one precision are not
+reused in the other. Several processes started at once measure how they share a
+device; results/gpu/training/README.md has the commands and the numbers.
+"""
+import argparse
+import dataclasses
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+
+from lgnn import runtime
+
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+parser.add_argument("--models", nargs="+", default=["lgnn"])
+parser.add_argument("--scene", default="chain4", help="training scene of the jobs")
+parser.add_argument("--batches", nargs="+", type=int, default=[100])
+parser.add_argument("--dtype", choices=["float64", "float32"], default="float64")
+parser.add_argument("--epochs", type=int, default=3, help="timed epochs after the compiling one")
+parser.add_argument("--data", default="/tmp/lgnn-datasets", help="dataset cache directory")
+args = parser.parse_args()
+
+runtime.configure()
+from lgnn.bench.grid import get_profile, training_jobs  # noqa: E402
+from lgnn.bench.stages.train import _job_settings  # noqa: E402
+from lgnn.learn import data, train  # noqa: E402
+from lgnn.provenance import environment  # noqa: E402
+
+profile = get_profile("full")
+print(json.dumps({"environment": environment()}), flush=True)
+for name in args.models:
+    job = next(j for j in training_jobs(profile) if j.model == name and j.scene == args.scene and j.seed == 0)
+    scene, model, data_config, train_config = _job_settings(profile, job)
+    dataset = data.load_or_generate(data_config, args.data)
+    with runtime.precision(args.dtype):
+        arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
+        for batch in args.batches:
+            steps = len(dataset.train) // batch
+            config = train.scheduled(dataclasses.replace(train_config, batch_size=batch), steps)
+            states = [train.initial_state(model, dataclasses.replace(config, seed=s)) for s in profile.seeds]
+            stack = lambda trees: jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)  # noqa: E731
+            params, opt = stack([s.params for s in states]), stack([s.opt_state for s in states])
+            keys = jnp.stack([jax.random.PRNGKey(s) for s in profile.seeds])
+            epoch = train.compiled_epoch_fn(model, scene, config, vmapped=True)
+            row = dict(model=name, scene=args.scene, dtype=args.dtype, batch=batch, adam_steps=steps, seeds=len(profile.seeds))
+            try:
+                start = time.perf_counter()
+                params, opt, loss = jax.block_until_ready(epoch(params, opt, *arrays, keys))
+                row["compile_s"] = round(time.perf_counter() - start, 2)
+                times = []
+                for _ in range(args.epochs):
+                    start = time.perf_counter()
+                    params, opt, loss = jax.block_until_ready(epoch(params, opt, *arrays, keys))
+                    times.append(time.perf_counter() - start)
+                row.update(epoch_s_min=round(min(times), 4), epoch_s_mean=round(sum(times) / len(times), 4), epoch_s_max=round(max(times), 4), timed_epochs=len(times))
+            except Exception as err:  # noqa: BLE001 -- a measurement: report (e.g. out of memory) and go on
+                row["error"] = str(err).splitlines()[0][:200]
+            print(json.dumps(row), flush=True)
