@@ -6,6 +6,8 @@ from the initial parameters, compile apart; issue 13, item 2.
     python tools/training_throughput.py --models lgnn gns --batches 100 7500 --dtype float64
     python tools/training_throughput.py --models lgnn --batches 100 --epochs 100   # x4 at once: contention
 
+    python tools/training_throughput.py --summarise results/gpu/training/*.jsonl   # the table
+
 One precision per process (`--dtype`): jit caches built in one precision are not
 reused in the other. Several processes started at once measure how they share a
 device; results/gpu/training/README.md has the commands and the numbers.
@@ -13,6 +15,7 @@ device; results/gpu/training/README.md has the commands and the numbers.
 import argparse
 import dataclasses
 import json
+import os
 import time
 
 import jax
@@ -27,7 +30,31 @@ parser.add_argument("--batches", nargs="+", type=int, default=[100])
 parser.add_argument("--dtype", choices=["float64", "float32"], default="float64")
 parser.add_argument("--epochs", type=int, default=3, help="timed epochs after the compiling one")
 parser.add_argument("--data", default="/tmp/lgnn-datasets", help="dataset cache directory")
+parser.add_argument("--summarise", nargs="+", metavar="JSONL", help="print a markdown table of these outputs instead of measuring")
 args = parser.parse_args()
+
+
+def summarise(paths):
+    """One row per measurement: the file it came from (its name says which run, e.g.
+    `mps4-2`: the second of 4 processes at once under MPS), and its device and commit."""
+    print("| file | model | scene | dtype | batch | Adam steps | epoch s (mean) | epoch s (min..max) | compile s | device, commit |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for path in paths:
+        env = {}
+        for line in open(path):
+            row = json.loads(line)
+            if "environment" in row:
+                env = row["environment"]
+                continue
+            where = f"{env.get('device', '?').split(';')[0]}, {env.get('commit', '?')}"
+            timing = (f"{row['epoch_s_mean']} | {row['epoch_s_min']}..{row['epoch_s_max']} | {row['compile_s']}" if "epoch_s_mean" in row
+                      else f"{row.get('error', '?')} | | ")
+            print(f"| {os.path.basename(path)[:-6]} | {row['model']} | {row.get('scene', '')} | {row['dtype']} | {row['batch']} | {row.get('adam_steps', '')} | {timing} | {where} |")
+
+
+if args.summarise:
+    summarise(args.summarise)
+    raise SystemExit
 
 runtime.configure()
 from lgnn.bench.grid import get_profile, training_jobs  # noqa: E402
