@@ -390,6 +390,22 @@ def test_link_gram_solve_matches_dense_normal_equations(name, tridiagonal, borde
     np.testing.assert_allclose(solved, expected, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("size", [1, 2, 45])
+def test_spd_tridiagonal_solve_matches_the_dense_solve(size):
+    """The LDL^T sweep of the Gram solves against a dense solve, several right-hand sides,
+    on an SPD tridiagonal matrix whose off-diagonals are as large as a chain's."""
+    from lgnn.physics.solvers import spd_tridiagonal_solve
+
+    rng = np.random.default_rng(size)
+    off = rng.uniform(-1, 1, size - 1)
+    diag = 2.0 + rng.uniform(0, 0.1, size)
+    dense = np.diag(diag) + np.diag(off, 1) + np.diag(off, -1)
+    rhs = rng.normal(size=(size, 3))
+    lower, upper = np.concatenate([[0.0], off]), np.concatenate([off, [0.0]])
+    solved = jax.jit(spd_tridiagonal_solve)(*(jnp.asarray(a) for a in (lower, diag, upper, rhs)))
+    np.testing.assert_allclose(solved, np.linalg.solve(dense, rhs), rtol=1e-12, atol=1e-12)
+
+
 def test_chain_solver_is_accurate_on_a_long_chain():
     """The linear-time chain elimination against the Schur solve on 300 links, at a
     random configuration with fast motion (round-off relative to the scale)."""

