@@ -215,7 +215,10 @@ def spd_tridiagonal_solve(lower: Array, diag: Array, upper: Array, rhs: Array) -
     LDL^T sweep down and a substitution up, two `lax.scan`s of elementwise work. Stable
     without pivoting for SPD `T`, and under `vmap` the work vectorises over the batch,
     where LAPACK's `gtsv` (the lax primitive on CPU) runs one system at a time: ~1.7x
-    faster on T1's Gram matrix x 100 states."""
+    faster on T1's Gram matrix x 100 states. On a GPU the scans cost nothing measurable
+    against cuSPARSE's `gtsv` and the dense Cholesky they replace (one H100, `lgnn
+    gpu-truth`, 1024-65536 states, float32: T1 4.47e5 / 7.54e5 / 8.12e5 steps/s against
+    4.45e5 / 7.54e5 / 8.08e5, chain100 equal to 3 digits; 2026-11-24)."""
 
     def sweep(carry, row):
         previous_pivot, previous_reduced, previous_upper = carry
