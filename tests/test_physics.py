@@ -303,7 +303,18 @@ STRUCTURED_SCENES = {
     "double-pinned": double_pinned_chain,
     "free-triangle": free_triangle,
     "pinned-triangle": pinned_triangle,
+    "braced-chain": lambda: braced_chain(),
 }
+
+
+def braced_chain():
+    """A chain of 7 links hanging between two pins, with braces between nodes 2 and 5 and
+    nodes 1 and 6: three closed loops, regular at rest, like a small T1 (its Gram matrix
+    is tridiagonal with a border of the two braces)."""
+    data = json.loads(scene_to_json(double_pinned_chain(7)))
+    data["name"] = "braced-chain"
+    data["links"] += [{"nodes": [a, b], "mass": 0.5, "inertia": 0.02} for a, b in ((2, 5), (1, 6))]
+    return scene_from_dict(data)
 
 
 @pytest.mark.parametrize("name", sorted(STRUCTURED_SCENES))
@@ -361,19 +372,38 @@ def test_constraint_jacobian_and_its_derivative_match_autodiff(name):
     np.testing.assert_allclose(constraints.jacobian_dot_v(x, v), second, atol=1e-13)
 
 
-@pytest.mark.parametrize("name, tridiagonal", [("chain90", True), ("T1", False), ("double-pinned", True), ("pinned-triangle", True)])
-def test_link_gram_solve_matches_dense_normal_equations(name, tridiagonal):
-    """`A A^T` from the link pairs (tridiagonal for chains) equals the dense product."""
+@pytest.mark.parametrize("name, tridiagonal, border", [("chain90", True, None), ("T1", False, [43, 44, 45]), ("braced-chain", False, [7, 8]),
+                                                      ("double-pinned", True, None), ("pinned-triangle", True, None)])
+def test_link_gram_solve_matches_dense_normal_equations(name, tridiagonal, border):
+    """`A A^T` from the link pairs (tridiagonal for chains, bordered on braced chains)
+    solves like the dense product."""
     scene = STRUCTURED_SCENES[name]()
     system = physics.prepare(scene)
     constraints, gram = system.constraints, system.gram
     assert gram.tridiagonal == tridiagonal
+    assert (gram.border is None and border is None) or gram.border.tolist() == border
     q, _ = random_state(scene, seed=7)
     jac = constraints.jacobian(constraints.restrict(q))
     rhs = jnp.asarray(np.random.default_rng(0).normal(size=constraints.n_rows))
     expected = np.linalg.solve(np.asarray(jac @ jac.T), np.asarray(rhs))
     solved = gram.solve_fn(constraints.link_directions(q), 0.0)(rhs)
     np.testing.assert_allclose(solved, expected, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("size", [1, 2, 45])
+def test_spd_tridiagonal_solve_matches_the_dense_solve(size):
+    """The LDL^T sweep of the Gram solves against a dense solve, several right-hand sides,
+    on an SPD tridiagonal matrix whose off-diagonals are as large as a chain's."""
+    from lgnn.physics.solvers import spd_tridiagonal_solve
+
+    rng = np.random.default_rng(size)
+    off = rng.uniform(-1, 1, size - 1)
+    diag = 2.0 + rng.uniform(0, 0.1, size)
+    dense = np.diag(diag) + np.diag(off, 1) + np.diag(off, -1)
+    rhs = rng.normal(size=(size, 3))
+    lower, upper = np.concatenate([[0.0], off]), np.concatenate([off, [0.0]])
+    solved = jax.jit(spd_tridiagonal_solve)(*(jnp.asarray(a) for a in (lower, diag, upper, rhs)))
+    np.testing.assert_allclose(solved, np.linalg.solve(dense, rhs), rtol=1e-12, atol=1e-12)
 
 
 def test_chain_solver_is_accurate_on_a_long_chain():
