@@ -509,13 +509,15 @@ def _stopped_by(state, config) -> str:
 
 def _training_lines(profile: Profile, out: Path) -> list[str]:
     lines = ["| model | training scene | seed | epochs | minutes | best validation MSE (epoch) | stopped by |", "|---|---|---|---|---|---|---|"]
-    for job, state in load_checkpoints(profile, out):
+    checkpoints = load_checkpoints(profile, out)
+    for job, state in checkpoints:
         lines.append(f"| {job.model} | {job.scene} | {job.seed} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) "
                      f"| {_stopped_by(state, profile.training.train)} |")
     for dim, training_scene in TRAINING_SCENES.items():
-        chosen, scores = default_lgnn(profile, out, training_scene)
+        chosen, scores = default_lgnn(profile, out, training_scene, checkpoints)
         if scores:
-            lines += ["", f"Default LGNN{' in 3D' if dim == 3 else ''} (trained on {training_scene}; lowest geometric mean over seeds of the best "
+            # The planar grid's is "the" default LGNN; another dimension's is named.
+            lines += ["", f"Default LGNN{'' if dim == 2 else ' in ' + DIMENSION_NAMES.get(dim, f'{dim}D')} (trained on {training_scene}; lowest geometric mean over seeds of the best "
                       f"validation MSE among the variants with every seed trained): **{chosen}** ({', '.join(f'{v} {s:.3g}' for v, s in scores.items())})."]
     return lines
 

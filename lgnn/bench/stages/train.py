@@ -112,14 +112,16 @@ def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, tra
     return [(job, train.load_checkpoint(layout.checkpoint(job))[0]) for job in training_jobs(profile) if layout.checkpoint(job).exists()]
 
 
-def default_lgnn(profile: Profile, out: Path, training_scene: str = TRAINING_SCENE) -> tuple[str | None, dict[str, float]]:
+def default_lgnn(profile: Profile, out: Path, training_scene: str = TRAINING_SCENE,
+                 checkpoints: list[tuple[TrainingJob, train.TrainState]] | None = None) -> tuple[str | None, dict[str, float]]:
     """The default LGNN of one training scene (chain4; chain4-3d for the spatial grid),
     chosen from the training records: among `LGNN_VARIANTS` trained on `training_scene`
     with a checkpoint for every seed of the profile, the one with the lowest geometric
     mean over seeds of the best validation MSE (ties: the earlier, simpler variant).
-    Returns `(name, {variant: that mean})`; name None when no variant has all its seeds."""
+    Returns `(name, {variant: that mean})`; name None when no variant has all its seeds.
+    `checkpoints`: `load_checkpoints(profile, out)` where the caller has it already."""
     found: dict[str, list[float]] = {}
-    for job, state in load_checkpoints(profile, out):
+    for job, state in load_checkpoints(profile, out) if checkpoints is None else checkpoints:
         if job.model in LGNN_VARIANTS and job.scene == training_scene:
             found.setdefault(job.model, []).append(state.best_val)
     scores = {v: float(np.exp(np.mean(np.log(found[v])))) for v in LGNN_VARIANTS if len(found.get(v, ())) == len(profile.seeds)}
