@@ -25,8 +25,8 @@ import contextlib
 import os
 import shutil
 import subprocess
-import tempfile
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -45,7 +45,7 @@ def run_split(stage: str, parts: dict[str, list[str]], flag: str, profile_argv: 
         _run_parts(stage, parts, flag, profile_argv, out, workers, env, logs)
 
 
-def _run_parts(stage, parts, flag, profile_argv, out, workers, env, logs) -> None:
+def _run_parts(stage: str, parts: dict[str, list[str]], flag: str, profile_argv: list[str], out: Path, workers: int, env: dict, logs: Path) -> None:
     waiting, running, failed = list(parts.items()), {}, []
     started = time.monotonic()
     while waiting or running:
@@ -82,7 +82,9 @@ def gpu_sharing(env: dict, enabled: bool = True):
     on exit, where `nvidia-cuda-mps-control` is on the PATH and `LGNN_MPS` is not "0".
     Otherwise (not `enabled`: one child at a time; `env` already names an MPS pipe
     directory: the caller's daemon serves), or if the daemon does not start (one line
-    says so), `env` unchanged."""
+    says so), `env` unchanged. A parent killed by a signal leaves the daemon running:
+    `echo quit | CUDA_MPS_PIPE_DIRECTORY=/tmp/lgnn-mps-*/pipe nvidia-cuda-mps-control`
+    stops it."""
     control = shutil.which(MPS_CONTROL)
     if not enabled or control is None or env.get("LGNN_MPS") == "0" or "CUDA_MPS_PIPE_DIRECTORY" in env:
         yield env
