@@ -558,7 +558,7 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, the committed run it resumes and updates; ./lgnn-out/quick/ otherwise)")
     parser.add_argument("--chunk", type=_positive_int, default=None, help="initial conditions per compiled rollout call (default 25; a GPU wants 100)")
     parser.add_argument("--workers", type=_positive_int, default=1,
-                        help="train each model group and evaluate each scene in this many processes at once (a GPU or a "
+                        help="train each model group and evaluate each (scene, model) in this many processes at once (a GPU or a "
                              "many-core CPU; logs under OUT/benchmark/logs/)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_benchmark)

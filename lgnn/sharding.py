@@ -36,6 +36,16 @@ def batch_jit(fn: Callable) -> Callable:
     return jax.jit(fn, in_shardings=sharding, out_shardings=sharding)
 
 
+def shared_batch_jit(fn: Callable, n_batched: int) -> Callable:
+    """`jax.jit(fn)` of `fn(shared, *batched)`: `shared` (a pytree, e.g. the parameters
+    of several seeds of one model) whole on every device, the `n_batched` other
+    arguments split along their leading axis, every output along its second axis (its
+    first is `shared`'s own, e.g. the seeds')."""
+    mesh = Mesh(np.asarray(jax.local_devices()), ("batch",))
+    whole, batch = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("batch"))
+    return jax.jit(fn, in_shardings=(whole,) + (batch,) * n_batched, out_shardings=NamedSharding(mesh, PartitionSpec(None, "batch")))
+
+
 def padded_size(size: int) -> int:
     """The smallest multiple of the device count that holds `size` elements."""
     n = device_count()

@@ -159,6 +159,32 @@ def test_crosscheck_of_a_scene_file_writes_beside_the_user_and_summarises(capsys
     assert {len(re.findall(r"(?<!\\)\|", line)) for line in table} == {7}  # 6 columns (scene, engine, form, metric, value, note)
 
 
+def test_benchmark_workers_evaluate_each_models_seeds_together_scenes_interleaved(tmp_path, monkeypatch):
+    """`--workers` evaluation parts (the child processes, spied on, not run): one per
+    scene and (model, training scene), naming that scene and all the model's seeds;
+    together exactly the grid's pairs; the first parts all on different scenes (each
+    computes its scene's ground truth while the others run)."""
+    from lgnn.bench import grid, run as bench_run
+
+    calls = []
+    monkeypatch.setattr(bench_run, "run_split", lambda *args: calls.append(args))
+    profile = grid.get_profile("full")
+    bench_run.run(profile, tmp_path, stages=["evaluate"], workers=4, profile_argv=["--full"])
+    (stage, parts, argv, _, workers), = calls
+    assert (stage, argv, workers) == ("evaluate", ["--full"], 4)
+    covered = set()
+    for name, args in parts.items():
+        scene = args[args.index("--scene") + 1]
+        jobs = [args[i + 1] for i, a in enumerate(args) if a == "--job"]
+        assert len(jobs) == len(profile.seeds) and len({j.rsplit("-s", 1)[0] for j in jobs}) == 1, name
+        assert name == f"{scene}-{jobs[0].rsplit('-s', 1)[0]}"
+        covered |= {(job, scene) for job in jobs}
+    assert covered == {(p.job.name, p.scene) for p in grid.evaluation_pairs(profile)}
+    scenes = grid.evaluation_scenes(profile)
+    first = [args[args.index("--scene") + 1] for args in list(parts.values())[: len(scenes)]]
+    assert sorted(first) == sorted(scenes)
+
+
 def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_ones_log(capsys, tmp_path, monkeypatch):
     """`lgnn benchmark --workers 2`: the training data are generated once, before the
     children start; each (model, training scene) group trains in its own child process,
@@ -188,7 +214,7 @@ def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_on
     assert data_before_children == [["chain4"]]
     # A part that fails (a child that stops at once: an unknown job).
     with pytest.raises(LgnnError) as failed:
-        run_split("train", {"nonsense": ["no-such-job"]}, "--job", profile_argv, tmp_path, 2)
+        run_split("train", {"nonsense": ["--job", "no-such-job"]}, profile_argv, tmp_path, 2)
     message = str(failed.value)
     assert "\n" not in message and "1 of 1 parts failed" in message and str(bench / "logs" / "train-nonsense.log") in message
     assert "unknown training job 'no-such-job'" in (bench / "logs" / "train-nonsense.log").read_text()

@@ -44,6 +44,10 @@ q, qd = (jax.numpy.asarray(sharding.pad_batch(np.asarray(a), 4)) for a in states
 out = compiled(q, qd)
 devices = sorted(d.id for d in out.q.sharding.device_set)
 q, _, _, _ = batched_rollouts(scene, config, physics.true_acceleration_fn, states, 3, "sharded", False)
+# Two parameter sets (ignored by the factory) sharing the sharded initial conditions.
+from lgnn.bench.timing import stacked_rollouts
+stacked, _, _, _ = stacked_rollouts(scene, config, lambda s, p: physics.true_acceleration_fn(s), np.zeros((2, 1)), states, 3, "stacked", False)
+assert stacked.shape == (2,) + q.shape and np.abs(stacked - q).max() < 1e-13, "stacked, sharded"
 dataset = data.generate(data.DataConfig(**json.loads(sys.argv[2])))
 np.savez(sys.argv[3], q=q, data_q=dataset.q, data_qdd=dataset.qdd)
 print(json.dumps({"devices": devices}))
@@ -78,3 +82,24 @@ def test_pad_batch_repeats_the_last_element():
     np.testing.assert_array_equal(padded[:, 0], [0, 1, 2, 2, 2])
     size = sharding.padded_size(3)
     assert size >= 3 and size % sharding.device_count() == 0 and size - 3 < sharding.device_count()
+
+
+def test_seeds_rolled_out_together_equal_each_alone():
+    """`stacked_rollouts` (one compiled program for several parameter sets of one model,
+    the evaluation's seeds) gives each set's trajectories as `batched_rollouts` does with
+    that set's parameters as constants, with a padded last chunk."""
+    from lgnn.bench.timing import stacked_rollouts
+    from lgnn.learn import models
+
+    scene = get_scene("chain4")
+    config = models.ModelConfig("lgnn", latent=4, hidden=8)
+    seeds = [models.init(jax.random.PRNGKey(seed), config) for seed in (0, 1)]
+    states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
+    stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *seeds)
+    q, qd, _, _ = stacked_rollouts(scene, CONFIG, models.AccelerationFactory(config), stacked, states, 2, "stacked", False)
+    assert q.shape == (2, 3, CONFIG.n_frames + 1, scene.n_nodes, scene.dim)
+    for params, q_seed, qd_seed in zip(seeds, q, qd):
+        alone, alone_qd, _, _ = batched_rollouts(scene, CONFIG, lambda s, p=params: models.acceleration_fn(config, p, s), states, 2, "alone", False)
+        np.testing.assert_allclose(q_seed, alone, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(qd_seed, alone_qd, rtol=0, atol=1e-10)
+    assert np.abs(q[0] - q[1]).max() > 1e-6, "the two seeds' models differ"

@@ -1,9 +1,10 @@
 """Stages split over worker processes (`lgnn benchmark --workers N`).
 
-The training grid's (model, training scene) groups and the evaluation's scenes are
-independent records (`lgnn.bench.store`), so they can run at once, and on a multi-core
-CPU each process takes its own cores. `run_split` runs one `lgnn benchmark` child per
-part (the same profile arguments, `--stage`, and `--job` or `--scene` naming the part),
+The training grid's (model, training scene) groups and the evaluation's (scene, model)
+parts are independent records (`lgnn.bench.store`), so they can run at once, and on a
+multi-core CPU each process takes its own cores. `run_split` runs one `lgnn benchmark`
+child per part (the same profile arguments, `--stage`, and `--job`s and `--scene`
+naming the part),
 at most `workers` at a time, each writing its log to
 `<out>/benchmark/logs/<stage>-<part>.log`; children do not preallocate GPU memory, so
 they share the device. A part that fails fails the stage with one line naming its log
@@ -34,25 +35,24 @@ from lgnn.bench.store import Layout, file_name, log
 from lgnn.errors import LgnnError
 
 
-def run_split(stage: str, parts: dict[str, list[str]], flag: str, profile_argv: list[str], out: Path, workers: int) -> None:
-    """Run `lgnn benchmark PROFILE_ARGV --stage STAGE --out-dir OUT FLAG x ...` for each
-    part (`{name: [values of FLAG]}`), `workers` at a time."""
+def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int) -> None:
+    """Run `lgnn benchmark PROFILE_ARGV --stage STAGE --out-dir OUT ARGS` for each part
+    (`{name: ARGS}`, e.g. `["--job", "gns-chain4-s0", ...]`), `workers` at a time."""
     logs = Layout(out).bench / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "false")}
     env.pop("XLA_PYTHON_CLIENT_MEM_FRACTION", None)  # a fraction each would over-commit the device
     with gpu_sharing(env, enabled=workers > 1 and len(parts) > 1) as env:
-        _run_parts(stage, parts, flag, profile_argv, out, workers, env, logs)
+        _run_parts(stage, parts, profile_argv, out, workers, env, logs)
 
 
-def _run_parts(stage: str, parts: dict[str, list[str]], flag: str, profile_argv: list[str], out: Path, workers: int, env: dict, logs: Path) -> None:
+def _run_parts(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int, env: dict, logs: Path) -> None:
     waiting, running, failed = list(parts.items()), {}, []
     started = time.monotonic()
     while waiting or running:
         while waiting and len(running) < workers:
-            name, values = waiting.pop(0)
-            command = [sys.executable, "-m", "lgnn.cli", "benchmark", *profile_argv, "--stage", stage, "--out-dir", str(out), "--quiet"]
-            command += [arg for value in values for arg in (flag, value)]
+            name, args = waiting.pop(0)
+            command = [sys.executable, "-m", "lgnn.cli", "benchmark", *profile_argv, "--stage", stage, "--out-dir", str(out), "--quiet", *args]
             path = logs / f"{stage}-{file_name(name)}.log"
             handle = path.open("w")
             running[name] = (subprocess.Popen(command, stdout=handle, stderr=subprocess.STDOUT, env=env), handle, path)

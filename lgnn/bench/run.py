@@ -6,7 +6,7 @@ Stages (`STAGES`, one module each under `lgnn.bench.stages`) are resumable: each
 output is a record written atomically, reused when the settings it was made with
 match, redone otherwise; so stages may run apart, on several machines, and be
 assembled by the report. With `workers` > 1 the training groups and the evaluation
-scenes run in that many child processes at once (`lgnn.bench.parallel`).
+(scene, model) parts run in that many child processes at once (`lgnn.bench.parallel`).
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from lgnn.bench import report
-from lgnn.bench.grid import Profile, evaluation_pairs, evaluation_scenes, training_jobs
+from lgnn.bench.grid import Profile, TrainingJob, evaluation_pairs, evaluation_scenes, training_jobs
 from lgnn.bench.parallel import run_split
-from lgnn.bench.stages.evaluate import evaluate_pair, evaluate_scene
+from lgnn.bench.stages.evaluate import evaluate_group, evaluate_scene
 from lgnn.bench.stages.mass import mass_matrices
 from lgnn.bench.stages.scaling import scaling
 from lgnn.bench.stages.speed import speed_error
@@ -32,7 +32,7 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
     """Run the chosen stages of the benchmark (default: the profile's `stages`, or all),
     restricted to the named training jobs and evaluation scenes when given; returns
     the output directory. With `workers` > 1, training (one part per model and
-    training scene) and evaluation (one part per scene) run in child `lgnn benchmark`
+    training scene) and evaluation (one part per scene and model's seeds) run in child `lgnn benchmark`
     processes given `profile_argv`, the arguments that select this profile."""
     if workers > 1 and profile_argv is None:
         raise ConfigError("parallel workers need the profile's command-line arguments (profile_argv)")
@@ -57,18 +57,27 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
         for job in selected_jobs:
             groups.setdefault(f"{job.model}-{job.scene}", []).append(job.name)
         prepare_datasets(profile, selected_jobs, out, progress)
-        run_split("train", groups, "--job", profile_argv, out, workers)
+        run_split("train", {name: [a for j in names for a in ("--job", j)] for name, names in groups.items()}, profile_argv, out, workers)
     elif "train" in stages:
         train_jobs(profile, selected_jobs, out, progress)
-    if "evaluate" in stages and workers > 1:
-        parts = {scene: [scene] for scene in selected_scenes}
-        run_split("evaluate", parts, "--scene", [*profile_argv, *(a for j in (jobs or ()) for a in ("--job", j))], out, workers)
-    elif "evaluate" in stages:
-        for scene in selected_scenes:
-            evaluate_scene(profile, scene, out, progress)
-            for pair in evaluation_pairs(profile):
-                if pair.scene == scene and pair.job in selected_jobs:
-                    evaluate_pair(profile, pair, out, progress)
+    if "evaluate" in stages:
+        by_scene = {scene: _seed_groups(profile, scene, selected_jobs) for scene in selected_scenes}
+        if workers > 1:
+            # One part per (scene, model's seeds); scenes interleaved, so the first parts
+            # to start compute different scenes' ground truths (`ground_truth`: one
+            # process computes a scene's, the others wait and read it).
+            parts = {}
+            for rank in range(max(map(len, by_scene.values()), default=0)):
+                for scene, groups in by_scene.items():
+                    if rank < len(groups):
+                        name, names = groups[rank]
+                        parts[f"{scene}-{name}"] = ["--scene", scene, *(a for j in names for a in ("--job", j))]
+            run_split("evaluate", parts, profile_argv, out, workers)
+        else:
+            for scene, groups in by_scene.items():
+                evaluate_scene(profile, scene, out, progress)
+                for _, names in groups:
+                    evaluate_group(profile, [p for p in evaluation_pairs(profile) if p.scene == scene and p.job.name in names], out, progress)
     if "speed" in stages:
         for scene in profile.speed.scenes:
             if not scenes or scene in scenes:
@@ -82,3 +91,14 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
     if "report" in stages:
         report.write(profile, out)
     return out
+
+
+def _seed_groups(profile: Profile, scene: str, jobs: list[TrainingJob]) -> list[tuple[str, list[str]]]:
+    """`(model-training scene, [job names])` of the selected jobs evaluated on `scene`,
+    one entry per model and training scene (its seeds, evaluated together)."""
+    evaluated = {p.job for p in evaluation_pairs(profile) if p.scene == scene}
+    groups: dict[str, list[str]] = {}
+    for job in jobs:
+        if job in evaluated:
+            groups.setdefault(f"{job.model}-{job.scene}", []).append(job.name)
+    return list(groups.items())

@@ -4,7 +4,8 @@
 acceleration factory, batch size, dtype), sharded over every local device
 (`lgnn.sharding`), and says how long the compile took; `batched_rollouts` runs it over
 any number of initial conditions in chunks of that size (the last padded, so one
-compile serves all) and times the runs apart from the compile. Single-trajectory
+compile serves all) and times the runs apart from the compile; `stacked_rollouts` does
+the same for several parameter sets of one model at once (its seeds). Single-trajectory
 timings are `lgnn.engines.timing.time_compiled` and `Engine.timed_rollout`.
 """
 
@@ -20,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import sharding
-from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.engines.lagrangian import SimulationConfig, params_rollout_fn, rollout_fn
 from lgnn.scene import Scene, State
 
 
@@ -40,11 +41,38 @@ def compiled_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Cal
 def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, states: State, chunk: int, label: str, progress: bool):
     """`(q, qd, compile_s, run_s)`: trajectories (C, F+1, N, D) from the C initial
     `states`, in vmapped chunks of `chunk` (the last padded), with the compile and run times."""
+    chunk = sharding.padded_size(min(chunk, len(states.q)))
+    compiled, compile_s = compiled_rollouts(scene, config, accel_factory, chunk, str(states.q.dtype))
+    q, qd, run_s = _run_chunks(compiled, states, chunk, 0, label, progress)
+    return q, qd, compile_s, run_s
+
+
+def stacked_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, params, states: State, chunk: int, label: str,
+                     progress: bool):
+    """`(q, qd, compile_s, run_s)`: trajectories (S, C, F+1, N, D) of S parameter sets
+    `params` (a pytree, S stacked along every leaf's first axis; `accel_factory(scene,
+    params)` as `learn.models.AccelerationFactory`), each from the same C initial
+    `states`, in one compiled program per chunk of `chunk` initial conditions: a model's
+    seeds compile once and share every call (`batched_rollouts` compiles per parameter
+    set, its parameters constants)."""
+    chunk = sharding.padded_size(min(chunk, len(states.q)))
+    run = sharding.shared_batch_jit(jax.vmap(jax.vmap(params_rollout_fn(scene, config, accel_factory), in_axes=(None, 0, 0)),
+                                             in_axes=(0, None, None)), 2)
+    shape = jax.ShapeDtypeStruct((chunk, scene.n_nodes, scene.dim), states.q.dtype)
+    params = jax.tree.map(jnp.asarray, params)
+    start = time.perf_counter()
+    compiled = run.lower(params, shape, shape).compile()
+    compile_s = time.perf_counter() - start
+    q, qd, run_s = _run_chunks(functools.partial(compiled, params), states, chunk, 1, label, progress)
+    return q, qd, compile_s, run_s
+
+
+def _run_chunks(compiled: Callable, states: State, chunk: int, axis: int, label: str, progress: bool):
+    """`(q, qd, run_s)`: `compiled(q, qd) -> State` over `states` in chunks of `chunk`
+    (the last padded), outputs concatenated along their batch `axis`, padding dropped."""
     from tqdm.auto import tqdm
 
     count = len(states.q)
-    chunk = sharding.padded_size(min(chunk, count))
-    compiled, compile_s = compiled_rollouts(scene, config, accel_factory, chunk, str(states.q.dtype))
     pad = lambda a, start: jnp.asarray(sharding.pad_batch(a[start : start + chunk], chunk))  # noqa: E731
     qs, qds = [], []
     run_s = 0.0
@@ -53,8 +81,8 @@ def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Call
             t0 = time.perf_counter()
             out = jax.block_until_ready(compiled(pad(states.q, start), pad(states.qd, start)))
             run_s += time.perf_counter() - t0
-            take = min(chunk, count - start)
-            qs.append(np.asarray(out.q[:take]))
-            qds.append(np.asarray(out.qd[:take]))
-            bar.update(take)
-    return np.concatenate(qs), np.concatenate(qds), compile_s, run_s
+            take = (slice(None),) * axis + (slice(0, min(chunk, count - start)),)
+            qs.append(np.asarray(out.q[take]))
+            qds.append(np.asarray(out.qd[take]))
+            bar.update(take[-1].stop)
+    return np.concatenate(qs, axis), np.concatenate(qds, axis), run_s

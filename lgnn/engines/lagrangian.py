@@ -142,6 +142,19 @@ def rollout_fn(
     return run
 
 
+def params_rollout_fn(scene: Scene, config: SimulationConfig, accel_factory: Callable[..., physics.AccelerationFn]) -> Callable[..., State]:
+    """`run(params, q, qd) -> State`: `rollout_fn` of a factory called as
+    `accel_factory(scene, params)` (`learn.models.AccelerationFactory`), the parameters
+    an argument, so one compiled function serves every parameter set of one shape (a
+    model's training seeds, `vmap`ped over)."""
+    project = physics.projection_fn(scene)
+
+    def run(params, q, qd):
+        return rollout(config.integrator_for(accel_factory(scene, params), project), State(q, qd), config.n_frames, config.steps_per_frame)
+
+    return run
+
+
 def _integrator(scene: Scene, config: SimulationConfig, accel_factory: Callable) -> Integrator:
     return config.integrator_for(accel_factory(scene), physics.projection_fn(scene))
 

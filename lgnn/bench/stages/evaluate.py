@@ -43,7 +43,7 @@ from lgnn import metrics, physics, records, sharding
 from lgnn.bench import store
 from lgnn.bench.grid import Pair, Profile, evaluation_pairs, evaluation_scenes, settings_key
 from lgnn.bench.store import Layout, log
-from lgnn.bench.timing import batched_rollouts, compiled_rollouts
+from lgnn.bench.timing import batched_rollouts, compiled_rollouts, stacked_rollouts
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models, train
@@ -117,8 +117,10 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     dense: O(nv^3) per step), which each process evaluating one of the scene's pairs
     would otherwise redo. Float64 as computed (the reference agrees with MuJoCo to
     1e-10 and better); about 1.2 GB for chain100-3d, in the git-ignored datasets folder."""
-    if out is not None:
-        path, key = Layout(out).truth_trajectories(scene_name), truth_key(profile, scene_name)
+    if out is None:
+        return _computed_ground_truth(profile, scene_name, progress)
+    path, key = Layout(out).truth_trajectories(scene_name), truth_key(profile, scene_name)
+    with store.exclusive(path):  # parallel workers on one scene: the first computes, the others read
         stored = store.load(path, key)
         if stored is not None and stored[1].get("mujoco_reference") == MUJOCO_REFERENCE:
             arrays, meta = stored
@@ -130,7 +132,6 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
                                 "states/qd": np.asarray(truth["states"].qd)},
                    dict(scene=scene_name, mujoco_reference=MUJOCO_REFERENCE, **{name: truth[name] for name in TRUTH_TIMINGS}))
         return truth
-    return _computed_ground_truth(profile, scene_name, progress)
 
 
 def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) -> dict:
@@ -237,7 +238,13 @@ def _reported(record: tuple[dict, dict] | None) -> tuple[dict, dict] | None:
 
 def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool = True) -> Path:
     """The ground-truth record of a scene: chaos floor and Lagrangian-vs-MuJoCo errors."""
-    path, key = Layout(out).truth_record(scene_name), truth_key(profile, scene_name)
+    path = Layout(out).truth_record(scene_name)
+    with store.exclusive(path):  # parallel workers on one scene: the first writes it
+        return _evaluated_scene(profile, scene_name, out, progress, path)
+
+
+def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: bool, path: Path) -> Path:
+    key = truth_key(profile, scene_name)
     scene = get_scene(scene_name)
     if _has(store.load(path, key), _TRUTH_NEEDS + ((f"{NO_DRAG}/rollout_error/per_ic_log",) if scene.drag > 0 else ())):
         return path
@@ -283,36 +290,63 @@ def _model_accel_factory(checkpoint: Path, digest: str) -> Callable[[Scene], phy
 
 def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True) -> Path:
     """The evaluation record of a trained model on a scene (module docstring)."""
+    return evaluate_group(profile, [pair], out, progress)[0]
+
+
+def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: bool = True) -> list[Path]:
+    """The evaluation records of `pairs` (module docstring), those not yet recorded
+    computed together: pairs on one scene whose models share a configuration (the seeds
+    of one training job, projected alike) roll out in one compiled program
+    (`timing.stacked_rollouts`): one compile instead of one per seed, and the GPU's
+    batch as wide as the seeds times the initial conditions. Each pair keeps its own
+    record, as `evaluate_pair` writes it."""
     layout = Layout(out)
-    checkpoint = layout.checkpoint(pair.job)
-    if not checkpoint.exists():
-        raise ConfigError(f"no checkpoint for {pair.job.name} at {checkpoint}: run the training stage first")
-    path, key = layout.pair_record(pair), pair_key(profile, pair, checkpoint)
-    if _has(store.load(path, key), _PAIR_NEEDS):
-        return path
+    paths, todo = [], {}
+    for pair in pairs:
+        checkpoint = layout.checkpoint(pair.job)
+        if not checkpoint.exists():
+            raise ConfigError(f"no checkpoint for {pair.job.name} at {checkpoint}: run the training stage first")
+        path, key = layout.pair_record(pair), pair_key(profile, pair, checkpoint)
+        paths.append(path)
+        if not _has(store.load(path, key), _PAIR_NEEDS):
+            model, params = train.load_model(checkpoint)
+            shared = (pair.scene, pair.projected, records.digest(model.to_dict()))
+            todo.setdefault(shared, []).append((pair, path, key, model, params))
+    for group in todo.values():
+        _evaluate_stacked(profile, group, progress, out)
+    return paths
+
+
+def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) -> None:
+    """Roll out a group of `(pair, path, key, model, params)` (one scene, one model
+    configuration, one projection) from the scene's initial conditions, all parameter
+    sets in one program, and save each pair's record."""
+    pair = group[0][0]
     scene = get_scene(pair.scene)
     config = dataclasses.replace(profile.evaluate.simulation(pair.scene), project=pair.projected)
     truth = ground_truth(profile, pair.scene, progress, out)
-    log(f"evaluate {pair.label} on {pair.scene}: {len(truth['q'])} initial conditions")
-    q, qd, compile_s, run_s = batched_rollouts(
-        scene, config, _model_accel_factory(checkpoint, records.file_digest(checkpoint)), truth["states"], profile.evaluate.chunk,
-        f"{pair.label} on {pair.scene}", progress
-    )
-    scores, diverged = _scores(profile, scene, q, qd, truth)
-    arrays = {
-        "t": np.arange(1, q.shape[1]) * profile.evaluate.frame_dt,
-        **{k: v for metric in METRICS for k, v in _metric_arrays(metric, scores[metric]).items()},
-        "diverged_at": np.where(diverged >= 0, diverged * profile.evaluate.frame_dt, np.nan),
-        "snapshot/model": _snapshot(profile, q),
-    }
-    steps = len(q) * config.n_frames * config.steps_per_frame
-    meta = dict(job=pair.job.name, model=pair.job.model, label=pair.label, projected=pair.projected, train_scene=pair.job.scene, seed=pair.job.seed,
-                scene=pair.scene, initial_conditions=len(q), mujoco_reference=MUJOCO_REFERENCE, compile_s=compile_s, run_s=run_s, steps_per_s=steps / run_s)
-    store.save(path, key, arrays, meta)
-    n_div = int(np.sum(diverged >= 0))
-    log(f"evaluate {pair.label} on {pair.scene}: rollout error {metrics.summarise(arrays['rollout_error/per_ic_log'])[0]:.3g}"
-        + (f", {n_div} diverged" if n_div else "") + f" ({run_s:.1f} s + compile {compile_s:.1f} s)")
-    return path
+    seeds = ", ".join(f"s{p.job.seed}" for p, *_ in group)
+    log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(truth['q'])} initial conditions")
+    stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for *_, params in group))
+    q_all, qd_all, compile_s, run_s = stacked_rollouts(scene, config, models.AccelerationFactory(group[0][3]), stacked, truth["states"],
+                                                       profile.evaluate.chunk, f"{pair.label} {seeds} on {pair.scene}", progress)
+    steps = len(group) * len(truth["q"]) * config.n_frames * config.steps_per_frame
+    for (pair, path, key, _, _), q, qd in zip(group, q_all, qd_all):
+        scores, diverged = _scores(profile, scene, q, qd, truth)
+        arrays = {
+            "t": np.arange(1, q.shape[1]) * profile.evaluate.frame_dt,
+            **{k: v for metric in METRICS for k, v in _metric_arrays(metric, scores[metric]).items()},
+            "diverged_at": np.where(diverged >= 0, diverged * profile.evaluate.frame_dt, np.nan),
+            "snapshot/model": _snapshot(profile, q),
+        }
+        # Compile and run times are the group's (`stacked` models rolled out together).
+        meta = dict(job=pair.job.name, model=pair.job.model, label=pair.label, projected=pair.projected, train_scene=pair.job.scene, seed=pair.job.seed,
+                    scene=pair.scene, initial_conditions=len(q), mujoco_reference=MUJOCO_REFERENCE, compile_s=compile_s, run_s=run_s,
+                    steps_per_s=steps / run_s, stacked=len(group))
+        store.save(path, key, arrays, meta)
+        n_div = int(np.sum(diverged >= 0))
+        log(f"evaluate {pair.label} s{pair.job.seed} on {pair.scene}: rollout error {metrics.summarise(arrays['rollout_error/per_ic_log'])[0]:.3g}"
+            + (f", {n_div} diverged" if n_div else "") + f" ({run_s:.1f} s + compile {compile_s:.1f} s for {len(group)})")
 
 
 def load_truth(profile: Profile, scene_name: str, out: Path) -> tuple[dict, dict] | None:
