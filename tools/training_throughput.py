@@ -58,7 +58,7 @@ if args.summarise:
 
 runtime.configure()
 from lgnn.bench.grid import get_profile, training_jobs  # noqa: E402
-from lgnn.bench.stages.train import _job_settings  # noqa: E402
+from lgnn.bench.stages.train import job_settings  # noqa: E402
 from lgnn.learn import data, train  # noqa: E402
 from lgnn.provenance import environment  # noqa: E402
 
@@ -66,7 +66,7 @@ profile = get_profile("full")
 print(json.dumps({"environment": environment()}), flush=True)
 for name in args.models:
     job = next(j for j in training_jobs(profile) if j.model == name and j.scene == args.scene and j.seed == 0)
-    scene, model, data_config, train_config = _job_settings(profile, job)
+    scene, model, data_config, train_config = job_settings(profile, job)
     dataset = data.load_or_generate(data_config, args.data)
     with runtime.precision(args.dtype):
         arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))

@@ -24,7 +24,9 @@ from lgnn.learn import data, models, train
 from lgnn.scene import get_scene
 
 
-def _job_settings(profile: Profile, job: TrainingJob):
+def job_settings(profile: Profile, job: TrainingJob):
+    """`(scene, model config, data config, train config)` of a training job: what its
+    checkpoint is trained with (and what tools that time its epochs rebuild)."""
     scene = get_scene(job.scene)
     model = models.ModelConfig.for_scene(job.model, scene)
     data_config = profile.training.data_for(job.scene)
@@ -39,7 +41,7 @@ def train_job(profile: Profile, job: TrainingJob, out: Path, progress: bool = Tr
 
 
 def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
-    """None if the job's checkpoint is finished with its `settings` (`_job_settings`:
+    """None if the job's checkpoint is finished with its `settings` (`job_settings`:
     reuse it), True if it can be resumed, False if training starts afresh."""
     _, model, data_config, train_config = settings
     if not path.exists():
@@ -72,7 +74,7 @@ def train_jobs(profile: Profile, jobs: list[TrainingJob], out: Path, progress: b
         paths = [layout.checkpoint(job) for job in group]
         for path in paths:
             path.parent.mkdir(parents=True, exist_ok=True)
-        settings = [_job_settings(profile, job) for job in group]
+        settings = [job_settings(profile, job) for job in group]
         plans = [_resumable(job, path, setting) for job, path, setting in zip(group, paths, settings)]
         todo = [(job, path, plan, setting) for job, path, plan, setting in zip(group, paths, plans, settings) if plan is not None]
         if not todo:
@@ -132,7 +134,7 @@ def timed_epoch_fn(profile: Profile, job: TrainingJob, out: Path):
     """`(run, steps)`: a no-argument call running one training epoch of the job (the
     compiled function training used, from the checkpoint's parameters), and the Adam
     steps it takes; for pytest-benchmark."""
-    scene, model, data_config, train_config = _job_settings(profile, job)
+    scene, model, data_config, train_config = job_settings(profile, job)
     state, _ = train.load_checkpoint(Layout(out).checkpoint(job))
     dataset = data.load_or_generate(data_config, Layout(out).datasets)
     arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
