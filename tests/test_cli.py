@@ -2,6 +2,8 @@
 
 import json
 import os
+import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -249,6 +251,15 @@ def test_workers_share_a_gpu_through_a_private_mps_daemon_stopped_afterwards(tmp
         with gpu_sharing(**kept) as shared:
             assert shared == kept["env"]
     assert not calls.exists()
+
+    # A SIGTERM inside the block unwinds it: the daemon is still told to quit.
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit):
+        with gpu_sharing(env) as shared:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # (the handler raises as soon as the signal arrives)
+    assert calls.read_text().splitlines()[-1] == f" stdin=quit pipe={shared['CUDA_MPS_PIPE_DIRECTORY']}"
+    assert signal.getsignal(signal.SIGTERM) is before
 
     with gpu_sharing({**env, "FAKE_MPS_EXIT": "1"}) as shared:
         assert "CUDA_MPS_PIPE_DIRECTORY" not in shared

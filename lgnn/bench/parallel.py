@@ -25,9 +25,11 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -48,6 +50,26 @@ def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], 
 
 def _run_parts(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int, env: dict, logs: Path) -> None:
     waiting, running, failed = list(parts.items()), {}, []
+    try:
+        _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, running, failed)
+    finally:
+        # The parent unwinding (Ctrl-C, SIGTERM): its children stop too, each as on
+        # Ctrl-C (a training child saves its checkpoint first), killed after a minute.
+        for process, _, _ in running.values():
+            process.send_signal(signal.SIGINT)
+        for process, handle, _ in running.values():
+            try:
+                process.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+            handle.close()
+    if failed:
+        raise LgnnError(f"benchmark {stage}: {len(failed)} of {len(parts)} parts failed; see {failed[0][1]}")
+
+
+def _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, running, failed) -> None:
+    """Start the `waiting` parts, `workers` at a time, until every one has ended."""
     started = time.monotonic()
     while waiting or running:
         while waiting and len(running) < workers:
@@ -67,8 +89,6 @@ def _run_parts(stage: str, parts: dict[str, list[str]], profile_argv: list[str],
                 failed.append((name, path))
             log(f"{stage} {name}: {'failed' if process.returncode else 'done'} after {(time.monotonic() - started) / 60:.1f} min"
                 f" ({len(parts) - len(waiting) - len(running)} of {len(parts)} parts ended)")
-    if failed:
-        raise LgnnError(f"benchmark {stage}: {len(failed)} of {len(parts)} parts failed; see {failed[0][1]}")
 
 
 MPS_CONTROL = "nvidia-cuda-mps-control"
@@ -98,7 +118,17 @@ def gpu_sharing(env: dict, enabled: bool = True):
             yield env
             return
         log("workers share the GPU through a private MPS daemon")
+        # A SIGTERM (a job scheduler's stop, `timeout`) unwinds like Ctrl-C, so the daemon
+        # still gets its quit; only a SIGKILL leaves it (the docstring says how to stop it).
+        main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if main else None
         try:
             yield shared
         finally:
             subprocess.run([control], input="quit\n", env=shared, capture_output=True, text=True)
+            if main:
+                signal.signal(signal.SIGTERM, previous)
+
+
+def _exit_on_sigterm(signum, frame):
+    raise SystemExit(128 + signum)
