@@ -103,3 +103,32 @@ def test_seeds_rolled_out_together_equal_each_alone():
         np.testing.assert_allclose(q_seed, alone, rtol=0, atol=1e-12)
         np.testing.assert_allclose(qd_seed, alone_qd, rtol=0, atol=1e-10)
     assert np.abs(q[0] - q[1]).max() > 1e-6, "the two seeds' models differ"
+
+
+def test_a_chunk_that_runs_out_of_device_memory_is_halved_and_the_last_one_is_a_clear_error(monkeypatch, capsys):
+    """`batched_rollouts` (and `stacked_rollouts`, through the same loop): a call that
+    runs out of device memory (a stand-in for XLA's RESOURCE_EXHAUSTED above 2 initial
+    conditions per call) is retried with half the chunk, the trajectories unchanged; out
+    of memory at the smallest chunk is one line, not a traceback from inside JAX."""
+    import pytest
+
+    from lgnn.bench import timing
+    from lgnn.errors import SimulationError
+
+    scene = get_scene("chain4")
+    states = sample_initial_states(scene, jax.random.PRNGKey(3), 5)
+    whole, _, _, _ = batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 8, "whole", False)
+    real = timing._run_chunks
+
+    def limited(run, states, chunk, axis, label, progress, limit=2):
+        if chunk > limit:
+            raise jax.errors.JaxRuntimeError(f"RESOURCE_EXHAUSTED: Out of memory while trying to allocate {chunk} GiB")
+        return real(run, states, chunk, axis, label, progress)
+
+    monkeypatch.setattr(timing, "_run_chunks", limited)
+    halved, _, _, _ = batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 8, "halved", False)
+    np.testing.assert_array_equal(halved, whole)
+    assert "halved: out of device memory with 5 initial conditions per call; retrying with 2" in capsys.readouterr().err
+    monkeypatch.setattr(timing, "_run_chunks", lambda *args: limited(*args, limit=0))
+    with pytest.raises(SimulationError, match="^none: out of device memory even with 1 rollouts per call"):
+        batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 8, "none", False)
