@@ -156,7 +156,9 @@ def test_crosscheck_of_a_scene_file_writes_beside_the_user_and_summarises(capsys
     assert code == 0, err
     assert "mine     lagrangian" in out and "lagrangian~mujoco" in out
     assert "wrote lgnn-out/crosscheck.csv" in out
-    table = [line for line in (tmp_path / "lgnn-out" / "crosscheck.md").read_text().splitlines() if line.startswith("| ")]
+    markdown = (tmp_path / "lgnn-out" / "crosscheck.md").read_text()
+    assert all(f"- {field}: " in markdown for field in ("command", "commit", "machine", "versions"))
+    table = [line for line in markdown.splitlines() if line.startswith("| ")]
     assert len(table) > 2 and any("\\|E-E0\\|" in line for line in table)
     assert {len(re.findall(r"(?<!\\)\|", line)) for line in table} == {7}  # 6 columns (scene, engine, form, metric, value, note)
 

@@ -13,20 +13,18 @@ of links, so no scene is skipped unless `mjx_max_depth` asks for it.
 
 `speed_error(...)` measures steps per second (compile excluded) and accuracy against
 a converged reference: the speed-against-error table. The command writes both as CSV +
-markdown (`lgnn.bench.tables`) with `header(command)`: the command, machine and versions.
+markdown (`lgnn.bench.tables`) with `header(command)`: the command, commit, machine and versions.
 """
 
 from __future__ import annotations
 
-import importlib.metadata
 import itertools
-import platform
 import time
 
 import jax
 import numpy as np
 
-from lgnn import metrics
+from lgnn import metrics, provenance
 from lgnn.engines import ENGINES, batch_of_one, form_of, get_engine
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.engines.mjcf import scene_layout
@@ -77,13 +75,9 @@ def crosscheck(scene: Scene, config: SimulationConfig, engines=tuple(ENGINES), m
 
 
 def header(command: str) -> list[str]:
-    """Provenance lines: command, machine, versions."""
-    mujoco_version = importlib.metadata.version("mujoco")
-    return [
-        f"command: {command}",
-        f"machine: {platform.node()} {platform.machine()} {platform.processor() or ''} ({jax.device_count()} {jax.default_backend()} device)".strip(),
-        f"versions: python {platform.python_version()}, jax {jax.__version__}, mujoco {mujoco_version}, numpy {np.__version__}",
-    ]
+    """Provenance lines: command, commit, machine, versions (`lgnn.provenance`)."""
+    env = provenance.environment()
+    return [f"command: {command}", f"commit: {env['commit']}", f"machine: {env['device']}", f"versions: {env['versions']}"]
 
 
 # ---------------------------------------------------------------------------------
