@@ -41,9 +41,9 @@ def shared_batch_jit(fn: Callable, n_batched: int) -> Callable:
     of several seeds of one model) whole on every device, the `n_batched` other
     arguments split along their leading axis, every output along its second axis (its
     first is `shared`'s own, e.g. the seeds')."""
-    mesh = Mesh(np.asarray(jax.local_devices()), ("batch",))
-    whole, batch = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("batch"))
-    return jax.jit(fn, in_shardings=(whole,) + (batch,) * n_batched, out_shardings=NamedSharding(mesh, PartitionSpec(None, "batch")))
+    batch = batch_sharding()
+    whole, second = NamedSharding(batch.mesh, PartitionSpec()), NamedSharding(batch.mesh, PartitionSpec(None, "batch"))
+    return jax.jit(fn, in_shardings=(whole,) + (batch,) * n_batched, out_shardings=second)
 
 
 def padded_size(size: int) -> int:

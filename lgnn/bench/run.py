@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from lgnn.bench import report
-from lgnn.bench.grid import Profile, TrainingJob, evaluation_pairs, evaluation_scenes, training_jobs
+from lgnn.bench.grid import Pair, Profile, TrainingJob, evaluation_pairs, evaluation_scenes, training_jobs
 from lgnn.bench.parallel import run_split
 from lgnn.bench.stages.evaluate import evaluate_group, evaluate_scene
 from lgnn.bench.stages.mass import mass_matrices
@@ -70,14 +70,14 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
             for rank in range(max(map(len, by_scene.values()), default=0)):
                 for scene, groups in by_scene.items():
                     if rank < len(groups):
-                        name, names = groups[rank]
-                        parts[f"{scene}-{name}"] = ["--scene", scene, *(a for j in names for a in ("--job", j))]
+                        name, pairs = groups[rank]
+                        parts[f"{scene}-{name}"] = ["--scene", scene, *(a for j in dict.fromkeys(p.job.name for p in pairs) for a in ("--job", j))]
             run_split("evaluate", parts, profile_argv, out, workers)
         else:
             for scene, groups in by_scene.items():
                 evaluate_scene(profile, scene, out, progress)
-                for _, names in groups:
-                    evaluate_group(profile, [p for p in evaluation_pairs(profile) if p.scene == scene and p.job.name in names], out, progress)
+                for _, pairs in groups:
+                    evaluate_group(profile, pairs, out, progress)
     if "speed" in stages:
         for scene in profile.speed.scenes:
             if not scenes or scene in scenes:
@@ -93,12 +93,12 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
     return out
 
 
-def _seed_groups(profile: Profile, scene: str, jobs: list[TrainingJob]) -> list[tuple[str, list[str]]]:
-    """`(model-training scene, [job names])` of the selected jobs evaluated on `scene`,
-    one entry per model and training scene (its seeds, evaluated together)."""
-    evaluated = {p.job for p in evaluation_pairs(profile) if p.scene == scene}
-    groups: dict[str, list[str]] = {}
-    for job in jobs:
-        if job in evaluated:
-            groups.setdefault(f"{job.model}-{job.scene}", []).append(job.name)
+def _seed_groups(profile: Profile, scene: str, jobs: list[TrainingJob]) -> list[tuple[str, list[Pair]]]:
+    """`(model-training scene, [pairs])` of the selected jobs' pairs on `scene`, one
+    entry per model and training scene (its seeds, evaluated together)."""
+    selected = set(jobs)
+    groups: dict[str, list[Pair]] = {}
+    for pair in evaluation_pairs(profile):
+        if pair.scene == scene and pair.job in selected:
+            groups.setdefault(f"{pair.job.model}-{pair.job.scene}", []).append(pair)
     return list(groups.items())

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import sharding
+from lgnn.bench.store import log
 from lgnn.errors import SimulationError
 from lgnn.engines.lagrangian import SimulationConfig, params_rollout_fn, rollout_fn
 from lgnn.scene import Scene, State
@@ -89,7 +90,7 @@ def _fitting_rollouts(compiled: Callable[[int], tuple[Callable, float]], states:
             if smaller >= chunk:
                 raise SimulationError(f"{label}: out of device memory even with {chunk} rollouts per call (a larger device, or fewer models "
                                       "at once: --job)") from None
-            print(f"{label}: out of device memory with {chunk} initial conditions per call; retrying with {smaller}", file=sys.stderr)
+            log(f"{label}: out of device memory with {chunk} initial conditions per call; retrying with {smaller}")
             chunk = smaller
 
 

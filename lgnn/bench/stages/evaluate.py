@@ -6,7 +6,7 @@
 constraints), MuJoCo C (RK4 at `mujoco_dt`, frames at the same times), and the rest
 baseline (the initial state held: `lgnn.metrics.rest_rollouts`), scored as a model is.
 `evaluate_pair` writes a (model, scene) record: the model's rollouts from the same
-initial conditions. Per frame (t > 0) and initial condition (`lgnn.metrics.
+initial conditions (`evaluate_group`: a model's seeds in one program). Per frame (t > 0) and initial condition (`lgnn.metrics.
 score_rollouts`): rollout error `||q_hat - q|| / (||q_hat|| + ||q||)` over all node
 coordinates, energy error (the same formula on the scene's true Hamiltonian of both
 trajectories), per-node RMS position error `sqrt(mean over nodes |q_hat - q|^2)`, and
@@ -281,9 +281,9 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
 
 @functools.lru_cache(maxsize=16)
 def _model_accel_factory(checkpoint: Path, digest: str) -> Callable[[Scene], physics.AccelerationFn]:
-    """`scene -> accel` of a checkpoint's best parameters: one object per checkpoint
-    content (`digest`), so compiled rollouts cached per factory are shared by
-    evaluation and timing."""
+    """`scene -> accel` of a checkpoint's best parameters, as constants: one object per
+    checkpoint content (`digest`), so compiled rollouts cached per factory are shared
+    by every timing of it (`timed_rollout_fn`)."""
     model, params = train.load_model(checkpoint)
     return lambda scene: models.acceleration_fn(model, params, scene)
 
@@ -378,8 +378,9 @@ def load_pairs(profile: Profile, out: Path) -> list[tuple[Pair, tuple[dict, dict
 
 
 def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
-    """`(run, steps)`: a no-argument call running the pair's compiled evaluation rollout
-    on its first chunk of initial conditions (the function `evaluate_pair` used), and
+    """`(run, steps)`: a no-argument call running the pair's model, alone and with its
+    parameters as constants (evaluation rolls out a model's seeds together,
+    `evaluate_group`), on the first chunk of the evaluation's initial conditions, and
     the RK4 steps it takes; for pytest-benchmark."""
     scene = get_scene(pair.scene)
     states = evaluation_initial_states(profile, scene)
