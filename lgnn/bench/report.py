@@ -584,10 +584,7 @@ def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> 
     return lines
 
 
-def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str]) -> str:
-    from lgnn.provenance import environment
-
-    env = environment()
+def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str], env: dict[str, str]) -> str:
     p, t, e = profile, profile.training, profile.evaluate
     envs = sorted(set(summary["device"])) if not summary.empty else []
     unrankable = _unrankable(out)
@@ -929,6 +926,11 @@ def write(profile: Profile, out: Path) -> Path:
     matplotlib.use("Agg")
     import pandas as pd
 
+    from lgnn.provenance import environment
+
+    # The commit before this function writes anything: rewriting the committed report
+    # files would otherwise mark the report's own header "+dirty".
+    env = environment()
     out = Path(out)
     truths, pairs = load_truths(profile, out), load_pairs(profile, out)
     summary, curves = tables(truths, pairs)
@@ -958,5 +960,5 @@ def write(profile: Profile, out: Path) -> Path:
             if plot(figures_dir / name):
                 figures.append(name)
     path = out / "README.md"
-    write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures))
+    write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures, env))
     return path
