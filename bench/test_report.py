@@ -100,11 +100,12 @@ def test_the_committed_full_records_render_with_the_new_columns_not_computed():
         for scene in truths:
             row = _row(table, scene)
             assert row["rest"] in ("not computed", "") or "e-" in row["rest"]
-    # Committed numbers are read as before: LGNN on chain4 and T2-slack.
+    # Committed numbers are read as results/README.md shows them: LGNN on chain4 and
+    # T2-slack, over its three seeds.
     table = report.summary_markdown(summary, "rollout_error")
     row = _row(table, "chain4")
-    assert row["lgnn"].startswith("7.42e-05") and row["chaos floor"] == "1.10e-05"
-    assert _row(table, "T2-slack")["lgnn"].startswith("4.29e-04")
+    assert row["lgnn"].startswith("2.05e-05 [1.66e-05, 2.58e-05] (3 seeds)") and row["chaos floor"] == "1.10e-05"
+    assert _row(table, "T2-slack")["lgnn"].startswith("4.21e-04")
 
 
 def test_error_figures_label_their_axes_legend_every_panel_and_title_what_they_show(monkeypatch, tmp_path):
