@@ -4,12 +4,17 @@ differently never recomputes one); and the committed full-profile records match 
 current settings (`lgnn benchmark --full --stage report` recomputes nothing)."""
 
 import dataclasses
+import threading
 from pathlib import Path
 
+import jax
+import numpy as np
 import pytest
 
+from lgnn import metrics
 from lgnn.bench import grid, store
 from lgnn.bench.stages import evaluate, mass, scaling, speed
+from lgnn.scene import get_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = grid.PROFILES["quick"]
@@ -150,3 +155,63 @@ def test_the_3d_lgnn_enters_the_scaling_key_only_with_3d_lengths(tmp_path):
     checkpoint.write_bytes(b"3d weights")
     after = scaling.scaling_key(QUICK, tmp_path), scaling.scaling_key(planar, tmp_path)
     assert before[0] != after[0] and before[1] == after[1]
+
+
+def test_a_models_rollouts_do_not_wait_for_its_scenes_ground_truth(tmp_path, monkeypatch):
+    # The truth (here a stand-in) waits until the model's rollouts have started: run one
+    # after the other, this would time out; run beside each other, the record is scored.
+    from lgnn.learn import models
+
+    profile = dataclasses.replace(QUICK, evaluate=dataclasses.replace(QUICK.evaluate, initial_conditions=2))
+    scene = get_scene(SCENE)
+    states = evaluate.evaluation_initial_states(profile, scene)
+    config = profile.evaluate.simulation(SCENE)
+    rollouts_started = threading.Event()
+
+    def held_states(count):
+        q = np.repeat(np.asarray(states.q)[:, None], config.n_frames + 1, axis=1)
+        return np.stack([q] * count), np.zeros((count,) + q.shape)
+
+    def truth_after_rollouts(*args):
+        assert rollouts_started.wait(timeout=30), "the ground truth was computed before the rollouts started"
+        (q,), (qd,) = held_states(1)
+        return dict(q=q, qd=qd, energy=metrics.true_energies(scene, q, qd), q_mujoco=q, states=states)
+
+    def rollouts(scene, config, factory, stacked, initial, *args):
+        rollouts_started.set()
+        np.testing.assert_array_equal(initial.q, states.q)
+        return (*held_states(len(jax.tree.leaves(stacked)[0])), 1.0, 1.0)
+
+    monkeypatch.setattr(evaluate, "ground_truth", truth_after_rollouts)
+    monkeypatch.setattr(evaluate, "stacked_rollouts", rollouts)
+    model = models.ModelConfig("lgnn", latent=4, hidden=8)
+    pair = grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), SCENE)
+    path = tmp_path / "pair.npz"
+    evaluate._evaluate_stacked(profile, [(pair, path, "key", model, models.init(jax.random.PRNGKey(0), model))], False, tmp_path)
+    arrays, meta = store.load(path, "key")
+    assert meta["initial_conditions"] == 2 and arrays["rollout_error/per_ic_log"].shape == (2,)
+
+
+def test_an_interrupted_ground_truth_does_not_wait_for_mujocos_reference(monkeypatch):
+    # MuJoCo C's reference runs beside the Lagrangian ground truth (chain100-3d: 8-14
+    # minutes); Ctrl-C during the latter stops at once instead of waiting it out.
+    release = threading.Event()
+    monkeypatch.setattr(evaluate, "_mujoco_reference", lambda *args: release.wait(60))
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(evaluate, "batched_rollouts", interrupted)
+    outcome = {}
+
+    def compute():
+        try:
+            evaluate._computed_ground_truth(QUICK, SCENE, False)
+        except KeyboardInterrupt:
+            outcome["interrupted"] = True
+
+    worker = threading.Thread(target=compute, daemon=True)
+    worker.start()
+    worker.join(timeout=30)
+    release.set()
+    assert outcome.get("interrupted"), "the interrupt waited for MuJoCo's reference"

@@ -707,9 +707,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from lgnn.runtime import configure
+    from lgnn.runtime import accept_interrupts_if_child, configure
 
     configure()  # first: before numpy and JAX load (thread counts, XLA flags, float64)
+    accept_interrupts_if_child()
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args = parser.parse_args(argv)

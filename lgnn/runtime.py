@@ -34,11 +34,15 @@ from __future__ import annotations
 
 import functools
 import os
+import signal
 from typing import Callable, ContextManager
 
 from lgnn.errors import ConfigError
 
 OPENBLAS_THREADS = "1"
+# Set in the environment of `lgnn benchmark --workers`' child processes
+# (`lgnn.bench.parallel`), which their parent stops with SIGINT.
+BENCHMARK_CHILD = "LGNN_BENCHMARK_CHILD"
 XLA_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 
 
@@ -52,6 +56,17 @@ def configure(*, x64: bool = True) -> None:
     import jax
 
     jax.config.update("jax_enable_x64", x64)
+
+
+def accept_interrupts_if_child() -> None:
+    """In a benchmark child (`BENCHMARK_CHILD` set), take SIGINT as Ctrl-C even where it
+    was inherited ignored: a parent started in the background of a non-interactive shell
+    (`lgnn benchmark --workers 8 &`, `nohup`) ignores SIGINT, its children inherit that,
+    and Python then installs no handler, so the SIGINT the parent stops them with
+    (`parallel.run_split`) would do nothing and a training child would be killed a
+    minute later without saving its checkpoint."""
+    if os.environ.get(BENCHMARK_CHILD) == "1":
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def precision(dtype: str = "float64") -> ContextManager:

@@ -291,3 +291,85 @@ def test_crosscheck_runs_a_mujoco_engine_in_both_forms(capsys, tmp_path):
     for engines, message in (("mujoco:sideways", "unknown MJCF form"), ("lagrangian:nested", "has no MJCF form")):
         code, _, err = run(capsys, "crosscheck", str(scene_file), "--engines", engines, "--out-dir", str(tmp_path / "bad"))
         assert code == 2 and message in err and not (tmp_path / "bad" / "crosscheck.csv").exists()
+
+
+CHILD_WAITING_FOR_SIGINT = """
+import sys, time
+from lgnn.runtime import accept_interrupts_if_child
+accept_interrupts_if_child()
+print("ready", flush=True)
+try:
+    time.sleep(30)
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+"""
+
+
+@pytest.mark.parametrize("marked", [True, False])
+def test_a_benchmark_child_accepts_interrupts_its_parent_ignored(marked):
+    # A parent in the background of a non-interactive shell ignores SIGINT, and its
+    # children inherit that; a benchmark child (marked by `run_split`) takes it back, so
+    # the SIGINT its parent stops it with lets it save its work. Unmarked, it would not
+    # react (the case the flag exists for: shown here so that the test can fail).
+    import subprocess
+    import sys
+
+    from lgnn.runtime import BENCHMARK_CHILD
+
+    env = {k: v for k, v in os.environ.items() if k != BENCHMARK_CHILD} | ({BENCHMARK_CHILD: "1"} if marked else {})
+    child = subprocess.Popen([sys.executable, "-c", CHILD_WAITING_FOR_SIGINT], stdout=subprocess.PIPE, text=True, env=env,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        child.send_signal(signal.SIGINT)
+        try:
+            output, _ = child.communicate(timeout=10)
+            reacted = "interrupted" in output
+        except subprocess.TimeoutExpired:
+            reacted = False
+    finally:
+        child.kill()
+        child.wait()
+    assert reacted is marked
+
+
+def test_run_split_marks_its_children_and_gives_them_one_minute_together(tmp_path, monkeypatch):
+    # Stopping (the parent interrupted), every child gets SIGINT, then the children
+    # share one grace period: one that ignores it is killed at the end of it, not after a
+    # grace period of its own for each child before it.
+    from lgnn.bench import parallel
+    from lgnn.runtime import BENCHMARK_CHILD
+
+    started, timeouts = [], []
+
+    class Child:
+        def __init__(self, command, stdout, stderr, env):
+            started.append(env)
+            self.signals, self.killed = [], False
+
+        def poll(self):
+            return None
+
+        def send_signal(self, signum):
+            self.signals.append(signum)
+
+        def wait(self, timeout=None):
+            if timeout is None:
+                return 0
+            timeouts.append(timeout)
+            time.sleep(min(timeout, 0.2))
+            raise parallel.subprocess.TimeoutExpired("child", timeout)
+
+        def kill(self):
+            self.killed = True
+
+    def interrupted(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(parallel.subprocess, "Popen", Child)
+    monkeypatch.setattr(parallel.time, "sleep", lambda s, real=time.sleep: real(min(s, 0.2)) if s < 1 else interrupted())
+    monkeypatch.setattr(parallel, "STOP_GRACE_S", 0.3)
+    with pytest.raises(KeyboardInterrupt):
+        parallel.run_split("train", {f"part{k}": [] for k in range(3)}, [], tmp_path, 3)
+    assert len(started) == 3 and all(env[BENCHMARK_CHILD] == "1" for env in started)
+    assert timeouts[0] <= 0.3 and sum(timeouts) < 0.3 + 0.1, timeouts

@@ -35,6 +35,11 @@ from pathlib import Path
 
 from lgnn.bench.store import Layout, file_name, log
 from lgnn.errors import LgnnError
+from lgnn.runtime import BENCHMARK_CHILD
+
+# How long stopping children (the parent interrupted) may take, all of them together,
+# before the ones still running are killed: a training child saves its checkpoint.
+STOP_GRACE_S = 60.0
 
 
 def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int) -> None:
@@ -42,7 +47,7 @@ def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], 
     (`{name: ARGS}`, e.g. `["--job", "gns-chain4-s0", ...]`), `workers` at a time."""
     logs = Layout(out).bench / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "false")}
+    env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "false"), BENCHMARK_CHILD: "1"}
     env.pop("XLA_PYTHON_CLIENT_MEM_FRACTION", None)  # a fraction each would over-commit the device
     with gpu_sharing(env, enabled=workers > 1 and len(parts) > 1) as env:
         _run_parts(stage, parts, profile_argv, out, workers, env, logs)
@@ -54,12 +59,14 @@ def _run_parts(stage: str, parts: dict[str, list[str]], profile_argv: list[str],
         _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, running, failed)
     finally:
         # The parent unwinding (Ctrl-C, SIGTERM): its children stop too, each as on
-        # Ctrl-C (a training child saves its checkpoint first), killed after a minute.
+        # Ctrl-C (a training child saves its checkpoint first; `runtime.
+        # accept_interrupts_if_child`), those still running after STOP_GRACE_S killed.
         for process, _, _ in running.values():
             process.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + STOP_GRACE_S
         for process, handle, _ in running.values():
             try:
-                process.wait(timeout=60)
+                process.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()

@@ -75,9 +75,11 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
             run_split("evaluate", parts, profile_argv, out, workers)
         else:
             for scene, groups in by_scene.items():
-                evaluate_scene(profile, scene, out, progress)
+                # The models first: their rollouts run while the scene's ground truth is
+                # computed (`evaluate_group`), which the scene's own record then reuses.
                 for _, pairs in groups:
                     evaluate_group(profile, pairs, out, progress)
+                evaluate_scene(profile, scene, out, progress)
     if "speed" in stages:
         for scene in profile.speed.scenes:
             if not scenes or scene in scenes:

@@ -27,10 +27,10 @@ records that match.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import functools
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Callable
@@ -104,6 +104,30 @@ TRUTH_TRAJECTORIES = ("q", "qd", "energy", "q_floor", "qd_floor", "q_mujoco")
 TRUTH_TIMINGS = ("compile_s", "run_s", "mujoco_s")
 
 
+def _in_background(call: Callable[[], object]) -> Callable[[], object]:
+    """Start `call()` in a daemon thread; returns a function that waits for it and gives
+    its value (or raises its exception). A daemon, so that an error or Ctrl-C in the
+    caller does not wait out a long computation (a ground truth's MuJoCo reference)."""
+    outcome: dict[str, object] = {}
+
+    def run() -> None:
+        try:
+            outcome["value"] = call()
+        except BaseException as error:  # handed to the caller, whatever it was
+            outcome["error"] = error
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+
+    def result() -> object:
+        thread.join()
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome["value"]
+
+    return result
+
+
 @functools.lru_cache(maxsize=2)
 def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: Path | None = None) -> dict:
     """The ground truth of a scene's evaluation: `q`, `qd` (C, F, N, D) and true `energy`
@@ -145,23 +169,19 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     mj_config = SimulationConfig("rk4", settings.mujoco_dt, settings.frame_dt, settings.duration, True)
     log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s; "
         f"MuJoCo C at dt {mj_config.dt:g} alongside")
-    with concurrent.futures.ThreadPoolExecutor(1) as pool:
-        mujoco_run = pool.submit(_mujoco_reference, scene, mj_config, states)
-        try:
-            q, qd, compile_s, run_s = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, states, settings.chunk,
-                                                       f"truth {scene_name}", progress)
-            energy = metrics.true_energies(scene, q, qd)
-            _check_reference(scene, config, "Lagrangian ground truth", q, qd, energy)
-            noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
-            perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
-            # The perturbed runs are not references: one that diverges (T2/T3's perturbed
-            # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
-            q_floor, qd_floor, _, _ = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, settings.chunk,
-                                                       f"floor {scene_name}", progress)
-        except BaseException:
-            mujoco_run.cancel()
-            raise
-        q_mj, mujoco_s = mujoco_run.result()
+    # A daemon thread: an error or Ctrl-C here does not wait out MuJoCo's minutes.
+    mujoco_when_done = _in_background(lambda: _mujoco_reference(scene, mj_config, states))
+    q, qd, compile_s, run_s = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, states, settings.chunk,
+                                               f"truth {scene_name}", progress)
+    energy = metrics.true_energies(scene, q, qd)
+    _check_reference(scene, config, "Lagrangian ground truth", q, qd, energy)
+    noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
+    perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
+    # The perturbed runs are not references: one that diverges (T2/T3's perturbed
+    # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
+    q_floor, qd_floor, _, _ = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, settings.chunk,
+                                               f"floor {scene_name}", progress)
+    q_mj, mujoco_s = mujoco_when_done()
     return dict(q=q, qd=qd, energy=energy, q_floor=q_floor, qd_floor=qd_floor, q_mujoco=q_mj, states=states,
                 compile_s=compile_s, run_s=run_s, mujoco_s=mujoco_s)
 
@@ -324,13 +344,21 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     pair = group[0][0]
     scene = get_scene(pair.scene)
     config = dataclasses.replace(profile.evaluate.simulation(pair.scene), project=pair.projected)
-    truth = ground_truth(profile, pair.scene, progress, out)
+    # The models need only the initial conditions; the ground truth (chain100-3d's MuJoCo
+    # C reference: 8-14 minutes on 16 cores, beside 20 GPU minutes of LGN's rollouts) is
+    # computed or read meanwhile, and waited for only to score.
+    truth_when_done = _in_background(lambda: ground_truth(profile, pair.scene, progress, out))
+    states = evaluation_initial_states(profile, scene)
     seeds = ", ".join(f"s{p.job.seed}" for p, *_ in group)
-    log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(truth['q'])} initial conditions")
+    log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(states.q)} initial conditions")
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for *_, params in group))
-    q_all, qd_all, compile_s, run_s = stacked_rollouts(scene, config, models.AccelerationFactory(group[0][3]), stacked, truth["states"],
+    q_all, qd_all, compile_s, run_s = stacked_rollouts(scene, config, models.AccelerationFactory(group[0][3]), stacked, states,
                                                        profile.evaluate.chunk, f"{pair.label} {seeds} on {pair.scene}", progress)
-    steps = len(group) * len(truth["q"]) * config.n_frames * config.steps_per_frame
+    truth = truth_when_done()
+    if not np.allclose(truth["states"].q, states.q, rtol=1e-9, atol=1e-12):
+        raise SimulationError(f"{pair.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
+                              f"remove {Layout(out).truth_trajectories(pair.scene)} to recompute it")
+    steps = len(group) * len(states.q) * config.n_frames * config.steps_per_frame
     for (pair, path, key, _, _), q, qd in zip(group, q_all, qd_all):
         scores, diverged = _scores(profile, scene, q, qd, truth)
         arrays = {
