@@ -311,14 +311,17 @@ def test_a_benchmark_child_accepts_interrupts_its_parent_ignored(marked):
     # children inherit that; a benchmark child (marked by `run_split`) takes it back, so
     # the SIGINT its parent stops it with lets it save its work. Unmarked, it would not
     # react (the case the flag exists for: shown here so that the test can fail).
+    import shlex
     import subprocess
     import sys
 
     from lgnn.runtime import BENCHMARK_CHILD
 
     env = {k: v for k, v in os.environ.items() if k != BENCHMARK_CHILD} | ({BENCHMARK_CHILD: "1"} if marked else {})
-    child = subprocess.Popen([sys.executable, "-c", CHILD_WAITING_FOR_SIGINT], stdout=subprocess.PIPE, text=True, env=env,
-                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    # The shell's `trap '' INT` ignores SIGINT, and `exec` hands that on to Python, as a
+    # backgrounded parent would (no preexec_fn: a fork of this multithreaded process).
+    command = f"trap '' INT; exec {shlex.quote(sys.executable)} -c {shlex.quote(CHILD_WAITING_FOR_SIGINT)}"
+    child = subprocess.Popen(["sh", "-c", command], stdout=subprocess.PIPE, text=True, env=env)
     try:
         assert child.stdout.readline().strip() == "ready"
         child.send_signal(signal.SIGINT)
