@@ -14,7 +14,7 @@ engine to round-off (1.6e-13 of the largest acceleration on T1) and is linear in
 with a logarithmic depth (T1: 42 blocks of 5 x 5, 8 levels, 90 blocks of L) -- and
 under `vmap` on XLA:CPU it is slower than LAPACK's dense 46 x 46 Cholesky of the Schur
 complement, one matrix at a time: XLA runs these small block products at well under 1
-GFLOP/s. Measured on this 2-core CPU (2026-11-25, commit 06082d2, two runs of this
+GFLOP/s. Measured on this 2-core CPU (2026-11-25, commit 2e4201a, two runs of this
 script; timings swing 3x between runs): T1 x 100, 143-256 us per state against 27-97
 for the Schur acceleration in the same runs; chain16 x 100, 20-42 against 5-11. Not
 used by the engine.
