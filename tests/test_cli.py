@@ -297,8 +297,8 @@ CHILD_WAITING_FOR_SIGINT = """
 import sys, time
 from lgnn.runtime import accept_interrupts_if_child
 accept_interrupts_if_child()
-print("ready", flush=True)
-try:
+try:  # "ready" inside: the SIGINT may arrive while print() still returns
+    print("ready", flush=True)
     time.sleep(30)
 except KeyboardInterrupt:
     print("interrupted", flush=True)
