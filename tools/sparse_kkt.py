@@ -113,7 +113,7 @@ class BlockPattern:
     blocks, `levels` how many sequential steps a factorisation or a solve takes,
     `n_entries` the blocks of L (fill included)."""
 
-    def __init__(self, n_blocks: int, block_size: int, edges: np.ndarray, order: np.ndarray | None = None):
+    def __init__(self, n_blocks: int, block_size: int, edges: np.ndarray):
         edges = np.asarray(edges, np.int64).reshape(-1, 2)
         pairs = {(int(min(a, b)), int(max(a, b))) for a, b in edges}
         if np.any(edges[:, 0] == edges[:, 1]) or (len(edges) and (edges.min() < 0 or edges.max() >= n_blocks)) or len(pairs) < len(edges):
@@ -123,7 +123,7 @@ class BlockPattern:
         for a, b in edges:
             adjacency[a].add(int(b))
             adjacency[b].add(int(a))
-        dissected = nested_dissection(n_blocks, adjacency) if order is None else [int(v) for v in order]
+        dissected = nested_dissection(n_blocks, adjacency)
         # The elimination tree of that order, then the same tree's columns sorted by
         # level (a topological order of the tree: same fill), so each level's columns
         # and L blocks are contiguous.
@@ -134,7 +134,7 @@ class BlockPattern:
                 height[parent[column]] = max(height[parent[column]], height[column] + 1)
         by_level = np.argsort(height, kind="stable")
         self.order = np.asarray(dissected, np.int64)[by_level]
-        structure, parent = self._symbolic(list(self.order), adjacency)
+        structure, _ = self._symbolic(list(self.order), adjacency)
         self.position = np.empty(n_blocks, np.int64)
         self.position[self.order] = np.arange(n_blocks)
         column_level = height[by_level]
@@ -166,7 +166,6 @@ class BlockPattern:
         entry_column = np.asarray([c for c, rows in enumerate(structure) for _ in rows], np.int64)
         self.n_entries = len(entry_row)
         entry_of = {(int(r), int(c)): e for e, (r, c) in enumerate(zip(entry_row, entry_column))}
-        self.entry_row, self.entry_column = entry_row, entry_column
         # Where each L entry's K block comes from: edge e as given (+1) or transposed (-1).
         self.entry_edge = np.full(self.n_entries, -1, np.int64)
         self.entry_transposed = np.zeros(self.n_entries, bool)
@@ -363,9 +362,8 @@ class NodeKKT:
 
     def _blocks(self, u: Array, eps: float) -> tuple[Array, Array]:
         d, dtype = self.dim, u.dtype
-        rows = np.arange(len(self.owner))
         diagonal = jnp.asarray(self.base_diagonal, dtype)
-        column = (self.owner_sign[:, None] * u) if len(rows) else u
+        column = self.owner_sign[:, None] * u
         diagonal = diagonal.at[self.owner, :d, self.slot].set(column).at[self.owner, self.slot, :d].set(column)
         diagonal = diagonal.at[self.owner, self.slot, self.slot].set(-eps)
         off = jnp.asarray(self.base_off, dtype)
