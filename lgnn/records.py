@@ -26,6 +26,7 @@ import hashlib
 import json
 import os
 import zipfile
+import zlib
 from pathlib import Path
 
 from lgnn.errors import LgnnError
@@ -64,16 +65,18 @@ def _with_environment(meta: dict, environment: dict | None) -> dict:
     return {**meta, "environment": provenance.environment() if environment is None else environment}
 
 
-def save(path: str | os.PathLike, arrays: dict, meta: dict, environment: dict | None = None) -> None:
+def save(path: str | os.PathLike, arrays: dict, meta: dict, environment: dict | None = None, compressed: bool = False) -> None:
     """Write an array record atomically: `arrays`, `meta` plus the `environment` that made
-    them (default: this process's), and the checksum. The parent directory must exist
+    them (default: this process's), and the checksum; `compressed`: every entry deflated
+    (`np.savez_compressed`; `read` needs no telling). The parent directory must exist
     (`lgnn.files.check_writable` says so in one line)."""
     import numpy as np
 
     meta_text = json.dumps(_with_environment(meta, environment), sort_keys=True, default=float)
+    write = np.savez_compressed if compressed else np.savez
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as handle:
-            np.savez(handle, meta=meta_text, checksum=checksum(arrays, meta_text), **arrays)
+            write(handle, meta=meta_text, checksum=checksum(arrays, meta_text), **arrays)
 
 
 def read(path: str | os.PathLike, what: str = "record") -> tuple[dict, dict]:
@@ -89,7 +92,7 @@ def read(path: str | os.PathLike, what: str = "record") -> tuple[dict, dict]:
             arrays = {k: np.asarray(stored[k]) for k in stored.files if k not in ("meta", "checksum")}
             meta_text, stored_checksum = str(stored["meta"]), str(stored["checksum"])
         meta = json.loads(meta_text)
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as err:
         raise RecordError(f"{path}: not a readable lgnn {what} ({type(err).__name__})") from None
     if not isinstance(meta, dict):
         raise RecordError(f"{path}: not a readable lgnn {what} (meta is not an object)")

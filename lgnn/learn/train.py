@@ -28,11 +28,11 @@ best params, Adam state, epoch, losses) is written atomically to `out`, so an
 interrupted run resumed from it (`resume=True`) reaches exactly the same result as an
 uninterrupted one.
 
-Checkpoint files (`.npz`): the arrays `params/k`, `best/k`, `opt/k` (leaves in pytree
-order) and the JSON `meta` (format, lgnn version, model/train/data settings, progress,
-the environment that wrote it): an `lgnn.records` record. `load_checkpoint` rebuilds the pytrees
-from the model config and refuses, with one `CheckpointError` line, a file that is
-unreadable, corrupt or of another shape.
+Checkpoints (`lgnn.learn.checkpoints`: leaves by pytree path, compressed) hold the
+whole training state; `load_checkpoint` rebuilds it from the model config and the
+optimiser's template, for resuming, and refuses, with one `CheckpointError` line, a
+file that is unreadable, corrupt or of another shape. Inference reads only the best
+parameters, without the optimiser (`load_model`, also importable from here).
 """
 
 from __future__ import annotations
@@ -49,14 +49,16 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from lgnn.learn import models
+from lgnn.learn import checkpoints, models
+from lgnn.learn.checkpoints import load_model  # noqa: F401  (callers' `train.load_model`)
 from lgnn import records
 from lgnn.learn.data import DataConfig, Dataset
 from lgnn.errors import CheckpointError, ConfigError
 from lgnn.runtime import in_float64
 from lgnn.scene import Scene
 
-CHECKPOINT_FORMAT = 1
+# The format `save_checkpoint` writes (`lgnn.learn.checkpoints`).
+CHECKPOINT_FORMAT = checkpoints.FORMAT
 
 
 # The schedule and clipping of `TrainConfig`. The warm-up is ~1.3 epochs of the paper's
@@ -400,16 +402,19 @@ def training_key(config: TrainConfig) -> dict:
     return {k: v for k, v in dataclasses.asdict(config).items() if k not in ("epochs", "minutes", "patience", "min_improvement", "checkpoint_every", "val_chunk")}
 
 
+def _state_arrays(state: TrainState) -> dict:
+    return {
+        **checkpoints.leaves_by_path("params", state.params),
+        **checkpoints.leaves_by_path("best", state.best_params),
+        **checkpoints.leaves_by_path("opt", state.opt_state),
+    }
+
+
 def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: TrainConfig, data_config: DataConfig | None = None) -> None:
-    """Write the training state atomically as an `lgnn.records` record (module docstring for the layout)."""
+    """Write the training state atomically as a checkpoint (`lgnn.learn.checkpoints`)."""
     from lgnn import __version__
 
-    arrays = {}
-    for prefix, tree in (("params", state.params), ("best", state.best_params), ("opt", state.opt_state)):
-        for k, leaf in enumerate(jax.tree.leaves(tree)):
-            arrays[f"{prefix}/{k}"] = np.asarray(leaf)
     meta = {
-        "format": CHECKPOINT_FORMAT,
         "lgnn": __version__,
         "model": model.to_dict(),
         "train": training_key(config),
@@ -418,60 +423,44 @@ def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: 
         "epoch": state.epoch,
         "best_epoch": state.best_epoch,
         "best_val": state.best_val if np.isfinite(state.best_val) else None,
-        "history": state.history,
         "elapsed_s": state.elapsed_s,
     }
     if models.model_source(model.name):
         # A model defined outside lgnn: where its code is, for the error that asks for it.
         meta["model_source"] = models.model_source(model.name)
-    records.save(path, arrays, meta)
-
-
-def _read(path) -> tuple[dict, dict]:
-    try:
-        arrays, meta = records.read(path, "checkpoint")
-    except records.RecordError as err:
-        raise CheckpointError(str(err)) from None
-    if meta.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, expected {CHECKPOINT_FORMAT}")
-    return meta, arrays
-
-
-def _restore(path, template, arrays: dict, prefix: str):
-    leaves, treedef = jax.tree.flatten(template)
-    restored = []
-    for k, leaf in enumerate(leaves):
-        name = f"{prefix}/{k}"
-        if name not in arrays or arrays[name].shape != np.shape(leaf):
-            raise CheckpointError(f"{path}: checkpoint does not match its model settings ({name})")
-        restored.append(jnp.asarray(arrays[name], dtype=jnp.asarray(leaf).dtype))
-    if f"{prefix}/{len(leaves)}" in arrays:
-        raise CheckpointError(f"{path}: checkpoint does not match its model settings (extra {prefix} arrays)")
-    return jax.tree.unflatten(treedef, restored)
+    checkpoints.write(path, _state_arrays(state), meta, state.history)
 
 
 @in_float64  # parameters restored in the precision they were trained in
 def load_checkpoint(path) -> tuple[TrainState, dict]:
-    """The training state and metadata of a checkpoint; `CheckpointError` if unusable."""
-    meta, arrays = _read(path)
-    source = meta.get("model_source")
-    if source and meta["model"].get("name") not in models.model_names():
-        # Never imported from a file's say-so: loading code is the user's decision.
-        raise CheckpointError(f"{path}: model {meta['model'].get('name')!r} is defined outside lgnn ({source}): load it first "
-                              f"(lgnn.learn.models.load_spec, the config's model reference, or the command's --model-code {source})")
+    """The training state and metadata of a checkpoint of any readable format, for
+    resuming (inference needs only `load_model`); `CheckpointError` if unusable."""
+    meta, arrays = checkpoints.read(path)
+    model = checkpoints.model_config(path, meta)
     try:
-        model = models.ModelConfig.from_dict(meta["model"])
         config = TrainConfig(**{**LEGACY_OPTIMISATION, **meta["train_config"]})
     except (ConfigError, TypeError, KeyError) as err:
         raise CheckpointError(f"{path}: checkpoint settings are invalid ({err})") from None
     template = initial_state(model, config)
-    params = _restore(path, template.params, arrays, "params")
-    best = _restore(path, template.params, arrays, "best")
-    opt_state = _restore(path, template.opt_state, arrays, "opt")
+    arrays = checkpoints.arrays_by_path(path, meta, arrays, {"params": template.params, "best": template.params, "opt": template.opt_state})
+    params = checkpoints.restore(path, template.params, arrays, "params")
+    best = checkpoints.restore(path, template.params, arrays, "best")
+    opt_state = checkpoints.restore(path, template.opt_state, arrays, "opt")
     best_val = meta["best_val"] if meta["best_val"] is not None else float("inf")
-    history = [tuple(h) for h in meta["history"]]
+    history = checkpoints.history(meta, arrays)
     elapsed = float(meta.get("elapsed_s", 0.0))
     return TrainState(params, opt_state, best, best_val, meta["best_epoch"], meta["epoch"], history, elapsed), meta
+
+
+def convert_checkpoint(source, target) -> None:
+    """Write the checkpoint at `source` (any readable format) to `target` in the current
+    format: the same parameters, optimiser state, history, settings and the environment
+    that trained it, plus `converted_from` (the source's format and the sha256 of its
+    bytes, which records keyed on the old file can be re-keyed by)."""
+    state, meta = load_checkpoint(source)
+    kept = {key: value for key, value in meta.items() if key not in ("format", "history", "environment", "converted_from")}
+    converted_from = {"format": meta["format"], "sha256": records.file_digest(source)}
+    checkpoints.write(target, _state_arrays(state), {**kept, "converted_from": meta.get("converted_from", converted_from)}, state.history, meta.get("environment"))
 
 
 def check_resumable(path, model: models.ModelConfig, config: TrainConfig) -> tuple[TrainState, dict]:
@@ -496,12 +485,6 @@ def settings_differences(saved: dict, wanted: dict, prefix: str) -> list[str]:
         elif old != new:
             lines.append(f"{prefix}.{key}: checkpoint {old!r}, now {new!r}")
     return lines
-
-
-def load_model(path) -> tuple[models.ModelConfig, dict]:
-    """The model settings and best parameters of a checkpoint, for rollouts."""
-    state, meta = load_checkpoint(path)
-    return models.ModelConfig.from_dict(meta["model"]), state.best_params
 
 
 def seconds_to_reach(state: TrainState, target: float) -> float | None:

@@ -1,0 +1,153 @@
+"""Checkpoint files: parameters by pytree path, and inference without the optimiser.
+
+A checkpoint is an `lgnn.records` array record (atomic write, checksum), its arrays
+deflated (`np.savez_compressed`). Format 2 (`FORMAT`) holds:
+- `params/<path>`, `best/<path>`, `opt/<path>`: the leaves of the latest parameters,
+  the best parameters and the optimiser state, each named by its pytree path
+  (`jax.tree_util.keystr`, e.g. `best/['kinetic']['edge_embed']['w']`), so that a key
+  renamed in a model's `init` is a mismatch naming the path, never a silently
+  permuted leaf;
+- `history` (E, 4) float64: per epoch the epoch, training loss, validation loss and
+  seconds of training so far (NaN where an entry has no time);
+- `meta` (JSON): format, lgnn version, model settings (`ModelConfig.to_dict`),
+  training and data settings, progress (epoch, best epoch and loss, seconds), where a
+  model defined outside lgnn comes from (`model_source`), the environment that wrote
+  it and, for a converted file, `converted_from` (the source's format and sha256).
+
+`load_model(path)` needs only the model's config and its spec's `init` (the tree the
+leaves go into): no optimiser, no training settings. The optimiser state is read by
+`lgnn.learn.train` for resuming, from its optimiser's template.
+
+Format 1 (leaves `prefix/k` in flatten order, the history in the meta, arrays stored
+uncompressed: the committed benchmark checkpoints) is still read: `arrays_by_path`
+names its leaves by the template's paths. It is never written.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn import records
+from lgnn.errors import CheckpointError, ConfigError
+from lgnn.learn import models
+from lgnn.runtime import in_float64
+
+FORMAT = 2
+# Positional leaves; read (`arrays_by_path`), never written.
+LEGACY_FORMAT = 1
+# The entries of one epoch in the history array.
+HISTORY_FIELDS = ("epoch", "train_loss", "val_loss", "elapsed_s")
+
+
+def leaves_by_path(prefix: str, tree) -> dict[str, np.ndarray]:
+    """`{"prefix/<keystr(path)>": leaf}` for every leaf of `tree`."""
+    flat, _ = jax.tree_util.tree_flatten_with_path(tree)
+    return {f"{prefix}/{jax.tree_util.keystr(path)}": np.asarray(leaf) for path, leaf in flat}
+
+
+def write(path: str | os.PathLike, arrays: dict, meta: dict, history: list, environment: dict | None = None) -> None:
+    """Write a format-2 checkpoint atomically: `arrays` (`leaves_by_path` names),
+    `history` (entries `(epoch, train_loss, val_loss[, elapsed_s])`), `meta` with the
+    format set, and the `environment` that made it (default: this process's)."""
+    table = np.full((len(history), len(HISTORY_FIELDS)), np.nan)
+    for row, entry in zip(table, history):
+        row[: len(entry)] = entry
+    records.save(path, {**arrays, "history": table}, {**meta, "format": FORMAT}, environment, compressed=True)
+
+
+def read(path: str | os.PathLike) -> tuple[dict, dict]:
+    """`(meta, arrays)` of a checkpoint of a readable format; `CheckpointError` (one
+    line) if it is absent, unreadable, corrupt or of another format."""
+    try:
+        arrays, meta = records.read(path, "checkpoint")
+    except records.RecordError as err:
+        raise CheckpointError(str(err)) from None
+    if meta.get("format") not in (LEGACY_FORMAT, FORMAT):
+        raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, expected {FORMAT} (or {LEGACY_FORMAT})")
+    if not isinstance(meta.get("model"), dict):
+        raise CheckpointError(f"{path}: checkpoint settings are invalid (no model settings)")
+    return meta, arrays
+
+
+def model_config(path: str | os.PathLike, meta: dict, spec: models.ModelSpec | None = None) -> models.ModelConfig:
+    """The `ModelConfig` a checkpoint's `meta` names. `spec`: the model's own
+    `ModelSpec` (registered here), for a model defined outside lgnn; without it such a
+    model must be registered already (one `CheckpointError` line says how)."""
+    name = meta["model"].get("name")
+    if spec is not None:
+        if spec.name != name:
+            raise CheckpointError(f"{path}: a checkpoint of model {name!r}, not of {spec.name!r}")
+        models.register(spec)
+    elif name not in models.model_names():
+        # Never imported from a file's say-so: loading code is the user's decision.
+        source = meta.get("model_source")
+        where = f" ({source})" if source else ""
+        option = f", the config's model reference, or the command's --model-code {source}" if source else ""
+        raise CheckpointError(f"{path}: model {name!r} is defined outside lgnn{where}: load it first "
+                              f"(lgnn.learn.models.load_spec, or pass its spec to load_model{option})")
+    try:
+        return models.ModelConfig.from_dict(meta["model"])
+    except (ConfigError, TypeError) as err:
+        raise CheckpointError(f"{path}: checkpoint settings are invalid ({err})") from None
+
+
+def arrays_by_path(path: str | os.PathLike, meta: dict, arrays: dict, templates: Mapping[str, object]) -> dict:
+    """The checkpoint's leaves named by pytree path. Format 2 names them so already;
+    format 1's `prefix/k` (the k-th leaf in flatten order) are renamed after the paths
+    of `templates[prefix]` (only those prefixes are returned)."""
+    if meta["format"] == FORMAT:
+        return arrays
+    renamed = {}
+    for prefix, template in templates.items():
+        flat, _ = jax.tree_util.tree_flatten_with_path(template)
+        stored = sum(name.startswith(f"{prefix}/") for name in arrays)
+        if stored != len(flat):
+            raise CheckpointError(f"{path}: checkpoint does not match its model settings ({stored} {prefix} arrays, the model has {len(flat)})")
+        renamed.update({f"{prefix}/{jax.tree_util.keystr(key)}": arrays.get(f"{prefix}/{k}") for k, (key, _) in enumerate(flat)})
+    return renamed
+
+
+def restore(path: str | os.PathLike, template, arrays: dict, prefix: str):
+    """`template`'s tree with each leaf replaced by the array `prefix/<its path>` (in
+    the template leaf's dtype); `CheckpointError` naming the first path that is
+    missing, of another shape, or stored but not in the template."""
+    flat, treedef = jax.tree_util.tree_flatten_with_path(template)
+    names = [f"{prefix}/{jax.tree_util.keystr(key)}" for key, _ in flat]
+    extra = sorted({name for name in arrays if name.startswith(f"{prefix}/")} - set(names))
+    if extra:
+        raise CheckpointError(f"{path}: checkpoint does not match its model settings ({extra[0]} is not in the model)")
+    restored = []
+    for name, (_, leaf) in zip(names, flat):
+        stored = arrays.get(name)
+        if stored is None:
+            raise CheckpointError(f"{path}: checkpoint does not match its model settings (no {name})")
+        if stored.shape != np.shape(leaf):
+            raise CheckpointError(f"{path}: checkpoint does not match its model settings ({name} has shape {stored.shape}, the model {np.shape(leaf)})")
+        restored.append(jnp.asarray(stored, dtype=jnp.asarray(leaf).dtype))
+    return jax.tree_util.tree_unflatten(treedef, restored)
+
+
+def history(meta: dict, arrays: dict) -> list[tuple]:
+    """The per-epoch history `[(epoch, train_loss, val_loss[, elapsed_s]), ...]`."""
+    if meta["format"] == LEGACY_FORMAT:
+        return [tuple(entry) for entry in meta.get("history", [])]
+    rows = arrays.get("history", np.zeros((0, len(HISTORY_FIELDS))))
+    return [(int(epoch), float(train_loss), float(val_loss)) + (() if math.isnan(elapsed) else (float(elapsed),))
+            for epoch, train_loss, val_loss, elapsed in rows]
+
+
+@in_float64  # parameters restored in the precision they were trained in
+def load_model(path: str | os.PathLike, spec: models.ModelSpec | None = None) -> tuple[models.ModelConfig, dict]:
+    """`(ModelConfig, best params)` of a checkpoint, for inference: built from the
+    model settings and `init` alone (`spec`: a model defined outside lgnn, see
+    `model_config`). `CheckpointError` (one line) if the file is unusable."""
+    meta, arrays = read(path)
+    model = model_config(path, meta, spec)
+    template = models.init(jax.random.PRNGKey(0), model)
+    return model, restore(path, template, arrays_by_path(path, meta, arrays, {"best": template}), "best")

@@ -1,0 +1,173 @@
+"""Checkpoints: leaves by pytree path, inference without the optimiser, compressed
+files, the format-1 reader and its conversion (rollouts bit-identical)."""
+
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lgnn import records
+from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.errors import CheckpointError
+from lgnn.learn import checkpoints, data, models, train
+from lgnn.learn.models import ModelSpec
+from lgnn.scene import get_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMITTED = ROOT / "results" / "benchmark" / "checkpoints"
+SHORT = SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.1)
+
+# The names the test model's `init` gives its two parameters: a researcher editing
+# the model's code between saving and loading a checkpoint.
+KEY_NAMES = {"first": "a_first", "second": "b_second"}
+
+
+def _zero_acceleration(config, params, scene):
+    return lambda q, qd: jnp.zeros_like(q) + 0.0 * (params[KEY_NAMES["first"]][0] + params[KEY_NAMES["second"]][0])
+
+
+RENAMED = ModelSpec(
+    "checkpoint-test-renamed",
+    # Two leaves of one shape: read by position, a rename that changes their order
+    # would swap them silently.
+    init=lambda key, config: {KEY_NAMES["first"]: jnp.array([1.0, 2.0, 3.0]), KEY_NAMES["second"]: jnp.array([4.0, 5.0, 6.0])},
+    acceleration=_zero_acceleration,
+)
+
+
+def _save_initial(path, model, config=train.TrainConfig()):
+    train.save_checkpoint(path, train.initial_state(model, config), model, config)
+
+
+def test_a_renamed_params_key_is_a_mismatch_naming_its_path(tmp_path, monkeypatch):
+    models.register(RENAMED)
+    model = models.ModelConfig(RENAMED.name)
+    path = tmp_path / "renamed.npz"
+    _save_initial(path, model)
+    _, best = train.load_model(path)
+    assert sorted(best) == ["a_first", "b_second"]
+    np.testing.assert_array_equal(best["a_first"], [1.0, 2.0, 3.0])
+    # Renamed so that it sorts after the other key: by position its values would
+    # land under "b_second".
+    monkeypatch.setitem(KEY_NAMES, "first", "c_first")
+    with pytest.raises(CheckpointError, match=r"does not match its model settings \(best/\['a_first'\] is not in the model\)"):
+        train.load_model(path)
+    with pytest.raises(CheckpointError, match=r"params/\['a_first'\] is not in the model"):
+        train.load_checkpoint(path)
+    monkeypatch.setitem(KEY_NAMES, "first", "a_first")
+    arrays, meta = records.read(path)
+    arrays["best/['a_first']"] = arrays["best/['a_first']"][:2]
+    records.save(tmp_path / "short.npz", arrays, meta)
+    with pytest.raises(CheckpointError, match=r"best/\['a_first'\] has shape \(2,\), the model \(3,\)"):
+        train.load_model(tmp_path / "short.npz")
+
+
+def _with_meta(path, target, **changes):
+    """A copy of the checkpoint at `path` with some meta fields changed (checksum valid)."""
+    arrays, meta = records.read(path)
+    environment = meta.pop("environment")
+    records.save(target, arrays, {**meta, **changes}, environment, compressed=True)
+    return target
+
+
+def test_load_model_needs_neither_the_optimiser_nor_the_training_settings(tmp_path):
+    model = models.ModelConfig.for_scene("lgnn", get_scene("chain4"))
+    path = tmp_path / "lgnn.npz"
+    _save_initial(path, model)
+    odd = _with_meta(path, tmp_path / "odd.npz", train_config={"optimiser_of_the_future": 1})
+    loaded, best = train.load_model(odd)
+    assert loaded == model
+    for a, b in zip(jax.tree.leaves(best), jax.tree.leaves(train.initial_state(model, train.TrainConfig()).best_params)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(CheckpointError, match="checkpoint settings are invalid"):
+        train.load_checkpoint(odd)  # resuming needs them
+    # A process where optax cannot even be imported still loads the model.
+    script = ("import sys; sys.modules['optax'] = None\nimport lgnn; lgnn.configure()\n"
+              "from lgnn.learn.checkpoints import load_model\n"
+              f"config, params = load_model({str(path)!r}); print(config.name, 'optax' in sys.modules and sys.modules['optax'] is not None)")
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["lgnn", "False"]
+
+
+def test_a_model_outside_the_registry_loads_with_its_spec(tmp_path, monkeypatch):
+    spec = models.register(ModelSpec("checkpoint-test-own", init=lambda key, config: {"s": jnp.array([0.5, -0.5])}, acceleration=_zero_acceleration))
+    path = tmp_path / "own.npz"
+    _save_initial(path, models.ModelConfig(spec.name))
+    monkeypatch.delitem(models._REGISTRY, spec.name)  # a fresh process: the model's code not imported
+    with pytest.raises(CheckpointError, match="'checkpoint-test-own' is defined outside lgnn.*pass its spec to load_model"):
+        train.load_model(path)
+    config, params = train.load_model(path, spec)
+    assert config.name == spec.name and config.spec is spec
+    np.testing.assert_array_equal(params["s"], [0.5, -0.5])
+    other = ModelSpec("checkpoint-test-other", init=spec.init, acceleration=_zero_acceleration)
+    with pytest.raises(CheckpointError, match="a checkpoint of model 'checkpoint-test-own', not of 'checkpoint-test-other'"):
+        train.load_model(path, other)
+
+
+def test_checkpoints_are_compressed_with_the_history_as_an_array(tmp_path):
+    model = models.ModelConfig.for_scene("lgnn", get_scene("chain4"))
+    state = train.initial_state(model, train.TrainConfig())._replace(history=[(1, 2.0, 3.0, 4.5), (2, 1.5, 2.5)], epoch=2)
+    path = tmp_path / "c.npz"
+    train.save_checkpoint(path, state, model, train.TrainConfig())
+    with zipfile.ZipFile(path) as archive:
+        assert {info.compress_type for info in archive.infolist()} == {zipfile.ZIP_DEFLATED}
+    arrays, meta = records.read(path)
+    assert meta["format"] == checkpoints.FORMAT == 2 and "history" not in meta
+    assert arrays["history"].shape == (2, 4)
+    assert train.load_checkpoint(path)[0].history == state.history
+
+
+def _write_format_1(path, state: train.TrainState, model, config):
+    """A checkpoint as format 1 wrote it: leaves `prefix/k` in flatten order, the
+    history in the meta, arrays uncompressed."""
+    arrays = {f"{prefix}/{k}": np.asarray(leaf) for prefix, tree in (("params", state.params), ("best", state.best_params), ("opt", state.opt_state))
+              for k, leaf in enumerate(jax.tree.leaves(tree))}
+    meta = {"format": 1, "lgnn": "0", "model": model.to_dict(), "train": train.training_key(config), "train_config": config.__dict__,
+            "data": None, "epoch": state.epoch, "best_epoch": state.best_epoch, "best_val": state.best_val, "history": state.history,
+            "elapsed_s": state.elapsed_s}
+    records.save(path, arrays, meta, environment={"commit": "format-1"})
+
+
+def test_converted_checkpoints_roll_out_bit_identically(tmp_path):
+    scene = get_scene("chain4")
+    dataset = data.load_or_generate(data.DataConfig(n_trajectories=2, duration=0.1, sample_dt=0.01, dt=1e-3), tmp_path / "cache")
+    model = models.ModelConfig.for_scene("lgnn", scene)
+    config = train.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
+    state = train.train(model, config, dataset, scene)
+    source, target = tmp_path / "old", tmp_path / "new"
+    source.mkdir()
+    _write_format_1(source / "lgnn.npz", state, model, config)
+    before = (source / "lgnn.npz").read_bytes()
+    tool = [sys.executable, str(ROOT / "tools" / "convert_checkpoints.py")]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([*tool, str(source), str(target)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert (source / "lgnn.npz").read_bytes() == before  # the source is only read
+    old, new = train.load_checkpoint(source / "lgnn.npz"), train.load_checkpoint(target / "lgnn.npz")
+    assert old[1]["format"] == 1 and new[1]["format"] == 2
+    assert new[1]["converted_from"] == {"format": 1, "sha256": records.file_digest(source / "lgnn.npz")}
+    assert new[1]["environment"] == {"commit": "format-1"} and new[0].history == old[0].history == state.history
+    for a, b in zip(jax.tree.leaves(old[0]), jax.tree.leaves(new[0])):
+        np.testing.assert_array_equal(a, b)
+    runs = [models.rollout(*train.load_model(path), scene, SHORT) for path in (source / "lgnn.npz", target / "lgnn.npz")]
+    np.testing.assert_array_equal(runs[0].q, runs[1].q)
+    np.testing.assert_array_equal(runs[0].qd, runs[1].qd)
+    # Never into the source folder.
+    refused = subprocess.run([*tool, str(source), str(source)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "another folder" in refused.stderr
+
+
+def test_committed_format_1_checkpoints_load_their_leaves_in_flatten_order():
+    path = COMMITTED / "lgnn-notebook-chain4-s0.npz"
+    model, best = train.load_model(path)
+    with np.load(path) as stored:
+        for k, leaf in enumerate(jax.tree.leaves(best)):
+            np.testing.assert_array_equal(leaf, stored[f"best/{k}"])
+    assert model.name == "lgnn-notebook" and train.load_checkpoint(path)[0].epoch > 0
