@@ -11,9 +11,11 @@ import math
 import os
 import random
 import signal
+import struct
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import jax
@@ -259,12 +261,13 @@ def checkpoints(tmp_path_factory):
     train.save_checkpoint(good, train.initial_state(model, config), model, config)
     raw = good.read_bytes()
     (tmp / "truncated.npz").write_bytes(raw[: len(raw) // 2])
-    # A byte flipped in the middle of the parameters (the middle of the file may be a
-    # redundant zip size field that readers ignore, where a flip changes nothing).
-    with np.load(good) as stored:
-        weights = np.asarray(stored["params/1"]).tobytes()
+    # A byte flipped in the middle of the (deflated) parameters (the middle of the file
+    # may be a redundant zip size field that readers ignore, where a flip changes nothing).
+    with zipfile.ZipFile(good) as archive:
+        weights = max((info for info in archive.infolist() if info.filename.startswith("params/")), key=lambda info: info.compress_size)
+    name_length, extra_length = struct.unpack("<HH", raw[weights.header_offset + 26 : weights.header_offset + 30])
     flipped = bytearray(raw)
-    flipped[raw.index(weights) + len(weights) // 2] ^= 0xFF
+    flipped[weights.header_offset + 30 + name_length + extra_length + weights.compress_size // 2] ^= 0xFF
     (tmp / "corrupted.npz").write_bytes(bytes(flipped))
     (tmp / "text.npz").write_text("not a checkpoint\n")
     with np.load(good) as stored:
@@ -272,7 +275,7 @@ def checkpoints(tmp_path_factory):
     meta = json.loads(str(arrays["meta"]))
     meta["format"] = train.CHECKPOINT_FORMAT + 1
     arrays["meta"] = json.dumps(meta, sort_keys=True)
-    arrays["checksum"] = records.checksum({k: v for k, v in arrays.items() if "/" in k}, arrays["meta"])
+    arrays["checksum"] = records.checksum({k: v for k, v in arrays.items() if k not in ("meta", "checksum")}, arrays["meta"])
     np.savez(tmp / "future.npz", **arrays)
     trajectory = simulate(get_scene("chain4"), SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.02))
     trajectory.save(tmp / "trajectory.npz")  # a valid .npz, but no checkpoint
@@ -290,7 +293,7 @@ def checkpoints(tmp_path_factory):
         ("truncated.npz", "chain4", "not a readable lgnn checkpoint"),
         ("corrupted.npz", "chain4", "checkpoint"),
         ("text.npz", "chain4", "not a readable lgnn checkpoint"),
-        ("future.npz", "chain4", "checkpoint format 2, expected 1"),
+        ("future.npz", "chain4", "checkpoint format 3, expected 2"),
         ("trajectory.npz", "chain4", "not a readable lgnn checkpoint"),
         ("clnn.npz", "chain8", "tied to its training system size"),
     ],
