@@ -341,16 +341,16 @@ def _cmd_train(args) -> None:
 
 
 def _cmd_rollout(args) -> None:
-    from lgnn.learn import models, train
+    from lgnn.learn import checkpoints, models, train
     from lgnn.scene import get_scene
     from lgnn.metrics import energy_drift
 
     config = _simulation_config(args)
     _trajectory_out(args.out)
     _import_model_code(args)
-    state, meta = train.load_checkpoint(args.model)
-    model, params = models.ModelConfig.from_dict(meta["model"]), state.best_params
+    model, params = checkpoints.load_model(args.model)  # inference: no optimiser
     scene = get_scene(args.scene)
+    meta, _ = checkpoints.read(args.model)
     differences = train.physics_differences(meta, scene)
     if differences:
         print(f"lgnn: warning: {scene.name} differs from the scene {model.name} was trained on: {'; '.join(differences)}", file=sys.stderr)

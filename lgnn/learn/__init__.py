@@ -1,2 +1,3 @@
 """Learned models: graph features (`graphs`), the models (`models`), training data
-(`data`) and training with checkpoints (`train`)."""
+(`data`), checkpoint files and inference from them (`checkpoints`) and training
+(`train`)."""
