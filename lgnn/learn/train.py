@@ -456,7 +456,8 @@ def convert_checkpoint(source, target) -> None:
     """Write the checkpoint at `source` (any readable format) to `target` in the current
     format: the same parameters, optimiser state, history, settings and the environment
     that trained it, plus `converted_from` (the source's format and the sha256 of its
-    bytes, which records keyed on the old file can be re-keyed by)."""
+    bytes, which records keyed on the old file can be re-keyed by; a file converted
+    before keeps its first source). `source` is only read."""
     state, meta = load_checkpoint(source)
     kept = {key: value for key, value in meta.items() if key not in ("format", "history", "environment", "converted_from")}
     converted_from = {"format": meta["format"], "sha256": records.file_digest(source)}
