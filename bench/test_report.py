@@ -377,3 +377,29 @@ def test_a_scaling_record_made_before_3d_rows_reads_as_planar_and_old_speed_rows
     assert "| chain4, chain4-3d | mujoco | 0.04 | 0.08 | 2 (different machines) | not recorded, nested |" in third
     assert "| mujoco | planar | 1e-05 | 2e-05 |" in text
     assert "| mujoco | 3D |" not in text and "3D / planar" not in text and "## The third dimension" not in text
+
+
+def test_a_registered_stage_is_run_and_reported(tmp_path, monkeypatch):
+    """A stage added to the registry (`lgnn.bench.run.register_stage`) runs in registry
+    order before the report, and its section and keyed settings are in README.md."""
+    from lgnn.bench import run as bench_run
+
+    @dataclasses.dataclass(frozen=True)
+    class CountSettings:
+        count: int = 3
+
+    def count_scenes(request):
+        (request.out / "count.txt").write_text(str(len(request.scenes)))
+
+    monkeypatch.setattr(bench_run, "STAGES", dict(bench_run.STAGES))
+    bench_run.register_stage(bench_run.Stage(
+        "count", count_scenes, settings=lambda profile: CountSettings(),
+        load=lambda profile, out: (out / "count.txt").read_text(),
+        section=lambda profile, out, records: ["## Scenes counted", "", f"{records} evaluation scenes."]))
+    assert list(bench_run.STAGES)[-2:] == ["count", "report"]
+    profile = grid.get_profile("quick")
+    bench_run.run(profile, tmp_path, stages=("count", "report"), progress=False)
+    readme = (tmp_path / "README.md").read_text()
+    assert f"## Scenes counted\n\n{len(grid.evaluation_scenes(profile))} evaluation scenes." in readme
+    assert "Settings of the count stage: `count` = 3." in readme
+    assert readme.index("## Scenes counted") < readme.index("## Where each record was made")

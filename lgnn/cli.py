@@ -532,7 +532,7 @@ def _cmd_benchmark(args) -> None:
     overrides = list(args.set or ()) + ([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])
     # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
     profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
-    stages = None if args.stage is None else STAGES if args.stage == "all" else (args.stage,)
+    stages = None if args.stage is None else tuple(STAGES) if args.stage == "all" else (args.stage,)
     print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     # What selects this profile, for the child processes of --workers.
     profile_argv = ((["--config", args.config] if args.config else []) + (["--profile", args.profile] if args.profile else [])
@@ -555,7 +555,7 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--config", help="a benchmark config file (TOML; README, 'Benchmark configs')")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2] (repeatable)")
-    parser.add_argument("--stage", default=None, choices=("all",) + STAGES,
+    parser.add_argument("--stage", default=None, choices=("all", *STAGES),
                         help="run one stage (default: the config's stages, else all, resuming finished work)")
     parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")
     parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")

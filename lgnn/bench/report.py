@@ -43,7 +43,7 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
-from lgnn.bench.grid import GRID, TRAINING_SCENES, Profile, evaluation_pairs, evaluation_scenes
+from lgnn.bench.grid import GRID, TRAINING_SCENES, Profile, evaluation_pairs, evaluation_scenes, settings_key
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
 from lgnn.bench.stages.evaluate import NO_DRAG
@@ -584,7 +584,8 @@ def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> 
     return lines
 
 
-def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str], env: dict[str, str]) -> str:
+def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str], env: dict[str, str],
+           stage_lines: list[str] = ()) -> str:
     p, t, e = profile, profile.training, profile.evaluate
     envs = sorted(set(summary["device"])) if not summary.empty else []
     unrankable = _unrankable(out)
@@ -657,6 +658,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
                   "backend (`JAX_PLATFORMS=cpu`), on:", "",
                   *[f"- {scene}: {device}" for scene, device in dict.fromkeys((r["scene"], r["device"]) for r in speed_rows)], "",
                   speed_markdown(speed_rows)]
+    lines += stage_lines
     lines += ["## Where each record was made", "",
               "Every stage resumes from the records it finds, so stages may run apart, on several machines, and be assembled by the "
               f"report: `lgnn benchmark{' --full' if p.name == 'full' else ''} --stage train|evaluate|speed|mass|report "
@@ -919,8 +921,24 @@ SNAPSHOT_FIGURES = (
 )
 
 
-def write(profile: Profile, out: Path) -> Path:
-    """Write every report file under `out` from the records there; returns README.md's path."""
+def stage_sections(profile: Profile, out: Path, sections) -> list[str]:
+    """README lines of the registered stages' own sections, in registry order: `sections`
+    holds `(name, settings, load, section)` of each stage that has one
+    (`lgnn.bench.run.Stage`); each gives its `section(profile, out, load(profile, out))`
+    lines, then every setting its records are keyed on (`grid.settings_key`)."""
+    lines = []
+    for name, settings, load, section in sections:
+        lines += section(profile, out, None if load is None else load(profile, out))
+        if settings is not None:
+            keyed = settings_key(settings(profile))
+            lines += ["", f"Settings of the {name} stage: " + "; ".join(f"`{key}` = {value!r}" for key, value in keyed.items()) + "."]
+        lines.append("")
+    return lines
+
+
+def write(profile: Profile, out: Path, sections=()) -> Path:
+    """Write every report file under `out` from the records there, with the registered
+    stages' `sections` (`stage_sections`) before the provenance; returns README.md's path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -960,5 +978,6 @@ def write(profile: Profile, out: Path) -> Path:
             if plot(figures_dir / name):
                 figures.append(name)
     path = out / "README.md"
-    write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures, env))
+    write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures, env,
+                                   stage_sections(profile, out, sections)))
     return path
