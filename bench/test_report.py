@@ -403,3 +403,47 @@ def test_a_registered_stage_is_run_and_reported(tmp_path, monkeypatch):
     assert f"## Scenes counted\n\n{len(grid.evaluation_scenes(profile))} evaluation scenes." in readme
     assert "Settings of the count stage: `count` = 3." in readme
     assert readme.index("## Scenes counted") < readme.index("## Where each record was made")
+
+
+def test_a_model_added_to_a_profiles_grid_gets_a_colour_and_place_of_its_own():
+    """The built-ins keep their colours and order; each model a profile's grid adds gets
+    the next colour no built-in has and a column after them, the same every time."""
+    mine = (grid.GridEntry("mine", grid.TRAINING_SCENE, ("chain4",)), grid.GridEntry("yours", grid.TRAINING_SCENE, ("chain4",)))
+    profile = dataclasses.replace(grid.get_profile("quick"), grid=(*grid.GRID, *mine), models=None)
+    order = grid.model_order(profile)
+    assert order[: len(report.MODEL_ORDER)] == report.MODEL_ORDER == ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn")
+    assert order[len(report.MODEL_ORDER):] == ("mine", "yours")
+    colors = report.model_colors(order)
+    assert {model: colors[model] for model in report.COLORS} == report.COLORS
+    assert colors["mine"] not in report.COLORS.values() and colors["yours"] not in report.COLORS.values()
+    assert colors["mine"] != colors["yours"] and report.model_colors(order) == colors
+
+
+def test_a_scene_no_declared_figure_draws_gets_one_from_the_grid():
+    """A scene added to a profile's grid is drawn in an error figure named after it, its
+    title naming the scene its models were trained on; the built-in groups are kept."""
+    entry = grid.GridEntry("lgnn", grid.TRAINING_SCENE, ("chain4", "double-pinned"))
+    figures = grid.error_figures(dataclasses.replace(grid.get_profile("quick"), grid=(entry,), scenes=None, models=None))
+    assert figures[: len(grid.ERROR_FIGURES)] == list(grid.ERROR_FIGURES)
+    assert figures[len(grid.ERROR_FIGURES):] == [grid.FigureGroup("error_vs_time_doublepinned.png", ("double-pinned",), grid.TRAINING_SCENE)]
+
+
+def test_several_seeds_are_drawn_one_line_each(monkeypatch, tmp_path):
+    """Each seed's curve is its own line running forward in time (never from t = 1 of
+    one seed back to t = 0 of the next), labelled once, in the model's colour."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import pandas as pd
+
+    rows = [dict(scene="chain4", model="lgnn", seed=seed, metric=metric, statistic=stat, t=t, value=1e-3 * (seed + 1))
+            for seed in (0, 1, 2) for metric in ("rollout_error", "energy_error") for stat in ("gmean", "low", "high") for t in (0.1, 0.2, 0.3)]
+    figures = []
+    monkeypatch.setattr(report, "_savefig", lambda fig, path: figures.append(fig))
+    assert report._plot_error_vs_time(pd.DataFrame(rows), ["chain4"], tmp_path / "x.png", "chain4")
+    (fig,) = figures
+    for ax in fig.get_axes():
+        lines = ax.get_lines()
+        assert len(lines) == 3 and all(np.all(np.diff(line.get_xdata()) > 0) for line in lines)
+        assert {line.get_color() for line in lines} == {"C0"}
+        assert ax.get_legend_handles_labels()[1] == ["LGNN"]
