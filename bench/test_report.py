@@ -447,3 +447,12 @@ def test_several_seeds_are_drawn_one_line_each(monkeypatch, tmp_path):
         assert len(lines) == 3 and all(np.all(np.diff(line.get_xdata()) > 0) for line in lines)
         assert {line.get_color() for line in lines} == {"C0"}
         assert ax.get_legend_handles_labels()[1] == ["LGNN"]
+
+
+def test_the_settings_say_how_each_evaluated_scene_starts():
+    """From each scene's initial-state policy: the rope (a pinned chain) is sampled, the
+    net and the trusses keep their own state (the prose once said the rope did too)."""
+    text = report._initial_states_text(grid.get_profile("full"))
+    sampled, own = text.split("; their own state, one initial condition: ")
+    assert "rope-3d" in sampled and "chain4-3d" in sampled
+    assert own.split(", ") == ["T1", "T2-slack", "T3-slack", "net4x4-3d", "tensegrity-3d"]

@@ -55,7 +55,7 @@ from lgnn.bench.stages.train import default_lgnn, load_checkpoints
 from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.learn.train import stop_reason
-from lgnn.scene import get_scene, is_pinned_chain
+from lgnn.scene import CHAIN_SAMPLER, OWN_STATE, PROJECTED, get_scene, initial_state_policy, is_pinned_chain
 
 # Column order of the built-in grid's models (a profile's own models follow: `grid.model_order`).
 MODEL_ORDER = tuple(dict.fromkeys(entry.model for entry in GRID))
@@ -604,6 +604,16 @@ def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> 
     return lines
 
 
+def _initial_states_text(profile: Profile) -> str:
+    """Which of the profile's evaluation scenes start how (`lgnn.scene.initial_state_policy`)."""
+    by_policy: dict[str, list[str]] = {}
+    for scene in evaluation_scenes(profile):
+        by_policy.setdefault(initial_state_policy(get_scene(scene)), []).append(scene)
+    how = {CHAIN_SAMPLER: "the paper's chain sampler (in 3D the 3D chain sampler)", PROJECTED: "projected perturbations of their own state",
+           OWN_STATE: "their own state, one initial condition"}
+    return "; ".join(f"{how[policy]}: {', '.join(scenes)}" for policy, scenes in by_policy.items())
+
+
 def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str], env: dict[str, str],
            stage_lines: list[str] = ()) -> str:
     p, t, e = profile, profile.training, profile.evaluate
@@ -626,7 +636,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         + (f", plateau: stop when the best validation MSE has not improved by {t.train.min_improvement:.0%} in {t.train.patience} epochs"
            if t.train.min_improvement else f", patience {t.train.patience}")
         + f", seeds {', '.join(map(str, p.seeds))}.",
-        f"- Evaluation: {e.initial_conditions} initial conditions per chain scene (paper sampler, seed {e.ic_seed}; T1-T3: their rest state; the 3D net, rope and tensegrity: their own initial state), "
+        f"- Evaluation: {e.initial_conditions} initial conditions per scene, seed {e.ic_seed}, {_initial_states_text(p)}, "
         f"{e.duration:g} s, frames every {e.frame_dt:g} s, RK4 at dt {e.dt:g} with projection for models and the Lagrangian ground truth"
         + "".join(f" ({scene}: dt {dt:g})" for scene, dt in e.scene_dts if scene in evaluation_scenes(p)) + "; "
         f"MuJoCo C at RK4 dt {e.mujoco_dt:g}. Chaos floor: initial positions perturbed by {e.floor_perturbation:g}.",
