@@ -7,9 +7,11 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lgnn.bench import grid, report
 from lgnn.bench.stages import evaluate
+from lgnn.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 T = np.array([0.01, 0.02])
@@ -397,6 +399,8 @@ def test_a_registered_stage_is_run_and_reported(tmp_path, monkeypatch):
         load=lambda profile, out: (out / "count.txt").read_text(),
         section=lambda profile, out, records: ["## Scenes counted", "", f"{records} evaluation scenes."]))
     assert list(bench_run.STAGES)[-2:] == ["count", "report"]
+    with pytest.raises(ConfigError, match="benchmark stage 'count' is already registered"):
+        bench_run.register_stage(bench_run.Stage("count", count_scenes))
     profile = grid.get_profile("quick")
     bench_run.run(profile, tmp_path, stages=("count", "report"), progress=False)
     readme = (tmp_path / "README.md").read_text()
