@@ -1,7 +1,9 @@
 """The report's reading of records (`lgnn.bench.report`): the rest baseline and the
 per-node RMS error beside the paper's metric, the ratio to the chaos floor, no floor
 where the perturbed run diverged, and "not computed" (never a number) for a record
-written before a metric existed, as the committed full-profile records were."""
+written before a metric existed, as the committed full-profile records were; each
+model's colour and column, figure groups from the grid, one line per seed, and a
+registered stage's section."""
 
 import dataclasses
 from pathlib import Path
