@@ -1,15 +1,19 @@
 """The report's reading of records (`lgnn.bench.report`): the rest baseline and the
 per-node RMS error beside the paper's metric, the ratio to the chaos floor, no floor
 where the perturbed run diverged, and "not computed" (never a number) for a record
-written before a metric existed, as the committed full-profile records were."""
+written before a metric existed, as the committed full-profile records were; each
+model's colour and column, figure groups from the grid, one line per seed, and a
+registered stage's section."""
 
 import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lgnn.bench import grid, report
 from lgnn.bench.stages import evaluate
+from lgnn.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 T = np.array([0.01, 0.02])
@@ -377,3 +381,84 @@ def test_a_scaling_record_made_before_3d_rows_reads_as_planar_and_old_speed_rows
     assert "| chain4, chain4-3d | mujoco | 0.04 | 0.08 | 2 (different machines) | not recorded, nested |" in third
     assert "| mujoco | planar | 1e-05 | 2e-05 |" in text
     assert "| mujoco | 3D |" not in text and "3D / planar" not in text and "## The third dimension" not in text
+
+
+def test_a_registered_stage_is_run_and_reported(tmp_path, monkeypatch):
+    """A stage added to the registry (`lgnn.bench.run.register_stage`) runs in registry
+    order before the report, and its section and keyed settings are in README.md."""
+    from lgnn.bench import run as bench_run
+
+    @dataclasses.dataclass(frozen=True)
+    class CountSettings:
+        count: int = 3
+
+    def count_scenes(request):
+        (request.out / "count.txt").write_text(str(len(request.scenes)))
+
+    monkeypatch.setattr(bench_run, "STAGES", dict(bench_run.STAGES))
+    bench_run.register_stage(bench_run.Stage(
+        "count", count_scenes, settings=lambda profile: CountSettings(),
+        load=lambda profile, out: (out / "count.txt").read_text(),
+        section=lambda profile, out, records: ["## Scenes counted", "", f"{records} evaluation scenes."]))
+    assert list(bench_run.STAGES)[-2:] == ["count", "report"]
+    with pytest.raises(ConfigError, match="benchmark stage 'count' is already registered"):
+        bench_run.register_stage(bench_run.Stage("count", count_scenes))
+    profile = grid.get_profile("quick")
+    bench_run.run(profile, tmp_path, stages=("count", "report"), progress=False)
+    readme = (tmp_path / "README.md").read_text()
+    assert f"## Scenes counted\n\n{len(grid.evaluation_scenes(profile))} evaluation scenes." in readme
+    assert "Settings of the count stage: `count` = 3." in readme
+    assert readme.index("## Scenes counted") < readme.index("## Where each record was made")
+
+
+def test_a_model_added_to_a_profiles_grid_gets_a_colour_and_place_of_its_own():
+    """The built-ins keep their colours and order; each model a profile's grid adds gets
+    the next colour no built-in has and a column after them, the same every time."""
+    mine = (grid.GridEntry("mine", grid.TRAINING_SCENE, ("chain4",)), grid.GridEntry("yours", grid.TRAINING_SCENE, ("chain4",)))
+    profile = dataclasses.replace(grid.get_profile("quick"), grid=(*grid.GRID, *mine), models=None)
+    order = grid.model_order(profile)
+    assert order[: len(report.MODEL_ORDER)] == report.MODEL_ORDER == ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn")
+    assert order[len(report.MODEL_ORDER):] == ("mine", "yours")
+    colors = report.model_colors(order)
+    assert {model: colors[model] for model in report.COLORS} == report.COLORS
+    assert colors["mine"] not in report.COLORS.values() and colors["yours"] not in report.COLORS.values()
+    assert colors["mine"] != colors["yours"] and report.model_colors(order) == colors
+
+
+def test_a_scene_no_declared_figure_draws_gets_one_from_the_grid():
+    """A scene added to a profile's grid is drawn in an error figure named after it, its
+    title naming the scene its models were trained on; the built-in groups are kept."""
+    entry = grid.GridEntry("lgnn", grid.TRAINING_SCENE, ("chain4", "double-pinned"))
+    figures = grid.error_figures(dataclasses.replace(grid.get_profile("quick"), grid=(entry,), scenes=None, models=None))
+    assert figures[: len(grid.ERROR_FIGURES)] == list(grid.ERROR_FIGURES)
+    assert figures[len(grid.ERROR_FIGURES):] == [grid.FigureGroup("error_vs_time_doublepinned.png", ("double-pinned",), grid.TRAINING_SCENE)]
+
+
+def test_several_seeds_are_drawn_one_line_each(monkeypatch, tmp_path):
+    """Each seed's curve is its own line running forward in time (never from t = 1 of
+    one seed back to t = 0 of the next), labelled once, in the model's colour."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import pandas as pd
+
+    rows = [dict(scene="chain4", model="lgnn", seed=seed, metric=metric, statistic=stat, t=t, value=1e-3 * (seed + 1))
+            for seed in (0, 1, 2) for metric in ("rollout_error", "energy_error") for stat in ("gmean", "low", "high") for t in (0.1, 0.2, 0.3)]
+    figures = []
+    monkeypatch.setattr(report, "_savefig", lambda fig, path: figures.append(fig))
+    assert report._plot_error_vs_time(pd.DataFrame(rows), ["chain4"], tmp_path / "x.png", "chain4")
+    (fig,) = figures
+    for ax in fig.get_axes():
+        lines = ax.get_lines()
+        assert len(lines) == 3 and all(np.all(np.diff(line.get_xdata()) > 0) for line in lines)
+        assert {line.get_color() for line in lines} == {"C0"}
+        assert ax.get_legend_handles_labels()[1] == ["LGNN"]
+
+
+def test_the_settings_say_how_each_evaluated_scene_starts():
+    """From each scene's initial-state policy: the rope (a pinned chain) is sampled, the
+    net and the trusses keep their own state (the prose once said the rope did too)."""
+    text = report._initial_states_text(grid.get_profile("full"))
+    sampled, own = text.split("; their own state, one initial condition: ")
+    assert "rope-3d" in sampled and "chain4-3d" in sampled
+    assert own.split(", ") == ["T1", "T2-slack", "T3-slack", "net4x4-3d", "tensegrity-3d"]

@@ -4,7 +4,7 @@ The public interface, by lifecycle stage (layers from the bottom; see ARCHITECTU
 - set-up: `configure()` (float64, thread counts, XLA flags), optional, to call first;
   the computing entry points run in float64 without it (`precision(dtype)`, the
   context they use, and float32 only when asked: `get_engine(name, dtype="float32")`);
-- scenes (`lgnn.scene`): `Scene`, `State`, `get_scene`, `BUILTIN_SCENES`,
+- scenes (`lgnn.scene`): `Scene`, `State`, `get_scene`, `CATALOGUE`,
   `scene_from_dict`, `load_scene_file`, `sample_initial_states`;
 - physics (`lgnn.physics`): `prepare(scene) -> System` (everything static about a
   scene, computed once and cached by content), Lagrangians, constraints, the
@@ -40,7 +40,7 @@ _PUBLIC = {
     "LgnnError": "lgnn.errors",
     "SceneError": "lgnn.errors",
     "SimulationError": "lgnn.errors",
-    "BUILTIN_SCENES": "lgnn.scene",
+    "CATALOGUE": "lgnn.scene",
     "Scene": "lgnn.scene",
     "State": "lgnn.scene",
     "get_scene": "lgnn.scene",

@@ -84,25 +84,29 @@ def _import_model_code(args) -> None:
 
 
 def _cmd_scenes(args) -> None:
-    from lgnn.scene import BUILTIN_SCENES, HARD_SCENES, SPATIAL_SCENES
+    from lgnn.bench.grid import PROFILES, evaluation_scenes
+    from lgnn.scene import CATALOGUE, TAGS
 
-    width = max(map(len, {**BUILTIN_SCENES, **HARD_SCENES, **SPATIAL_SCENES}))
-    groups = (("built-in scenes", BUILTIN_SCENES), ("hard cases (lgnn stability, tests)", HARD_SCENES),
-              ("spatial (3D) scenes: every engine, mjcf/; not in the benchmark yet", SPATIAL_SCENES))
-    for title, catalogue in groups:
-        print(f"# {title}")
-        for entry in catalogue.values():
-            scene = entry.build()
-            print(f"{entry.name:<{width}}  {scene.n_nodes:4d} nodes {scene.n_links:4d} links  {entry.description}")
+    evaluated_by = {name: [profile for profile, settings in PROFILES.items() if name in evaluation_scenes(settings)] for name in CATALOGUE}
+    columns = ("name", "nodes", "links", "tags", "initial states", "benchmark", "description")
+    rows = []
+    for name, entry in CATALOGUE.items():
+        scene = entry.build()
+        benchmark = f"evaluated ({', '.join(evaluated_by[name])})" if evaluated_by[name] else "-"
+        rows.append((name, str(scene.n_nodes), str(scene.n_links), " ".join(entry.tags), entry.initial_states, benchmark, entry.description))
+    widths = [max(len(row[k]) for row in (columns, *rows)) for k in range(len(columns) - 1)]
+    print("# every built-in scene (`lgnn scene export NAME` writes one as JSON); benchmark: the profiles whose grid evaluates it")
+    for row in (columns, *rows):
+        print("  ".join(cell.ljust(width) for cell, width in zip(row, widths)) + "  " + row[-1])
+    print("# tags: " + "; ".join(f"{tag}: {meaning}" for tag, meaning in TAGS.items()))
 
 
 def _cmd_scene_export(args) -> None:
     from lgnn.files import write_text_atomic
-    from lgnn.scene import scene_to_json
-    from lgnn.scene import BUILTIN_SCENES, get_scene
+    from lgnn.scene import CATALOGUE, get_scene, scene_to_json
 
-    if args.name not in BUILTIN_SCENES:
-        raise ConfigError(f"unknown built-in scene {args.name!r} (choose from {', '.join(BUILTIN_SCENES)})")
+    if args.name not in CATALOGUE:
+        raise ConfigError(f"unknown built-in scene {args.name!r} (`lgnn scenes` lists them: {', '.join(CATALOGUE)})")
     text = scene_to_json(get_scene(args.name))
     if args.out in (None, "-"):
         sys.stdout.write(text)
@@ -284,7 +288,7 @@ def _cmd_convergence(args) -> None:
     from lgnn.bench.grid import get_profile
     from lgnn.files import check_writable, out_dir
     from lgnn.provenance import environment
-    from lgnn.scene import BUILTIN_SCENES, get_scene
+    from lgnn.scene import get_scene, scene_names
 
     args.out_dir = out_dir(args.out_dir)
     check_writable(f"{args.out_dir}/convergence.md")
@@ -292,7 +296,7 @@ def _cmd_convergence(args) -> None:
     evaluate = get_profile("full").evaluate
     log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     rows = []
-    for name in args.scenes or list(BUILTIN_SCENES) + list(convergence.PROPOSED_SCENES):
+    for name in args.scenes or list(scene_names("paper")) + list(convergence.PROPOSED_SCENES):
         scene = get_scene(name)
         config = evaluate.simulation(scene.name)
         horizon = args.horizon or convergence.default_horizon(scene)
@@ -528,7 +532,7 @@ def _cmd_benchmark(args) -> None:
     overrides = list(args.set or ()) + ([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])
     # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
     profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
-    stages = None if args.stage is None else STAGES if args.stage == "all" else (args.stage,)
+    stages = None if args.stage is None else tuple(STAGES) if args.stage == "all" else (args.stage,)
     print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     # What selects this profile, for the child processes of --workers.
     profile_argv = ((["--config", args.config] if args.config else []) + (["--profile", args.profile] if args.profile else [])
@@ -551,7 +555,7 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--config", help="a benchmark config file (TOML; README, 'Benchmark configs')")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2] (repeatable)")
-    parser.add_argument("--stage", default=None, choices=("all",) + STAGES,
+    parser.add_argument("--stage", default=None, choices=("all", *STAGES),
                         help="run one stage (default: the config's stages, else all, resuming finished work)")
     parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")
     parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")
@@ -676,7 +680,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="lgnn", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    scenes = commands.add_parser("scenes", help="list the built-in scenes")
+    scenes = commands.add_parser("scenes", help="list the built-in scenes, their tags, initial states and whether the benchmark evaluates them")
     scenes.set_defaults(run=_cmd_scenes)
 
     scene = commands.add_parser("scene", help="scene utilities")

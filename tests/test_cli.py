@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lgnn.cli import main
-from lgnn.scene import BUILTIN_SCENES
+from lgnn.scene import CATALOGUE
 from lgnn.engines.lagrangian import Trajectory
 
 
@@ -23,9 +23,7 @@ def run(capsys, *argv):
 def test_scenes_lists_every_builtin(capsys):
     code, out, _ = run(capsys, "scenes")
     assert code == 0
-    from lgnn.scene import SPATIAL_SCENES
-
-    for name in (*BUILTIN_SCENES, *SPATIAL_SCENES):
+    for name in CATALOGUE:
         assert name in out
 
 
@@ -376,3 +374,27 @@ def test_run_split_marks_its_children_and_gives_them_one_minute_together(tmp_pat
         parallel.run_split("train", {f"part{k}": [] for k in range(3)}, [], tmp_path, 3)
     assert len(started) == 3 and all(env[BENCHMARK_CHILD] == "1" for env in started)
     assert timeouts[0] <= 0.3 and sum(timeouts) < 0.3 + 0.1, timeouts
+
+
+def test_scene_export_takes_every_builtin(capsys):
+    """T2-slack, which the grid evaluates, is a built-in like any other."""
+    from lgnn.scene import get_scene, scene_from_dict
+
+    code, out, _ = run(capsys, "scene", "export", "T2-slack")
+    assert code == 0 and scene_from_dict(json.loads(out)) == get_scene("T2-slack")
+
+
+def test_scenes_says_which_the_benchmark_evaluates(capsys):
+    """The grid's 3D scenes and T2-slack are marked evaluated; T2 (left out of the grid)
+    and the hard cases are not; each line gives the scene's tags and initial states."""
+    from lgnn.bench.grid import PROFILES, evaluation_scenes
+
+    code, out, _ = run(capsys, "scenes")
+    assert code == 0
+    lines = {line.split()[0]: line for line in out.splitlines() if not line.startswith("#")}
+    for name in evaluation_scenes(PROFILES["full"]):
+        assert "evaluated (" in lines[name] and "full" in lines[name], lines[name]
+    assert "chain4-3d" in evaluation_scenes(PROFILES["full"]) and " 3d " in lines["chain4-3d"]
+    for name in ("T2", "folded4", "pendulum"):
+        assert "evaluated" not in lines[name], lines[name]
+    assert "own state" in lines["T1"] and "chain sampler" in lines["chain4"]

@@ -7,7 +7,7 @@ import pytest
 
 from lgnn import physics
 from lgnn.integrate import rk4, rollout, velocity_verlet
-from lgnn.scene import BUILTIN_SCENES, get_scene, sample_initial_states
+from lgnn.scene import get_scene, sample_initial_states, scene_names
 from lgnn.engines.lagrangian import SimulationConfig, rollout_fn, simulate
 from lgnn.scene.catalogue import double_pinned_chain, free_triangle, pendulum
 
@@ -82,7 +82,7 @@ def test_pendulum_small_angle_period():
     assert energy_drift < 1e-10
 
 
-@pytest.mark.parametrize("name", list(BUILTIN_SCENES))
+@pytest.mark.parametrize("name", list(scene_names("paper")))
 def test_every_builtin_scene_runs(name):
     scene = get_scene(name)
     trajectory = simulate(scene, SimulationConfig("rk4", dt=1e-4, frame_dt=1e-2, duration=0.1))

@@ -26,7 +26,7 @@ from lgnn.engines import ENGINES, batch_of_one, get_engine, mjcf
 from lgnn.engines import mujoco as lm
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.scene import State, scene_from_dict, scene_to_dict
-from lgnn.scene import BUILTIN_SCENES, SPATIAL_SCENES, chain, get_scene, sample_initial_states
+from lgnn.scene import chain, get_scene, sample_initial_states, scene_names
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
 
 # The engines' chain4 rollouts (0.25 s: MJX's CPU run of a whole second took most of a
@@ -98,7 +98,7 @@ def test_layout_spanning_tree():
 
 
 @pytest.mark.parametrize("form", mjcf.FORMS)
-@pytest.mark.parametrize("name", [*BUILTIN_SCENES, *EXTRA])
+@pytest.mark.parametrize("name", [*scene_names("paper"), *EXTRA])
 def test_rendered_model_reproduces_nodes(name, form):
     s = scene(name)
     compiled = lm.compile_scene(s, 1e-4, form)
@@ -158,7 +158,7 @@ def test_mjcf_files_match_rendering():
 
     root = Path(__file__).resolve().parents[1] / "mjcf"
     files = mjcf.builtin_files()
-    assert len(files) == len(mjcf.FORMS) * (len(BUILTIN_SCENES) + len(SPATIAL_SCENES))
+    assert len(files) == len(mjcf.FORMS) * len(scene_names("mjcf"))
     for name, text in files.items():
         path = root / name
         assert path.exists(), f"{path} missing: run `python -m lgnn.cli mjcf`"

@@ -9,7 +9,7 @@ import pytest
 
 from lgnn import integrate, physics
 from lgnn.scene import is_pinned_chain, scene_from_dict, scene_to_json
-from lgnn.scene import BUILTIN_SCENES, chain, get_scene, sample_initial_states
+from lgnn.scene import chain, get_scene, sample_initial_states, scene_names
 from lgnn.scene.catalogue import double_pinned_chain, free_triangle, pendulum, pinned_triangle
 
 
@@ -510,7 +510,7 @@ def scaled_acceleration_fn(scene, scale, *, local_mass):
 # Every built-in on both solve paths, except chain100's generic (dense KKT) path: that
 # path is the same code as on the other scenes and costs a minute of CI there.
 SCALING_CASES = [pytest.param(name, local_mass, id=f"{name}-{'local-mass' if local_mass else 'generic'}")
-                 for name in sorted(BUILTIN_SCENES) for local_mass in (False, True) if (name, local_mass) != ("chain100", False)]
+                 for name in sorted(scene_names("paper")) for local_mass in (False, True) if (name, local_mass) != ("chain100", False)]
 
 
 @pytest.mark.parametrize(("name", "local_mass"), SCALING_CASES)

@@ -85,3 +85,28 @@ def test_the_self_stressed_trusses_are_sampled_within_their_stated_tolerance():
     assert np.abs(states.q[0] - states.q[1]).max() > 1e-3 * length
     # The regular scenes keep the strict tolerance (a looser one is only for self-stresses).
     assert sampling.TOLERANCE["float64"] < sampling.SINGULAR_TOLERANCE
+
+
+def test_a_new_builtin_and_the_same_scene_as_a_file_start_alike(tmp_path, monkeypatch):
+    """The initial states follow the catalogue entry's policy, not whether a scene is a
+    chain: a new non-chain built-in with projected perturbations gets the profile's
+    count of sampled states, and its file (same content) the very same ones; an entry
+    that keeps its own state gets one initial condition, its file too."""
+    from lgnn.bench.grid import PROFILES
+    from lgnn.bench.stages.evaluate import evaluation_initial_states
+    from lgnn.scene import CATALOGUE, OWN_STATE, PROJECTED, CatalogueEntry, scene_to_json
+    from lgnn.scene.catalogue import double_pinned_chain
+
+    profile = PROFILES["quick"]
+    count = profile.evaluate.initial_conditions
+    hammock = lambda: double_pinned_chain().replace(name="hammock")  # noqa: E731
+    for policy, expected in ((PROJECTED, count), (OWN_STATE, 1)):
+        monkeypatch.setitem(CATALOGUE, "hammock", CatalogueEntry("hammock", "a test scene", hammock, ("planar", "hard"), policy))
+        path = tmp_path / f"hammock-{expected}.json"
+        path.write_text(scene_to_json(hammock()))
+        builtin, from_file = (evaluation_initial_states(profile, get_scene(source)) for source in ("hammock", str(path)))
+        assert len(builtin.q) == expected
+        np.testing.assert_array_equal(builtin.q, from_file.q)
+        np.testing.assert_array_equal(builtin.qd, from_file.qd)
+    monkeypatch.delitem(CATALOGUE, "hammock")
+    assert len(evaluation_initial_states(profile, hammock()).q) == count  # not in the catalogue: projected perturbations

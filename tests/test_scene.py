@@ -7,7 +7,7 @@ import pytest
 
 from lgnn.errors import SceneError
 from lgnn.scene import Scene, load_scene_file, scene_from_dict, scene_to_dict, scene_to_json
-from lgnn.scene import BUILTIN_SCENES, SPATIAL_SCENES, get_scene
+from lgnn.scene import CATALOGUE, get_scene
 
 
 def valid():
@@ -37,7 +37,7 @@ def test_valid_scene_loads_with_defaults():
     np.testing.assert_allclose(scene.lengths, [1.0, 1.0])
 
 
-@pytest.mark.parametrize("name", [*BUILTIN_SCENES, *SPATIAL_SCENES])
+@pytest.mark.parametrize("name", list(CATALOGUE))
 def test_json_round_trip_is_exact(name, tmp_path):
     scene = get_scene(name)
     path = tmp_path / f"{name}.json"
@@ -261,3 +261,36 @@ def test_scenes_compare_and_hash_by_content():
     renamed = a.replace(name="other")
     assert len({a, heavier, moved, renamed}) == 4
     assert a != "chain4"
+
+
+def test_every_catalogue_entry_has_its_dimension_an_origin_and_a_policy_that_fits():
+    """One dimension tag matching the scene, one origin tag, and the chain sampler only
+    on a pinned chain (the only scenes it can start)."""
+    from lgnn.scene import CHAIN_SAMPLER, is_pinned_chain
+    from lgnn.scene.catalogue import DIMENSION_TAGS
+
+    for name, entry in CATALOGUE.items():
+        scene = entry.build()
+        assert scene.name == name
+        assert [tag for tag in entry.tags if tag in DIMENSION_TAGS.values()] == [DIMENSION_TAGS[scene.dim]], name
+        assert len([tag for tag in entry.tags if tag in ("paper", "hard", "transfer")]) == 1, name
+        assert entry.initial_states != CHAIN_SAMPLER or is_pinned_chain(scene), name
+
+
+def test_scene_names_select_by_tag_and_a_bad_tag_is_one_line():
+    from lgnn.scene import scene_names
+
+    assert scene_names("paper") == ("chain4", "chain8", "chain16", "chain100", "chain4-varied", "chain4-drag", "T1", "T2", "T3")
+    assert "T2-slack" in scene_names("planar", "hard") and "T2-slack" not in scene_names("mjcf")
+    assert set(scene_names("3d")) == set(scene_names("transfer"))
+    with pytest.raises(SceneError, match="unknown scene tag 'spatial'"):
+        scene_names("spatial")
+
+
+def test_a_file_with_a_builtins_content_is_that_entry_and_a_reused_name_is_not():
+    """`catalogue_entry` compares content, so a user's file reusing a name is a scene of its own."""
+    from lgnn.scene import catalogue_entry
+
+    t1 = get_scene("T1")
+    assert catalogue_entry(scene_from_dict(scene_to_dict(t1))) is CATALOGUE["T1"]
+    assert catalogue_entry(get_scene("chain8").replace(name="T1")) is None

@@ -9,7 +9,7 @@ import pytest
 
 from lgnn import integrate, physics
 from lgnn.engines.lagrangian import SimulationConfig, simulate
-from lgnn.scene import SPATIAL_SCENES, embedded_in_3d, get_scene, sample_initial_states, spatial_chain, spatial_net
+from lgnn.scene import embedded_in_3d, get_scene, sample_initial_states, scene_names, spatial_chain, spatial_net
 from lgnn.scene.catalogue import SPATIAL_CHAIN_CONE, SPATIAL_CHAIN_SPIN, double_pinned_chain
 
 
@@ -306,7 +306,7 @@ def test_spatial_chain_sampler():
     assert not np.allclose(states.q, sample_initial_states(scene, jax.random.PRNGKey(1), 100).q)
 
 
-@pytest.mark.parametrize("name", list(SPATIAL_SCENES))
+@pytest.mark.parametrize("name", list(scene_names("3d")))
 def test_spatial_scenes_are_regular_3d_scenes(name):
     """Every spatial scene is 3D, regular at its start (no self-stress: no straight rope
     run between pins), and its constant mass is regular, so the fast solvers apply."""

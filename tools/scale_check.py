@@ -18,10 +18,10 @@ def truth(path):
     import numpy as np
 
     from lgnn.engines.lagrangian import SimulationConfig, simulate
-    from lgnn.scene import BUILTIN_SCENES, get_scene
+    from lgnn.scene import get_scene, scene_names
 
     arrays = {}
-    for name in BUILTIN_SCENES:
+    for name in scene_names("paper"):
         trajectory = simulate(get_scene(name), SimulationConfig(duration=0.1))
         arrays[f"{name}/q"], arrays[f"{name}/qd"] = trajectory.q, trajectory.qd
     np.savez(path, **arrays)

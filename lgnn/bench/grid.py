@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -101,6 +102,37 @@ GRID = (
     GridEntry("lgn", SPATIAL_TRAINING_SCENE, SPATIAL_TRANSFER_SCENES),
     GridEntry("clnn", SPATIAL_TRAINING_SCENE, (SPATIAL_TRAINING_SCENE,)),
 )
+
+
+@dataclasses.dataclass(frozen=True)
+class FigureGroup:
+    """An error-against-time figure of the report: its file under `figures/`, the scenes
+    drawn side by side (those with curves), the training scene its title names
+    ("each": the scenes' own)."""
+
+    file: str
+    scenes: tuple[str, ...]
+    trained_on: str
+
+
+# The error-against-time figures of the built-in grid: each transfer group a figure,
+# the large chains apart (their curves would flatten the small ones' scale). A scene
+# of a profile's grid in none of them gets a figure of its own (`error_figures`).
+ERROR_FIGURES = (
+    FigureGroup("error_vs_time_chain4_8_16.png", ("chain4", "chain8", "chain16"), TRAINING_SCENE),
+    FigureGroup("error_vs_time_chain100.png", ("chain100",), TRAINING_SCENE),
+    FigureGroup("error_vs_time_T1_T2slack_T3slack.png", ("T1", "T2-slack", "T3-slack"), TRAINING_SCENE),
+    FigureGroup("error_vs_time_varied_drag.png", ("chain4-varied", "chain4-drag"), "each"),
+    FigureGroup("error_vs_time_chain4_8_16_3d.png", ("chain4-3d", "chain8-3d", "chain16-3d"), SPATIAL_TRAINING_SCENE),
+    FigureGroup("error_vs_time_chain100_3d.png", ("chain100-3d",), SPATIAL_TRAINING_SCENE),
+    FigureGroup("error_vs_time_net_rope_tensegrity_3d.png", ("net4x4-3d", "rope-3d", "tensegrity-3d"), SPATIAL_TRAINING_SCENE),
+)
+# Scenes whose snapshots (learned against MuJoCo) the report draws: a chain and a
+# truss in each dimension, and the 3D net.
+SNAPSHOT_SCENES = ("chain8", "T1", "chain8-3d", "net4x4-3d", "tensegrity-3d")
+# The model whose learned mass matrix and cost against size are measured (`lgnn_job`):
+# the per-edge LGNN.
+MEASURED_MODEL = LGNN_VARIANTS[0]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -377,4 +409,30 @@ def lgnn_job(profile: Profile, scene_name: str | None = None) -> TrainingJob:
     measured: LGNN trained on the main training scene of the scene's dimension
     (`TRAINING_SCENES`: chain4, chain4-3d in 3D; chain4 without a scene), first seed."""
     dim = 2 if scene_name is None else get_scene(scene_name).dim
-    return TrainingJob("lgnn", TRAINING_SCENES[dim], profile.seeds[0])
+    return TrainingJob(MEASURED_MODEL, TRAINING_SCENES[dim], profile.seeds[0])
+
+
+def model_order(profile: Profile) -> tuple[str, ...]:
+    """Every model of the built-in grid and of the profile's, each once, in the order
+    their grids first name them: the order of the report's columns and legends."""
+    return tuple(dict.fromkeys(entry.model for entry in (*GRID, *profile.grid)))
+
+
+def error_figures(profile: Profile) -> list[FigureGroup]:
+    """The report's error-against-time figures: `ERROR_FIGURES`, then for the profile's
+    evaluation scenes none of them draws, one figure per set of training scenes their
+    models come from (a new scene is drawn, not only tabled)."""
+    drawn = {scene for group in ERROR_FIGURES for scene in group.scenes}
+    trained_on: dict[str, list[str]] = {}
+    for pair in evaluation_pairs(profile):
+        if pair.scene not in drawn:
+            trained_on.setdefault(pair.scene, [])
+            if pair.job.scene not in trained_on[pair.scene]:
+                trained_on[pair.scene].append(pair.job.scene)
+    groups: dict[tuple[str, ...], list[str]] = {}
+    for scene, sources in trained_on.items():
+        groups.setdefault(tuple(sources), []).append(scene)
+    stem = lambda scene: re.sub(r"[^A-Za-z0-9]+", "", Path(scene).stem if scene.endswith(".json") else scene)  # noqa: E731
+    extra = [FigureGroup(f"error_vs_time_{'_'.join(map(stem, scenes))}.png", tuple(scenes), sources[0] if len(sources) == 1 else "each")
+             for sources, scenes in groups.items()]
+    return [*ERROR_FIGURES, *extra]

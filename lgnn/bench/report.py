@@ -43,7 +43,7 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
-from lgnn.bench.grid import GRID, TRAINING_SCENES, Profile, evaluation_pairs, evaluation_scenes
+from lgnn.bench.grid import GRID, SNAPSHOT_SCENES, TRAINING_SCENES, Profile, error_figures, evaluation_pairs, evaluation_scenes, model_order, settings_key
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
 from lgnn.bench.stages.evaluate import NO_DRAG
@@ -55,10 +55,15 @@ from lgnn.bench.stages.train import default_lgnn, load_checkpoints
 from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.learn.train import stop_reason
-from lgnn.scene import get_scene, is_pinned_chain
+from lgnn.scene import CHAIN_SAMPLER, OWN_STATE, PROJECTED, get_scene, initial_state_policy, is_pinned_chain
 
-MODEL_ORDER = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn")
+# Column order of the built-in grid's models (a profile's own models follow: `grid.model_order`).
+MODEL_ORDER = tuple(dict.fromkeys(entry.model for entry in GRID))
+# The built-in models' colours and the rest baseline's (the committed figures use them).
 COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5", "lgnn-mp1": "C4", "lgnn-mp2": "C5", "lgnn-notebook": "C6"}
+# Colours no built-in has (tab10's last two, then tab20b's darker shades; not C7, a grey
+# beside the rest baseline's), given in turn to every other model (`model_colors`).
+SPARE_COLORS = ("C8", "C9", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#5254a3", "#8ca252", "#bd9e39", "#ad494a", "#a55194")
 # The rest baseline's model name in the tables (the initial state held).
 REST = "rest"
 # The drag scenes' exact physics without drag, as the tables name it.
@@ -76,6 +81,13 @@ MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale
 SCENE_ORDER = tuple(dict.fromkeys(scene for entry in GRID for scene in entry.eval_scenes))
 # How headings name each dimension's grid.
 DIMENSION_NAMES = {2: "planar", 3: "3D"}
+
+
+def model_colors(models) -> dict[str, str]:
+    """`{model: colour}`: a built-in's own (`COLORS`); every other of `models`, in the
+    order given, the next of `SPARE_COLORS` (repeating only past the last of them)."""
+    others = [model for model in dict.fromkeys(models) if model not in COLORS]
+    return {**COLORS, **{model: SPARE_COLORS[k % len(SPARE_COLORS)] for k, model in enumerate(others)}}
 
 
 def _env_columns(meta: dict) -> dict:
@@ -225,7 +237,7 @@ def _without_training_scene(label: str, training_scene: str | None) -> str:
 
 
 def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = frozenset(), unrankable: dict[str, str] | None = None,
-                     scenes: list[str] | None = None, trained_on: str | None = None) -> str:
+                     scenes: list[str] | None = None, trained_on: str | None = None, order: tuple[str, ...] = MODEL_ORDER) -> str:
     """A markdown table: rows the summary's `scenes` (default: all, in table order),
     columns the models evaluated on them (the rest baseline last; `trained_on`, the one
     training scene the heading names, dropped from their names), `gmean
@@ -246,7 +258,8 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
               [s for s in scenes if s in recorded or s in expected_scenes])
     wide = wide[wide.scene.isin(scenes)]
     models = [m for m in wide["model"].unique() if m not in ("ground truth", REST)]
-    models.sort(key=lambda m: (MODEL_ORDER.index(m.split()[0]) if m.split()[0] in MODEL_ORDER else 9, m))
+    # Models in `order` (a profile's: `grid.model_order`), any other after them by name.
+    models.sort(key=lambda m: (order.index(m.split()[0]) if m.split()[0] in order else len(order), m))
     models.append(REST)
     # Which records exist: a model with any metric on a scene; the rest baseline and
     # the scene-level columns wherever the scene's ground-truth record does.
@@ -315,9 +328,11 @@ def _savefig(fig, path: Path) -> None:
 ERROR_AXIS_LABELS = {"rollout_error": "rollout error (geometric mean)", "energy_error": "energy error (geometric mean)"}
 
 
-def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str) -> bool:
+def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str, colors: dict[str, str] | None = None) -> bool:
     """Error against time of every model on `scenes` (those with curves; the title
-    names them, so a profile without some scenes is not mislabelled)."""
+    names them, so a profile without some scenes is not mislabelled), a line per
+    training seed in the model's colour (`colors`, default `model_colors` of the curves'
+    models)."""
     import matplotlib.pyplot as plt
 
     scenes = [s for s in scenes if s in set(curves["scene"])]
@@ -325,6 +340,7 @@ def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str) 
         return False
     title = (f"Error against time: {', '.join(scenes)} (trained on {trained_on})\n"
              f"errors are clipped to [{metrics.ERROR_FLOOR:g}, 1]: 1 means diverged (or no better than that); band: interval over initial conditions")
+    colors = colors or model_colors(model.split()[0] for model in curves["model"].unique())
     fig, axes = plt.subplots(2, len(scenes), figsize=(4.2 * len(scenes), 6.4), squeeze=False, sharex=True)
     for col, scene in enumerate(scenes):
         for row, metric in enumerate(("rollout_error", "energy_error")):
@@ -334,12 +350,14 @@ def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str) 
                 if model == "ground truth":
                     continue
                 kind, name = model.split()[0], _without_training_scene(model, trained_on)
-                m = sub[sub.model == model]
-                g = m[m.statistic == "gmean"]
-                ax.plot(g.t, g.value, color=COLORS.get(kind), label=name.upper() if kind == name else name)
-                lo, hi = m[m.statistic == "low"], m[m.statistic == "high"]
-                if np.isfinite(lo.value.to_numpy()).any():
-                    ax.fill_between(lo.t, lo.value, hi.value, color=COLORS.get(kind), alpha=0.2, linewidth=0)
+                # One line per seed (the model's label on the first only), never one
+                # line running from the last frame of a seed back to t = 0 of the next.
+                for k, (_, m) in enumerate(sub[sub.model == model].groupby("seed", sort=True)):
+                    g = m[m.statistic == "gmean"]
+                    ax.plot(g.t, g.value, color=colors.get(kind), label=(name.upper() if kind == name else name) if k == 0 else None)
+                    lo, hi = m[m.statistic == "low"], m[m.statistic == "high"]
+                    if np.isfinite(lo.value.to_numpy()).any():
+                        ax.fill_between(lo.t, lo.value, hi.value, color=colors.get(kind), alpha=0.2, linewidth=0)
             floor = curves[(curves.scene == scene) & (curves.metric == "chaos_floor") & (curves.statistic == "gmean")]
             if len(floor) and metric == "rollout_error":
                 ax.plot(floor.t, floor.value, "k--", linewidth=1, label="chaos floor (1e-4)")
@@ -397,7 +415,7 @@ def _square_limits(points: np.ndarray, margin: float = 0.08) -> tuple[tuple[floa
     return (centre[0] - half, centre[0] + half), (centre[1] - half, centre[1] + half)
 
 
-def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
+def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path, colors: dict[str, str] | None = None) -> bool:
     """Initial condition 0 at 5 times: a row per model trained on the main training
     scene of the scene's dimension (`TRAINING_SCENES`), its first seed (more rows of a
     model would not say which seed each is), dashed in its colour, over
@@ -412,6 +430,7 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
     learned = [(p, r) for p, r in pairs if p.scene == scene and p.job.scene == trained_on]
     if not learned:
         return False
+    colors = colors or model_colors(p.job.model for p, _ in learned)
     seed = min(p.job.seed for p, _ in learned)
     learned = [(p, r) for p, r in learned if p.job.seed == seed]
     # MuJoCo's trajectory, or the Lagrangian ground truth's where the record's MuJoCo
@@ -431,7 +450,7 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
         for k, f in enumerate(frames):
             for v, (x, y, view) in enumerate(views):
                 ax = axes[row, k * len(views) + v]
-                for q, style, color, name in ((mujoco_q[f], "-", "k", "MuJoCo" if reference == "MuJoCo" else "ground truth"), (model_q[f], "--", COLORS.get(pair.job.model), label)):
+                for q, style, color, name in ((mujoco_q[f], "-", "k", "MuJoCo" if reference == "MuJoCo" else "ground truth"), (model_q[f], "--", colors.get(pair.job.model), label)):
                     if np.isfinite(q).all():
                         for e, seg in enumerate(q[edges]):
                             ax.plot(seg[:, x], seg[:, y], style, color=color, linewidth=1.2, label=name if e == 0 else None)
@@ -451,9 +470,10 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path) -> bool:
     return True
 
 
-def _plot_speed_error(rows: list[dict], path: Path) -> bool:
+def _plot_speed_error(rows: list[dict], path: Path, colors: dict[str, str] | None = None) -> bool:
     import matplotlib.pyplot as plt
 
+    colors = colors or model_colors(r["solver"].split()[0] for r in rows if r["kind"] != "engine")
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     if not scenes:
         return False
@@ -478,7 +498,7 @@ def _plot_speed_error(rows: list[dict], path: Path) -> bool:
                             textcoords="offset points", fontsize=6)
             else:
                 kind = r["solver"].split()[0]
-                ax.loglog(r["wall_s_per_sim_s"], r["rollout_error"], "*", color=COLORS.get(kind), markersize=10, label=r["solver"].upper())
+                ax.loglog(r["wall_s_per_sim_s"], r["rollout_error"], "*", color=colors.get(kind), markersize=10, label=r["solver"].upper())
         ax.set_title(scene, fontsize=9)
         ax.set_xlabel("wall s per simulated s")
         ax.set_ylabel("rollout error vs MuJoCo reference")
@@ -579,12 +599,23 @@ def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> 
         trained = list(dict.fromkeys(pair.job.scene for pair in pairs if pair.scene in scenes))
         grid_name = DIMENSION_NAMES.get(dim, f"{dim}D") + (f": trained on {', '.join(trained)}" if trained else "")
         for metric, heading in SUMMARY_TABLES:
-            table = summary_markdown(summary, metric, expected, unrankable, scenes, trained[0] if len(trained) == 1 else None)
+            table = summary_markdown(summary, metric, expected, unrankable, scenes, trained[0] if len(trained) == 1 else None, model_order(profile))
             lines += [f"## {heading} ({grid_name})", "", table]
     return lines
 
 
-def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str], env: dict[str, str]) -> str:
+def _initial_states_text(profile: Profile) -> str:
+    """Which of the profile's evaluation scenes start how (`lgnn.scene.initial_state_policy`)."""
+    by_policy: dict[str, list[str]] = {}
+    for scene in evaluation_scenes(profile):
+        by_policy.setdefault(initial_state_policy(get_scene(scene)), []).append(scene)
+    how = {CHAIN_SAMPLER: "the paper's chain sampler (in 3D the 3D chain sampler)", PROJECTED: "projected perturbations of their own state",
+           OWN_STATE: "their own state, one initial condition"}
+    return "; ".join(f"{how[policy]}: {', '.join(scenes)}" for policy, scenes in by_policy.items())
+
+
+def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str], env: dict[str, str],
+           stage_lines: list[str] = ()) -> str:
     p, t, e = profile, profile.training, profile.evaluate
     envs = sorted(set(summary["device"])) if not summary.empty else []
     unrankable = _unrankable(out)
@@ -605,7 +636,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         + (f", plateau: stop when the best validation MSE has not improved by {t.train.min_improvement:.0%} in {t.train.patience} epochs"
            if t.train.min_improvement else f", patience {t.train.patience}")
         + f", seeds {', '.join(map(str, p.seeds))}.",
-        f"- Evaluation: {e.initial_conditions} initial conditions per chain scene (paper sampler, seed {e.ic_seed}; T1-T3: their rest state; the 3D net, rope and tensegrity: their own initial state), "
+        f"- Evaluation: {e.initial_conditions} initial conditions per scene, seed {e.ic_seed}, {_initial_states_text(p)}, "
         f"{e.duration:g} s, frames every {e.frame_dt:g} s, RK4 at dt {e.dt:g} with projection for models and the Lagrangian ground truth"
         + "".join(f" ({scene}: dt {dt:g})" for scene, dt in e.scene_dts if scene in evaluation_scenes(p)) + "; "
         f"MuJoCo C at RK4 dt {e.mujoco_dt:g}. Chaos floor: initial positions perturbed by {e.floor_perturbation:g}.",
@@ -657,6 +688,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
                   "backend (`JAX_PLATFORMS=cpu`), on:", "",
                   *[f"- {scene}: {device}" for scene, device in dict.fromkeys((r["scene"], r["device"]) for r in speed_rows)], "",
                   speed_markdown(speed_rows)]
+    lines += stage_lines
     lines += ["## Where each record was made", "",
               "Every stage resumes from the records it finds, so stages may run apart, on several machines, and be assembled by the "
               f"report: `lgnn benchmark{' --full' if p.name == 'full' else ''} --stage train|evaluate|speed|mass|report "
@@ -898,29 +930,24 @@ def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dic
     return "\n".join(lines)
 
 
-# Error-against-time figures: file, scenes (those with curves are drawn), the training
-# scene the title names ("each": the scenes' own).
-ERROR_FIGURES = (
-    ("error_vs_time_chain4_8_16.png", ("chain4", "chain8", "chain16"), TRAINING_SCENES[2]),
-    ("error_vs_time_chain100.png", ("chain100",), TRAINING_SCENES[2]),
-    ("error_vs_time_T1_T2slack_T3slack.png", ("T1", "T2-slack", "T3-slack"), TRAINING_SCENES[2]),
-    ("error_vs_time_varied_drag.png", ("chain4-varied", "chain4-drag"), "each"),
-    ("error_vs_time_chain4_8_16_3d.png", ("chain4-3d", "chain8-3d", "chain16-3d"), TRAINING_SCENES[3]),
-    ("error_vs_time_chain100_3d.png", ("chain100-3d",), TRAINING_SCENES[3]),
-    ("error_vs_time_net_rope_tensegrity_3d.png", ("net4x4-3d", "rope-3d", "tensegrity-3d"), TRAINING_SCENES[3]),
-)
-# Snapshot figures of learned against MuJoCo (`_plot_snapshots`): file, scene.
-SNAPSHOT_FIGURES = (
-    ("snapshots_chain8.png", "chain8"),
-    ("snapshots_T1.png", "T1"),
-    ("snapshots_chain8_3d.png", "chain8-3d"),
-    ("snapshots_net4x4_3d.png", "net4x4-3d"),
-    ("snapshots_tensegrity_3d.png", "tensegrity-3d"),
-)
+def stage_sections(profile: Profile, out: Path, sections) -> list[str]:
+    """README lines of the registered stages' own sections, in registry order: `sections`
+    holds `(name, settings, load, section)` of each stage that has one
+    (`lgnn.bench.run.Stage`); each gives its `section(profile, out, load(profile, out))`
+    lines, then every setting its records are keyed on (`grid.settings_key`)."""
+    lines = []
+    for name, settings, load, section in sections:
+        lines += section(profile, out, None if load is None else load(profile, out))
+        if settings is not None:
+            keyed = settings_key(settings(profile))
+            lines += ["", f"Settings of the {name} stage: " + "; ".join(f"`{key}` = {value!r}" for key, value in keyed.items()) + "."]
+        lines.append("")
+    return lines
 
 
-def write(profile: Profile, out: Path) -> Path:
-    """Write every report file under `out` from the records there; returns README.md's path."""
+def write(profile: Profile, out: Path, sections=()) -> Path:
+    """Write every report file under `out` from the records there, with the registered
+    stages' `sections` (`stage_sections`) before the provenance; returns README.md's path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -948,17 +975,23 @@ def write(profile: Profile, out: Path) -> Path:
                bench_dir / "mass_matrix.csv")
     figures_dir = out / "figures"
     figures = []
+    # Every model's colour, fixed for the whole report: the profile's grid in order, then
+    # any other model recorded (from an earlier grid), by name.
+    recorded = sorted({pair.job.model for pair, _ in pairs} | {r["solver"].split()[0] for r in speed_rows if r["kind"] != "engine"})
+    colors = model_colors([*model_order(profile), *recorded])
     plots = [
-        *((name, lambda p, scenes=scenes, trained_on=trained_on: _plot_error_vs_time(curves, list(scenes), p, trained_on))
-          for name, scenes, trained_on in ERROR_FIGURES),
+        *((group.file, lambda p, group=group: _plot_error_vs_time(curves, list(group.scenes), p, group.trained_on, colors))
+          for group in error_figures(profile)),
         ("mass_matrix.png", lambda p: _plot_mass_matrices(mass_records, p)),
-        *((name, lambda p, scene=scene: _plot_snapshots(scene, truths, pairs, p)) for name, scene in SNAPSHOT_FIGURES),
-        ("speed_error.png", lambda p: _plot_speed_error(speed_rows, p)),
+        *((f"snapshots_{scene.replace('-', '_')}.png", lambda p, scene=scene: _plot_snapshots(scene, truths, pairs, p, colors))
+          for scene in SNAPSHOT_SCENES),
+        ("speed_error.png", lambda p: _plot_speed_error(speed_rows, p, colors)),
     ]
     for name, plot in plots:
         if not curves.empty or name in ("mass_matrix.png", "speed_error.png"):
             if plot(figures_dir / name):
                 figures.append(name)
     path = out / "README.md"
-    write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures, env))
+    write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures, env,
+                                   stage_sections(profile, out, sections)))
     return path

@@ -2,16 +2,21 @@
 every scene against both ground truths, measure speed against error, cost against
 size and the learned mass matrix, and write the report (`lgnn.bench.report`).
 
-Stages (`STAGES`, one module each under `lgnn.bench.stages`) are resumable: each
-output is a record written atomically, reused when the settings it was made with
-match, redone otherwise; so stages may run apart, on several machines, and be
-assembled by the report. With `workers` > 1 the training groups and the evaluation
-(scene, model) parts run in that many child processes at once (`lgnn.bench.parallel`).
+Stages are a registry: `STAGES` maps each name to its `Stage` (the settings it reads,
+how it runs, how its records load and its section of the report), in the order `run`
+runs them; `register_stage` adds one (a researcher's stage is run and reported like a
+built-in). Stages are resumable: each output is a record written atomically, reused
+when the settings it was made with match, redone otherwise; so stages may run apart,
+on several machines, and be assembled by the report. With `workers` > 1 the training
+groups and the evaluation (scene, model) parts run in that many child processes at
+once (`lgnn.bench.parallel`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+from typing import Any, Callable
 
 from lgnn.bench import report
 from lgnn.bench.grid import Pair, Profile, TrainingJob, evaluation_pairs, evaluation_scenes, training_jobs
@@ -24,19 +29,134 @@ from lgnn.bench.stages.train import prepare_datasets, train_jobs
 from lgnn.bench.store import default_out
 from lgnn.errors import ConfigError
 
-STAGES = ("train", "evaluate", "speed", "scaling", "mass", "report")
+
+@dataclasses.dataclass(frozen=True)
+class StageRun:
+    """What one `run` call asks of every stage: the profile, the output directory, the
+    selected training jobs, the selected evaluation scenes (`scenes_given`: whether
+    `--scene` narrowed them), and how to run (progress bars, child processes)."""
+
+    profile: Profile
+    out: Path
+    jobs: list[TrainingJob]
+    scenes: list[str]
+    scenes_given: bool
+    progress: bool
+    workers: int
+    profile_argv: list[str] | None
+
+    def keeps(self, scene: str) -> bool:
+        """Whether a stage's scene is selected (every scene unless `--scene` named some)."""
+        return not self.scenes_given or scene in self.scenes
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One benchmark stage: `run(StageRun)` writes its records under `out`;
+    `settings(profile)` is the settings dataclass its records are keyed on (None: it
+    reads the others'); `load(profile, out)` its records for the report and
+    `section(profile, out, records) -> markdown lines` its part of `README.md` (None:
+    the report's own body shows it: the built-in stages' tables and figures)."""
+
+    name: str
+    run: Callable[[StageRun], None]
+    settings: Callable[[Profile], Any] | None = None
+    load: Callable[[Profile, Path], Any] | None = None
+    section: Callable[[Profile, Path, Any], list[str]] | None = None
+
+
+def _train(request: StageRun) -> None:
+    profile, out = request.profile, request.out
+    if request.workers > 1:
+        groups: dict[str, list[str]] = {}
+        for job in request.jobs:
+            groups.setdefault(f"{job.model}-{job.scene}", []).append(job.name)
+        prepare_datasets(profile, request.jobs, out, request.progress)
+        run_split("train", {name: [a for j in names for a in ("--job", j)] for name, names in groups.items()}, request.profile_argv, out,
+                  request.workers)
+    else:
+        train_jobs(profile, request.jobs, out, request.progress)
+
+
+def _evaluate(request: StageRun) -> None:
+    profile, out = request.profile, request.out
+    by_scene = {scene: _seed_groups(profile, scene, request.jobs) for scene in request.scenes}
+    if request.workers > 1:
+        # One part per (scene, model's seeds); scenes interleaved, so the first parts
+        # to start compute different scenes' ground truths (`ground_truth`: one
+        # process computes a scene's, the others wait and read it).
+        parts = {}
+        for rank in range(max(map(len, by_scene.values()), default=0)):
+            for scene, groups in by_scene.items():
+                if rank < len(groups):
+                    name, pairs = groups[rank]
+                    parts[f"{scene}-{name}"] = ["--scene", scene, *(a for j in dict.fromkeys(p.job.name for p in pairs) for a in ("--job", j))]
+        run_split("evaluate", parts, request.profile_argv, out, request.workers)
+    else:
+        for scene, groups in by_scene.items():
+            # The models first: their rollouts run while the scene's ground truth is
+            # computed (`evaluate_group`), which the scene's own record then reuses.
+            for _, pairs in groups:
+                evaluate_group(profile, pairs, out, request.progress)
+            evaluate_scene(profile, scene, out, request.progress)
+
+
+def _speed(request: StageRun) -> None:
+    for scene in request.profile.speed.scenes:
+        if request.keeps(scene):
+            speed_error(request.profile, scene, request.out)
+
+
+def _scaling(request: StageRun) -> None:
+    if not request.scenes_given:  # chains of its own lengths, no evaluation scene
+        scaling(request.profile, request.out)
+
+
+def _mass(request: StageRun) -> None:
+    for scene in request.profile.mass.scenes:
+        if request.keeps(scene):
+            mass_matrices(request.profile, scene, request.out)
+
+
+def _report(request: StageRun) -> None:
+    sections = [(stage.name, stage.settings, stage.load, stage.section) for stage in STAGES.values() if stage.section is not None]
+    report.write(request.profile, request.out, sections)
+
+
+STAGES: dict[str, Stage] = {
+    stage.name: stage
+    for stage in (
+        Stage("train", _train, lambda profile: profile.training),
+        Stage("evaluate", _evaluate, lambda profile: profile.evaluate),
+        Stage("speed", _speed, lambda profile: profile.speed),
+        Stage("scaling", _scaling, lambda profile: profile.scaling),
+        Stage("mass", _mass, lambda profile: profile.mass),
+        Stage("report", _report),
+    )
+}
+
+
+def register_stage(stage: Stage) -> None:
+    """Add `stage` to `STAGES`, before the report (which reads every other stage's
+    records); a name already registered is a `ConfigError`."""
+    if stage.name in STAGES:
+        raise ConfigError(f"benchmark stage {stage.name!r} is already registered")
+    report_stage = STAGES.pop("report")
+    STAGES[stage.name] = stage
+    STAGES["report"] = report_stage
 
 
 def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] | None = None, scenes: list[str] | None = None,
         progress: bool = True, workers: int = 1, profile_argv: list[str] | None = None) -> Path:
-    """Run the chosen stages of the benchmark (default: the profile's `stages`, or all),
-    restricted to the named training jobs and evaluation scenes when given; returns
-    the output directory. With `workers` > 1, training (one part per model and
-    training scene) and evaluation (one part per scene and model's seeds) run in child `lgnn benchmark`
-    processes given `profile_argv`, the arguments that select this profile."""
+    """Run the chosen stages of the benchmark (default: the profile's `stages`, or all of
+    `STAGES`), in registry order, restricted to the named training jobs and evaluation
+    scenes when given; returns the output directory. With `workers` > 1, training (one
+    part per model and training scene) and evaluation (one part per scene and model's
+    seeds) run in child `lgnn benchmark` processes given `profile_argv`, the arguments
+    that select this profile."""
     if workers > 1 and profile_argv is None:
         raise ConfigError("parallel workers need the profile's command-line arguments (profile_argv)")
-    stages = stages or profile.stages or STAGES
+    stages = stages or profile.stages or tuple(STAGES)
     out = Path(out) if out is not None else default_out(profile)
     unknown = sorted(set(stages) - set(STAGES))
     if unknown:
@@ -49,49 +169,12 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
     for name in scenes or ():
         if name not in evaluation_scenes(profile):
             raise ConfigError(f"scene {name!r} is not evaluated in the {profile.name} profile (choose from {', '.join(evaluation_scenes(profile))})")
-    selected_jobs = [j for j in all_jobs if not jobs or j.name in jobs]
-    selected_scenes = [s for s in evaluation_scenes(profile) if not scenes or s in scenes]
+    request = StageRun(profile, out, [j for j in all_jobs if not jobs or j.name in jobs],
+                       [s for s in evaluation_scenes(profile) if not scenes or s in scenes], bool(scenes), progress, workers, profile_argv)
     out.mkdir(parents=True, exist_ok=True)
-    if "train" in stages and workers > 1:
-        groups: dict[str, list[str]] = {}
-        for job in selected_jobs:
-            groups.setdefault(f"{job.model}-{job.scene}", []).append(job.name)
-        prepare_datasets(profile, selected_jobs, out, progress)
-        run_split("train", {name: [a for j in names for a in ("--job", j)] for name, names in groups.items()}, profile_argv, out, workers)
-    elif "train" in stages:
-        train_jobs(profile, selected_jobs, out, progress)
-    if "evaluate" in stages:
-        by_scene = {scene: _seed_groups(profile, scene, selected_jobs) for scene in selected_scenes}
-        if workers > 1:
-            # One part per (scene, model's seeds); scenes interleaved, so the first parts
-            # to start compute different scenes' ground truths (`ground_truth`: one
-            # process computes a scene's, the others wait and read it).
-            parts = {}
-            for rank in range(max(map(len, by_scene.values()), default=0)):
-                for scene, groups in by_scene.items():
-                    if rank < len(groups):
-                        name, pairs = groups[rank]
-                        parts[f"{scene}-{name}"] = ["--scene", scene, *(a for j in dict.fromkeys(p.job.name for p in pairs) for a in ("--job", j))]
-            run_split("evaluate", parts, profile_argv, out, workers)
-        else:
-            for scene, groups in by_scene.items():
-                # The models first: their rollouts run while the scene's ground truth is
-                # computed (`evaluate_group`), which the scene's own record then reuses.
-                for _, pairs in groups:
-                    evaluate_group(profile, pairs, out, progress)
-                evaluate_scene(profile, scene, out, progress)
-    if "speed" in stages:
-        for scene in profile.speed.scenes:
-            if not scenes or scene in scenes:
-                speed_error(profile, scene, out)
-    if "scaling" in stages and not scenes:
-        scaling(profile, out)
-    if "mass" in stages:
-        for scene in profile.mass.scenes:
-            if not scenes or scene in scenes:
-                mass_matrices(profile, scene, out)
-    if "report" in stages:
-        report.write(profile, out)
+    for stage in list(STAGES.values()):
+        if stage.name in stages:
+            stage.run(request)
     return out
 
 

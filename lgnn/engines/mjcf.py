@@ -380,14 +380,14 @@ def _link_color(link_type: str) -> str:
 
 
 def builtin_files(forms: tuple[str, ...] = FORMS) -> dict[str, str]:
-    """The committed `mjcf/` files of the built-in and spatial scenes: relative path ->
-    text (nested: NAME.xml, maximal: maximal/NAME.xml), at the default dt."""
-    from lgnn.scene import BUILTIN_SCENES, SPATIAL_SCENES
+    """The committed `mjcf/` files of the catalogue's scenes tagged "mjcf": relative path
+    -> text (nested: NAME.xml, maximal: maximal/NAME.xml), at the default dt."""
+    from lgnn.scene import CATALOGUE, scene_names
 
     files = {}
     for form in forms:
         check_form(form)
         folder = "" if form == "nested" else f"{form}/"
-        for name, entry in {**BUILTIN_SCENES, **SPATIAL_SCENES}.items():
-            files[f"{folder}{name}.xml"] = render(entry.build(), form=form)
+        for name in scene_names("mjcf"):
+            files[f"{folder}{name}.xml"] = render(CATALOGUE[name].build(), form=form)
     return files

@@ -15,9 +15,10 @@ file gets `count` different trajectories, not `count` copies of one.
 `sample_initial_conditions` otherwise. `own_or_sampled_states(scene, count, seed)`:
 `lgnn evaluate`'s rule, the scene's own state for one initial condition, `sample_states`
 for more. `benchmark_initial_states(scene, count, seed)` is the one rule the training
-data and the benchmark's evaluation use: the paper's chain sampler on a pinned chain, the scene's
-own state on the other catalogue scenes (T1-T3 start from the paper's rest states),
-`sample_initial_conditions` on any other scene.
+data and the benchmark's evaluation use: the scene's initial-state policy
+(`lgnn.scene.initial_state_policy`: a catalogue entry's own, e.g. the paper's rest
+states of T1-T3; for any other scene the chain sampler on a pinned chain,
+`sample_initial_conditions` otherwise).
 
 The projection is repeated while the worst violation still halves (linear convergence
 near the self-stressed T2/T3, whose float64 tolerance is the looser
@@ -40,7 +41,7 @@ from lgnn.errors import ConfigError, SceneError
 from lgnn.physics.constraints import constraint_violation, velocity_constraint_violation
 from lgnn.physics.projection import projection_fn
 from lgnn.physics.system import prepare
-from lgnn.scene import Scene, State, is_catalogue_scene, is_pinned_chain, sample_initial_states
+from lgnn.scene import CHAIN_SAMPLER, OWN_STATE, Scene, State, initial_state_policy, is_pinned_chain, sample_initial_states
 
 # Position noise per coordinate, in mean link lengths: large enough that trajectories
 # differ visibly, small enough that Gauss-Newton from the perturbed state converges
@@ -108,12 +109,14 @@ def sample_initial_conditions(
 def sample_states(scene: Scene, count: int, seed: int) -> State:
     """`count` different initial states (count, N, D) of any scene: the paper's sampler
     on a pinned chain, `sample_initial_conditions` on every other scene."""
-    if is_pinned_chain(scene):
-        if count < 1:
-            raise ConfigError(f"need at least one initial condition, got {count}")
-        states = sample_initial_states(scene, jax.random.PRNGKey(seed), count)
-        return State(np.asarray(states.q), np.asarray(states.qd))
-    return sample_initial_conditions(scene, count, seed)
+    return _chain_sampler_states(scene, count, seed) if is_pinned_chain(scene) else sample_initial_conditions(scene, count, seed)
+
+
+def _chain_sampler_states(scene: Scene, count: int, seed: int) -> State:
+    if count < 1:
+        raise ConfigError(f"need at least one initial condition, got {count}")
+    states = sample_initial_states(scene, jax.random.PRNGKey(seed), count)
+    return State(np.asarray(states.q), np.asarray(states.qd))
 
 
 def own_or_sampled_states(scene: Scene, count: int, seed: int) -> State:
@@ -125,12 +128,17 @@ def own_or_sampled_states(scene: Scene, count: int, seed: int) -> State:
 
 
 def benchmark_initial_states(scene: Scene, count: int, seed: int) -> State:
-    """`count` initial states (count, N, D) of training data or the benchmark's evaluation
-    (module docstring): `sample_states`, except that the catalogue's other scenes (T1-T3)
-    start from their own state, as in the paper."""
-    if is_catalogue_scene(scene) and not is_pinned_chain(scene):
+    """`count` initial states (count, N, D) of training data or the benchmark's evaluation,
+    by the scene's initial-state policy (`lgnn.scene.initial_state_policy`): its own
+    state repeated, the chain sampler, or `sample_initial_conditions`."""
+    policy = initial_state_policy(scene)
+    if policy == OWN_STATE:
         return State(np.broadcast_to(scene.nodes, (count, *scene.nodes.shape)), np.broadcast_to(scene.velocities, (count, *scene.nodes.shape)))
-    return sample_states(scene, count, seed)
+    if policy == CHAIN_SAMPLER:
+        if not is_pinned_chain(scene):
+            raise SceneError(f"scene {scene.name!r}: the chain sampler needs a chain pinned at node 0")
+        return _chain_sampler_states(scene, count, seed)
+    return sample_initial_conditions(scene, count, seed)
 
 
 @functools.lru_cache(maxsize=8)

@@ -1,9 +1,9 @@
 """Scenes: the immutable description of a structure, its JSON schema, and the catalogue.
 
 - `schema`: `Scene` (a frozen pytree), `State`, JSON reading, writing and validation;
-- `catalogue`: the one catalogue of scenes: the built-in scenes of the paper
-  (`BUILTIN_SCENES`), the hard cases and small physics-test scenes (`HARD_SCENES`),
-  the spatial (3D) scenes (`SPATIAL_SCENES`), and the initial-condition samplers.
+- `catalogue`: the one catalogue of scenes (`CATALOGUE`: the paper's scenes, the hard
+  cases and the 3D scenes, each with its tags and initial-state policy;
+  `scene_names(*tags)`, `initial_state_policy`), and the initial-condition samplers.
 
 Everything above this package takes a `Scene`; nothing here imports anything of lgnn
 but `lgnn.errors`.
@@ -20,16 +20,20 @@ from lgnn.scene.schema import (
     scene_to_json,
 )
 from lgnn.scene.catalogue import (
-    BUILTIN_SCENES,
-    HARD_SCENES,
-    SPATIAL_SCENES,
-    BuiltinScene,
+    CATALOGUE,
+    CHAIN_SAMPLER,
+    INITIAL_STATE_POLICIES,
+    OWN_STATE,
+    PROJECTED,
+    TAGS,
+    CatalogueEntry,
+    catalogue_entry,
     chain,
     chain4_drag,
     chain4_varied,
     chain_positions,
     get_scene,
-    is_catalogue_scene,
+    initial_state_policy,
     double_pinned_chain,
     embedded_in_3d,
     folded_chain,
@@ -38,6 +42,7 @@ from lgnn.scene.catalogue import (
     pendulum,
     pinned_triangle,
     sample_initial_states,
+    scene_names,
     spatial_chain,
     spatial_chain_state,
     spatial_net,
@@ -47,10 +52,13 @@ from lgnn.scene.catalogue import (
 )
 
 __all__ = [
-    "BUILTIN_SCENES",
-    "BuiltinScene",
-    "HARD_SCENES",
-    "SPATIAL_SCENES",
+    "CATALOGUE",
+    "CHAIN_SAMPLER",
+    "CatalogueEntry",
+    "INITIAL_STATE_POLICIES",
+    "OWN_STATE",
+    "PROJECTED",
+    "TAGS",
     "Scene",
     "State",
     "chain",
@@ -62,14 +70,16 @@ __all__ = [
     "embedded_in_3d",
     "folded_chain",
     "free_triangle",
+    "catalogue_entry",
     "get_scene",
-    "is_catalogue_scene",
+    "initial_state_policy",
     "is_pinned_chain",
     "load_scene_file",
     "paper_structure",
     "pendulum",
     "pinned_triangle",
     "sample_initial_states",
+    "scene_names",
     "spatial_chain",
     "spatial_chain_state",
     "spatial_net",

@@ -1,9 +1,14 @@
-"""The one catalogue of scenes: the built-ins of the paper, the hard cases, small test
-scenes, the spatial (3D) scenes (`SPATIAL_SCENES`, a group of their own until the
-benchmark takes 3D), and the initial-condition samplers.
+"""The one catalogue of scenes and the initial-condition samplers.
 
-Each built-in is constructed by one function from a seed; `get_scene(name_or_path)`
-resolves a built-in or hard-case name or a user's scene JSON file.
+`CATALOGUE` maps each built-in scene's name to its `CatalogueEntry`: a function that
+builds it (from a fixed seed), a description, its tags (`TAGS`: its dimension,
+where it comes from, whether `mjcf/` holds its MJCF) and its initial-state policy
+(`INITIAL_STATE_POLICIES`: how training data and the benchmark start it). Every
+built-in is in it once; `scene_names(*tags)` selects by tag. `get_scene(name_or_path)`
+resolves a catalogue name or a user's scene JSON file; `initial_state_policy(scene)`
+is the policy of a scene equal to a catalogue entry's (so the same scene as a file
+starts alike), and for any other scene the chain sampler on a pinned chain and
+projected perturbations otherwise.
 
 Inertia convention (see SPEC.md): scenes carry the *physical* moment of inertia of
 each rod about its centre. The authors' code computed the rotational energy as
@@ -186,29 +191,6 @@ def paper_structure(name: str) -> Scene:
     )
 
 
-@dataclass(frozen=True)
-class BuiltinScene:
-    name: str
-    description: str
-    build: Callable[[], Scene]
-
-
-BUILTIN_SCENES: dict[str, BuiltinScene] = {
-    entry.name: entry
-    for entry in [
-        BuiltinScene("chain4", "4 unit links pinned at one end (training scene)", lambda: chain(4)),
-        BuiltinScene("chain8", "8 unit links pinned at one end", lambda: chain(8)),
-        BuiltinScene("chain16", "16 unit links pinned at one end", lambda: chain(16)),
-        BuiltinScene("chain100", "100 unit links pinned at one end", lambda: chain(100)),
-        BuiltinScene("chain4-varied", "4 links with the paper's varied lengths, masses, inertias", chain4_varied),
-        BuiltinScene("chain4-drag", "4 unit links with linear drag 0.01", chain4_drag),
-        BuiltinScene("T1", "tensegrity: two ropes, a braced rope frame, 6 rods (paper fig. D)", lambda: paper_structure("T1")),
-        BuiltinScene("T2", "tensegrity: rope loop with one rod (paper fig. E)", lambda: paper_structure("T2")),
-        BuiltinScene("T3", "lattice of ropes pinned at six nodes (paper fig. F)", lambda: paper_structure("T3")),
-    ]
-}
-
-
 # ---------------------------------------------------------------------------------
 # Hard cases (`lgnn stability`) and small scenes for the physics tests
 # ---------------------------------------------------------------------------------
@@ -225,7 +207,8 @@ def taut_chain(n_links: int = 4, fraction: float = 0.999) -> Scene:
     sag = math.sqrt(max(0.0, 1.0 - fraction**2))
     nodes = [[k * fraction, -sag * min(k, n_links - k)] for k in range(n_links + 1)]
     return scene_from_dict({
-        "name": f"taut{n_links}-{fraction:g}",
+        # "exact", not "1": the name the catalogue lists it by (`catalogue_entry` matches names).
+        "name": f"taut{n_links}-{'exact' if fraction == 1 else f'{fraction:g}'}",
         "nodes": nodes,
         "pinned": [0, n_links],
         "links": [{"nodes": [k, k + 1], "mass": 1.0, "inertia": 1 / 12, "length": 1.0} for k in range(n_links)],
@@ -367,36 +350,8 @@ def slackened(scene: Scene, slack: float = ROPE_SLACK, seed: int = 0) -> Scene:
     return scene_from_dict({**data, "name": f"{scene.name}-slack", "nodes": np.round(q, SLACK_DECIMALS).tolist()})
 
 
-HARD_SCENES: dict[str, BuiltinScene] = {
-    entry.name: entry
-    for entry in [
-        BuiltinScene("chain1000", "1000 unit links pinned at one end (scaling)", lambda: chain(1000)),
-        BuiltinScene("taut4-0.999", "4 links hanging between two pins 0.999 x 4 apart (nearly taut)", lambda: taut_chain(4, 0.999)),
-        BuiltinScene("taut4-exact", "4 links pulled exactly taut between two pins (one self-stress)", lambda: taut_chain(4, 1.0)),
-        BuiltinScene("folded4", "4 links folded flat on each other (singular rod mass matrix)", lambda: folded_chain(4)),
-        BuiltinScene("pinned-triangle", "a rigid triangle pinned at two corners (a redundant constraint)", pinned_triangle),
-        BuiltinScene("chain8-mixed", "8 links of mixed lengths (0.1-2) and masses (0.01-10) released near horizontal", mixed_chain),
-        BuiltinScene("pendulum", "one rod pinned at one end, released at 0.3 rad", pendulum),
-        BuiltinScene("free-triangle", "an unpinned spinning triangle (a free rigid body)", free_triangle),
-        BuiltinScene("double-pinned", "4 links hanging between two pins (a loop through the ground)", double_pinned_chain),
-        BuiltinScene("T2-slack", "T2 with its ropes 0.1 % slack, hanging off the self-stressed start", lambda: slackened(paper_structure("T2"))),
-        BuiltinScene("T3-slack", "T3 with its ropes 0.1 % slack, hanging off the self-stressed start", lambda: slackened(paper_structure("T3"))),
-    ]
-}
-
-
-def is_catalogue_scene(scene: Scene) -> bool:
-    """Whether `scene` is a built-in or hard-case scene (by content, not by name alone:
-    a user's file may reuse a name)."""
-    for catalogue in (BUILTIN_SCENES, HARD_SCENES, SPATIAL_SCENES):
-        if scene.name in catalogue:
-            return catalogue[scene.name].build() == scene
-    return False
-
-
 # ---------------------------------------------------------------------------------
-# Spatial (3D) scenes: a group of their own, since the benchmark grid (which iterates
-# `BUILTIN_SCENES`) is planar so far; `mjcf/` holds them beside the built-ins
+# Spatial (3D) scenes
 # ---------------------------------------------------------------------------------
 
 
@@ -542,28 +497,145 @@ def embedded_in_3d(scene: Scene) -> Scene:
     return scene_from_dict({**data, "name": f"{scene.name}-z0", "nodes": pad(scene.nodes), "velocities": pad(scene.velocities)})
 
 
-SPATIAL_SCENES: dict[str, BuiltinScene] = {
+# ---------------------------------------------------------------------------------
+# The catalogue
+# ---------------------------------------------------------------------------------
+
+# Tags of the catalogue's entries: each entry has one dimension tag (matching its
+# scene's `dim`) and one origin tag.
+TAGS = {
+    "planar": "2D",
+    "3d": "3D",
+    "paper": "the paper's scenes (chains, the varied and drag chains, T1-T3)",
+    "hard": "hard cases: lgnn stability, the physics tests, the stand-ins T2-slack and T3-slack, scaling",
+    "transfer": "3D scenes made for zero-shot transfer from the 3D 4-link chain",
+    "mjcf": "its MJCF is committed in mjcf/ (lgnn mjcf --check)",
+}
+DIMENSION_TAGS = {2: "planar", 3: "3d"}
+
+# How training data and the benchmark's evaluation start a scene
+# (`lgnn.physics.benchmark_initial_states`):
+# the scene's own state, one initial condition (the paper's T1-T3 rest states);
+OWN_STATE = "own state"
+# the paper's chain sampler (`sample_initial_states`; in 3D the 3D chain sampler),
+# for pinned chains only;
+CHAIN_SAMPLER = "chain sampler"
+# random perturbations of the scene's own state put back on its constraints
+# (`lgnn.physics.sample_initial_conditions`), for any scene.
+PROJECTED = "projected perturbations"
+INITIAL_STATE_POLICIES = (OWN_STATE, CHAIN_SAMPLER, PROJECTED)
+
+
+@dataclass(frozen=True)
+class CatalogueEntry:
+    """A built-in scene: `build() -> Scene` (the same scene every call), what it is,
+    its tags (`TAGS`) and its initial-state policy (`INITIAL_STATE_POLICIES`)."""
+
+    name: str
+    description: str
+    build: Callable[[], Scene]
+    tags: tuple[str, ...]
+    initial_states: str
+
+    def __post_init__(self):
+        unknown = [tag for tag in self.tags if tag not in TAGS]
+        if unknown:
+            raise SceneError(f"catalogue entry {self.name!r}: unknown tag {unknown[0]!r} (choose from {', '.join(TAGS)})")
+        if self.initial_states not in INITIAL_STATE_POLICIES:
+            raise SceneError(f"catalogue entry {self.name!r}: unknown initial-state policy {self.initial_states!r} "
+                             f"(choose from {', '.join(INITIAL_STATE_POLICIES)})")
+
+
+def _planar(origin: str, *more: str) -> tuple[str, ...]:
+    return ("planar", origin, *more)
+
+
+CATALOGUE: dict[str, CatalogueEntry] = {
     entry.name: entry
     for entry in [
-        BuiltinScene("chain4-3d", "4 unit links in 3D pinned at one end, turning in a cone about -y", lambda: spatial_chain(4)),
-        BuiltinScene("chain8-3d", "8 unit links in 3D pinned at one end", lambda: spatial_chain(8)),
-        BuiltinScene("chain16-3d", "16 unit links in 3D pinned at one end", lambda: spatial_chain(16)),
-        BuiltinScene("chain100-3d", "100 unit links in 3D pinned at one end", lambda: spatial_chain(100)),
-        BuiltinScene("net4x4-3d", "a 4 x 4 net of links (9 closed loops) hung from two corners", spatial_net),
-        BuiltinScene("rope-3d", "a rope of 30 links 0.1 long pinned at one end, released as a loose helix", spatial_rope),
-        BuiltinScene("tensegrity-3d", "a loose three-rod tensegrity prism of slack rope chains hung from three pins", spatial_tensegrity),
+        CatalogueEntry("chain4", "4 unit links pinned at one end (training scene)", lambda: chain(4), _planar("paper", "mjcf"), CHAIN_SAMPLER),
+        CatalogueEntry("chain8", "8 unit links pinned at one end", lambda: chain(8), _planar("paper", "mjcf"), CHAIN_SAMPLER),
+        CatalogueEntry("chain16", "16 unit links pinned at one end", lambda: chain(16), _planar("paper", "mjcf"), CHAIN_SAMPLER),
+        CatalogueEntry("chain100", "100 unit links pinned at one end", lambda: chain(100), _planar("paper", "mjcf"), CHAIN_SAMPLER),
+        CatalogueEntry("chain4-varied", "4 links with the paper's varied lengths, masses, inertias", chain4_varied, _planar("paper", "mjcf"),
+                       CHAIN_SAMPLER),
+        CatalogueEntry("chain4-drag", "4 unit links with linear drag 0.01", chain4_drag, _planar("paper", "mjcf"), CHAIN_SAMPLER),
+        CatalogueEntry("T1", "tensegrity: two ropes, a braced rope frame, 6 rods (paper fig. D)", lambda: paper_structure("T1"),
+                       _planar("paper", "mjcf"), OWN_STATE),
+        CatalogueEntry("T2", "tensegrity: rope loop with one rod (paper fig. E)", lambda: paper_structure("T2"), _planar("paper", "mjcf"), OWN_STATE),
+        CatalogueEntry("T3", "lattice of ropes pinned at six nodes (paper fig. F)", lambda: paper_structure("T3"), _planar("paper", "mjcf"), OWN_STATE),
+        CatalogueEntry("chain1000", "1000 unit links pinned at one end (scaling)", lambda: chain(1000), _planar("hard"), CHAIN_SAMPLER),
+        CatalogueEntry("taut4-0.999", "4 links hanging between two pins 0.999 x 4 apart (nearly taut)", lambda: taut_chain(4, 0.999),
+                       _planar("hard"), OWN_STATE),
+        CatalogueEntry("taut4-exact", "4 links pulled exactly taut between two pins (one self-stress)", lambda: taut_chain(4, 1.0),
+                       _planar("hard"), OWN_STATE),
+        CatalogueEntry("folded4", "4 links folded flat on each other (singular rod mass matrix)", lambda: folded_chain(4), _planar("hard"),
+                       CHAIN_SAMPLER),
+        CatalogueEntry("pinned-triangle", "a rigid triangle pinned at two corners (a redundant constraint)", pinned_triangle, _planar("hard"),
+                       OWN_STATE),
+        CatalogueEntry("chain8-mixed", "8 links of mixed lengths (0.1-2) and masses (0.01-10) released near horizontal", mixed_chain,
+                       _planar("hard"), CHAIN_SAMPLER),
+        CatalogueEntry("pendulum", "one rod pinned at one end, released at 0.3 rad", pendulum, _planar("hard"), CHAIN_SAMPLER),
+        CatalogueEntry("free-triangle", "an unpinned spinning triangle (a free rigid body)", free_triangle, _planar("hard"), OWN_STATE),
+        CatalogueEntry("double-pinned", "4 links hanging between two pins (a loop through the ground)", double_pinned_chain, _planar("hard"),
+                       OWN_STATE),
+        CatalogueEntry("T2-slack", "T2 with its ropes 0.1 % slack, hanging off the self-stressed start", lambda: slackened(paper_structure("T2")),
+                       _planar("hard"), OWN_STATE),
+        CatalogueEntry("T3-slack", "T3 with its ropes 0.1 % slack, hanging off the self-stressed start", lambda: slackened(paper_structure("T3")),
+                       _planar("hard"), OWN_STATE),
+        CatalogueEntry("chain4-3d", "4 unit links in 3D pinned at one end, turning in a cone about -y", lambda: spatial_chain(4),
+                       ("3d", "transfer", "mjcf"), CHAIN_SAMPLER),
+        CatalogueEntry("chain8-3d", "8 unit links in 3D pinned at one end", lambda: spatial_chain(8), ("3d", "transfer", "mjcf"), CHAIN_SAMPLER),
+        CatalogueEntry("chain16-3d", "16 unit links in 3D pinned at one end", lambda: spatial_chain(16), ("3d", "transfer", "mjcf"), CHAIN_SAMPLER),
+        CatalogueEntry("chain100-3d", "100 unit links in 3D pinned at one end", lambda: spatial_chain(100), ("3d", "transfer", "mjcf"),
+                       CHAIN_SAMPLER),
+        CatalogueEntry("net4x4-3d", "a 4 x 4 net of links (9 closed loops) hung from two corners", spatial_net, ("3d", "transfer", "mjcf"),
+                       OWN_STATE),
+        # A pinned chain of short links: the 3D chain sampler's cone and spins, not its helix.
+        CatalogueEntry("rope-3d", "a rope of 30 links 0.1 long pinned at one end, released as a loose helix", spatial_rope,
+                       ("3d", "transfer", "mjcf"), CHAIN_SAMPLER),
+        CatalogueEntry("tensegrity-3d", "a loose three-rod tensegrity prism of slack rope chains hung from three pins", spatial_tensegrity,
+                       ("3d", "transfer", "mjcf"), OWN_STATE),
     ]
 }
 
 
+def scene_names(*tags: str) -> tuple[str, ...]:
+    """Names of the catalogue's entries that carry every one of `tags`, in catalogue order."""
+    unknown = [tag for tag in tags if tag not in TAGS]
+    if unknown:
+        raise SceneError(f"unknown scene tag {unknown[0]!r} (choose from {', '.join(TAGS)})")
+    return tuple(name for name, entry in CATALOGUE.items() if set(tags) <= set(entry.tags))
+
+
+@functools.cache
+def _built(entry: CatalogueEntry) -> Scene:
+    # Cached per entry (scenes are immutable), so comparing a scene with the catalogue
+    # builds each entry once (chain1000's build is not free).
+    return entry.build()
+
+
+def catalogue_entry(scene: Scene) -> CatalogueEntry | None:
+    """The catalogue entry `scene` is (same name and content: a user's file may reuse a
+    name with other content), or None."""
+    entry = CATALOGUE.get(scene.name)
+    return entry if entry is not None and _built(entry) == scene else None
+
+
+def initial_state_policy(scene: Scene) -> str:
+    """How training data and the benchmark start `scene` (`INITIAL_STATE_POLICIES`): its
+    catalogue entry's policy; for any other scene the chain sampler on a pinned chain,
+    projected perturbations otherwise."""
+    entry = catalogue_entry(scene)
+    if entry is not None:
+        return entry.initial_states
+    return CHAIN_SAMPLER if is_pinned_chain(scene) else PROJECTED
+
+
 def get_scene(name_or_path: str) -> Scene:
-    """A built-in, hard-case or spatial scene by name, or a user's scene JSON file by path."""
-    for catalogue in (BUILTIN_SCENES, HARD_SCENES, SPATIAL_SCENES):
-        if name_or_path in catalogue:
-            return catalogue[name_or_path].build()
+    """A catalogue scene by name (`CATALOGUE`), or a user's scene JSON file by path."""
+    if name_or_path in CATALOGUE:
+        return CATALOGUE[name_or_path].build()
     if name_or_path.endswith(".json") or Path(name_or_path).exists():
         return load_scene_file(name_or_path)
-    raise SceneError(
-        f"unknown scene {name_or_path!r}: not a built-in ({', '.join(BUILTIN_SCENES)}), a hard case ({', '.join(HARD_SCENES)}), "
-        f"a spatial scene ({', '.join(SPATIAL_SCENES)}) nor a .json file"
-    )
+    raise SceneError(f"unknown scene {name_or_path!r}: not in the catalogue (`lgnn scenes` lists it: {', '.join(CATALOGUE)}) nor a .json file")

@@ -47,7 +47,7 @@ from lgnn.bench.timing import batched_rollouts, compiled_rollouts, stacked_rollo
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models, train
-from lgnn.scene import Scene, State, get_scene, is_catalogue_scene, is_pinned_chain, scene_to_dict
+from lgnn.scene import OWN_STATE, Scene, State, get_scene, initial_state_policy, scene_to_dict
 
 # Metrics recorded per frame and initial condition, for a model and the rest baseline.
 METRICS = ("rollout_error", "energy_error", "rollout_error_vs_mujoco", "node_rms_error")
@@ -77,11 +77,11 @@ SNAPSHOT_DT = 0.01
 
 
 def evaluation_initial_states(profile: Profile, scene: Scene) -> State:
-    """The evaluation initial conditions (C, N, D), seed `ic_seed` (`physics.benchmark_initial_states`):
-    `initial_conditions` samples of the paper's chain sampler on a chain, or of
-    `physics.sample_initial_conditions` on a user's scene; a built-in scene's own
-    state (C = 1) otherwise (T1-T3)."""
-    count = profile.evaluate.initial_conditions if is_pinned_chain(scene) or not is_catalogue_scene(scene) else 1
+    """The evaluation initial conditions (C, N, D), seed `ic_seed`, by the scene's
+    initial-state policy (`lgnn.scene.initial_state_policy`, `physics.benchmark_initial_states`):
+    its own state (C = 1: T1-T3), or `initial_conditions` samples of the chain sampler
+    or of projected perturbations."""
+    count = 1 if initial_state_policy(scene) == OWN_STATE else profile.evaluate.initial_conditions
     return physics.benchmark_initial_states(scene, count, profile.evaluate.ic_seed)
 
 
