@@ -183,7 +183,7 @@ class EvaluateSettings:
     ic_seed: int = 1
     # Chaos floor: initial positions perturbed by this much.
     floor_perturbation: float = 1e-4
-    # MuJoCo C reference step (RK4) for the learned-vs-MuJoCo comparison.
+    # Step (RK4) of the reference engines (`references`; the name is MuJoCo C's, the default).
     mujoco_dt: float = 1e-4
     # Initial conditions per compiled, vmapped rollout call (memory and progress).
     chunk: int = dataclasses.field(default=25, metadata=NOT_IN_KEY)
