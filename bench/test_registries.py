@@ -77,3 +77,12 @@ def test_a_registered_metric_and_reference_engine_reach_records_and_report(regis
     assert "largest node error (geometric mean)" in report.error_axis_labels().values()
     assert set(curves[curves.model == "cheat-registries"].metric) == {"rollout_error", "node_rms_error", "energy_error", "max_node_error",
                                                                      f"rollout_error_vs_{TWIN}"}
+
+
+def test_an_unknown_reference_engine_is_refused_in_one_line_when_the_profile_loads():
+    from lgnn.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^evaluate.references: unknown engine 'nope' \(choose from lagrangian, mujoco") as error:
+        grid.load_profile("quick", ['evaluate.references=["mujoco", "nope"]'])
+    assert "\n" not in str(error.value)
+    assert grid.load_profile("quick", ['evaluate.references=["mjx"]']).evaluate.references == ("mjx",)
