@@ -31,13 +31,13 @@ from pathlib import Path
 import numpy as np
 
 from lgnn import metrics
-from lgnn.metrics import Scored
 from lgnn.bench.tables import write_csv, write_table
 from lgnn.bench.timing import batched_rollouts
 from lgnn.engines import get_engine
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory
 from lgnn.errors import ConfigError
 from lgnn.learn import models
+from lgnn.metrics import Scored
 from lgnn.scene import Scene, State, scene_from_dict
 
 # Initial conditions per compiled model rollout (`batched_rollouts`): a handful per
