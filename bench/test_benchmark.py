@@ -115,7 +115,7 @@ def test_ground_truth(profile, out, eval_scene):
     assert agreement < TRUTH_AGREEMENT.get(eval_scene, TRUTH_AGREEMENT_DEFAULT), f"Lagrangian vs MuJoCo {agreement:.3g}"
     count = arrays["chaos_floor/per_ic_log"].shape[0]
     assert arrays["chaos_floor/node_rms_error/per_ic_log"].shape == (count,)
-    for metric in evaluate.METRICS:
+    for metric in (m.name for m in evaluate.recorded_metrics(profile.evaluate.references)):
         assert arrays[f"{evaluate.REST}/{metric}/per_ic_log"].shape == (count,), f"rest baseline's {metric}"
     if profile is QUICK:  # (the full profile's ground truth takes minutes to redo)
         # The rest baseline's errors are the truth's own displacement from its start,
@@ -129,7 +129,7 @@ def test_ground_truth(profile, out, eval_scene):
 def test_evaluation(profile, out, pair):
     arrays, meta = store.load(evaluate.evaluate_pair(profile, pair, out))
     count = len(evaluate.evaluation_initial_states(profile, get_scene(pair.scene)).q)
-    for metric in evaluate.METRICS:
+    for metric in (m.name for m in evaluate.recorded_metrics(profile.evaluate.references)):
         assert arrays[f"{metric}/per_ic_log"].shape == (count,), metric
         assert arrays[f"{metric}/gmean"].shape == arrays["t"].shape, metric
     assert arrays["diverged_at"].shape == (count,)

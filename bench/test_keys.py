@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 QUICK = grid.PROFILES["quick"]
 SCENE = "chain4"
 # Values for fields a generic change would not reach (a step for another scene).
-CHANGED = {"scene_dts": ((SCENE, 5e-4),)}
+CHANGED = {"scene_dts": ((SCENE, 5e-4),), "references": ("mujoco", "lagrangian")}
 
 
 def _changed(name, value):
@@ -120,30 +120,13 @@ def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_
 
     monkeypatch.setattr(evaluate, "_computed_ground_truth", recompute)
     read = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
-    for name in evaluate.TRUTH_TRAJECTORIES:
+    for name in evaluate.truth_trajectories(QUICK.evaluate.references):
         assert read[name].dtype == computed[name].dtype and (read[name] == computed[name]).all(), name
     assert (read["states"].q == computed["states"].q).all() and read["mujoco_s"] == computed["mujoco_s"]
     other = dataclasses.replace(QUICK, evaluate=dataclasses.replace(QUICK.evaluate, ic_seed=QUICK.evaluate.ic_seed + 1))
     with pytest.raises(AssertionError, match="recomputed"):
         evaluate.ground_truth(other, SCENE, False, tmp_path)
     evaluate.ground_truth.cache_clear()
-
-
-@pytest.mark.parametrize("scene, initial_conditions, version, stale", [
-    ("chain4", 100, None, True), ("chain4", 100, evaluate.MUJOCO_REFERENCE, False),
-    ("chain4", 1, None, False), ("chain4-drag", 100, None, False),
-])
-def test_arrays_scored_against_a_stale_mujoco_reference_are_not_reported(scene, initial_conditions, version, stale):
-    # Records made before the fix of MuJoCo's stale last frames (several drag-free
-    # trajectories in one call) keep their other metrics but lose the MuJoCo-scored
-    # ones in the report, and the evaluate stage recomputes them.
-    arrays = {"rollout_error/per_ic_log": 1, "rollout_error_vs_mujoco/per_ic_log": 2, "rest/rollout_error_vs_mujoco/gmean": 3,
-              "truth_vs_mujoco/per_ic_log": 4, "snapshot/mujoco": 5, "snapshot/truth": 6, "node_rms_error/per_ic_log": 7}
-    meta = dict(scene=scene, initial_conditions=initial_conditions, **({} if version is None else {"mujoco_reference": version}))
-    reported, _ = evaluate._reported((arrays, meta))
-    kept = {"rollout_error/per_ic_log", "snapshot/truth", "node_rms_error/per_ic_log"}
-    assert set(reported) == (kept if stale else set(arrays))
-    assert evaluate._has((arrays, meta), ("node_rms_error/per_ic_log",)) is not stale
 
 
 def test_the_3d_lgnn_enters_the_scaling_key_only_with_3d_lengths(tmp_path):
@@ -175,7 +158,8 @@ def test_a_models_rollouts_do_not_wait_for_its_scenes_ground_truth(tmp_path, mon
     def truth_after_rollouts(*args):
         assert rollouts_started.wait(timeout=30), "the ground truth was computed before the rollouts started"
         (q,), (qd,) = held_states(1)
-        return dict(q=q, qd=qd, energy=metrics.true_energies(scene, q, qd), q_mujoco=q, states=states)
+        energy = metrics.true_energies(scene, q, qd)
+        return dict(q=q, qd=qd, energy=energy, q_mujoco=q, energy_mujoco=energy, states=states)
 
     def rollouts(scene, config, factory, stacked, initial, *args):
         rollouts_started.set()
@@ -196,7 +180,7 @@ def test_an_interrupted_ground_truth_does_not_wait_for_mujocos_reference(monkeyp
     # MuJoCo C's reference runs beside the Lagrangian ground truth (chain100-3d: 8-14
     # minutes); Ctrl-C during the latter stops at once instead of waiting it out.
     release = threading.Event()
-    monkeypatch.setattr(evaluate, "_mujoco_reference", lambda *args: release.wait(60))
+    monkeypatch.setattr(evaluate, "_reference_rollouts", lambda *args: release.wait(60))
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt

@@ -15,6 +15,10 @@ from lgnn.bench import grid, report
 from lgnn.bench.stages import evaluate
 from lgnn.errors import ConfigError
 
+# What records of the default settings hold: rollout_error, node_rms_error, energy_error,
+# rollout_error_vs_mujoco.
+RECORDED = tuple(m.name for m in evaluate.recorded_metrics(report.DEFAULT_REFERENCES))
+
 ROOT = Path(__file__).resolve().parents[1]
 T = np.array([0.01, 0.02])
 JOB = grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0)
@@ -32,14 +36,14 @@ def _truth(new_arrays: bool, floor_diverged: bool) -> tuple[dict, dict]:
               "chaos_floor/diverged_at": np.array([np.nan, 0.5 if floor_diverged else np.nan])}
     if new_arrays:
         arrays.update(_metric("chaos_floor/node_rms_error", [2e-4, 2e-4]))
-        for metric in evaluate.METRICS:
+        for metric in RECORDED:
             arrays.update(_metric(f"{evaluate.REST}/{metric}", [3e-2, 3e-2]))
         arrays[f"{evaluate.REST}/diverged_at"] = np.full(2, np.nan)
     return arrays, {}
 
 
 def _pair(scene: str, new_arrays: bool, job: grid.TrainingJob = JOB, projected: bool = True):
-    metrics = evaluate.METRICS if new_arrays else tuple(m for m in evaluate.METRICS if m != "node_rms_error")
+    metrics = RECORDED if new_arrays else tuple(m for m in RECORDED if m != "node_rms_error")
     arrays = {"t": T, "diverged_at": np.full(2, np.nan)}
     for metric in metrics:
         arrays.update(_metric(metric, [1e-3, 1e-3]))
@@ -73,9 +77,9 @@ def test_rest_rms_error_and_its_ratio_to_the_chaos_floor():
 def test_no_chaos_floor_number_where_a_perturbed_run_diverged():
     truths = {"chain8": _truth(True, True)}
     summary, curves = report.tables(truths, [_pair("chain8", True)])
-    floor = summary[(summary.scene == "chain8") & summary.metric.isin([report.FLOOR, report.FLOOR_RMS])]
+    floor = summary[(summary.scene == "chain8") & summary.metric.isin(["chaos_floor", "chaos_floor_node_rms_error"])]
     assert set(floor.statistic) == {"initial_conditions", "diverged", "first_divergence_s"}, "no value, no interval"
-    assert (curves.metric == "rollout_error").any() and not curves.metric.isin([report.FLOOR, report.FLOOR_RMS]).any()
+    assert (curves.metric == "rollout_error").any() and not curves.metric.isin(["chaos_floor", "chaos_floor_node_rms_error"]).any()
     assert not (summary.statistic == "chaos_floor_ratio").any()
     for metric, column in (("rollout_error", "chaos floor"), ("node_rms_error", "chaos floor"), ("rollout_error_vs_mujoco", "chaos floor")):
         row = _row(report.summary_markdown(summary, metric), "chain8")
@@ -98,7 +102,7 @@ def test_the_committed_full_records_render_with_the_new_columns_not_computed():
     out = ROOT / "results"
     truths = evaluate.load_truths(profile, out)
     summary, _ = report.tables(truths, evaluate.load_pairs(profile, out))
-    for metric in report.TRUTH_COLUMNS:
+    for metric in RECORDED:
         table = report.summary_markdown(summary, metric)
         assert "nan" not in table.lower()
         for scene in truths:
@@ -130,7 +134,7 @@ def test_error_figures_label_their_axes_legend_every_panel_and_title_what_they_s
     (fig,) = figures
     axes = fig.get_axes()
     assert len(axes) == 4 and all(ax.get_legend() is not None for ax in axes)
-    assert [ax.get_ylabel() for ax in axes if ax.get_ylabel()] == list(report.ERROR_AXIS_LABELS.values())
+    assert [ax.get_ylabel() for ax in axes if ax.get_ylabel()] == list(report.error_axis_labels().values())
     title = fig._suptitle.get_text()
     assert "chain4, chain4-drag" in title and "chain8" not in title and "1 means diverged" in title
 
@@ -142,7 +146,7 @@ def test_several_seeds_give_one_cell_over_seeds_and_initial_conditions():
     pairs = []
     for seed, value in ((0, 1e-3), (1, 1e-4)):
         arrays = {"t": T, "diverged_at": np.array([np.nan, 0.5 if seed else np.nan])}
-        for metric in evaluate.METRICS:
+        for metric in RECORDED:
             arrays.update(_metric(metric, [value, value]))
         pairs.append((grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, seed), "chain4"), (arrays, {})))
     summary, _ = report.tables({"chain4": _truth(True, False)}, pairs)
@@ -159,7 +163,7 @@ def test_missing_pairs_say_not_evaluated_and_unconverged_references_not_rankable
     from lgnn.bench import convergence
 
     arrays = {"t": T, "diverged_at": np.array([np.nan, np.nan])}
-    for metric in evaluate.METRICS:
+    for metric in RECORDED:
         arrays.update(_metric(metric, [1e-3, 1e-3]))
     pairs = [(grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), "chain4"), (arrays, {}))]
     pairs.append((grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), "T3"), (arrays, {})))
@@ -285,11 +289,11 @@ def test_the_planar_and_spatial_grids_get_tables_of_their_own():
              _pair("chain4-3d", True, SPATIAL_JOB, projected=False), _pair("tensegrity-3d", True, SPATIAL_JOB, projected=False)]
     summary, _ = report.tables(truths, pairs)
     text = "\n".join(report._summary_sections(profile, summary, {}))
-    for metric, heading in report.SUMMARY_TABLES:
+    for metric, heading in report.summary_tables():
         planar = _section(text, f"{heading} (planar: trained on chain4)")
         spatial = _section(text, f"{heading} (3D: trained on chain4-3d)")
         head = lambda table: table.strip().splitlines()[0].strip("|").split(" | ")  # noqa: E731
-        truth_columns = [report.TRUTH_NAMES[m] for m in report.TRUTH_COLUMNS[metric]]
+        truth_columns = [title for _, title in report.truth_columns(metric)]
         assert [c.strip() for c in head(planar)] == ["scene", "lgnn", "rest", *truth_columns]
         assert [c.strip() for c in head(spatial)] == ["scene", "gns", "gns (unprojected)", "rest", *truth_columns]
         assert [_row(planar, s)["scene"] for s in ("chain4", "chain8")] and "3d" not in planar

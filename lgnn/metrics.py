@@ -16,9 +16,14 @@
   Far enough that no correct run, however inaccurate, gets there; close enough to stop
   a diverging run long before overflow. Engines stop at the first such frame; the
   benchmark scores every frame from it on as the metric's maximum.
-- `relative_error`, `node_rms_error`, `clean_errors`, `score_rollouts`,
-  `rest_rollouts`, `error_statistics`, `summarise`, `gmean_error`: the benchmark's
-  errors and their geometric-mean statistics with intervals. The paper's rollout and
+- `Metric`, `register_metric`, `METRICS`: the registry of per-frame errors (name,
+  error function, unit, heading, axis label, maximum after divergence) that scoring,
+  the benchmark's records, its report and `lgnn evaluate` all iterate: a metric is
+  added here and nowhere else. `score_rollouts` scores predictions against one
+  reference with each of them and returns a `Scored`.
+- `relative_error`, `node_rms_error`, `clean_errors`, `rest_rollouts`,
+  `error_statistics`, `summarise`, `gmean_error`: the benchmark's errors and their
+  geometric-mean statistics with intervals. The paper's rollout and
   energy errors `||a - b|| / (||a|| + ||b||)` are normalised by the whole state, so they
   shrink as a structure grows; the per-node RMS position error `sqrt(mean over nodes
   |q_hat - q|^2)` (in lengths) does not. A diverged frame counts as each metric's
@@ -35,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -184,28 +190,92 @@ def clean_errors(errors: np.ndarray, diverged: np.ndarray, maximum: float | np.n
     return np.clip(errors, ERROR_FLOOR * maximum, maximum)
 
 
-# The per-frame metrics `score_rollouts` gives, in table order.
-ROLLOUT_METRICS = ("rollout_error", "energy_error", "node_rms_error")
+def _relative_maximum(scene: Scene, q0: np.ndarray) -> float:
+    """The relative errors' maximum: `||a - b|| / (||a|| + ||b||)` never exceeds 1."""
+    return 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Metric:
+    """One per-frame error of predicted trajectories against a reference, as scoring,
+    records, the report and the CLI all read it (`register_metric`).
+
+    `error_fn(q, energy, reference_q, reference_energy) -> (C, F)`: raw errors per
+    initial condition and frame from positions (C, F, N, D) and true energies (C, F) of
+    the prediction and the reference (NaN or inf where a state is non-finite: scoring
+    sets those to the maximum). `maximum_fn(scene, q0) -> float`: what a diverged frame
+    counts as and the cap of every frame, from an initial state's positions (N, D)."""
+
+    name: str
+    error_fn: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+    # Unit in tables ("1": dimensionless).
+    unit: str
+    # Table heading against the Lagrangian ground truth, and the short title a heading
+    # against another reference engine starts with ("<title> against MuJoCo").
+    heading: str
+    title: str
+    # Y-axis label of its row in the error-against-time figures (None: not drawn).
+    label: str | None = None
+    maximum_fn: Callable[[Scene, np.ndarray], float] = _relative_maximum
+    # A position error: the chaos floor (perturbed initial positions) is scored on it.
+    floor: bool = False
+    # Also scored against every reference engine of the benchmark (`<name>_vs_<engine>`).
+    against_references: bool = False
+
+
+# Every metric by name, in table order: `score_rollouts` scores each of them.
+METRICS: dict[str, Metric] = {}
+
+
+def register_metric(metric: Metric) -> Metric:
+    """Add `metric` to `METRICS` (replacing one of the same name); returns it."""
+    METRICS[metric.name] = metric
+    return metric
+
+
+register_metric(Metric("rollout_error", lambda q, energy, ref_q, ref_energy: relative_error(q, ref_q, 2), "1",
+                       "Rollout error against the Lagrangian ground truth", "Rollout error", "rollout error (geometric mean)",
+                       floor=True, against_references=True))
+register_metric(Metric("node_rms_error", lambda q, energy, ref_q, ref_energy: node_rms_error(q, ref_q), "m",
+                       "Per-node RMS position error against the Lagrangian ground truth", "Per-node RMS position error",
+                       maximum_fn=lambda scene, q0: diverged_node_error(scene, q0), floor=True))
+register_metric(Metric("energy_error", lambda q, energy, ref_q, ref_energy: relative_error(energy, ref_energy, 0), "1",
+                       "Energy error", "Energy error", "energy error (geometric mean)"))
+
+
+@dataclasses.dataclass(frozen=True)
+class Scored:
+    """Scores of predicted trajectories against one reference: `t` (F - 1,) frame times
+    after the initial one, `errors` {metric name: clean errors (C, F - 1)}, `diverged`
+    (C,) the prediction's first diverged frame (an index into the full trajectory,
+    frame 0 the initial state) or -1; `scene`, `model` and `reference` name them."""
+
+    scene: str
+    model: str
+    reference: str
+    t: np.ndarray
+    errors: dict[str, np.ndarray]
+    diverged: np.ndarray
 
 
 def score_rollouts(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference_q: np.ndarray,
-                   reference_energy: np.ndarray) -> tuple[dict, np.ndarray]:
-    """The benchmark's scores of predicted trajectories `q`, `qd` (C, F, N, D) at times
-    `t` (F,), frame 0 their initial states, against reference positions (C, F, N, D) and
-    true energies (C, F): `({metric: clean errors (C, F - 1) over frames t > 0 for each
-    of ROLLOUT_METRICS}, diverged (C,))`, `diverged` the first diverged frame of each
-    prediction (`divergence_frames`, an index into `t`) or -1. From that frame on every
-    error counts as its maximum (`clean_errors`)."""
+                   reference_energy: np.ndarray | None, model: str = "", reference: str = "",
+                   names: tuple[str, ...] | None = None) -> Scored:
+    """The scores of predicted trajectories `q`, `qd` (C, F, N, D) at times `t` (F,),
+    frame 0 their initial states, against reference positions (C, F, N, D) and true
+    energies (C, F) (None where no metric scored reads them): every metric of `METRICS`
+    (or those `names`) over frames t > 0. `diverged` is each prediction's first
+    diverged frame (`divergence_frames`); from it on every error counts as the
+    metric's maximum (`clean_errors`)."""
     q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
     energy = true_energies(scene, q, qd)
     diverged = divergence_frames(scene, t, q, qd, energy)
-    node_cap = np.array([diverged_node_error(scene, q0) for q0 in q[:, 0]])
-    scores = {
-        "rollout_error": clean_errors(relative_error(q, reference_q, 2), diverged),
-        "energy_error": clean_errors(relative_error(energy, reference_energy, 0), diverged),
-        "node_rms_error": clean_errors(node_rms_error(q, reference_q), diverged, node_cap),
-    }
-    return {name: errors[:, 1:] for name, errors in scores.items()}, diverged
+    errors = {}
+    for name in METRICS if names is None else names:
+        metric = METRICS[name]
+        maximum = np.array([metric.maximum_fn(scene, q0) for q0 in q[:, 0]])
+        errors[name] = clean_errors(metric.error_fn(q, energy, reference_q, reference_energy), diverged, maximum)[:, 1:]
+    return Scored(scene.name, model, reference, np.asarray(t)[1:], errors, diverged)
 
 
 def rest_rollouts(q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -95,13 +95,19 @@ def test_compare_refuses_files_of_different_frame_times(capsys, tmp_path, truth_
     assert code == 2 and "frame times differ" in err and len(err.strip().splitlines()) == 1
 
 
-def test_evaluate_with_the_cheating_model_has_no_error(capsys, tmp_path):
-    """The true-physics model scored by `lgnn evaluate` is exact against the Lagrangian
-    engine and within MuJoCo's agreement with it; every output is written."""
+def _cheat_checkpoint(tmp_path):
+    """A checkpoint of the cheating model (`CHEAT`) in `tmp_path`."""
     models.register(CHEAT)
     config = models.ModelConfig("cheat-evaluate")
     checkpoint = tmp_path / "cheat.npz"
     train.save_checkpoint(checkpoint, train.initial_state(config, train.TrainConfig()), config, train.TrainConfig())
+    return checkpoint
+
+
+def test_evaluate_with_the_cheating_model_has_no_error(capsys, tmp_path):
+    """The true-physics model scored by `lgnn evaluate` is exact against the Lagrangian
+    engine and within MuJoCo's agreement with it; every output is written."""
+    checkpoint = _cheat_checkpoint(tmp_path)
     code, out, err = run(capsys, "evaluate", "chain4", "--model", str(checkpoint), "--duration", "0.01", "--initial-conditions", "2",
                          "--out-dir", str(tmp_path), "--quiet")
     assert code == 0, err
@@ -115,3 +121,24 @@ def test_evaluate_with_the_cheating_model_has_no_error(capsys, tmp_path):
     assert len(frames) == 2 * 3 * 2 * 10  # references x metrics x initial conditions x frames
     for engine in ("model", "lagrangian", "mujoco"):
         assert Trajectory.load(tmp_path / f"chain4_{engine}.npz").q.shape == (11, 5, 2)
+
+
+def test_a_registered_metric_appears_in_the_evaluate_summary(capsys, tmp_path, monkeypatch):
+    """A metric registered with `lgnn.metrics.register_metric` (here the absolute
+    energy error, in joules) is scored by `lgnn evaluate` against each reference, in the
+    terminal summary with its unit and in the CSV files, with no other edit."""
+    from lgnn import metrics
+
+    absolute = metrics.Metric("absolute_energy_error", lambda q, energy, ref_q, ref_energy: np.abs(energy - ref_energy), "J",
+                              "Absolute energy error", "Absolute energy error", maximum_fn=lambda scene, q0: 1e6)
+    monkeypatch.setitem(metrics.METRICS, absolute.name, absolute)
+    checkpoint = _cheat_checkpoint(tmp_path)
+    code, out, err = run(capsys, "evaluate", "chain4", "--model", str(checkpoint), "--duration", "0.01", "--initial-conditions", "1",
+                         "--out-dir", str(tmp_path), "--quiet")
+    assert code == 0, err
+    assert "absolute_energy_error (J)" in out
+    summary = {(r["reference"], r["metric"]): r for r in read_csv(tmp_path / "evaluate_summary.csv")}
+    assert summary["lagrangian", "absolute_energy_error"]["unit"] == "J"
+    assert float(summary["lagrangian", "absolute_energy_error"]["gmean"]) < 1e-9
+    assert ("mujoco", "absolute_energy_error") in summary
+    assert {r["metric"] for r in read_csv(tmp_path / "evaluate_frames.csv")} == set(metrics.METRICS)

@@ -112,9 +112,10 @@ def test_a_diverged_rollout_scores_each_metric_maximum_from_its_divergence_frame
     predicted[..., 0] += 1e-3
     size = metrics.structure_size(scene, q[0, 0])
     predicted[1, 6:] += 2 * metrics.EXPLOSION_FACTOR * size
-    scores, diverged = metrics.score_rollouts(scene, t, predicted, qd, q, energy)
+    scored = metrics.score_rollouts(scene, t, predicted, qd, q, energy)
+    scores, diverged = scored.errors, scored.diverged
     assert diverged.tolist() == [-1, 6]
-    assert set(scores) == set(metrics.ROLLOUT_METRICS)
+    assert set(scores) == set(metrics.METRICS)
     for name, errors in scores.items():
         assert errors.shape == (2, len(t) - 1), name
         np.testing.assert_array_equal(errors[1, :5], errors[0, :5])  # frames 1..5: t > 0, before divergence
@@ -130,7 +131,8 @@ def test_the_rest_baseline_scores_exactly_the_truths_displacement_from_its_start
     scene, t, q, qd, energy = _chain4_truth()
     rest_q, rest_qd = metrics.rest_rollouts(q, qd)
     assert (rest_q == q[:, :1]).all() and (rest_qd == qd[:, :1]).all() and rest_q.shape == q.shape
-    scores, diverged = metrics.score_rollouts(scene, t, rest_q, rest_qd, q, energy)
+    scored = metrics.score_rollouts(scene, t, rest_q, rest_qd, q, energy)
+    scores, diverged = scored.errors, scored.diverged
     assert diverged.tolist() == [-1, -1]
     q0, later = q[0, 0], q[0, 1:]
     displacement = [np.sqrt(np.mean([np.sum((node - node0) ** 2) for node, node0 in zip(frame, q0)])) for frame in later]

@@ -1,10 +1,11 @@
 """Scoring anything against anything: a checkpoint on any scene, or two trajectory files.
 
 The benchmark's evaluation stage (`lgnn.bench.stages.evaluate`) scores the grid's
-models on the grid's scenes; this module gives the same metrics (`lgnn.metrics.
-score_rollouts`: rollout error, energy error, per-node RMS error, divergence; their
-geometric mean over frames and initial conditions with a bootstrap interval,
-`lgnn.metrics.summarise`) to the `lgnn evaluate` and `lgnn compare` commands.
+models on the grid's scenes; this module gives the same metrics through the same
+function (`lgnn.metrics.score_rollouts`: every metric of the registry
+`lgnn.metrics.METRICS`, divergence; their geometric mean over frames and initial
+conditions with a bootstrap interval, `lgnn.metrics.summarise`) to the `lgnn
+evaluate` and `lgnn compare` commands.
 
 - `evaluate_model(model, params, scene, config, states)`: the model's rollouts from the
   initial `states` (C, N, D), scored against the Lagrangian engine and MuJoCo C run
@@ -13,7 +14,8 @@ geometric mean over frames and initial conditions with a bootstrap interval,
   diverges stops with `SimulationError` (an error against it would mean nothing).
 - `compare_trajectories(reference, other)`: one trajectory file against another (the
   scene from the reference's metadata).
-- `Scored`: per-frame scores of one prediction against one reference; `frame_table`
+- `score`: a prediction against one reference, every registered metric, as a
+  `lgnn.metrics.Scored` (the evaluate stage's type too); `frame_table`
   (tidy: `scene, model, reference, initial_condition, t, metric, value`) and
   `summary_rows` turn a list of them into tables; `write_outputs` writes them.
 
@@ -23,7 +25,6 @@ times in s; the relative errors are dimensionless.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from pathlib import Path
 
@@ -36,37 +37,21 @@ from lgnn.engines import get_engine
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory
 from lgnn.errors import ConfigError
 from lgnn.learn import models
+from lgnn.metrics import Scored
 from lgnn.scene import Scene, State, scene_from_dict
 
-# Unit of each metric of `metrics.ROLLOUT_METRICS` in the tables.
-METRIC_UNITS = {"rollout_error": "1", "energy_error": "1", "node_rms_error": "m"}
 # Initial conditions per compiled model rollout (`batched_rollouts`): a handful per
 # call keeps the compile small on a CPU.
 CHUNK = 8
 
 
-@dataclasses.dataclass(frozen=True)
-class Scored:
-    """Scores of predicted trajectories against a reference: `t` (F - 1,) frame times
-    after the initial one, `errors` {metric: clean errors (C, F - 1)} for each of
-    `metrics.ROLLOUT_METRICS`, `diverged` (C,) the first diverged frame (an index
-    into the full trajectory, frame 0 the initial state) or -1."""
-
-    scene: str
-    model: str
-    reference: str
-    t: np.ndarray
-    errors: dict
-    diverged: np.ndarray
-
-
 def score(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference_q: np.ndarray, reference_qd: np.ndarray,
           model: str, reference: str) -> Scored:
     """`Scored` of predictions `q`, `qd` (C, F, N, D) at times `t` (F,) against reference
-    states (C, F, N, D); the reference's energies are the scene's true `H` of its states."""
+    states (C, F, N, D) with every registered metric (`lgnn.metrics.METRICS`); the
+    reference's energies are the scene's true `H` of its states."""
     reference_energy = metrics.true_energies(scene, reference_q, reference_qd)
-    errors, diverged = metrics.score_rollouts(scene, t, q, qd, reference_q, reference_energy)
-    return Scored(scene.name, model, reference, np.asarray(t)[1:], errors, diverged)
+    return metrics.score_rollouts(scene, t, q, qd, reference_q, reference_energy, model, reference)
 
 
 def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config: SimulationConfig, states: State,
@@ -139,7 +124,7 @@ def frame_table(scored: list[Scored]):
             frame = np.tile(np.arange(1, frames + 1), count)
             after = (item.diverged[ic] >= 0) & (frame >= item.diverged[ic])
             parts.append(pd.DataFrame({"scene": item.scene, "model": item.model, "reference": item.reference, "initial_condition": ic,
-                                       "t": np.tile(item.t, count), "metric": metric, "unit": METRIC_UNITS[metric],
+                                       "t": np.tile(item.t, count), "metric": metric, "unit": metrics.METRICS[metric].unit,
                                        "value": errors.ravel(), "diverged": after}))
     return pd.concat(parts, ignore_index=True)
 
@@ -157,7 +142,7 @@ def summary_rows(scored: list[Scored], seed: int = 0) -> list[dict]:
         for metric, errors in item.errors.items():
             statistics = metrics.error_statistics(errors)
             gmean, low, high = metrics.summarise(statistics["per_ic_log"], seed)
-            rows.append(dict(scene=item.scene, model=item.model, reference=item.reference, metric=metric, unit=METRIC_UNITS[metric],
+            rows.append(dict(scene=item.scene, model=item.model, reference=item.reference, metric=metric, unit=metrics.METRICS[metric].unit,
                              initial_conditions=len(errors), gmean=gmean, low=low, high=high, final=float(statistics["gmean"][-1]),
                              diverged=int(np.sum(item.diverged >= 0))))
     return rows

@@ -29,6 +29,7 @@ from importlib import resources
 from pathlib import Path
 
 from lgnn.errors import ConfigError
+from lgnn.engines import ENGINES
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.learn.data import DataConfig
 from lgnn.learn.models import load_spec
@@ -53,16 +54,21 @@ SPATIAL_TRANSFER_SCENES = ("chain4-3d", "chain8-3d", "chain16-3d", "chain100-3d"
 TRAINING_SCENES = {2: TRAINING_SCENE, 3: SPATIAL_TRAINING_SCENE}
 # Field metadata of a setting that does not change what a record holds.
 NOT_IN_KEY = {"in_key": False}
+# Field metadata of a setting added after records were made: in the key only when it
+# differs from its default (which is what those records were made with), so they keep
+# their keys.
+KEY_UNLESS_DEFAULT = {"in_key": "unless default"}
 
 
 def settings_key(settings) -> dict:
     """A settings dataclass as a JSON-able dict of every field not declared `NOT_IN_KEY`
-    (nested settings dataclasses likewise)."""
+    (nor `KEY_UNLESS_DEFAULT` at its default; nested settings dataclasses likewise)."""
     return {
         field.name: settings_key(value) if dataclasses.is_dataclass(value) else value
         for field in dataclasses.fields(settings)
         if field.metadata.get("in_key", True)
         for value in (getattr(settings, field.name),)
+        if not (field.metadata.get("in_key") == KEY_UNLESS_DEFAULT["in_key"] and value == field.default)
     }
 
 
@@ -209,10 +215,20 @@ class EvaluateSettings:
     ic_seed: int = 1
     # Chaos floor: initial positions perturbed by this much.
     floor_perturbation: float = 1e-4
-    # MuJoCo C reference step (RK4) for the learned-vs-MuJoCo comparison.
+    # Step (RK4) of the reference engines (`references`; the name is MuJoCo C's, the default).
     mujoco_dt: float = 1e-4
     # Initial conditions per compiled, vmapped rollout call (memory and progress).
     chunk: int = dataclasses.field(default=25, metadata=NOT_IN_KEY)
+    # Reference engines (names in `lgnn.engines.ENGINES`) run from the same initial
+    # conditions beside the Lagrangian ground truth: the ground truth and every model
+    # are also scored against each (`rollout_error_vs_<engine>`). MuJoCo C, the
+    # independent implementation of the same physics, by default.
+    references: tuple[str, ...] = dataclasses.field(default=("mujoco",), metadata=KEY_UNLESS_DEFAULT)
+
+    def __post_init__(self):
+        unknown = [name for name in self.references if name not in ENGINES]
+        if unknown:
+            raise ConfigError(f"evaluate.references: unknown engine {unknown[0]!r} (choose from {', '.join(ENGINES)})")
 
     def dt_for(self, scene_name: str) -> float:
         return dict(self.scene_dts).get(scene_name, self.dt)

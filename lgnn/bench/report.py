@@ -6,10 +6,12 @@ Files under `<out>` (`results/` for the full profile, `lgnn-out/quick/` for the 
 
 - `benchmark/summary.csv`: `scene, model, seed, metric, statistic, value` plus
   `commit, versions, device` of the run that made each number. Models: the learned
-  ones and `rest` (the rest baseline, from the ground-truth records); metrics:
-  `rollout_error`, `energy_error`, `rollout_error_vs_mujoco`, `node_rms_error`, and per
-  scene the ground truth's `chaos_floor`, `chaos_floor_node_rms_error` and
-  `truth_vs_mujoco`; statistics: `gmean` (over frames t > 0 and initial conditions),
+  ones and `rest` (the rest baseline, from the ground-truth records); metrics: every
+  metric of the registry `lgnn.metrics.METRICS` (`rollout_error`, `node_rms_error`,
+  `energy_error`) and `<metric>_vs_<engine>` against each reference engine of
+  `evaluate.references` (`rollout_error_vs_mujoco`: `evaluate.recorded_metrics`), and
+  per scene the ground truth's `chaos_floor`, `chaos_floor_node_rms_error` and
+  `truth_vs_<engine>`; each gets a table and its columns from the registry; statistics: `gmean` (over frames t > 0 and initial conditions),
   `ci_low`/`ci_high` (bootstrap 95% over initial conditions), `initial_conditions`,
   `diverged` (count), `first_divergence_s`, and for `node_rms_error`
   `chaos_floor_ratio`. A chaos floor whose perturbed run diverged has no `gmean` or
@@ -43,11 +45,12 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
-from lgnn.bench.grid import GRID, SNAPSHOT_SCENES, TRAINING_SCENES, Profile, error_figures, evaluation_pairs, evaluation_scenes, model_order, settings_key
+from lgnn.bench.grid import (GRID, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs, evaluation_scenes,
+                             model_order, settings_key)
 from lgnn.bench.stability import fit_exponent
-from lgnn.bench.stages.evaluate import METRICS, SNAPSHOT_DT, load_pairs, load_truths
-from lgnn.bench.stages.evaluate import NO_DRAG
+from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
+from lgnn.bench.stages.evaluate import scene_level_prefix, scene_level_scores, truth_against
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
@@ -68,8 +71,10 @@ SPARE_COLORS = ("C8", "C9", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173
 REST = "rest"
 # The drag scenes' exact physics without drag, as the tables name it.
 EXACT_NO_DRAG = "exact, no drag"
-# The chaos floor's metrics: its rollout error (first name kept) and per-node RMS error.
-FLOOR, FLOOR_RMS = "chaos_floor", "chaos_floor_node_rms_error"
+# The reference engines the benchmark scores against unless its settings say otherwise.
+DEFAULT_REFERENCES = EvaluateSettings.references
+# How headings and columns name a reference engine (others by their registry name).
+ENGINE_TITLES = {"lagrangian": "the Lagrangian engine", "mujoco": "MuJoCo", "mjx": "MJX", "mjwarp": "MuJoCo Warp"}
 CURVE_STEP_S = 0.01
 # The per-frame curves' file under `benchmark/` (gzipped: module docstring).
 CURVES = "curves.csv.gz"
@@ -120,25 +125,33 @@ def _curve_rows(scene, model, seed, metric, arrays, prefix):
     return rows
 
 
+def scene_level_metric(group: str, metric: str) -> str:
+    """The summary's metric name of a scene-level score (`evaluate.scene_level_scores`):
+    `chaos_floor`, `chaos_floor_node_rms_error`, `truth_vs_mujoco`, ..."""
+    return scene_level_prefix(group, metric).replace("/", "_")
+
+
 def _floor_diverged(arrays: dict) -> bool:
     return bool(np.isfinite(arrays.get("chaos_floor/diverged_at", np.nan)).any())
 
 
-def tables(truths: dict, pairs: list):
+def tables(truths: dict, pairs: list, references: tuple[str, ...] = DEFAULT_REFERENCES):
     """`(summary, curves)` DataFrames from the ground-truth and pair records (module
-    docstring). A metric a record lacks (written before it existed) has no rows; a chaos
-    floor whose perturbed run diverged has no value, interval or curve."""
+    docstring), every metric of `evaluate.recorded_metrics(references)`. A metric a
+    record lacks (written before it existed) has no rows; a chaos floor whose perturbed
+    run diverged has no value, interval or curve."""
     import pandas as pd
 
     summary, curves = [], []
     floor_rms = {}
+    recorded = [m.name for m in recorded_metrics(references)]
     for scene, (arrays, meta) in truths.items():
-        diverged_at, floor_ok = arrays.get("chaos_floor/diverged_at"), not _floor_diverged(arrays)
-        for metric, prefix, diverged in ((FLOOR, FLOOR, diverged_at), (FLOOR_RMS, f"{FLOOR}/node_rms_error", diverged_at),
-                                         ("truth_vs_mujoco", "truth_vs_mujoco", arrays.get("truth_vs_mujoco/diverged_at"))):
+        diverged_at, floor_ok = arrays.get(f"{FLOOR}/diverged_at"), not _floor_diverged(arrays)
+        for group, name in scene_level_scores(references):
+            prefix, metric, is_floor = scene_level_prefix(group, name), scene_level_metric(group, name), group == FLOOR
             if f"{prefix}/per_ic_log" not in arrays:
                 continue
-            is_floor = metric != "truth_vs_mujoco"
+            diverged = diverged_at if is_floor else arrays.get(f"{group}/diverged_at")
             summary += _summary_rows(scene, "ground truth", 0, metric, arrays, meta, prefix, diverged, value=floor_ok or not is_floor)
             if floor_ok or not is_floor:
                 curves += _curve_rows(scene, "ground truth", 0, metric, arrays, prefix)
@@ -149,7 +162,7 @@ def tables(truths: dict, pairs: list):
              for scene, (arrays, meta) in truths.items() if f"{NO_DRAG}/diverged_at" in arrays]
     rows += [(pair.scene, pair.label, pair.job.seed, arrays, meta, "", arrays["diverged_at"]) for pair, (arrays, meta) in pairs]
     for scene, model, seed, arrays, meta, prefix, diverged in rows:
-        for metric in METRICS:
+        for metric in recorded:
             if f"{prefix}{metric}/per_ic_log" not in arrays:
                 continue
             summary += _summary_rows(scene, model, seed, metric, arrays, meta, prefix + metric, diverged)
@@ -157,15 +170,15 @@ def tables(truths: dict, pairs: list):
             if metric == "node_rms_error" and scene in floor_rms:
                 ratio = metrics.summarise(arrays[f"{prefix}{metric}/per_ic_log"])[0] / floor_rms[scene]
                 summary.append(dict(scene=scene, model=model, seed=seed, metric=metric, **_env_columns(meta), statistic="chaos_floor_ratio", value=ratio))
-    summary += _seed_rows(pairs)
+    summary += _seed_rows(pairs, recorded)
     return pd.DataFrame(summary), pd.DataFrame(curves)
 
 
-def _seed_rows(pairs: list) -> list[dict]:
-    """`ALL_SEEDS` rows of every (scene, model, metric) evaluated for several seeds."""
+def _seed_rows(pairs: list, recorded: list[str]) -> list[dict]:
+    """`ALL_SEEDS` rows of every (scene, model, metric of `recorded`) evaluated for several seeds."""
     groups: dict[tuple[str, str, str], list] = {}
     for pair, (arrays, meta) in pairs:
-        for metric in METRICS:
+        for metric in recorded:
             if f"{metric}/per_ic_log" in arrays:
                 groups.setdefault((pair.scene, pair.label, metric), []).append((arrays, meta))
     rows = []
@@ -202,21 +215,27 @@ def _interval(row: dict) -> str:
 def _truth_cell(row: dict, truth_metric: str) -> str:
     """A scene-level reference: its value and any divergence, without an interval; a
     chaos floor whose perturbed run diverged is no floor, and says so instead."""
-    if truth_metric in (FLOOR, FLOOR_RMS) and row.get("diverged", 0) > 0:
+    if truth_metric.startswith(FLOOR) and row.get("diverged", 0) > 0:
         return f"diverged ({int(row['diverged'])} of {int(row['initial_conditions'])} perturbed runs, first at {row['first_divergence_s']:.3g} s)"
     return _interval({k: v for k, v in row.items() if k != "ci_low"})
 
 
-# Scene-level columns beside each metric's table: the chaos floor is a position error
-# (it has no place beside energy errors), and the rollout error also shows how far the
-# two ground truths are apart.
-TRUTH_COLUMNS = {
-    "rollout_error": (FLOOR, "truth_vs_mujoco"),
-    "energy_error": (),
-    "rollout_error_vs_mujoco": (FLOOR,),
-    "node_rms_error": (FLOOR_RMS,),
-}
-TRUTH_NAMES = {FLOOR: "chaos floor", FLOOR_RMS: "chaos floor", "truth_vs_mujoco": "Lagrangian vs MuJoCo"}
+def engine_title(engine: str) -> str:
+    """A reference engine as headings and columns name it (`ENGINE_TITLES`)."""
+    return ENGINE_TITLES.get(engine, engine)
+
+
+def truth_columns(metric: str, references: tuple[str, ...] = DEFAULT_REFERENCES) -> list[tuple[str, str]]:
+    """`(summary metric, column title)` of the scene-level columns beside the table of a
+    recorded metric (`evaluate.recorded_metrics`): the chaos floor of a position error
+    (`Metric.floor`; it has no place beside energy errors) and, against the Lagrangian
+    ground truth, how far it is from each reference engine (`against_references`)."""
+    (recorded,) = [m for m in recorded_metrics(references) if m.name == metric]
+    name = recorded.metric.name
+    columns = [(scene_level_metric(FLOOR, name), "chaos floor")] if recorded.metric.floor else []
+    if recorded.reference == TRUTH and recorded.metric.against_references:
+        columns += [(scene_level_metric(truth_against(engine), name), f"Lagrangian vs {engine_title(engine)}") for engine in references]
+    return columns
 
 
 def scene_groups(scenes) -> dict[int, list[str]]:
@@ -237,12 +256,13 @@ def _without_training_scene(label: str, training_scene: str | None) -> str:
 
 
 def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = frozenset(), unrankable: dict[str, str] | None = None,
-                     scenes: list[str] | None = None, trained_on: str | None = None, order: tuple[str, ...] = MODEL_ORDER) -> str:
+                     scenes: list[str] | None = None, trained_on: str | None = None, order: tuple[str, ...] = MODEL_ORDER,
+                     references: tuple[str, ...] = DEFAULT_REFERENCES) -> str:
     """A markdown table: rows the summary's `scenes` (default: all, in table order),
     columns the models evaluated on them (the rest baseline last; `trained_on`, the one
     training scene the heading names, dropped from their names), `gmean
     [95% interval]` cells, and the scene's chaos floor (and, for the rollout error,
-    Lagrangian-vs-MuJoCo) beside. A record that exists but lacks the metric (written
+    the ground truth against each reference engine of `references`) beside (`truth_columns`). A record that exists but lacks the metric (written
     before it was computed) shows "not computed", never a number; a `(scene, model)`
     of `expected` (the profile's pairs) with no record "not evaluated". A scene of
     `unrankable` is named "(not rankable)" and shows no model number, only "not
@@ -264,8 +284,8 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
     # Which records exist: a model with any metric on a scene; the rest baseline and
     # the scene-level columns wherever the scene's ground-truth record does.
     present = {(scene, "ground truth" if model == REST else model) for scene, model in zip(wide["scene"], wide["model"])}
-    truth_metrics = TRUTH_COLUMNS[metric]
-    extra = [TRUTH_NAMES[m] for m in truth_metrics]
+    truth_metrics = [column for column, _ in truth_columns(metric, references)]
+    extra = [title for _, title in truth_columns(metric, references)]
     columns = [_without_training_scene(m, trained_on) for m in models]
     lines = ["| scene | " + " | ".join(columns + extra) + " |", "|---" * (len(models) + len(extra) + 1) + "|"]
     for scene in scenes:
@@ -324,8 +344,10 @@ def _savefig(fig, path: Path) -> None:
     plt.close(fig)
 
 
-# Y-axis label of each row of an error-against-time figure.
-ERROR_AXIS_LABELS = {"rollout_error": "rollout error (geometric mean)", "energy_error": "energy error (geometric mean)"}
+def error_axis_labels() -> dict[str, str]:
+    """`{metric: y-axis label}` of the rows of an error-against-time figure: the
+    registered metrics with a `label`, in registry order."""
+    return {m.name: m.label for m in metrics.METRICS.values() if m.label}
 
 
 def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str, colors: dict[str, str] | None = None) -> bool:
@@ -341,9 +363,10 @@ def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str, 
     title = (f"Error against time: {', '.join(scenes)} (trained on {trained_on})\n"
              f"errors are clipped to [{metrics.ERROR_FLOOR:g}, 1]: 1 means diverged (or no better than that); band: interval over initial conditions")
     colors = colors or model_colors(model.split()[0] for model in curves["model"].unique())
-    fig, axes = plt.subplots(2, len(scenes), figsize=(4.2 * len(scenes), 6.4), squeeze=False, sharex=True)
+    labels = error_axis_labels()
+    fig, axes = plt.subplots(len(labels), len(scenes), figsize=(4.2 * len(scenes), 3.2 * len(labels)), squeeze=False, sharex=True)
     for col, scene in enumerate(scenes):
-        for row, metric in enumerate(("rollout_error", "energy_error")):
+        for row, metric in enumerate(labels):
             ax = axes[row, col]
             sub = curves[(curves.scene == scene) & (curves.metric == metric)]
             for model in sub["model"].unique():
@@ -364,8 +387,8 @@ def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str, 
             ax.set_yscale("log")
             ax.set_title(f"{scene}: {metric.replace('_', ' ')}", fontsize=9)
             if col == 0:
-                ax.set_ylabel(ERROR_AXIS_LABELS[metric])
-            if row == 1:
+                ax.set_ylabel(labels[metric])
+            if row == len(labels) - 1:
                 ax.set_xlabel("t (s)")
             if ax.get_legend_handles_labels()[0]:
                 # In every panel: the panels of one figure may hold different models.
@@ -580,13 +603,11 @@ def _unrankable(out: Path) -> dict[str, str]:
         return convergence.unrankable(list(csv.DictReader(line for line in handle if not line.startswith("#"))))
 
 
-# The summary tables of each grid, in README order: metric, heading.
-SUMMARY_TABLES = (
-    ("rollout_error", "Rollout error against the Lagrangian ground truth"),
-    ("node_rms_error", "Per-node RMS position error against the Lagrangian ground truth"),
-    ("energy_error", "Energy error"),
-    ("rollout_error_vs_mujoco", "Rollout error against MuJoCo"),
-)
+def summary_tables(references: tuple[str, ...] = DEFAULT_REFERENCES) -> list[tuple[str, str]]:
+    """The summary tables of each grid, in README order: `(recorded metric, heading)` of
+    every metric of `evaluate.recorded_metrics(references)`."""
+    return [(m.name, m.metric.heading if m.reference == TRUTH else f"{m.metric.title} against {engine_title(m.reference)}")
+            for m in recorded_metrics(references)]
 
 
 def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> list[str]:
@@ -598,8 +619,9 @@ def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> 
     for dim, scenes in (scene_groups([*summary["scene"], *(pair.scene for pair in pairs)]) if not summary.empty else {2: []}).items():
         trained = list(dict.fromkeys(pair.job.scene for pair in pairs if pair.scene in scenes))
         grid_name = DIMENSION_NAMES.get(dim, f"{dim}D") + (f": trained on {', '.join(trained)}" if trained else "")
-        for metric, heading in SUMMARY_TABLES:
-            table = summary_markdown(summary, metric, expected, unrankable, scenes, trained[0] if len(trained) == 1 else None, model_order(profile))
+        for metric, heading in summary_tables(profile.evaluate.references):
+            table = summary_markdown(summary, metric, expected, unrankable, scenes, trained[0] if len(trained) == 1 else None,
+                                     model_order(profile), profile.evaluate.references)
             lines += [f"## {heading} ({grid_name})", "", table]
     return lines
 
@@ -960,7 +982,7 @@ def write(profile: Profile, out: Path, sections=()) -> Path:
     env = environment()
     out = Path(out)
     truths, pairs = load_truths(profile, out), load_pairs(profile, out)
-    summary, curves = tables(truths, pairs)
+    summary, curves = tables(truths, pairs, profile.evaluate.references)
     bench_dir = out / "benchmark"
     bench_dir.mkdir(parents=True, exist_ok=True)
     write_csv(summary, bench_dir / "summary.csv")

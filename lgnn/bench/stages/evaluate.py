@@ -1,16 +1,21 @@
-"""Evaluation stage: every trained model on every scene, against both ground truths.
+"""Evaluation stage: every trained model on every scene, against the Lagrangian ground
+truth and each reference engine.
 
 `evaluate_scene` writes a scene's ground-truth record: the Lagrangian ground truth
 (RK4 with projection, the same integrator and step as the models), its chaos floor
 (initial positions perturbed by `floor_perturbation`, projected back onto the
-constraints), MuJoCo C (RK4 at `mujoco_dt`, frames at the same times), and the rest
-baseline (the initial state held: `lgnn.metrics.rest_rollouts`), scored as a model is.
-`evaluate_pair` writes a (model, scene) record: the model's rollouts from the same
-initial conditions (`evaluate_group`: a model's seeds in one program). Per frame (t > 0) and initial condition (`lgnn.metrics.
-score_rollouts`): rollout error `||q_hat - q|| / (||q_hat|| + ||q||)` over all node
+constraints), each reference engine of `EvaluateSettings.references` (MuJoCo C by
+default; `get_engine(name).rollout` at `mujoco_dt`, frames at the same times), and the
+rest baseline (the initial state held: `lgnn.metrics.rest_rollouts`), scored as a
+model is. `evaluate_pair` writes a (model, scene) record: the model's rollouts from
+the same initial conditions (`evaluate_group`: a model's seeds in one program). Per
+frame (t > 0) and initial condition, every metric of the registry
+`lgnn.metrics.METRICS` against the Lagrangian ground truth (`lgnn.metrics.
+score_rollouts`: rollout error `||q_hat - q|| / (||q_hat|| + ||q||)` over all node
 coordinates, energy error (the same formula on the scene's true Hamiltonian of both
-trajectories), per-node RMS position error `sqrt(mean over nodes |q_hat - q|^2)`, and
-the rollout error against MuJoCo's trajectory. The relative errors are clipped to
+trajectories), per-node RMS position error `sqrt(mean over nodes |q_hat - q|^2)`), and
+those marked `against_references` against each reference engine's trajectory
+(`rollout_error_vs_<engine>`; `recorded_metrics`). The relative errors are clipped to
 [1e-16, 1] (1 is their maximum; 1e-16 keeps an exact match from dominating a geometric
 mean). A rollout *diverges* at the first frame the one divergence rule of
 `lgnn.metrics` flags (non-finite, true energy or a node's reach beyond 10 times what
@@ -18,6 +23,13 @@ the scene allows), the rule that stops every engine; from that frame on its erro
 count as their maximum (1; for the RMS error the divergence rule's reach) and the
 divergence time is recorded. The chaos floor's divergence is recorded the same way
 (the report then gives no floor).
+
+Record arrays: `<metric>/<statistic>` (`lgnn.metrics.error_statistics`: `per_ic_log`,
+`gmean`, `low`, `high`) for a model; `rest/...` and `exact_no_drag/...` likewise in the
+ground-truth record, beside `chaos_floor` and `truth_vs_<engine>` (`scene_level_prefix`).
+A record written before a metric was registered lacks its arrays: the stage recomputes
+it, the report shows "not computed". Records made before MuJoCo's stale-frame fix are
+upgraded by `tools/upgrade_records.py`, not here.
 
 Keys: a ground-truth record depends on the scene's content and the profile's
 `EvaluateSettings` as that scene uses them (`truth_key`); a pair record on that and the
@@ -29,7 +41,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 import threading
 import time
 from pathlib import Path
@@ -44,34 +55,77 @@ from lgnn.bench import store
 from lgnn.bench.grid import Pair, Profile, evaluation_pairs, evaluation_scenes, settings_key
 from lgnn.bench.store import Layout, log
 from lgnn.bench.timing import batched_rollouts, compiled_rollouts, stacked_rollouts
+from lgnn.engines import get_engine
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models, train
 from lgnn.scene import OWN_STATE, Scene, State, get_scene, initial_state_policy, scene_to_dict
 
-# Metrics recorded per frame and initial condition, for a model and the rest baseline.
-METRICS = ("rollout_error", "energy_error", "rollout_error_vs_mujoco", "node_rms_error")
-# What the chaos floor records (a position error only: energy is not its business).
-FLOOR_METRICS = ("rollout_error", "node_rms_error")
+# The reference a metric is scored against unless it names an engine: the Lagrangian
+# ground truth (`lgnn.metrics.Scored.reference`).
+TRUTH = "truth"
 # Where the ground-truth record keeps the rest baseline's arrays: `rest/<metric>/...`.
 REST = "rest"
 # Where a drag scene's ground-truth record keeps the exact physics without drag (the
 # scene's own Lagrangian, drag set to 0, from the same states), scored as a model: what
 # a model that ignores drag would score (issue 13: the drag test barely tests drag).
 NO_DRAG = "exact_no_drag"
-# Arrays that records written before the rest baseline and the RMS error lack: such a
-# record is still read by the report ("not computed") but recomputed by the stage.
-_TRUTH_NEEDS = (f"{REST}/node_rms_error/per_ic_log", "chaos_floor/node_rms_error/per_ic_log")
-_PAIR_NEEDS = ("node_rms_error/per_ic_log",)
-# Version of the MuJoCo C reference trajectories, in every record's meta. Version 1
-# (records without the field): the last `mujoco.rollout` call of a batch of several
-# drag-free trajectories left its frames stale (engines/mujoco.py, fixed at c0eb960), up
-# to the last 18 % of frames, so every array scored against MuJoCo (`MUJOCO_ARRAYS`) of
-# such a record is wrong; the rest of the record is not (MuJoCo enters nothing else).
-MUJOCO_REFERENCE = 2
-# Array name prefixes made from the MuJoCo reference.
-MUJOCO_ARRAYS = ("truth_vs_mujoco", "rollout_error_vs_mujoco", f"{REST}/rollout_error_vs_mujoco", f"{NO_DRAG}/rollout_error_vs_mujoco",
-                 "snapshot/mujoco")
+# The chaos floor's arrays in the ground-truth record (its metrics: `Metric.floor`).
+FLOOR = "chaos_floor"
+# Version of the reference trajectories, in every record's meta: 2 since MuJoCo C's
+# stale last frames were fixed (c0eb960; `tools/upgrade_records.py` reads it).
+REFERENCE_VERSION = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class RecordedMetric:
+    """A registered metric as a record holds it: against the Lagrangian ground truth
+    (`reference` TRUTH; arrays `<metric>/...`) or against a reference engine (arrays
+    `<metric>_vs_<engine>/...`)."""
+
+    metric: metrics.Metric
+    reference: str = TRUTH
+
+    @property
+    def name(self) -> str:
+        return recorded_name(self.metric.name, self.reference)
+
+
+def recorded_name(metric: str, reference: str) -> str:
+    """The record's name of `metric` scored against `reference` (TRUTH or an engine)."""
+    return metric if reference == TRUTH else f"{metric}_vs_{reference}"
+
+
+def recorded_metrics(references: tuple[str, ...]) -> tuple[RecordedMetric, ...]:
+    """What a model's (and the rest baseline's) record holds, in table order: every
+    registered metric against the ground truth, then those `against_references`
+    against each engine of `references`."""
+    return (*(RecordedMetric(m) for m in metrics.METRICS.values()),
+            *(RecordedMetric(metrics.METRICS[name], engine) for engine in references for name in _against_references()))
+
+
+def scene_level_prefix(group: str, metric: str) -> str:
+    """Where a ground-truth record keeps a scene-level score (`group`: FLOOR, or
+    `truth_vs_<engine>`, the ground truth against a reference engine): the rollout
+    error keeps the group's first name (`chaos_floor/gmean`), another metric is
+    `<group>/<metric>/...`."""
+    return group if metric == "rollout_error" else f"{group}/{metric}"
+
+
+def truth_against(engine: str) -> str:
+    """The ground-truth record's group of the Lagrangian ground truth scored against a
+    reference engine."""
+    return f"truth_vs_{engine}"
+
+
+def scene_level_scores(references: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    """`(group, metric)` of every scene-level score a ground-truth record holds, in table
+    order: the chaos floor on each registered `floor` metric, then the ground truth
+    against each engine of `references` on each metric `against_references`."""
+    return (*((FLOOR, name) for name in _floor_metrics()),
+            *((truth_against(engine), name) for engine in references for name in _against_references()))
+
+
 # Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s.
 SNAPSHOT_DT = 0.01
 
@@ -97,11 +151,17 @@ def pair_key(profile: Profile, pair: Pair, checkpoint: Path) -> str:
     return records.digest({"truth": truth_key(profile, pair.scene), "checkpoint": records.file_digest(checkpoint), **unprojected})
 
 
-# The trajectories `ground_truth` keeps on disk (with `states`, its initial conditions).
-TRUTH_TRAJECTORIES = ("q", "qd", "energy", "q_floor", "qd_floor", "q_mujoco")
-# The ground truth's costs in seconds (JAX compile, JAX run, MuJoCo C's reference),
-# kept with its trajectories and in its record.
-TRUTH_TIMINGS = ("compile_s", "run_s", "mujoco_s")
+def truth_trajectories(references: tuple[str, ...]) -> tuple[str, ...]:
+    """The trajectories `ground_truth` keeps on disk (with `states`, its initial
+    conditions): the Lagrangian ground truth's, the chaos floor's, and positions
+    `q_<engine>` and true energies `energy_<engine>` of each reference engine."""
+    return ("q", "qd", "energy", "q_floor", "qd_floor", *(f"{kind}_{engine}" for engine in references for kind in ("q", "energy")))
+
+
+def truth_timings(references: tuple[str, ...]) -> tuple[str, ...]:
+    """The ground truth's costs in seconds (JAX compile, JAX run, each reference
+    engine's `<engine>_s`), kept with its trajectories and in its record."""
+    return ("compile_s", "run_s", *(f"{engine}_s" for engine in references))
 
 
 def _in_background(call: Callable[[], object]) -> Callable[[], object]:
@@ -132,8 +192,9 @@ def _in_background(call: Callable[[], object]) -> Callable[[], object]:
 def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: Path | None = None) -> dict:
     """The ground truth of a scene's evaluation: `q`, `qd` (C, F, N, D) and true `energy`
     (C, F) of the Lagrangian ground truth, the chaos floor's `q_floor`, `qd_floor`
-    (scored, divergence included, by `evaluate_scene`), MuJoCo's `q_mujoco`, the initial
-    `states` and timings.
+    (scored, divergence included, by `evaluate_scene`), each reference engine's
+    `q_<engine>` and `energy_<engine>`, the initial `states` and timings
+    (`truth_trajectories`, `truth_timings`).
 
     With `out`, the trajectories are kept in `Layout(out).truth_trajectories` (key
     `truth_key`) and read back by every later process: MuJoCo C's reference alone takes
@@ -144,33 +205,37 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     if out is None:
         return _computed_ground_truth(profile, scene_name, progress)
     path, key = Layout(out).truth_trajectories(scene_name), truth_key(profile, scene_name)
+    trajectories, timings = truth_trajectories(profile.evaluate.references), truth_timings(profile.evaluate.references)
     with store.exclusive(path):  # parallel workers on one scene: the first computes, the others read
         stored = store.load(path, key)
-        if stored is not None and stored[1].get("mujoco_reference") == MUJOCO_REFERENCE:
+        # Files written before their reference was fixed, or before references' energies
+        # were kept, lack a version or trajectory: computed again.
+        if (stored is not None and stored[1].get("mujoco_reference") == REFERENCE_VERSION
+                and all(name in stored[0] for name in trajectories)):
             arrays, meta = stored
             log(f"ground truth {scene_name}: read from {path}")
-            return dict(**{name: arrays[name] for name in TRUTH_TRAJECTORIES}, states=State(arrays["states/q"], arrays["states/qd"]),
-                        **{name: meta[name] for name in TRUTH_TIMINGS})
+            return dict(**{name: arrays[name] for name in trajectories}, states=State(arrays["states/q"], arrays["states/qd"]),
+                        **{name: meta[name] for name in timings})
         truth = _computed_ground_truth(profile, scene_name, progress)
-        store.save(path, key, {**{name: truth[name] for name in TRUTH_TRAJECTORIES}, "states/q": np.asarray(truth["states"].q),
+        store.save(path, key, {**{name: truth[name] for name in trajectories}, "states/q": np.asarray(truth["states"].q),
                                 "states/qd": np.asarray(truth["states"].qd)},
-                   dict(scene=scene_name, mujoco_reference=MUJOCO_REFERENCE, **{name: truth[name] for name in TRUTH_TIMINGS}))
+                   dict(scene=scene_name, mujoco_reference=REFERENCE_VERSION, **{name: truth[name] for name in timings}))
         return truth
 
 
 def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) -> dict:
-    """`ground_truth`, computed. MuJoCo C's reference runs in a thread beside the
+    """`ground_truth`, computed. The reference engines run in a thread beside the
     Lagrangian ground truth and chaos floor (`mujoco.rollout` releases the GIL): on a GPU
     the two overlap, which saves chain100-3d's 6 minutes of JAX rollouts."""
     settings = profile.evaluate
     scene = get_scene(scene_name)
     states = evaluation_initial_states(profile, scene)
     config = settings.simulation(scene_name)
-    mj_config = SimulationConfig("rk4", settings.mujoco_dt, settings.frame_dt, settings.duration, True)
+    reference_config = SimulationConfig("rk4", settings.mujoco_dt, settings.frame_dt, settings.duration, True)
     log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s; "
-        f"MuJoCo C at dt {mj_config.dt:g} alongside")
+        f"{', '.join(settings.references) or 'no reference engine'} at dt {reference_config.dt:g} alongside")
     # A daemon thread: an error or Ctrl-C here does not wait out MuJoCo's minutes.
-    mujoco_when_done = _in_background(lambda: _mujoco_reference(scene, mj_config, states))
+    references_when_done = _in_background(lambda: _reference_rollouts(scene, reference_config, states, settings.references))
     q, qd, compile_s, run_s = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, states, settings.chunk,
                                                f"truth {scene_name}", progress)
     energy = metrics.true_energies(scene, q, qd)
@@ -181,21 +246,22 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
     q_floor, qd_floor, _, _ = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, settings.chunk,
                                                f"floor {scene_name}", progress)
-    q_mj, mujoco_s = mujoco_when_done()
-    return dict(q=q, qd=qd, energy=energy, q_floor=q_floor, qd_floor=qd_floor, q_mujoco=q_mj, states=states,
-                compile_s=compile_s, run_s=run_s, mujoco_s=mujoco_s)
+    return dict(q=q, qd=qd, energy=energy, q_floor=q_floor, qd_floor=qd_floor, states=states, compile_s=compile_s, run_s=run_s,
+                **references_when_done())
 
 
-def _mujoco_reference(scene: Scene, config: SimulationConfig, states: State) -> tuple[np.ndarray, float]:
-    """MuJoCo C's node trajectories `q` (C, F, N, D) from `states`, checked like the
-    Lagrangian ground truth, and the seconds they took."""
-    from lgnn.engines import mujoco as lm
-
-    start = time.perf_counter()
-    q_mj, qd_mj = lm.rollout(scene, config, State(np.asarray(states.q), np.asarray(states.qd)), threads=os.cpu_count() or 1)
-    mujoco_s = time.perf_counter() - start
-    _check_reference(scene, config, "MuJoCo reference", q_mj, qd_mj, metrics.true_energies(scene, q_mj, qd_mj))
-    return q_mj, mujoco_s
+def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, references: tuple[str, ...]) -> dict:
+    """Each reference engine's node positions `q_<engine>` (C, F, N, D), true energies
+    `energy_<engine>` (C, F) and seconds `<engine>_s` from `states`, through the one
+    engine interface (`get_engine(engine).rollout`; an engine raises `SimulationError`
+    at a diverging frame, so no reference that diverged is scored against)."""
+    found = {}
+    for engine in references:
+        start = time.perf_counter()
+        trajectory = get_engine(engine).rollout(scene, config, State(np.asarray(states.q), np.asarray(states.qd)))
+        found.update({f"q_{engine}": np.asarray(trajectory.q), f"energy_{engine}": np.asarray(trajectory.energy),
+                      f"{engine}_s": time.perf_counter() - start})
+    return found
 
 
 def _divergence(scene: Scene, config: SimulationConfig, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> np.ndarray:
@@ -221,43 +287,68 @@ def _snapshot(profile: Profile, trajectory: np.ndarray) -> np.ndarray:
     return np.asarray(trajectory[0, ::stride], np.float32)
 
 
-def _metric_arrays(prefix: str, errors: np.ndarray) -> dict:
-    stats = metrics.error_statistics(errors)
-    return {f"{prefix}/{k}": v for k, v in stats.items()}
+def _floor_metrics() -> tuple[str, ...]:
+    """The registered metrics the chaos floor is scored on (`Metric.floor`)."""
+    return tuple(m.name for m in metrics.METRICS.values() if m.floor)
 
 
-def _scores(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth: dict) -> tuple[dict, np.ndarray]:
-    """`({metric: clean errors (C, F - 1)} for every metric of METRICS, diverged (C,))`
-    of trajectories `q`, `qd` (C, F, N, D) against the scene's ground truth."""
+def _against_references() -> tuple[str, ...]:
+    """The registered metrics scored against each reference engine (`Metric.against_references`)."""
+    return tuple(m.name for m in metrics.METRICS.values() if m.against_references)
+
+
+def _statistics_arrays(prefix: str, errors: np.ndarray) -> dict:
+    """`<prefix>/<statistic>` of clean errors (C, F - 1) (`lgnn.metrics.error_statistics`)."""
+    return {f"{prefix}/{k}": v for k, v in metrics.error_statistics(errors).items()}
+
+
+def _scores(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth: dict) -> list[metrics.Scored]:
+    """Trajectories `q`, `qd` (C, F, N, D) scored (`lgnn.metrics.score_rollouts`) against
+    the scene's ground truth with every registered metric, then against each reference
+    engine's trajectory with those `against_references`."""
     t = np.arange(q.shape[1]) * profile.evaluate.frame_dt
-    scores, diverged = metrics.score_rollouts(scene, t, q, qd, truth["q"], truth["energy"])
-    scores["rollout_error_vs_mujoco"] = metrics.clean_errors(metrics.relative_error(q, truth["q_mujoco"], 2), diverged)[:, 1:]
-    return scores, diverged
+    scored = [metrics.score_rollouts(scene, t, q, qd, truth["q"], truth["energy"], reference=TRUTH)]
+    if _against_references():
+        scored += [metrics.score_rollouts(scene, t, q, qd, truth[f"q_{engine}"], truth[f"energy_{engine}"], reference=engine,
+                                          names=_against_references()) for engine in profile.evaluate.references]
+    return scored
+
+
+def _record_arrays(prefix: str, scored: list[metrics.Scored], frame_dt: float) -> dict:
+    """The arrays of a model's (or a baseline's, under `prefix`) scores: statistics of
+    every recorded metric (`recorded_name`) and `diverged_at` (s, NaN for none)."""
+    arrays = {k: v for item in scored for metric, errors in item.errors.items()
+              for k, v in _statistics_arrays(prefix + recorded_name(metric, item.reference), errors).items()}
+    arrays[f"{prefix}diverged_at"] = np.where(scored[0].diverged >= 0, scored[0].diverged * frame_dt, np.nan)
+    return arrays
+
+
+def _scene_level_arrays(group: str, scored: metrics.Scored) -> dict:
+    """The arrays of a scene-level score (`scene_level_prefix`)."""
+    return {k: v for name, errors in scored.errors.items() for k, v in _statistics_arrays(scene_level_prefix(group, name), errors).items()}
 
 
 def _has(record: tuple[dict, dict] | None, names: tuple[str, ...]) -> bool:
-    return record is not None and not _stale_mujoco(record[1]) and all(name in record[0] for name in names)
+    return record is not None and all(name in record[0] for name in names)
 
 
-def _stale_mujoco(meta: dict) -> bool:
-    """Whether a record's MuJoCo-scored arrays came from a stale reference
-    (`MUJOCO_REFERENCE`): version 1, several initial conditions, a drag-free scene (a
-    single trajectory's buffer was contiguous; drag scenes step in Python)."""
-    return meta.get("mujoco_reference", 1) < MUJOCO_REFERENCE and meta.get("initial_conditions", 1) > 1 and not get_scene(meta["scene"]).drag
+def _truth_needs(profile: Profile, scene: Scene) -> tuple[str, ...]:
+    """The arrays a ground-truth record of the current metrics holds (a record written
+    before a metric was registered lacks some: recomputed)."""
+    recorded = [m.name for m in recorded_metrics(profile.evaluate.references)]
+    groups = [REST, *([NO_DRAG] if scene.drag > 0 else [])]
+    return (*(f"{group}/{name}/per_ic_log" for group in groups for name in recorded),
+            *(f"{scene_level_prefix(group, name)}/per_ic_log" for group, name in scene_level_scores(profile.evaluate.references)))
 
 
-def _reported(record: tuple[dict, dict] | None) -> tuple[dict, dict] | None:
-    """A record as the report may read it: without the MuJoCo-scored arrays of a stale
-    reference (they show as "not computed"; `lgnn benchmark --stage evaluate` recomputes
-    the record)."""
-    if record is None or not _stale_mujoco(record[1]):
-        return record
-    arrays, meta = record
-    return {k: v for k, v in arrays.items() if not k.startswith(MUJOCO_ARRAYS)}, meta
+def _pair_needs(profile: Profile) -> tuple[str, ...]:
+    """The arrays a pair record of the current metrics holds."""
+    return tuple(f"{m.name}/per_ic_log" for m in recorded_metrics(profile.evaluate.references))
 
 
 def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool = True) -> Path:
-    """The ground-truth record of a scene: chaos floor and Lagrangian-vs-MuJoCo errors."""
+    """The ground-truth record of a scene: chaos floor, rest baseline and the ground
+    truth against each reference engine (module docstring)."""
     path = Layout(out).truth_record(scene_name)
     with store.exclusive(path):  # parallel workers on one scene: the first writes it
         return _evaluated_scene(profile, scene_name, out, progress, path)
@@ -266,35 +357,34 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
 def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: bool, path: Path) -> Path:
     key = truth_key(profile, scene_name)
     scene = get_scene(scene_name)
-    if _has(store.load(path, key), _TRUTH_NEEDS + ((f"{NO_DRAG}/rollout_error/per_ic_log",) if scene.drag > 0 else ())):
+    if _has(store.load(path, key), _truth_needs(profile, scene)):
         return path
     truth = ground_truth(profile, scene_name, progress, out)
+    references = profile.evaluate.references
     frame_dt = profile.evaluate.frame_dt
-    none = np.full(len(truth["q"]), -1)
-    floor, floor_diverged = _scores(profile, scene, truth["q_floor"], truth["qd_floor"], truth)
-    rest, rest_diverged = _scores(profile, scene, *metrics.rest_rollouts(truth["q"], truth["qd"]), truth)
+    t = np.arange(truth["q"].shape[1]) * frame_dt
+    floor = metrics.score_rollouts(scene, t, truth["q_floor"], truth["qd_floor"], truth["q"], truth["energy"], names=_floor_metrics())
     arrays = {
-        "t": np.arange(1, truth["q"].shape[1]) * frame_dt,
-        # The chaos floor's rollout error keeps its first name (`chaos_floor/gmean`, ...).
-        **_metric_arrays("chaos_floor", floor["rollout_error"]),
-        **_metric_arrays("chaos_floor/node_rms_error", floor["node_rms_error"]),
-        "chaos_floor/diverged_at": np.where(floor_diverged >= 0, floor_diverged * frame_dt, np.nan),
-        **{k: v for metric in METRICS for k, v in _metric_arrays(f"{REST}/{metric}", rest[metric]).items()},
-        f"{REST}/diverged_at": np.where(rest_diverged >= 0, rest_diverged * frame_dt, np.nan),
-        **_metric_arrays("truth_vs_mujoco", metrics.clean_errors(metrics.relative_error(truth["q"], truth["q_mujoco"], 2), none)[:, 1:]),
+        "t": t[1:],
+        **_scene_level_arrays(FLOOR, floor),
+        f"{FLOOR}/diverged_at": np.where(floor.diverged >= 0, floor.diverged * frame_dt, np.nan),
+        **_record_arrays(f"{REST}/", _scores(profile, scene, *metrics.rest_rollouts(truth["q"], truth["qd"]), truth), frame_dt),
         "snapshot/truth": _snapshot(profile, truth["q"]),
-        "snapshot/mujoco": _snapshot(profile, truth["q_mujoco"]),
         "mid_state": np.stack([truth["q"][0, truth["q"].shape[1] // 2], truth["qd"][0, truth["qd"].shape[1] // 2]]),
     }
+    for engine in references:
+        # The ground truth never diverges (`_check_reference`), so neither side's
+        # errors are capped.
+        versus = metrics.score_rollouts(scene, t, truth["q"], truth["qd"], truth[f"q_{engine}"], truth[f"energy_{engine}"], names=_against_references())
+        arrays.update(_scene_level_arrays(truth_against(engine), versus))
+        arrays[f"snapshot/{engine}"] = _snapshot(profile, truth[f"q_{engine}"])
     if scene.drag > 0:
         no_drag = scene.replace(drag=0.0)
         q, qd, _, _ = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), physics.vectorised_true_acceleration_fn, truth["states"],
                                        profile.evaluate.chunk, f"{scene_name} without drag", progress)
-        scores, diverged = _scores(profile, scene, q, qd, truth)
-        arrays.update({k: v for metric in METRICS for k, v in _metric_arrays(f"{NO_DRAG}/{metric}", scores[metric]).items()})
-        arrays[f"{NO_DRAG}/diverged_at"] = np.where(diverged >= 0, diverged * frame_dt, np.nan)
-    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=MUJOCO_REFERENCE,
-                **{name: truth[name] for name in TRUTH_TIMINGS})
+        arrays.update(_record_arrays(f"{NO_DRAG}/", _scores(profile, scene, q, qd, truth), frame_dt))
+    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=REFERENCE_VERSION,
+                **{name: truth[name] for name in truth_timings(references)})
     store.save(path, key, arrays, meta)
     return path
 
@@ -328,7 +418,7 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
             raise ConfigError(f"no checkpoint for {pair.job.name} at {checkpoint}: run the training stage first")
         path, key = layout.pair_record(pair), pair_key(profile, pair, checkpoint)
         paths.append(path)
-        if not _has(store.load(path, key), _PAIR_NEEDS):
+        if not _has(store.load(path, key), _pair_needs(profile)):
             model, params = train.load_model(checkpoint)
             shared = (pair.scene, pair.projected, records.digest(model.to_dict()))
             todo.setdefault(shared, []).append((pair, path, key, model, params))
@@ -360,16 +450,12 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
                               f"remove {Layout(out).truth_trajectories(pair.scene)} to recompute it")
     steps = len(group) * len(states.q) * config.n_frames * config.steps_per_frame
     for (pair, path, key, _, _), q, qd in zip(group, q_all, qd_all):
-        scores, diverged = _scores(profile, scene, q, qd, truth)
-        arrays = {
-            "t": np.arange(1, q.shape[1]) * profile.evaluate.frame_dt,
-            **{k: v for metric in METRICS for k, v in _metric_arrays(metric, scores[metric]).items()},
-            "diverged_at": np.where(diverged >= 0, diverged * profile.evaluate.frame_dt, np.nan),
-            "snapshot/model": _snapshot(profile, q),
-        }
+        scored = _scores(profile, scene, q, qd, truth)
+        diverged = scored[0].diverged
+        arrays = {"t": np.arange(1, q.shape[1]) * profile.evaluate.frame_dt, **_record_arrays("", scored, profile.evaluate.frame_dt), "snapshot/model": _snapshot(profile, q)}
         # Compile and run times are the group's (`stacked` models rolled out together).
         meta = dict(job=pair.job.name, model=pair.job.model, label=pair.label, projected=pair.projected, train_scene=pair.job.scene, seed=pair.job.seed,
-                    scene=pair.scene, initial_conditions=len(q), mujoco_reference=MUJOCO_REFERENCE, compile_s=compile_s, run_s=run_s,
+                    scene=pair.scene, initial_conditions=len(q), mujoco_reference=REFERENCE_VERSION, compile_s=compile_s, run_s=run_s,
                     steps_per_s=steps / run_s, stacked=len(group))
         store.save(path, key, arrays, meta)
         n_div = int(np.sum(diverged >= 0))
@@ -378,19 +464,17 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
 
 
 def load_truth(profile: Profile, scene_name: str, out: Path) -> tuple[dict, dict] | None:
-    """`(arrays, meta)` of a scene's ground-truth record if it matches the profile, else
-    None; without MuJoCo-scored arrays of a stale reference (`_reported`)."""
-    return _reported(store.load(Layout(out).truth_record(scene_name), truth_key(profile, scene_name)))
+    """`(arrays, meta)` of a scene's ground-truth record if it matches the profile, else None."""
+    return store.load(Layout(out).truth_record(scene_name), truth_key(profile, scene_name))
 
 
 def load_pair(profile: Profile, pair: Pair, out: Path) -> tuple[dict, dict] | None:
-    """`(arrays, meta)` of a pair's record if it matches the profile and checkpoint, else
-    None; without MuJoCo-scored arrays of a stale reference (`_reported`)."""
+    """`(arrays, meta)` of a pair's record if it matches the profile and checkpoint, else None."""
     layout = Layout(out)
     checkpoint = layout.checkpoint(pair.job)
     if not checkpoint.exists():
         return None
-    return _reported(store.load(layout.pair_record(pair), pair_key(profile, pair, checkpoint)))
+    return store.load(layout.pair_record(pair), pair_key(profile, pair, checkpoint))
 
 
 def load_truths(profile: Profile, out: Path) -> dict[str, tuple[dict, dict]]:
