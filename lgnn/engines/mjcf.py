@@ -13,6 +13,12 @@ and mjcf/maximal/).
   any loops; the joints are as soft as `MAXIMAL_SOLREF_STEPS` (errors measured there).
 - "nested", below.
 
+`form_error(scene, form, h, duration)` is either form's expected max node position
+error at MuJoCo step `h` (models fitted on open chains, `MAXIMAL_ERROR_COEFFICIENT`),
+and `maximal_substeps(scene, dt, duration, tolerance)` the MuJoCo steps per `dt` that
+bring the maximal form within `tolerance`: what the MuJoCo engines state as their
+`accuracy` and how MJX and MuJoCo Warp step the maximal form.
+
 - `scene_layout(scene)` (nested) is the scene's spanning tree: every link is a body hinged at
   one of its end nodes (axis z, normal to the plane). The tree grows breadth-first
   from the pinned nodes (world-fixed); a component without pins gets a free planar
@@ -50,6 +56,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 from typing import Literal, get_args
 
 import numpy as np
@@ -85,6 +92,26 @@ SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
 # or two iterations; the tolerance only stops it at round-off.
 SOLVER_TOLERANCE = 1e-14
 SOLVER_ITERATIONS = 20
+# The MuJoCo engines' error models: the max node position error (m) over a run of up
+# to 1 s against exact motion, on an open chain or tree of alike links under gravity
+# (`error_model_holds`), `depth` links deep (`scene_layout(scene).depth`), gravity g,
+# link length l, MuJoCo step h (`form_error`):
+#   nested (RK4 on exact joints):  NESTED_ERROR_COEFFICIENT * depth^5 * g^2 * h^4 / l
+#   maximal (soft `connect` joints): MAXIMAL_ERROR_COEFFICIENT * depth^3 * g * h^2
+# (each the dimensionless error/l as a power of g h^2 / l). Fitted as 1.25x the largest
+# coefficient measured over 1 s by `tools/maximal_error.py` (its docstring has the
+# commands): MuJoCo C, chain(N, seed) N = 4..64, seeds 0-3 and 5, and spatial_chain(N,
+# seed) N = 4..16, seeds 0-1, against the nested form at h / 4; MJX and MuJoCo Warp
+# step the same model with the same arithmetic. The largest measured: maximal 5.8e-4,
+# nested 1.7e-3. Past 1 s the error is taken to grow in proportion to the duration (not
+# measured). Other scenes differ by more than the margin (measured, maximal form, dt
+# 1e-4: a branching tree of unequal links 14x chain4's coefficient, chain8-mixed 70x),
+# so the models say nothing of them.
+MAXIMAL_ERROR_COEFFICIENT = 7.2e-4
+NESTED_ERROR_COEFFICIENT = 2e-3
+# The tolerance the maximal form's step is chosen to meet (`maximal_substeps`), as the
+# ground truth's max node error over 1 s (issue 29).
+MAXIMAL_TOLERANCE = 1e-6
 # Drawing sizes (viewer only, no physics): capsule and site radius per unit length.
 GEOM_RADIUS = 0.03
 SITE_RADIUS = 0.04
@@ -224,6 +251,44 @@ def rod_inertia(inertia: float, direction: np.ndarray) -> tuple[float, ...]:
     u = np.asarray(direction, np.float64) / np.linalg.norm(direction)
     tensor = inertia * (np.eye(3) - (1 - AXIAL_INERTIA_FRACTION) * np.outer(u, u))
     return (*np.diag(tensor), tensor[0, 1], tensor[0, 2], tensor[1, 2])
+
+
+def error_model_holds(scene: Scene) -> bool:
+    """Whether the error models (`form_error`) were fitted on scenes like `scene`: an open
+    chain or tree (no loops, one pin or none), no drag, gravity, and every link alike
+    (length, mass, inertia)."""
+    layout = scene_layout(scene)
+    alike = all(np.ptp(values) <= 1e-12 * np.max(np.abs(values)) for values in (scene.lengths, scene.masses, scene.inertias))
+    loops = layout.static_links or any(body.closes_loop for body in layout.bodies)
+    return alike and not loops and not scene.drag and float(scene.gravity) > 0
+
+
+def form_error(scene: Scene, form: Form, h: float, duration: float) -> float | None:
+    """The expected max node position error (m) of `scene` in `form` at MuJoCo step `h`
+    over a run of `duration` seconds (the models above `MAXIMAL_ERROR_COEFFICIENT`);
+    None where they do not hold (`error_model_holds`)."""
+    check_form(form)
+    if not error_model_holds(scene):
+        return None
+    depth, g, length = scene_layout(scene).depth, float(scene.gravity), float(scene.lengths[0])
+    per_second = (MAXIMAL_ERROR_COEFFICIENT * depth**3 * g * h**2 if form == "maximal"
+                  else NESTED_ERROR_COEFFICIENT * depth**5 * g**2 * h**4 / length)
+    return per_second * max(1.0, duration)
+
+
+def maximal_substeps(scene: Scene, dt: float, duration: float, tolerance: float = MAXIMAL_TOLERANCE) -> int:
+    """MuJoCo steps per step `dt` in the maximal form: the fewest `s` whose step `dt / s`
+    has `form_error(scene, "maximal", dt / s, duration) <= tolerance` (the error falls as
+    h^2); 1 where the model does not hold (nothing is promised there)."""
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise ConfigError(f"tolerance must be a positive number, got {tolerance}")
+    error = form_error(scene, "maximal", dt, duration)
+    if error is None:
+        return 1
+    substeps = max(1, math.ceil(math.sqrt(error / tolerance)))
+    while form_error(scene, "maximal", dt / substeps, duration) > tolerance:  # round-off of the square root
+        substeps += 1
+    return substeps
 
 
 def check_form(form: str) -> None:
