@@ -369,7 +369,8 @@ def test_mjx_default_reproduces_a_24_link_chain_within_its_tolerance():
     """MJX with its default form (maximal past depth 8) and settings (dt 1e-4) on a
     24-link chain against the Lagrangian engine over 1 s: within the accuracy it states
     (`mjcf.form_error` at the step `mjcf.maximal_substeps` chose), which meets the
-    ground-truth tolerance (measured: 2.0e-7, stated 6.8e-7; compile ~1-2 CPU minutes)."""
+    ground-truth tolerance (measured: 2.0e-7, stated 9.8e-7 at one step per dt; MJX's
+    compile takes 1-4 minutes on a 2-core CPU)."""
     s, config = chain(24), SimulationConfig(dt=1e-4, frame_dt=1e-3, duration=1.0)
     engine = get_engine("mjx")
     traj = engine.rollout(s, config, batch_of_one(s.initial_state))

@@ -96,19 +96,22 @@ SOLVER_ITERATIONS = 20
 # to 1 s against exact motion, on an open chain or tree of alike links under gravity
 # (`error_model_holds`), `depth` links deep (`scene_layout(scene).depth`), gravity g,
 # link length l, MuJoCo step h (`form_error`):
-#   nested (RK4 on exact joints):  NESTED_ERROR_COEFFICIENT * depth^5 * g^2 * h^4 / l
-#   maximal (soft `connect` joints): MAXIMAL_ERROR_COEFFICIENT * depth^3 * g * h^2
-# (each the dimensionless error/l as a power of g h^2 / l). Fitted as 1.25x the largest
-# coefficient measured over 1 s by `tools/maximal_error.py` (its docstring has the
-# commands): MuJoCo C, chain(N, seed) N = 4..64, seeds 0-3 and 5, and spatial_chain(N,
-# seed) N = 4..16, seeds 0-1, against the nested form at h / 4; MJX and MuJoCo Warp
-# step the same model with the same arithmetic. The largest measured: maximal 5.8e-4,
-# nested 1.7e-3. Past 1 s the error is taken to grow in proportion to the duration (not
-# measured). Other scenes differ by more than the margin (measured, maximal form, dt
-# 1e-4: a branching tree of unequal links 14x chain4's coefficient, chain8-mixed 70x),
-# so the models say nothing of them.
-MAXIMAL_ERROR_COEFFICIENT = 7.2e-4
-NESTED_ERROR_COEFFICIENT = 2e-3
+#   nested (RK4 on exact joints):    NESTED_ERROR_COEFFICIENT[dim] * depth^5 * g^2 * h^4 / l
+#   maximal (soft `connect` joints): MAXIMAL_ERROR_COEFFICIENT[dim] * depth^3 * g * h^2
+# (the dimensionless error/l as a power of g h^2 / l). Each coefficient is 1.25x the
+# largest measured over 1 s at dt 1e-4 by `tools/maximal_error.py` (its docstring has
+# the commands): MuJoCo C on chain(N, seed), N = 4..64, seeds 0-3 and 5 (planar,
+# released from rest), and spatial_chain(N, seed), N = 4..16, seeds 0-1 (3D, released
+# spinning: up to 2x (maximal) and 90x (nested) the planar coefficients), against the
+# nested form at dt / 4; MJX and MuJoCo Warp step the same model with the same
+# arithmetic. Largest measured: maximal 5.8e-4 (2D), 1.27e-3 (3D); nested 6.5e-4 (2D,
+# errors under 1e-12 are round-off and left out), 5.6e-2 (3D). The maximal error falls
+# as h^2 (measured at h / 2: ratio 4.0). Past 1 s the error is taken to grow in
+# proportion to the duration (not measured). Other scenes differ by more than the
+# margin (maximal form, dt 1e-4: a branching tree of unequal links 14x chain4's
+# coefficient, chain8-mixed 70x), so the models say nothing of them.
+MAXIMAL_ERROR_COEFFICIENT = {2: 7.2e-4, 3: 1.6e-3}
+NESTED_ERROR_COEFFICIENT = {2: 8.2e-4, 3: 7e-2}
 # The tolerance the maximal form's step is chosen to meet (`maximal_substeps`), as the
 # ground truth's max node error over 1 s (issue 29).
 MAXIMAL_TOLERANCE = 1e-6
@@ -271,8 +274,8 @@ def form_error(scene: Scene, form: Form, h: float, duration: float) -> float | N
     if not error_model_holds(scene):
         return None
     depth, g, length = scene_layout(scene).depth, float(scene.gravity), float(scene.lengths[0])
-    per_second = (MAXIMAL_ERROR_COEFFICIENT * depth**3 * g * h**2 if form == "maximal"
-                  else NESTED_ERROR_COEFFICIENT * depth**5 * g**2 * h**4 / length)
+    per_second = (MAXIMAL_ERROR_COEFFICIENT[scene.dim] * depth**3 * g * h**2 if form == "maximal"
+                  else NESTED_ERROR_COEFFICIENT[scene.dim] * depth**5 * g**2 * h**4 / length)
     return per_second * max(1.0, duration)
 
 
