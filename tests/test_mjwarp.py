@@ -118,7 +118,7 @@ def test_auto_form_is_mjx_choice_without_running_warp(tmp_path, capsys):
     assert engine.form_of(get_scene("chain4")) == "nested" == mjx.best_form(get_scene("chain4"))
     assert engine.form_of(deep) == "maximal" == mjx.best_form(deep)
     form, stepped = engine.stepped(deep, config)
-    assert stepped.dt == config.dt / mjcf.maximal_substeps(deep, config.dt, config.duration) < config.dt
+    assert stepped.dt == config.dt / mjcf.maximal_substeps(deep, config.dt) < config.dt
     assert stepped.frame_dt == config.frame_dt and stepped.duration == config.duration
     if not mjwarp.available():
         code = main(["simulate", "chain16", "--engine", "mjwarp", "--form", "auto", "--duration", "0.01",

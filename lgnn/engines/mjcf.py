@@ -14,8 +14,9 @@ and mjcf/maximal/).
 - "nested", below.
 
 `form_error(scene, form, h, duration)` is either form's expected max node position
-error at MuJoCo step `h` (models fitted on open chains, `MAXIMAL_ERROR_COEFFICIENT`),
-and `maximal_substeps(scene, dt, duration, tolerance)` the MuJoCo steps per `dt` that
+error at MuJoCo step `h` (models fitted on open chains over 1 s,
+`MAXIMAL_ERROR_COEFFICIENT`), and `maximal_substeps(scene, dt, tolerance)` the MuJoCo
+steps per `dt` that
 bring the maximal form within `tolerance`: what the MuJoCo engines state as their
 `accuracy` and how MJX and MuJoCo Warp step the maximal form.
 
@@ -106,12 +107,15 @@ SOLVER_ITERATIONS = 20
 # nested form at dt / 4; MJX and MuJoCo Warp step the same model with the same
 # arithmetic. Largest measured: maximal 5.8e-4 (2D), 1.27e-3 (3D); nested 6.5e-4 (2D,
 # errors under 1e-12 are round-off and left out), 5.6e-2 (3D). The maximal error falls
-# as h^2 (measured at h / 2: ratio 4.0). Past 1 s the error is taken to grow in
-# proportion to the duration (not measured). Other scenes differ by more than the
-# margin (maximal form, dt 1e-4: a branching tree of unequal links 14x chain4's
+# as h^2 (measured at h / 2: ratio 4.0). Other scenes differ by more than the margin (maximal form, dt 1e-4: a branching tree of unequal links 14x chain4's
 # coefficient, chain8-mixed 70x), so the models say nothing of them.
 MAXIMAL_ERROR_COEFFICIENT = {2: 7.2e-4, 3: 1.6e-3}
 NESTED_ERROR_COEFFICIENT = {2: 8.2e-4, 3: 7e-2}
+# The run length (s) the models hold for. Beyond it the chains' chaos amplifies the
+# error faster than in proportion (chain(40, seed=1), maximal, dt 1e-4: 1.4e-6, 7.4e-6,
+# 3.9e-5 after 1, 2, 3 s; `tools/maximal_error.py --links 40 --seeds 1 --substeps 1
+# --duration 3`), so nothing is stated for longer runs.
+MODELLED_DURATION = 1.0
 # The tolerance the maximal form's step is chosen to meet (`maximal_substeps`), as the
 # ground truth's max node error over 1 s (issue 29).
 MAXIMAL_TOLERANCE = 1e-6
@@ -266,30 +270,32 @@ def error_model_holds(scene: Scene) -> bool:
     return alike and not loops and not scene.drag and float(scene.gravity) > 0
 
 
-def form_error(scene: Scene, form: Form, h: float, duration: float) -> float | None:
+def form_error(scene: Scene, form: Form, h: float, duration: float = MODELLED_DURATION) -> float | None:
     """The expected max node position error (m) of `scene` in `form` at MuJoCo step `h`
     over a run of `duration` seconds (the models above `MAXIMAL_ERROR_COEFFICIENT`);
-    None where they do not hold (`error_model_holds`)."""
+    None where they do not hold (`error_model_holds`, runs longer than
+    `MODELLED_DURATION`)."""
     check_form(form)
-    if not error_model_holds(scene):
+    if not error_model_holds(scene) or duration > MODELLED_DURATION:
         return None
     depth, g, length = scene_layout(scene).depth, float(scene.gravity), float(scene.lengths[0])
-    per_second = (MAXIMAL_ERROR_COEFFICIENT[scene.dim] * depth**3 * g * h**2 if form == "maximal"
-                  else NESTED_ERROR_COEFFICIENT[scene.dim] * depth**5 * g**2 * h**4 / length)
-    return per_second * max(1.0, duration)
+    if form == "maximal":
+        return MAXIMAL_ERROR_COEFFICIENT[scene.dim] * depth**3 * g * h**2
+    return NESTED_ERROR_COEFFICIENT[scene.dim] * depth**5 * g**2 * h**4 / length
 
 
-def maximal_substeps(scene: Scene, dt: float, duration: float, tolerance: float = MAXIMAL_TOLERANCE) -> int:
+def maximal_substeps(scene: Scene, dt: float, tolerance: float = MAXIMAL_TOLERANCE) -> int:
     """MuJoCo steps per step `dt` in the maximal form: the fewest `s` whose step `dt / s`
-    has `form_error(scene, "maximal", dt / s, duration) <= tolerance` (the error falls as
-    h^2); 1 where the model does not hold (nothing is promised there)."""
+    has `form_error(scene, "maximal", dt / s) <= tolerance` over `MODELLED_DURATION`
+    (the error falls as h^2; longer runs step the same); 1 where the model does not
+    hold (nothing is promised there)."""
     if not (np.isfinite(tolerance) and tolerance > 0):
         raise ConfigError(f"tolerance must be a positive number, got {tolerance}")
-    error = form_error(scene, "maximal", dt, duration)
+    error = form_error(scene, "maximal", dt)
     if error is None:
         return 1
     substeps = max(1, math.ceil(math.sqrt(error / tolerance)))
-    while form_error(scene, "maximal", dt / substeps, duration) > tolerance:  # round-off of the square root
+    while form_error(scene, "maximal", dt / substeps) > tolerance:  # round-off of the square root
         substeps += 1
     return substeps
 

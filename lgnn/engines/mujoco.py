@@ -527,7 +527,7 @@ def stepped_config(scene: Scene, config: SimulationConfig, form: Form, tolerance
     that the soft joints meet `tolerance` where the error model holds; nested: `config`."""
     if form != "maximal":
         return config
-    substeps = maximal_substeps(scene, config.dt, config.duration, tolerance)
+    substeps = maximal_substeps(scene, config.dt, tolerance)
     return config if substeps == 1 else dataclasses.replace(config, dt=config.dt / substeps)
 
 
