@@ -13,13 +13,6 @@ and mjcf/maximal/).
   any loops; the joints are as soft as `MAXIMAL_SOLREF_STEPS` (errors measured there).
 - "nested", below.
 
-`form_error(scene, form, h, duration)` is either form's expected max node position
-error at MuJoCo step `h` (models fitted on open chains over 1 s,
-`MAXIMAL_ERROR_COEFFICIENT`), and `maximal_substeps(scene, dt, tolerance)` the MuJoCo
-steps per `dt` that
-bring the maximal form within `tolerance`: what the MuJoCo engines state as their
-`accuracy` and how MJX and MuJoCo Warp step the maximal form.
-
 - `scene_layout(scene)` (nested) is the scene's spanning tree: every link is a body hinged at
   one of its end nodes (axis z, normal to the plane). The tree grows breadth-first
   from the pinned nodes (world-fixed); a component without pins gets a free planar
@@ -41,6 +34,12 @@ bring the maximal form within `tolerance`: what the MuJoCo engines state as thei
   elements nested deeper than 500, so a tree deeper than `MAX_BODY_DEPTH` (496
   bodies, measured: chain496 compiles, chain497 is "XML parse error 18") cannot be
   rendered nested; `render` refuses it with a `SceneError` (the maximal form runs it).
+
+`form_error(scene, form, h, duration)` is either form's expected max node position
+error at MuJoCo step `h` (models fitted on open chains over 1 s,
+`MAXIMAL_ERROR_COEFFICIENT`), and `maximal_substeps(scene, dt, tolerance)` the MuJoCo
+steps per `dt` that bring the maximal form within `tolerance`: what the MuJoCo engines
+state as their `accuracy` and how MJX and MuJoCo Warp step the maximal form.
 
 Why a small string writer and not `mujoco.MjSpec` (issue 12 asked; measured on
 mujoco 4.0.0, 2-core CPU): MjSpec builds and compiles chain1000 (4.0 s) but not
@@ -107,8 +106,9 @@ SOLVER_ITERATIONS = 20
 # nested form at dt / 4; MJX and MuJoCo Warp step the same model with the same
 # arithmetic. Largest measured: maximal 5.8e-4 (2D), 1.27e-3 (3D); nested 6.5e-4 (2D,
 # errors under 1e-12 are round-off and left out), 5.6e-2 (3D). The maximal error falls
-# as h^2 (measured at h / 2: ratio 4.0). Other scenes differ by more than the margin (maximal form, dt 1e-4: a branching tree of unequal links 14x chain4's
-# coefficient, chain8-mixed 70x), so the models say nothing of them.
+# as h^2 (measured at h / 2: ratio 4.0). Other scenes differ by more than the margin
+# (maximal form, dt 1e-4: a branching tree of unequal links 14x chain4's coefficient,
+# chain8-mixed 70x), so the models say nothing of them.
 MAXIMAL_ERROR_COEFFICIENT = {2: 7.2e-4, 3: 1.6e-3}
 NESTED_ERROR_COEFFICIENT = {2: 8.2e-4, 3: 7e-2}
 # The run length (s) the models hold for. Beyond it the chains' chaos amplifies the
@@ -262,8 +262,8 @@ def rod_inertia(inertia: float, direction: np.ndarray) -> tuple[float, ...]:
 
 def error_model_holds(scene: Scene) -> bool:
     """Whether the error models (`form_error`) were fitted on scenes like `scene`: an open
-    chain or tree (no loops, one pin or none), no drag, gravity, and every link alike
-    (length, mass, inertia)."""
+    chain or tree (no loop, also none through the world between two pins), no drag,
+    gravity, and every link alike (length, mass, inertia)."""
     layout = scene_layout(scene)
     alike = all(np.ptp(values) <= 1e-12 * np.max(np.abs(values)) for values in (scene.lengths, scene.masses, scene.inertias))
     loops = layout.static_links or any(body.closes_loop for body in layout.bodies)
