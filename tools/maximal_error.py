@@ -17,7 +17,7 @@ dimensionless forms, `lgnn.engines.mjcf`). MJX steps with MuJoCo C's arithmetic
 the numbers are theirs too.
 
     PYTHONPATH=. python tools/maximal_error.py --links 4,8,16,24,40,64 --seeds 0,1,2,3,5 --substeps 1,2
-    PYTHONPATH=. python tools/maximal_error.py --dim 3 --links 4,8,16 --seeds 0,1 --substeps 1
+    PYTHONPATH=. python tools/maximal_error.py --dim 3 --links 4,8,16,32,64 --seeds 0,1 --substeps 1
 """
 
 from __future__ import annotations

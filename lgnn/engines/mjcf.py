@@ -101,14 +101,17 @@ SOLVER_ITERATIONS = 20
 # (the dimensionless error/l as a power of g h^2 / l). Each coefficient is 1.25x the
 # largest measured over 1 s at dt 1e-4 by `tools/maximal_error.py` (its docstring has
 # the commands): MuJoCo C on chain(N, seed), N = 4..64, seeds 0-3 and 5 (planar,
-# released from rest), and spatial_chain(N, seed), N = 4..16, seeds 0-1 (3D, released
+# released from rest), and spatial_chain(N, seed), N = 4..64, seeds 0-1 (3D, released
 # spinning: up to 2x (maximal) and 90x (nested) the planar coefficients), against the
 # nested form at dt / 4; MJX and MuJoCo Warp step the same model with the same
 # arithmetic. Largest measured: maximal 5.8e-4 (2D), 1.27e-3 (3D); nested 6.5e-4 (2D,
 # errors under 1e-12 are round-off and left out), 5.6e-2 (3D). The maximal error falls
-# as h^2 (measured at h / 2: ratio 4.0). Other scenes differ by more than the margin
-# (maximal form, dt 1e-4: a branching tree of unequal links 14x chain4's coefficient,
-# chain8-mixed 70x), so the models say nothing of them.
+# as h^2 (measured at h / 2: ratio 4.0). The largest coefficients come from short
+# chains (4-24 links); on 64 links they are 1.3-40x smaller, so the models overstate
+# long chains' errors by as much (and the maximal form's substeps by its square root).
+# Other scenes differ by more than the margin (maximal form, dt 1e-4: a branching tree
+# of unequal links 14x chain4's coefficient, chain8-mixed 70x), so the models say
+# nothing of them.
 MAXIMAL_ERROR_COEFFICIENT = {2: 7.2e-4, 3: 1.6e-3}
 NESTED_ERROR_COEFFICIENT = {2: 8.2e-4, 3: 7e-2}
 # The run length (s) the models hold for. Beyond it the chains' chaos amplifies the
