@@ -106,6 +106,26 @@ def test_unknown_form_is_one_line():
         mjwarp.runner(get_scene("chain4"), SHORT, 1, "spaghetti")
 
 
+def test_auto_form_is_mjx_choice_without_running_warp(tmp_path, capsys):
+    """`--engine mjwarp --form auto` resolves as MJX's "auto" does (nested to
+    `mjx.NESTED_MAX_DEPTH`, maximal beyond) and reaches MuJoCo Warp (here, where it is
+    not installed, its one-line absence, not an unknown form); the maximal form steps
+    at the MJX rule's step."""
+    from lgnn.engines import mjcf, mjx
+
+    engine = get_engine("mjwarp", form="auto")
+    deep, config = get_scene("chain16"), SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=1.0)
+    assert engine.form_of(get_scene("chain4")) == "nested" == mjx.best_form(get_scene("chain4"))
+    assert engine.form_of(deep) == "maximal" == mjx.best_form(deep)
+    form, stepped = engine.stepped(deep, config)
+    assert stepped.dt == config.dt / mjcf.maximal_substeps(deep, config.dt) < config.dt
+    assert stepped.frame_dt == config.frame_dt and stepped.duration == config.duration
+    if not mjwarp.available():
+        code = main(["simulate", "chain16", "--engine", "mjwarp", "--form", "auto", "--duration", "0.01",
+                     "--out", str(tmp_path / "x.npz"), "--quiet"])
+        assert code == 2 and "not installed" in capsys.readouterr().err
+
+
 @needs_mjwarp
 def test_maximal_form_sizes_its_constraint_rows():
     """A loop in the maximal form has 3 rows per `connect` equality (here more than the

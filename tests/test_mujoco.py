@@ -365,6 +365,65 @@ def test_mjx_maximal_chain12_compiles_and_agrees():
     assert np.max(np.abs(ours.q[0] - exact)) <= 1e-7
 
 
+def test_mjx_default_reproduces_a_24_link_chain_within_its_tolerance():
+    """MJX with its default form (maximal past depth 8) and settings (dt 1e-4) on a
+    24-link chain against the Lagrangian engine over 1 s: within the accuracy it states
+    (`mjcf.form_error` at the step `mjcf.maximal_substeps` chose), which meets the
+    ground-truth tolerance (measured: 2.0e-7, stated 9.8e-7 at one step per dt; MJX's
+    compile takes 1-4 minutes on a 2-core CPU)."""
+    s, config = chain(24), SimulationConfig(dt=1e-4, frame_dt=1e-3, duration=1.0)
+    engine = get_engine("mjx")
+    traj = engine.rollout(s, config, batch_of_one(s.initial_state))
+    accuracy = engine.accuracy(s, config)
+    assert traj.metadata["engine"]["form"] == "maximal" and traj.metadata["engine"]["accuracy"] == accuracy
+    err = np.max(np.abs(traj.q[0] - simulate(s, config).q))
+    assert err <= accuracy <= mjcf.MAXIMAL_TOLERANCE, (err, accuracy)
+
+
+def test_maximal_step_rule_meets_the_tolerance_where_dt_alone_did_not(monkeypatch):
+    """A 40-link chain in the maximal form at dt 1e-4 is 1.4e-6 from exact joints over
+    1 s (measured); MJX's engine steps it at `dt / mjcf.maximal_substeps` and then meets
+    the accuracy it states, within the tolerance. MJX's stepping is MuJoCo C's to
+    round-off per step (`tests/test_mjx_step.py`) and a 40-link MJX compile takes CPU
+    minutes, so the engine's stepping is MuJoCo C's here. The nested form's stated
+    accuracy (RK4's error) bounds its error at dt too. Reference: the nested form at dt / 4."""
+    from lgnn.engines import mjx
+
+    s, config = chain(40, seed=1), SimulationConfig(dt=1e-4, frame_dt=1e-3, duration=1.0)
+    reference = lm.rollout(s, SimulationConfig(dt=2.5e-5, frame_dt=1e-3, duration=1.0)).q[0]
+    alone = np.max(np.abs(lm.rollout(s, config, form="maximal").q[0] - reference))
+    assert alone > mjcf.MAXIMAL_TOLERANCE and mjcf.maximal_substeps(s, config.dt) > 1
+    monkeypatch.setattr(mjx, "rollout", lambda scene, stepped, states, dtype, form: lm.rollout(scene, stepped, states, form=form))
+    engine = get_engine("mjx")
+    traj = engine.rollout(s, config, batch_of_one(s.initial_state))
+    stepped = lm.stepped_config(s, config, "maximal", mjcf.MAXIMAL_TOLERANCE)
+    assert traj.metadata["engine"]["step"] == stepped.dt < config.dt and traj.t.shape == (1001,)
+    err = np.max(np.abs(traj.q[0] - reference))
+    assert err <= engine.accuracy(s, config) <= mjcf.MAXIMAL_TOLERANCE, (alone, err, engine.accuracy(s, config))
+    nested = np.max(np.abs(lm.rollout(s, config).q[0] - reference))
+    assert nested <= get_engine("mujoco").accuracy(s, config) <= mjcf.MAXIMAL_TOLERANCE
+
+
+def test_error_models_hold_only_where_fitted():
+    """`mjcf.form_error` is fitted on open chains of alike links under gravity over 1 s;
+    elsewhere it states nothing, and the maximal form steps at the caller's dt. Its errors fall as
+    h^2 (maximal) and h^4 (nested), and the step rule's count follows."""
+    for name in ("tree", "loop6", "chain4-drag", "chain8-mixed", "T1"):
+        assert mjcf.form_error(scene(name), "maximal", 1e-4, 1.0) is None
+        assert mjcf.maximal_substeps(scene(name), 1e-4) == 1
+    for s in (chain(40), get_scene("chain16-3d")):
+        maximal, nested = (mjcf.form_error(s, form, 1e-4, 1.0) for form in ("maximal", "nested"))
+        assert mjcf.form_error(s, "maximal", 5e-5, 1.0) == pytest.approx(maximal / 4)
+        assert mjcf.form_error(s, "nested", 5e-5, 1.0) == pytest.approx(nested / 16)
+        substeps = mjcf.maximal_substeps(s, 1e-4, tolerance=maximal / 10)
+        assert substeps == 4 and mjcf.form_error(s, "maximal", 1e-4 / substeps, 1.0) <= maximal / 10
+        # Past the fitted 1 s the chains' chaos grows the error faster: nothing is stated.
+        assert mjcf.form_error(s, "maximal", 1e-4, 2.0) is None and mjcf.form_error(s, "maximal", 1e-4, 0.5) == maximal
+    assert mjcf.maximal_substeps(chain(4), 1e-4) == 1
+    with pytest.raises(ConfigError, match="tolerance"):
+        mjcf.maximal_substeps(chain(4), 1e-4, tolerance=0.0)
+
+
 # --------------------------------------------------------------------- user scene, CLI
 
 

@@ -35,6 +35,12 @@ and mjcf/maximal/).
   bodies, measured: chain496 compiles, chain497 is "XML parse error 18") cannot be
   rendered nested; `render` refuses it with a `SceneError` (the maximal form runs it).
 
+`form_error(scene, form, h, duration)` is either form's expected max node position
+error at MuJoCo step `h` (models fitted on open chains over 1 s,
+`MAXIMAL_ERROR_COEFFICIENT`), and `maximal_substeps(scene, dt, tolerance)` the MuJoCo
+steps per `dt` that bring the maximal form within `tolerance`: what the MuJoCo engines
+state as their `accuracy` and how MJX and MuJoCo Warp step the maximal form.
+
 Why a small string writer and not `mujoco.MjSpec` (issue 12 asked; measured on
 mujoco 4.0.0, 2-core CPU): MjSpec builds and compiles chain1000 (4.0 s) but not
 chain1024 ("depth limit exceeded in signature computation": its own limit is 1023
@@ -50,6 +56,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 from typing import Literal, get_args
 
 import numpy as np
@@ -85,6 +92,36 @@ SOLIMP = (0.9999, 0.9999, 0.001, 0.5, 2.0)
 # or two iterations; the tolerance only stops it at round-off.
 SOLVER_TOLERANCE = 1e-14
 SOLVER_ITERATIONS = 20
+# The MuJoCo engines' error models: the max node position error (m) over a run of up
+# to 1 s against exact motion, on an open chain or tree of alike links under gravity
+# (`error_model_holds`), `depth` links deep (`scene_layout(scene).depth`), gravity g,
+# link length l, MuJoCo step h (`form_error`):
+#   nested (RK4 on exact joints):    NESTED_ERROR_COEFFICIENT[dim] * depth^5 * g^2 * h^4 / l
+#   maximal (soft `connect` joints): MAXIMAL_ERROR_COEFFICIENT[dim] * depth^3 * g * h^2
+# (the dimensionless error/l as a power of g h^2 / l). Each coefficient is 1.25x the
+# largest measured over 1 s at dt 1e-4 by `tools/maximal_error.py` (its docstring has
+# the commands): MuJoCo C on chain(N, seed), N = 4..64, seeds 0-3 and 5 (planar,
+# released from rest), and spatial_chain(N, seed), N = 4..64, seeds 0-1 (3D, released
+# spinning: up to 2x (maximal) and 90x (nested) the planar coefficients), against the
+# nested form at dt / 4; MJX and MuJoCo Warp step the same model with the same
+# arithmetic. Largest measured: maximal 5.8e-4 (2D), 1.27e-3 (3D); nested 6.5e-4 (2D,
+# errors under 1e-12 are round-off and left out), 5.6e-2 (3D). The maximal error falls
+# as h^2 (measured at h / 2: ratio 4.0). The largest coefficients come from short
+# chains (4-24 links); on 64 links they are 1.3-40x smaller, so the models overstate
+# long chains' errors by as much (and the maximal form's substeps by its square root).
+# Other scenes differ by more than the margin (maximal form, dt 1e-4: a branching tree
+# of unequal links 14x chain4's coefficient, chain8-mixed 70x), so the models say
+# nothing of them.
+MAXIMAL_ERROR_COEFFICIENT = {2: 7.2e-4, 3: 1.6e-3}
+NESTED_ERROR_COEFFICIENT = {2: 8.2e-4, 3: 7e-2}
+# The run length (s) the models hold for. Beyond it the chains' chaos amplifies the
+# error faster than in proportion (chain(40, seed=1), maximal, dt 1e-4: 1.4e-6, 7.4e-6,
+# 3.9e-5 after 1, 2, 3 s; `tools/maximal_error.py --links 40 --seeds 1 --substeps 1
+# --duration 3`), so nothing is stated for longer runs.
+MODELLED_DURATION = 1.0
+# The tolerance the maximal form's step is chosen to meet (`maximal_substeps`), as the
+# ground truth's max node error over 1 s (issue 29).
+MAXIMAL_TOLERANCE = 1e-6
 # Drawing sizes (viewer only, no physics): capsule and site radius per unit length.
 GEOM_RADIUS = 0.03
 SITE_RADIUS = 0.04
@@ -224,6 +261,46 @@ def rod_inertia(inertia: float, direction: np.ndarray) -> tuple[float, ...]:
     u = np.asarray(direction, np.float64) / np.linalg.norm(direction)
     tensor = inertia * (np.eye(3) - (1 - AXIAL_INERTIA_FRACTION) * np.outer(u, u))
     return (*np.diag(tensor), tensor[0, 1], tensor[0, 2], tensor[1, 2])
+
+
+def error_model_holds(scene: Scene) -> bool:
+    """Whether the error models (`form_error`) were fitted on scenes like `scene`: an open
+    chain or tree (no loop, also none through the world between two pins), no drag,
+    gravity, and every link alike (length, mass, inertia)."""
+    layout = scene_layout(scene)
+    alike = all(np.ptp(values) <= 1e-12 * np.max(np.abs(values)) for values in (scene.lengths, scene.masses, scene.inertias))
+    loops = layout.static_links or any(body.closes_loop for body in layout.bodies)
+    return alike and not loops and not scene.drag and float(scene.gravity) > 0
+
+
+def form_error(scene: Scene, form: Form, h: float, duration: float = MODELLED_DURATION) -> float | None:
+    """The expected max node position error (m) of `scene` in `form` at MuJoCo step `h`
+    over a run of `duration` seconds (the models above `MAXIMAL_ERROR_COEFFICIENT`);
+    None where they do not hold (`error_model_holds`, runs longer than
+    `MODELLED_DURATION`)."""
+    check_form(form)
+    if not error_model_holds(scene) or duration > MODELLED_DURATION:
+        return None
+    depth, g, length = scene_layout(scene).depth, float(scene.gravity), float(scene.lengths[0])
+    if form == "maximal":
+        return MAXIMAL_ERROR_COEFFICIENT[scene.dim] * depth**3 * g * h**2
+    return NESTED_ERROR_COEFFICIENT[scene.dim] * depth**5 * g**2 * h**4 / length
+
+
+def maximal_substeps(scene: Scene, dt: float, tolerance: float = MAXIMAL_TOLERANCE) -> int:
+    """MuJoCo steps per step `dt` in the maximal form: the fewest `s` whose step `dt / s`
+    has `form_error(scene, "maximal", dt / s) <= tolerance` over `MODELLED_DURATION`
+    (the error falls as h^2; longer runs step the same); 1 where the model does not
+    hold (nothing is promised there)."""
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise ConfigError(f"tolerance must be a positive number, got {tolerance}")
+    error = form_error(scene, "maximal", dt)
+    if error is None:
+        return 1
+    substeps = max(1, math.ceil(math.sqrt(error / tolerance)))
+    while form_error(scene, "maximal", dt / substeps) > tolerance:  # round-off of the square root
+        substeps += 1
+    return substeps
 
 
 def check_form(form: str) -> None:

@@ -24,8 +24,10 @@ freedom, so it gets MuJoCo's automatic choice (sparse from 60 on). Drag scenes a
 refused: their force needs the state at every step, which MuJoCo C and MJX compute
 outside the step (`xfrc_applied`) and this engine does not.
 
-`form` is the MJCF form (`lgnn.engines.mjcf`); "nested" (joint coordinates) is what
-`compile_scene` renders today, and other forms are passed on to it by name.
+`form` is the MJCF form (`lgnn.engines.mjcf`): "nested" (joint coordinates, the
+default), "maximal", or "auto", MJX's choice (`lgnn.engines.mjx.best_form`), so that
+the two engines run a scene in the same form. In the maximal form MuJoCo Warp steps
+at `dt / mjcf.maximal_substeps`, as MJX does (`lgnn.engines.mujoco.stepped_config`).
 """
 
 from __future__ import annotations
@@ -41,7 +43,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory
-from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, state_to_qpos_qvel
+from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form
+from lgnn.engines.mjx import best_form
+from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, resolve_form, state_to_qpos_qvel, stepped_config
 from lgnn.engines.timing import time_runs
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.scene import Scene, State
@@ -77,17 +81,6 @@ def versions() -> str:
     """`mujoco-warp X, warp-lang Y` of the installed packages."""
     warp, mujoco_warp, _ = _modules()
     return f"mujoco-warp {mujoco_warp.__version__}, warp-lang {warp.__version__}"
-
-
-def _compile(scene: Scene, dt: float, form: str):
-    # Only the nested form is rendered on this branch; another form is passed by name
-    # to `compile_scene`, which checks it once it renders more than one.
-    if form == DEFAULT_FORM:
-        return compile_scene(scene, dt)
-    try:
-        return compile_scene(scene, dt, form=form)
-    except TypeError:
-        raise ConfigError(f"MJCF form {form!r} is not available in this lgnn (only {DEFAULT_FORM!r})") from None
 
 
 @dataclasses.dataclass(eq=False)
@@ -174,14 +167,15 @@ class Runner:
 
 
 @functools.lru_cache(maxsize=8)
-def runner(scene: Scene, config: SimulationConfig, batch: int, form: str = DEFAULT_FORM, device: str | None = None) -> Runner:
-    """The `Runner` of `batch` worlds (cached on the scene's content, settings, batch,
-    form and device; default device: Warp's preferred, a GPU when there is one)."""
+def runner(scene: Scene, config: SimulationConfig, batch: int, form: Form = DEFAULT_FORM, device: str | None = None) -> Runner:
+    """The `Runner` of `batch` worlds stepping at `config.dt` (cached on the scene's
+    content, settings, batch, form and device; default device: Warp's preferred, a GPU
+    when there is one)."""
     wp, mjw, mujoco = _modules()
     check_rk4(config)
     if scene.drag:
         raise ConfigError(f"{scene.name}: the mjwarp engine does not model drag (use mujoco or mjx)")
-    compiled = _compile(scene, config.dt, form)
+    compiled = compile_scene(scene, config.dt, form)
     model = copy.copy(compiled.model)  # the compiled model is shared (cached): change a copy
     model.opt.jacobian = mujoco.mjtJacobian.mjJAC_AUTO
     device = str(wp.get_device(device))
@@ -215,7 +209,7 @@ def initial_qpos_qvel(compiled, states: State) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
 
 
-def rollout(scene: Scene, config: SimulationConfig, states: State, form: str = DEFAULT_FORM, device: str | None = None) -> State:
+def rollout(scene: Scene, config: SimulationConfig, states: State, form: Form = DEFAULT_FORM, device: str | None = None) -> State:
     """Node trajectories (B, F+1, N, dim) (float64 of MuJoCo Warp's float32) from initial
     node states (B, N, dim). Non-finite states are returned as they are."""
     run = runner(scene, config, len(states.q), form, device)
@@ -226,21 +220,39 @@ def rollout(scene: Scene, config: SimulationConfig, states: State, form: str = D
 @dataclasses.dataclass(frozen=True)
 class MjwarpEngine:
     """MuJoCo Warp as an `lgnn.engines.Engine`: float32 always (MuJoCo Warp has no
-    other precision), on the MJCF `form`, on Warp's `device` (default: its preferred)."""
+    other precision), on the MJCF `form` ("auto": MJX's `best_form`), on Warp's
+    `device` (default: its preferred); the maximal form meets `tolerance` as MJX's does."""
 
     name: ClassVar[str] = "mjwarp"
     dtype: ClassVar[str] = "float32"
     form: str = DEFAULT_FORM
     device: str | None = None
+    tolerance: float = MAXIMAL_TOLERANCE
+
+    def form_of(self, scene: Scene) -> Form:
+        """The MJCF form this engine runs `scene` in."""
+        return resolve_form(scene, self.form, best_form)
+
+    def stepped(self, scene: Scene, config: SimulationConfig) -> tuple[Form, SimulationConfig]:
+        """The form this engine runs `scene` in and the settings MuJoCo Warp steps at."""
+        form = self.form_of(scene)
+        return form, stepped_config(scene, config, form, self.tolerance)
+
+    def accuracy(self, scene: Scene, config: SimulationConfig) -> float | None:
+        """None: not stated. The form's error model (`mjcf.form_error`) holds in float64,
+        and MuJoCo Warp's float32 round-off is not modelled (measured: 7.6e-7 on chain4
+        after 100 steps, `tests/test_mjwarp.py`)."""
+        return None
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1)
         (lgnn's exact energy of the node states); stopped at the first non-finite or
         exploding frame like every engine."""
+        form, stepped = self.stepped(scene, config)
         start = time.perf_counter()
-        nodes = rollout(scene, config, states, self.form, self.device)
-        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start)
-        metadata["engine"].update(form=self.form, mujoco_warp=versions())
+        nodes = rollout(scene, stepped, states, form, self.device)
+        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form, step=stepped.dt)
+        metadata["engine"].update(mujoco_warp=versions())
         if not (np.isfinite(nodes.q).all() and np.isfinite(nodes.qd).all()):
             bad = int(np.argmin(np.isfinite(nodes.q).all(axis=(0, 2, 3)) & np.isfinite(nodes.qd).all(axis=(0, 2, 3))))
             t = bad * config.frame_dt
@@ -252,7 +264,8 @@ class MjwarpEngine:
         (and graph capture) when the runner was built (as `lgnn.bench.timing` reports a
         cached compile); run is the stepping alone, after one untimed run
         (`lgnn.engines.timing.time_runs`); `q` may be non-finite."""
-        run = runner(scene, config, len(states.q), self.form, self.device)
+        form, stepped = self.stepped(scene, config)
+        run = runner(scene, stepped, len(states.q), form, self.device)
         compile_s = run.prepare()
         qpos, qvel = initial_qpos_qvel(run.compiled, states)
         (run_s,), _ = time_runs(lambda: run.run(qpos, qvel))

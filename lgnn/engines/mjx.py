@@ -11,6 +11,12 @@ of CPU time; MJX has no tree depth there), so the engine runs the nested form to
 `NESTED_MAX_DEPTH` and the maximal form beyond (`best_form`), says so before
 compiling (`log`), and `runner` is cached.
 
+In the maximal form the engine steps at `dt / mjcf.maximal_substeps(...)` (the fewest
+MuJoCo steps per `dt` whose soft joints meet its `tolerance`, 1e-6 over 1 s by
+default, where the error model holds: open chains of alike links), and
+`MjxEngine.accuracy(scene, config)` states the expected error at the step taken
+(`mjcf.form_error`).
+
 Spatial scenes run the same way (ball and free joints; `qpos_rate` turns qvel into
 the quaternions' rates for the velocity `jvp`).
 
@@ -41,8 +47,9 @@ import mujoco
 import numpy as np
 
 from lgnn.engines.lagrangian import DTYPES, SimulationConfig, Trajectory
-from lgnn.engines.mjcf import Form, scene_layout
-from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, qpos_rate, quat_mul, resolve_form, state_to_qpos_qvel
+from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form, form_error, scene_layout
+from lgnn.engines.mujoco import (check_rk4, checked_trajectory, compile_scene, engine_metadata, qpos_rate, quat_mul, resolve_form,
+                                 state_to_qpos_qvel, stepped_config)
 from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.runtime import precision
@@ -333,40 +340,56 @@ def best_form(scene: Scene) -> Form:
 @dataclasses.dataclass(frozen=True)
 class MjxEngine:
     """MJX as an `lgnn.engines.Engine`, computing in `dtype`, on the MJCF `form`
-    ("auto": `best_form`); `log` (e.g. `print`) is told before a compile starts."""
+    ("auto": `best_form`); `log` (e.g. `print`) is told before a compile starts. In
+    the maximal form MuJoCo steps at `dt / mjcf.maximal_substeps` so that the run meets
+    `tolerance` where the error model holds (`mujoco.stepped_config`)."""
 
     name: ClassVar[str] = "mjx"
     dtype: str = "float64"
     form: str = "auto"
     log: Callable[[str], None] | None = None
+    tolerance: float = MAXIMAL_TOLERANCE
 
     def form_of(self, scene: Scene) -> Form:
         """The MJCF form this engine runs `scene` in."""
         return resolve_form(scene, self.form, best_form)
 
-    def _announced_form(self, scene: Scene, config: SimulationConfig) -> Form:
-        # The form, told to `log` first when this process has no runner for it yet.
+    def accuracy(self, scene: Scene, config: SimulationConfig) -> float | None:
+        """The expected max node position error (m) of a run at `config` against exact
+        motion: `mjcf.form_error` of its form at the step MuJoCo takes; None where the
+        error model does not hold, and in float32 (its round-off is not modelled)."""
+        if self.dtype != "float64":
+            return None
         form = self.form_of(scene)
-        if self.log is not None and not _has_runner(scene, config, self.dtype, form):
-            nv = compile_scene(scene, config.dt, form).model.nv
+        return form_error(scene, form, stepped_config(scene, config, form, self.tolerance).dt, config.duration)
+
+    def _announced_form(self, scene: Scene, config: SimulationConfig) -> tuple[Form, SimulationConfig]:
+        # The form and the settings MuJoCo steps at, told to `log` first when this
+        # process has no runner for them yet.
+        form = self.form_of(scene)
+        stepped = stepped_config(scene, config, form, self.tolerance)
+        if self.log is not None and not _has_runner(scene, stepped, self.dtype, form):
+            nv = compile_scene(scene, stepped.dt, form).model.nv
+            substeps = f", {stepped.steps_per_frame // config.steps_per_frame} steps per dt" if stepped is not config else ""
             self.log(f"MJX: compiling {scene.name} ({form} form, {nv} degrees of freedom, {self.dtype}, "
-                     f"{jax.default_backend()}); on a CPU this can take minutes")
-        return form
+                     f"{jax.default_backend()}{substeps}); on a CPU this can take minutes")
+        return form, stepped
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1)
         (lgnn's exact energy in float64 of the node states; MJX has none)."""
-        form = self._announced_form(scene, config)
+        form, stepped = self._announced_form(scene, config)
         start = time.perf_counter()
-        nodes = rollout(scene, config, states, self.dtype, form)
-        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form)
+        nodes = rollout(scene, stepped, states, self.dtype, form)
+        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form,
+                                   step=stepped.dt, accuracy=self.accuracy(scene, config))
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, dim))` of the compiled runner (`time_compiled`)."""
-        form = self._announced_form(scene, config)
+        form, stepped = self._announced_form(scene, config)
         with precision(self.dtype):
-            run = runner(scene, config, self.dtype, form)
+            run = runner(scene, stepped, self.dtype, form)
             compile_s, run_s, (q, _) = time_compiled(run, jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype))
         return compile_s, run_s, np.asarray(q, np.float64)
 

@@ -38,7 +38,8 @@ import mujoco
 import numpy as np
 
 from lgnn.engines.lagrangian import SimulationConfig, Trajectory
-from lgnn.engines.mjcf import MAX_BODY_DEPTH, MAXIMAL_SOLREF_STEPS, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, render, scene_layout
+from lgnn.engines.mjcf import (MAX_BODY_DEPTH, MAXIMAL_SOLREF_STEPS, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, form_error,
+                               maximal_substeps, render, scene_layout)
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.metrics import ExplosionBounds, true_energies
 from lgnn.runtime import precision
@@ -506,15 +507,28 @@ def checked_trajectory(scene: Scene, config: SimulationConfig, states: State, me
     return Trajectory(t, q, qd, energy, metadata)
 
 
-def engine_metadata(scene: Scene, config: SimulationConfig, engine: str, dtype: str, wall_s: float, form: Form = "nested") -> dict:
+def engine_metadata(scene: Scene, config: SimulationConfig, engine: str, dtype: str, wall_s: float, form: Form = "nested",
+                    step: float | None = None, accuracy: float | None = None) -> dict:
     """A MuJoCo engine's `Trajectory.metadata`: the scene, the settings, and the engine
-    (version, precision, stepping wall time, MJCF form, constraint stiffness)."""
+    (version, precision, stepping wall time, MJCF form, MuJoCo's `step` (default
+    `config.dt`), constraint stiffness, its stated `accuracy`)."""
     return {
         "scene": scene_to_dict(scene),
         "config": dataclasses.asdict(config),
         "engine": {"name": engine, "mujoco": mujoco.__version__, "dtype": dtype, "wall_s": wall_s, "form": form,
+                   "step": config.dt if step is None else step, "accuracy": accuracy,
                    "solref_steps": MAXIMAL_SOLREF_STEPS if form == "maximal" else SOLREF_STEPS, "solimp": list(SOLIMP)},
     }
+
+
+def stepped_config(scene: Scene, config: SimulationConfig, form: Form, tolerance: float) -> SimulationConfig:
+    """The settings MuJoCo steps at (MJX and MuJoCo Warp): in the maximal form `config`
+    with its step divided by `mjcf.maximal_substeps` (frames and duration unchanged), so
+    that the soft joints meet `tolerance` where the error model holds; nested: `config`."""
+    if form != "maximal":
+        return config
+    substeps = maximal_substeps(scene, config.dt, tolerance)
+    return config if substeps == 1 else dataclasses.replace(config, dt=config.dt / substeps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -531,12 +545,19 @@ class MujocoEngine:
         """The MJCF form this engine runs `scene` in."""
         return resolve_form(scene, self.form, best_form)
 
+    def accuracy(self, scene: Scene, config: SimulationConfig) -> float | None:
+        """The expected max node position error (m) of a run at `config` against exact
+        motion: `mjcf.form_error` of its form at `config.dt` (MuJoCo C steps at the step
+        it is given); None where the error model does not hold."""
+        return form_error(scene, self.form_of(scene), config.dt, config.duration)
+
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1)."""
         form = self.form_of(scene)
         start = time.perf_counter()
         nodes = rollout(scene, config, states, threads=self.threads, form=form)
-        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form)
+        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form,
+                                   accuracy=self.accuracy(scene, config))
         return checked_trajectory(scene, config, nodes, metadata, self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
