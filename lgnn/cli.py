@@ -21,6 +21,13 @@ from lgnn.errors import ConfigError, LgnnError, SimulationError
 # Exit statuses (README, "Exit statuses").
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3  # a simulation or rollout diverged; the frames before it are kept
+# `lgnn convergence --halvings`: dt / 2^20 is a millionth of the coarsest step, already
+# more steps than a run finishes in a day.
+MAX_HALVINGS = 20
+# `lgnn animate`: frames per second and simulated seconds per second of animation; out
+# of these, a frame lasts longer than a GIF can say or the stride overflows.
+FPS_RANGE = (0.1, 1000.0)
+SPEED_RANGE = (1e-6, 1e6)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -34,7 +41,17 @@ class _Parser(argparse.ArgumentParser):
         self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
 
     def error(self, message: str):
-        self.exit(2, f"lgnn: error: {message} (see: {self.prog} --help)\n")
+        self.exit(2, f"lgnn: error: {one_line(message)} (see: {self.prog} --help)\n")
+
+
+# Characters that would break the one error line (a newline in a file name) or the
+# terminal's encoding (a lone surrogate from an undecodable name): shown escaped.
+_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")
+
+
+def one_line(message: str) -> str:
+    """`message` with control characters and lone surrogates escaped (`\\n`, `\\udcff`)."""
+    return _UNPRINTABLE.sub(lambda match: repr(match.group())[1:-1], message)
 
 
 def _positive_float(text: str) -> float:
@@ -47,14 +64,37 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive whole number, got {text}")
-    return value
+def _float_in(low: float, high: float):
+    """An option's type: a number in [low, high] (a rate whose reciprocal must stay finite)."""
+
+    def parse(text: str) -> float:
+        value = _positive_float(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be between {low:g} and {high:g}, got {text}")
+        return value
+
+    return parse
+
+
+def _int_in(low: int, high: int | None = None):
+    """An option's type: a whole number >= low (and <= high when given)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be a {'positive' if low == 1 else f'>= {low}'} whole number, got {text}")
+        if high is not None and value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high}, got {text}")
+        return value
+
+    return parse
+
+
+_positive_int = _int_in(1)
+_nonnegative_int = _int_in(0)
 
 
 def _model_reference(text: str) -> str:
@@ -267,12 +307,12 @@ def _add_mujoco_commands(commands) -> None:
     check.add_argument("scenes", nargs="*", help="built-in names or scene files (default: chain4 chain8 chain16 chain100 T1 T2 T3)")
     check.add_argument("--engines", default="lagrangian,mujoco,mjx",
                        help="comma-separated engines, each NAME or NAME:FORM (e.g. mujoco:nested,mujoco:maximal: both MJCF forms in one table)")
-    check.add_argument("--mjx-max-depth", type=int, help="skip MJX on deeper trees (default: skip none)")
+    check.add_argument("--mjx-max-depth", type=_nonnegative_int, help="skip MJX on deeper trees (default: skip none)")
     check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")
-    check.add_argument("--speed-dts", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="--speed: steps of the single-state runs")
-    check.add_argument("--batch", type=int, nargs="+", default=[100], help="--speed: batch sizes of the batched runs (default 100)")
-    check.add_argument("--batch-dts", type=float, nargs="+", default=[1e-4], help="--speed: steps of the batched runs (default 1e-4)")
-    check.add_argument("--max-steps", type=int, default=25_000, help="--speed: skip JAX runs over 16x this many link-steps")
+    check.add_argument("--speed-dts", type=_positive_float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="--speed: steps of the single-state runs")
+    check.add_argument("--batch", type=_positive_int, nargs="+", default=[100], help="--speed: batch sizes of the batched runs (default 100)")
+    check.add_argument("--batch-dts", type=_positive_float, nargs="+", default=[1e-4], help="--speed: steps of the batched runs (default 1e-4)")
+    check.add_argument("--max-steps", type=_positive_int, default=25_000, help="--speed: skip JAX runs over 16x this many link-steps")
     check.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="--speed: precision of the JAX engines")
     check.add_argument("--out-dir", default=None, help="output directory (default: ./lgnn-out; the committed tables are results/)")
     _add_simulation_options(check)
@@ -307,7 +347,7 @@ def _cmd_convergence(args) -> None:
 def _add_convergence_parser(commands) -> None:
     parser = commands.add_parser("convergence", help="measure the Lagrangian reference's convergence in dt on each scene")
     parser.add_argument("scenes", nargs="*", help="built-in names or scene files (default: every built-in scene, then T2-slack and T3-slack)")
-    parser.add_argument("--halvings", type=_positive_int, default=3, help="runs at dt, dt/2, ..., dt/2^halvings (default 3)")
+    parser.add_argument("--halvings", type=_int_in(1, MAX_HALVINGS), default=3, help="runs at dt, dt/2, ..., dt/2^halvings (default 3)")
     parser.add_argument("--dt", type=_positive_float, default=None, help="coarsest step (default: the full benchmark's step for the scene)")
     parser.add_argument("--horizon", type=_positive_float, default=None,
                         help="simulated seconds (default: 1 s, 0.1 s on chain100 and the self-stressed or large scenes)")
@@ -371,13 +411,13 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--scene", default="chain4", help="training scene (built-in name or JSON file)")
     parser.add_argument("--epochs", type=_positive_int, default=default.epochs, help="epoch budget (paper: 10000)")
     parser.add_argument("--minutes", type=_positive_float, default=None, help="optional wall-clock cap (checked after each epoch); the budget is --epochs")
-    parser.add_argument("--patience", type=int, default=default.patience, help="early stopping: epochs without improvement")
+    parser.add_argument("--patience", type=_positive_int, default=default.patience, help="early stopping: epochs without improvement")
     # `lgnn train` keeps the paper's rate and the full warm-up whatever the budget (the
     # benchmark's profiles follow `train.scheduled`'s short-budget rule instead).
     parser.add_argument("--lr", type=_positive_float, default=PAPER_LEARNING_RATE, help=f"peak learning rate (paper: {PAPER_LEARNING_RATE:g})")
-    parser.add_argument("--batch-size", type=int, default=default.batch_size)
-    parser.add_argument("--message-passing", type=int, default=None, help="message-passing layers (default: the model's)")
-    parser.add_argument("--trajectories", type=int, default=100, help="training trajectories (paper: 100)")
+    parser.add_argument("--batch-size", type=_positive_int, default=default.batch_size)
+    parser.add_argument("--message-passing", type=_nonnegative_int, default=None, help="message-passing layers (default: the model's)")
+    parser.add_argument("--trajectories", type=_positive_int, default=100, help="training trajectories (paper: 100)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cache-dir", default=None, help="training data cache (default: datasets/ in $LGNN_CACHE, else $XDG_CACHE_HOME/lgnn, else ~/.cache/lgnn)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
@@ -487,8 +527,8 @@ def _add_evaluation_parsers(commands) -> None:
     animate = commands.add_parser("animate", help="animate trajectory files over each other (the first underneath)")
     animate.add_argument("files", nargs="+", metavar="FILE", help="trajectory .npz files of one scene, the reference (ground truth) first")
     animate.add_argument("--out", required=True, help="output .gif (Pillow) or .mp4 (needs ffmpeg)")
-    animate.add_argument("--fps", type=_positive_float, default=30.0, help="animation frames per second (default 30)")
-    animate.add_argument("--speed", type=_positive_float, default=1.0, help="simulated seconds per second of animation (default 1)")
+    animate.add_argument("--fps", type=_float_in(*FPS_RANGE), default=30.0, help="animation frames per second (default 30)")
+    animate.add_argument("--speed", type=_float_in(*SPEED_RANGE), default=1.0, help="simulated seconds per second of animation (default 1)")
     animate.set_defaults(run=_cmd_animate)
 
     plot = commands.add_parser("plot", help="per-node error against the first file and energy, against time")
@@ -628,7 +668,7 @@ def _add_stability_parser(commands) -> None:
     for name in ("long_horizon", "large_step_horizon", "chain1000_horizon", "model_horizon", "singular_horizon"):
         parser.add_argument(f"--{name.replace('_', '-')}", type=_positive_float, default=getattr(default, name),
                             help=f"simulated seconds (default {getattr(default, name):g})")
-    parser.add_argument("--cost-sizes", type=int, nargs="*", default=list(default.cost_sizes), help="chain sizes timed per step (none: skip)")
+    parser.add_argument("--cost-sizes", type=_positive_int, nargs="*", default=list(default.cost_sizes), help="chain sizes timed per step (none: skip)")
     names = list(dict.fromkeys(case.name for case in cases()))
     parser.add_argument("--case", action="append", choices=names, metavar="CASE", help=f"only this case (repeatable): {', '.join(names)}")
     parser.add_argument("--quiet", action="store_true", help="no per-case lines")
@@ -718,10 +758,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args.run(args)
     except SimulationError as err:
-        print(f"lgnn: error: {err}", file=sys.stderr)
+        print(f"lgnn: error: {one_line(str(err))}", file=sys.stderr)
         return EXIT_DIVERGED
     except LgnnError as err:
-        print(f"lgnn: error: {err}", file=sys.stderr)
+        print(f"lgnn: error: {one_line(str(err))}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("lgnn: interrupted", file=sys.stderr)

@@ -36,6 +36,11 @@ from lgnn.scene import Scene, State, scene_to_dict
 NPZ_KEYS = ("t", "q", "qd", "energy")
 # Precisions an engine can be asked to compute in (`lgnn.engines.get_engine`).
 DTYPES = ("float64", "float32")
+# Bounds of one run, refused before anything is allocated: 1e10 steps is days of
+# integration on any device; 1e7 frames of a 100-node chain are 32 GB of positions
+# and velocities.
+MAX_STEPS = 1e10
+MAX_FRAMES = 1e7
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +64,11 @@ class SimulationConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name.replace('_', '-')} must be a positive number, got {value}")
+        # Ratios first: a duration of 1e308 or a dt of 5e-324 overflows a count of frames.
+        if not self.frame_dt / self.dt <= MAX_STEPS or not self.duration / self.frame_dt * (self.frame_dt / self.dt) <= MAX_STEPS:
+            raise ConfigError(f"duration {self.duration:g} at dt {self.dt:g} is more than {MAX_STEPS:.0e} steps")
+        if not self.duration / self.frame_dt <= MAX_FRAMES:
+            raise ConfigError(f"duration {self.duration:g} at frame-dt {self.frame_dt:g} is more than {MAX_FRAMES:.0e} frames (the trajectory is kept in memory)")
         if abs(self.steps_per_frame * self.dt - self.frame_dt) > 1e-9 * self.frame_dt:
             raise ConfigError(f"frame-dt {self.frame_dt:g} is not a whole multiple of dt {self.dt:g}")
         if abs(self.n_frames * self.frame_dt - self.duration) > 1e-9 * self.duration or self.n_frames < 1:

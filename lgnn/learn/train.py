@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import os
 import time
 from pathlib import Path
@@ -120,12 +121,12 @@ class TrainConfig:
     min_improvement: float = 0.0
 
     def __post_init__(self):
-        if self.learning_rate is not None and not self.learning_rate > 0:
-            raise ConfigError(f"learning rate must be > 0, got {self.learning_rate}")
+        if self.learning_rate is not None and not 0 < self.learning_rate < float("inf"):
+            raise ConfigError(f"learning rate must be a positive number, got {self.learning_rate}")
         peak = PAPER_LEARNING_RATE if self.learning_rate is None else self.learning_rate
         if (self.warmup_steps or 0) < 0 or self.decay_steps < 1 or not 0 < self.decay_rate <= 1 or not 0 <= self.min_learning_rate <= peak:
             raise ConfigError("warm-up steps must be >= 0, decay steps >= 1, decay rate in (0, 1], 0 <= minimum learning rate <= learning rate")
-        if self.clip_norm is not None and not self.clip_norm > 0:
+        if self.clip_norm is not None and not 0 < self.clip_norm < float("inf"):
             raise ConfigError(f"clip norm must be > 0, got {self.clip_norm}")
         if self.batch_size < 1 or self.epochs < 0 or self.patience < 1 or self.checkpoint_every < 1:
             raise ConfigError("batch size, patience and checkpoint interval must be >= 1, epochs >= 0")
@@ -434,7 +435,48 @@ def _read(path) -> tuple[dict, dict]:
         raise CheckpointError(str(err)) from None
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, expected {CHECKPOINT_FORMAT}")
+    problem = _meta_problem(meta)
+    if problem:
+        raise CheckpointError(f"{path}: invalid checkpoint meta: {problem}")
     return meta, arrays
+
+
+def _meta_problem(meta: dict) -> str | None:
+    """What is wrong with a checkpoint's meta (types and ranges of every field `load_checkpoint`
+    reads; a valid checksum says only that nobody edited it by accident), or None."""
+
+    def whole(value, low=0) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+    def real(value) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+    def number(value) -> bool:
+        return real(value) and math.isfinite(value)
+
+    for key in ("model", "train_config"):
+        if not isinstance(meta.get(key), dict):
+            return f"{key!r} must be an object, got {meta.get(key)!r}"
+    data = meta.get("data")
+    if data is not None and not (isinstance(data, dict) and isinstance(data.get("scene"), str)):
+        return f"'data' must be an object naming its scene, got {data!r}"
+    for key in ("epoch", "best_epoch"):
+        if not whole(meta.get(key)):
+            return f"{key!r} must be a whole number >= 0, got {meta.get(key)!r}"
+    if meta["best_epoch"] > meta["epoch"]:
+        return f"'best_epoch' {meta['best_epoch']} is after 'epoch' {meta['epoch']}"
+    if meta.get("best_val") is not None and not (number(meta["best_val"]) and meta["best_val"] >= 0):
+        return f"'best_val' must be a number >= 0 or null, got {meta['best_val']!r}"
+    if not number(meta.get("elapsed_s", 0.0)) or meta.get("elapsed_s", 0.0) < 0:
+        return f"'elapsed_s' must be a number >= 0, got {meta['elapsed_s']!r}"
+    history = meta.get("history")
+    # Losses may be NaN or inf (an epoch that diverged is history too).
+    if not isinstance(history, list):
+        return f"'history' must be a list of [epoch, train loss, validation loss(, seconds)], got {history!r}"
+    for k, entry in enumerate(history):
+        if not (isinstance(entry, list) and len(entry) in (3, 4) and whole(entry[0]) and all(real(v) for v in entry[1:])):
+            return f"'history'[{k}] must be [epoch, train loss, validation loss(, seconds)], got {entry!r}"
+    return None
 
 
 def _restore(path, template, arrays: dict, prefix: str):
