@@ -448,6 +448,7 @@ def _cmd_evaluate(args) -> None:
     from lgnn import physics
     from lgnn.bench import evaluation
     from lgnn.files import check_writable
+    from lgnn.learn.models import check_compatible
     from lgnn.learn.train import load_model
     from lgnn.scene import get_scene
 
@@ -456,16 +457,19 @@ def _cmd_evaluate(args) -> None:
     check_writable(out / "evaluate_summary.md")
     _import_model_code(args)
     model, params = load_model(args.model)
-    scored, written = [], []
-    for name in args.scenes:
-        scene = get_scene(name)
+    scenes = [get_scene(name) for name in args.scenes]  # every scene checked before any rollout
+    for scene in scenes:
+        check_compatible(model, scene)
+    scored, kept = [], {}
+    for scene in scenes:
         states = physics.own_or_sampled_states(scene, args.initial_conditions, args.seed)
         scene_scores, trajectories = evaluation.evaluate_model(model, params, scene, config, states, progress=not args.quiet)
         scored += scene_scores
-        for engine, trajectory in trajectories.items():
-            path = out / f"{scene.name}_{engine}.npz"
-            trajectory.save(path)
-            written.append(path)
+        kept.update({out / f"{scene.name}_{engine}.npz": trajectory for engine, trajectory in trajectories.items()})
+    # Written together once every scene has run: a failed command leaves nothing.
+    for path, trajectory in kept.items():
+        trajectory.save(path)
+    written = list(kept)
     command = "lgnn " + " ".join(args.argv)
     header = (command, f"model {model.name} ({args.model}); {config.integrator} dt {config.dt:g}, frames every {config.frame_dt:g} s, "
               f"{config.duration:g} s; initial conditions: " + ("the scene's own" if args.initial_conditions == 1 else
@@ -562,9 +566,12 @@ def _cmd_benchmark(args) -> None:
     from lgnn.bench import grid
     from lgnn.bench.run import STAGES, run
     from lgnn.bench.store import default_out
+    from lgnn.files import check_out_dir
 
     if sum(map(bool, (args.full, args.profile, args.config))) > 1:
         raise ConfigError("give one of --config, --profile and --full")
+    if args.out_dir:
+        check_out_dir(args.out_dir)
     overrides = list(args.set or ()) + ([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])
     # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
     profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
@@ -610,7 +617,9 @@ def _cmd_dataset_export(args) -> None:
     from lgnn.files import check_writable
     from lgnn.learn import data
 
-    check_writable(args.out)
+    from lgnn.learn.export import check_path
+
+    check_path(check_writable(args.out))
     profile = grid.load_profile(args.config or args.profile, args.set or ())
     shapes = export_scene(profile, args.scene, args.out, args.cache_dir or data.default_cache_dir(), progress=not args.quiet)
     print(f"{args.scene}: {shapes['q'][0]} states ({shapes['train'][0]} train, {shapes['val'][0]} validation), "

@@ -26,12 +26,13 @@ import numpy as np
 
 from lgnn import physics, sharding
 from lgnn.engines.timing import time_compiled
-from lgnn.files import atomic_path
+from lgnn.files import atomic_path, check_regular_input
 from lgnn.metrics import ExplosionBounds
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.integrate import INTEGRATORS, Integrator, advance, rollout
 from lgnn.runtime import in_float64, precision
 from lgnn.scene import Scene, State, scene_to_dict
+from lgnn.scene.schema import MAX_MAGNITUDE
 
 NPZ_KEYS = ("t", "q", "qd", "energy")
 # Precisions an engine can be asked to compute in (`lgnn.engines.get_engine`).
@@ -113,15 +114,54 @@ class Trajectory:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Trajectory":
+        """The trajectory file at `path`, its arrays and metadata checked (`trajectory_problem`);
+        `ConfigError` (one line) for anything else."""
+        check_regular_input(path, "trajectory file")
         try:
             with np.load(path, allow_pickle=False) as data:
+                if not isinstance(data, np.lib.npyio.NpzFile):
+                    raise ConfigError(f"{path}: not a trajectory file (an .npz of {', '.join(NPZ_KEYS)})")
                 missing = [key for key in NPZ_KEYS if key not in data]
                 if missing:
                     raise ConfigError(f"{path}: not a trajectory file (missing {', '.join(missing)})")
                 metadata = json.loads(str(data["metadata"])) if "metadata" in data else {}
-                return cls(*(np.asarray(data[key]) for key in NPZ_KEYS), metadata=metadata)
+                arrays = [np.asarray(data[key]) for key in NPZ_KEYS]
+        except (AttributeError, TypeError):  # np.load of a .npy: a bare array, no context manager
+            raise ConfigError(f"{path}: not a trajectory file (an .npz of {', '.join(NPZ_KEYS)})") from None
+        except RecursionError:
+            raise ConfigError(f"{path}: trajectory metadata nested too deeply") from None
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"{path}: trajectory metadata is not JSON ({err.msg})") from None
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
             raise ConfigError(f"{path}: cannot read trajectory: {err}") from None
+        problem = trajectory_problem(*arrays, metadata)
+        if problem:
+            raise ConfigError(f"{path}: not a valid trajectory: {problem}")
+        return cls(*arrays, metadata=metadata)
+
+
+def trajectory_problem(t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray, metadata) -> str | None:
+    """What makes arrays and metadata read from a file not one trajectory (`Trajectory`'s
+    shapes, real finite numbers within a scene's `MAX_MAGNITUDE`, a JSON object of metadata whose
+    `scene`, `model` and `engine` are objects), or None."""
+    if not isinstance(metadata, dict):
+        return f"metadata must be a JSON object, got {type(metadata).__name__}"
+    for key in ("scene", "model", "engine"):
+        if key in metadata and not isinstance(metadata[key], dict):
+            return f"metadata {key!r} must be an object, got {metadata[key]!r:.40}"
+    for name, array in zip(NPZ_KEYS, (t, q, qd, energy)):
+        if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+            return f"{name} must hold real numbers, got dtype {array.dtype}"
+        # Frames after a divergence are never kept (the engines stop there).
+        if not np.all(np.abs(array) <= MAX_MAGNITUDE):
+            return f"{name} holds values that are not finite or beyond {MAX_MAGNITUDE:g}"
+    if t.ndim != 1 or len(t) < 1:
+        return f"t must be (frames,), got shape {t.shape}"
+    if q.ndim != 3 or q.shape[0] != len(t) or qd.shape != q.shape:
+        return f"q and qd must be (frames, nodes, dim) with {len(t)} frames, got {q.shape} and {qd.shape}"
+    if energy.shape != t.shape:
+        return f"energy must be (frames,) = {t.shape}, got {energy.shape}"
+    return None
 
 
 def check_state(scene: Scene, state: State) -> State:
