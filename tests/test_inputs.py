@@ -16,6 +16,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import signal
 import stat
 import subprocess
 import sys
@@ -30,6 +31,9 @@ from lgnn.cli import main
 CHECKPOINT = Path(__file__).resolve().parents[1] / "results/benchmark/checkpoints/lgnn-chain4-s0.npz"
 CHAIN4 = {"name": "c", "gravity": 10, "nodes": [[0, 0], [1, 0], [2, 0]], "pinned": [0],
           "links": [{"nodes": [0, 1], "mass": 1, "inertia": 0.1}, {"nodes": [1, 2], "mass": 1, "inertia": 0.1}]}
+# Seconds a case may run: a refusal takes a few (a child process starts JAX); more is a
+# hang, or long work that a wrongly accepted input started.
+TIMEOUT_S = 60
 SIMULATE_SHORT = ["--duration", "0.01", "--dt", "1e-3", "--frame-dt", "1e-3", "--quiet"]
 
 
@@ -274,20 +278,37 @@ def snapshot(folder: Path) -> dict:
     return entries
 
 
+class Hang(Exception):
+    pass
+
+
 def run_in_process(argv, capsys) -> tuple[int, str]:
+    """`main(argv)`'s exit status and stderr; a run past `TIMEOUT_S` is a failure (a
+    hang, or work an accepted bad input started)."""
+
+    def alarm(signum, frame):
+        raise Hang
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    signal.alarm(TIMEOUT_S)
     try:
         code = main(argv)
     except SystemExit as exit:
         code = exit.code
+    except Hang:
+        pytest.fail(f"still running after {TIMEOUT_S} s: lgnn {' '.join(argv)}")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
     err = capsys.readouterr().err
     return code, err
 
 
 def run_child(argv) -> tuple[int, str]:
     try:
-        result = subprocess.run([sys.executable, "-m", "lgnn.cli", *argv], capture_output=True, text=True, timeout=90, stdin=subprocess.DEVNULL)
+        result = subprocess.run([sys.executable, "-m", "lgnn.cli", *argv], capture_output=True, text=True, timeout=TIMEOUT_S, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired:
-        pytest.fail(f"hang: still running after 90 s: lgnn {' '.join(argv)}")
+        pytest.fail(f"hang: still running after {TIMEOUT_S} s: lgnn {' '.join(argv)}")
     return result.returncode, result.stderr
 
 

@@ -364,14 +364,18 @@ def _check_names(profile: Profile) -> None:
                 get_scene(name)
             except SceneError as err:
                 raise ConfigError(f"grid[{k}]: {err}") from None
+    unknown_models = sorted(set(profile.models or ()) - set(model_names()))
+    if unknown_models:
+        raise ConfigError(f"setting 'models': unknown model {unknown_models[0]!r} (choose from {', '.join(model_names())})")
+    # A selection filters the grid (a shipped profile's may name scenes a user's grid lacks), but must keep something.
     in_grid = {"scenes": {n for e in profile.grid for n in e.eval_scenes}, "train_scenes": {e.train_scene for e in profile.grid},
                "models": {e.model for e in profile.grid}}
     for key, known in in_grid.items():
-        unknown = sorted(set(getattr(profile, key) or ()) - known)
-        if unknown:
-            raise ConfigError(f"setting {key!r}: {unknown[0]!r} is not in the grid (choose from {', '.join(sorted(known))})")
-    for key, names in (("speed.scenes", profile.speed.scenes), ("scaling.throughput_scenes", profile.scaling.throughput_scenes),
-                       ("mass.scenes", profile.mass.scenes)):
+        selected = getattr(profile, key)
+        if selected is not None and not set(selected) & known:
+            raise ConfigError(f"setting {key!r}: {', '.join(selected) or 'none'} keeps nothing of the grid (which has {', '.join(sorted(known))})")
+    for key, names in (("scenes", profile.scenes or ()), ("train_scenes", profile.train_scenes or ()), ("speed.scenes", profile.speed.scenes),
+                       ("scaling.throughput_scenes", profile.scaling.throughput_scenes), ("mass.scenes", profile.mass.scenes)):
         for name in names:
             try:
                 get_scene(name)

@@ -122,7 +122,7 @@ class TrainConfig:
 
     def __post_init__(self):
         if self.learning_rate is not None and not 0 < self.learning_rate < float("inf"):
-            raise ConfigError(f"learning rate must be a positive number, got {self.learning_rate}")
+            raise ConfigError(f"learning rate must be > 0 and finite, got {self.learning_rate}")
         peak = PAPER_LEARNING_RATE if self.learning_rate is None else self.learning_rate
         if (self.warmup_steps or 0) < 0 or self.decay_steps < 1 or not 0 < self.decay_rate <= 1 or not 0 <= self.min_learning_rate <= peak:
             raise ConfigError("warm-up steps must be >= 0, decay steps >= 1, decay rate in (0, 1], 0 <= minimum learning rate <= learning rate")
