@@ -139,6 +139,12 @@ def set_case(id: str, setting: str, words: str, command: str = "benchmark") -> C
 
 BIG = "1" + "0" * 400
 
+
+def long_chain(links: int) -> str:
+    """A valid straight chain of `links` links pinned at one end."""
+    return json.dumps({"name": "long", "nodes": [[float(k), 0.0] for k in range(links + 1)], "pinned": [0],
+                       "links": [{"nodes": [k, k + 1], "mass": 1.0, "inertia": 0.1} for k in range(links)]})
+
 CASES = [
     # --- scene files: numbers, nesting, names, paths --------------------------------
     Case("scene-huge-int-gravity", ["mjcf", "{tmp}/s.json", "--out", "{tmp}/o.xml"], 2, "gravity", {"s.json": text(scene(gravity=0).replace('"gravity": 0', f'"gravity": {BIG}'))}),
@@ -153,6 +159,7 @@ CASES = [
     Case("scene-fifo", simulate("{tmp}/s.json", "--out", "{tmp}/o.npz"), 2, "not a regular file", {"s.json": fifo}),
     Case("scene-nan", ["mjcf", "{tmp}/s.json", "--out", "{tmp}/o.xml"], 2, "NaN", {"s.json": text(scene(gravity=0).replace('"gravity": 0', '"gravity": NaN'))}),
     Case("scene-not-utf8", ["mjcf", "{tmp}/s.json", "--out", "{tmp}/o.xml"], 2, "UTF-8", {"s.json": text(b'{"name": "\xff"}')}),
+    Case("scene-too-large", simulate("{tmp}/s.json", *SIMULATE_SHORT, "--out", "{tmp}/o.npz"), 2, "coordinates", {"s.json": text(long_chain(10_000))}),
     # --- CLI options: overflow, ranges, formats --------------------------------------
     Case("simulate-duration-overflow", simulate("chain4", "--duration", "1e308", "--out", "{tmp}/o.npz"), 2, "duration"),
     Case("simulate-tiny-dt", simulate("chain4", "--dt", "5e-324", "--frame-dt", "5e-324", "--out", "{tmp}/o.npz"), 2, "steps"),
