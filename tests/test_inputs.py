@@ -367,3 +367,125 @@ def test_an_output_naming_a_device_is_refused_not_replaced(tmp_path, capsys):
     code, err = run_in_process(["mjcf", "chain4", "--out", str(device)], capsys)
     assert code == 2 and "not a regular file" in err
     assert stat.S_ISCHR(device.lstat().st_mode)
+
+
+# ---------------------------------------------------------------------------------
+# Generated inputs (hypothesis): whatever the input, one of two answers
+# ---------------------------------------------------------------------------------
+
+from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+
+from lgnn.engines.lagrangian import MAX_FRAMES, MAX_STEPS, SimulationConfig  # noqa: E402
+from lgnn.errors import ConfigError  # noqa: E402
+
+GENERATED = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers(-(10**500), 10**500) | st.floats(allow_nan=False, allow_infinity=False) | st.text(max_size=8),
+    lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=6), children, max_size=4),
+    max_leaves=12,
+)
+
+
+def answered_cleanly(code, err: str, folder: Path, before: dict, written: Path | None = None) -> None:
+    """The property: exit 0 (with `written` present), or exit 2 or 3 with one
+    `lgnn: error:` line and the folder as it was."""
+    assert "Traceback" not in err, err
+    if code == 0:
+        assert written is None or written.is_file()
+        return
+    lines = err.strip().splitlines()
+    assert code in (2, 3) and len(lines) == 1 and lines[0].startswith("lgnn: error:"), err
+    assert snapshot(folder) == before
+
+
+def mutated(document: dict, path: tuple, value) -> dict:
+    """`document` with the entry at `path` (keys and indices) set to `value`."""
+    document = json.loads(json.dumps(document))
+    node = document
+    for step in path[:-1]:
+        node = node[step]
+    node[path[-1]] = value
+    return document
+
+
+SCENE_PATHS = st.sampled_from([("name",), ("gravity",), ("drag",), ("nodes",), ("nodes", 1), ("nodes", 1, 0), ("pinned",), ("pinned", 0),
+                               ("links",), ("links", 0), ("links", 0, "nodes"), ("links", 0, "nodes", 1), ("links", 1, "mass"),
+                               ("links", 1, "inertia"), ("links", 0, "length"), ("links", 0, "type"), ("velocities",), ("extra",)])
+
+
+@GENERATED
+@given(path=SCENE_PATHS, value=JSON_VALUES)
+def test_generated_scene_files_are_rendered_or_refused_in_one_line(tmp_path_factory, capsys, path, value):
+    folder = tmp_path_factory.mktemp("scene")
+    (folder / "s.json").write_text(json.dumps(mutated(CHAIN4, path, value)))
+    before = snapshot(folder)
+    code, err = run_in_process(["mjcf", str(folder / "s.json"), "--out", str(folder / "o.xml")], capsys)
+    answered_cleanly(code, err, folder, before, folder / "o.xml")
+    if code == 0:
+        import xml.etree.ElementTree as ElementTree
+
+        ElementTree.parse(folder / "o.xml")
+
+
+TRAJECTORY_ARRAYS = st.sampled_from(["t", "q", "qd", "energy"])
+ARRAY_VALUES = st.sampled_from([np.zeros(0), np.zeros((4, 5, 2)), np.full((4, 5, 2), 1e300), np.full(4, np.nan), np.array(["a"] * 4),
+                                np.zeros((4, 5, 3)), np.zeros((3, 5, 2)), np.ones(4, bool), np.zeros((4, 5, 2), complex), np.zeros(4)])
+
+
+@GENERATED
+@given(array=TRAJECTORY_ARRAYS, value=ARRAY_VALUES, metadata=JSON_VALUES)
+def test_generated_trajectory_files_are_compared_or_refused_in_one_line(tmp_path_factory, capsys, array, value, metadata):
+    folder = tmp_path_factory.mktemp("trajectory")
+    trajectory()(folder / "a.npz")
+    trajectory(**{array: value})(folder / "b.npz")
+    trajectory(metadata=json.dumps(metadata))(folder / "c.npz")
+    before = snapshot(folder)
+    for other in ("b.npz", "c.npz"):
+        code, err = run_in_process(["compare", str(folder / "a.npz"), str(folder / other)], capsys)
+        answered_cleanly(code, err, folder, before)
+
+
+CHECKPOINT_PATHS = st.sampled_from(["epoch", "best_epoch", "best_val", "history", "elapsed_s", "data", "data.scene", "model.name",
+                                    "model.message_passing", "model.latent", "model.hidden", "model.dim", "model.n_nodes",
+                                    "model.vocabulary", "model.drag", "train_config", "train_config.batch_size"])
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(key=CHECKPOINT_PATHS, value=JSON_VALUES)
+def test_generated_checkpoint_edits_are_read_or_refused_in_one_line(tmp_path_factory, capsys, key, value):
+    folder = tmp_path_factory.mktemp("checkpoint")
+    checkpoint(set_key(key, value))(folder / "k.npz")
+    before = snapshot(folder)
+    code, err = run_in_process(["checkpoint", str(folder / "k.npz")], capsys)
+    answered_cleanly(code, err, folder, before)
+
+
+SETTINGS = st.sampled_from(["seeds", "scenes", "models", "evaluate.initial_conditions", "evaluate.duration", "evaluate.dt",
+                            "evaluate.frame_dt", "evaluate.chunk", "evaluate.scene_dts", "training.data.sample_dt",
+                            "training.data.n_trajectories", "training.train.learning_rate", "training.train.batch_size",
+                            "speed.dts", "speed.horizon", "scaling.lengths", "mass.scenes", "grid"])
+TOML_VALUES = st.sampled_from(["0", "-1", "1e999", "-1e999", "nan", "inf", "1e-300", "1e300", "3", "0.5", "true", '"x"', "[]", "[0]",
+                               "[-1e-3]", '["bogus"]', "[[1, 2]]", '[["T2", 0.0]]', "{a = 1}", "chain4", "[chain4, T1]"])
+
+
+@GENERATED
+@given(key=SETTINGS, value=TOML_VALUES)
+def test_generated_settings_are_accepted_or_refused_before_any_stage(tmp_path_factory, capsys, monkeypatch, key, value):
+    folder = tmp_path_factory.mktemp("settings")
+    started = []
+    monkeypatch.setattr("lgnn.bench.run.run", lambda profile, *args, **kwargs: started.append(profile) or folder)
+    monkeypatch.setattr("lgnn.bench.run.STAGES", ())
+    before = snapshot(folder)
+    code, err = run_in_process(["benchmark", "--out-dir", str(folder / "b"), "--stage", "all", "--set", f"{key}={value}"], capsys)
+    answered_cleanly(code, err, folder, before)
+    assert (code == 0) == bool(started)
+
+
+@given(dt=st.floats(), frame_dt=st.floats(), duration=st.floats())
+def test_a_simulation_config_is_bounded_or_refused(dt, frame_dt, duration):
+    try:
+        config = SimulationConfig("rk4", dt, frame_dt, duration)
+    except ConfigError as err:
+        assert "\n" not in str(err)
+        return
+    assert 1 <= config.n_frames <= MAX_FRAMES and config.n_frames * config.steps_per_frame <= MAX_STEPS
