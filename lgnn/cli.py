@@ -8,12 +8,14 @@ thread counts, XLA flags) is done here, at the entry point.
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import dataclasses
 import math
 import os
 import re
 import sys
+import time
 
 from lgnn.errors import ConfigError, LgnnError, SimulationError
 
@@ -21,6 +23,7 @@ from lgnn.errors import ConfigError, LgnnError, SimulationError
 # Exit statuses (README, "Exit statuses").
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3  # a simulation or rollout diverged; the frames before it are kept
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT, as shells report it)
 # `lgnn convergence --halvings`: dt / 2^20 is a millionth of the coarsest step, already
 # more steps than a run finishes in a day.
 MAX_HALVINGS = 20
@@ -756,6 +759,44 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command `argv` (default: the process's arguments); its exit status.
+
+    Ctrl-C at any moment, while JAX loads or compiles included, is one line and exit
+    130 (one dropped inside a callback is delivered again). Run as the process's command (`argv` None), an interrupted `lgnn` then leaves
+    at once (`os._exit`, streams flushed): interpreter shutdown would tear down Python
+    objects under XLA's compile threads, still running, and crash (a segmentation fault
+    after "lgnn: interrupted"). Outputs are atomic, so nothing half-written remains.
+    """
+    default_hook = sys.unraisablehook
+
+    def redeliver_interrupts(unraisable):
+        # Ctrl-C landing in a callback Python cannot raise from (JAX's garbage-collection
+        # hook, a __del__) is printed and dropped: deliver it again a moment later, from
+        # another thread (not waited for), once the main thread is out of the callback.
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            _thread.start_new_thread(_interrupt_main_later, ())
+        else:
+            default_hook(unraisable)
+
+    sys.unraisablehook = redeliver_interrupts
+    try:
+        return _run(argv)
+    except KeyboardInterrupt:
+        print("lgnn: interrupted", file=sys.stderr, flush=True)
+        if argv is None:
+            sys.stdout.flush()
+            os._exit(EXIT_INTERRUPTED)
+        return EXIT_INTERRUPTED
+    finally:
+        sys.unraisablehook = default_hook
+
+
+def _interrupt_main_later() -> None:
+    time.sleep(0.05)
+    _thread.interrupt_main()
+
+
+def _run(argv: list[str] | None) -> int:
     from lgnn.runtime import accept_interrupts_if_child, configure
 
     configure()  # first: before numpy and JAX load (thread counts, XLA flags, float64)
@@ -772,9 +813,6 @@ def main(argv: list[str] | None = None) -> int:
     except LgnnError as err:
         print(f"lgnn: error: {one_line(str(err))}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("lgnn: interrupted", file=sys.stderr)
-        return 130
     except BrokenPipeError:
         # The reader went away (`lgnn scenes | head`): stop quietly, as Unix tools do.
         # stdout is pointed at devnull so the interpreter's final flush cannot fail again.

@@ -20,6 +20,7 @@ import signal
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -489,3 +490,27 @@ def test_a_simulation_config_is_bounded_or_refused(dt, frame_dt, duration):
         assert "\n" not in str(err)
         return
     assert 1 <= config.n_frames <= MAX_FRAMES and config.n_frames * config.steps_per_frame <= MAX_STEPS
+
+
+def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
+    """Ctrl-C at 50 random moments of `lgnn simulate` (imports, compilation, the run):
+    exit 130 with the one line `lgnn: interrupted`, or, when the signal comes after the
+    run, exit 0; an output is whole or absent. Never a traceback or a crash."""
+    import random
+
+    from lgnn.engines.lagrangian import Trajectory
+
+    generator = random.Random(34)
+    for trial in range(50):
+        out = tmp_path / f"o{trial}.npz"
+        child = subprocess.Popen([sys.executable, "-m", "lgnn.cli", "simulate", "chain4", "--duration", "0.2", "--out", str(out), "--quiet"],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        time.sleep(generator.uniform(0.3, 5.0))
+        child.send_signal(signal.SIGINT)
+        err = child.communicate(timeout=TIMEOUT_S)[1]
+        assert "Traceback" not in err and child.returncode in (0, 130), (trial, child.returncode, err)
+        if child.returncode == 130:
+            assert err.strip() == "lgnn: interrupted", err
+        if child.returncode == 0 or out.exists():  # interrupted after the (atomic) save: a whole file
+            assert Trajectory.load(out).q.shape[1:] == (5, 2)
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "a temporary file was left"
