@@ -14,7 +14,9 @@ import dataclasses
 import math
 import os
 import re
+import signal
 import sys
+import threading
 import time
 
 from lgnn.errors import ConfigError, LgnnError, SimulationError
@@ -762,8 +764,9 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command `argv` (default: the process's arguments); its exit status.
 
     Ctrl-C at any moment, while JAX loads or compiles included, is one line and exit
-    130 (one dropped inside a callback is delivered again). Run as the process's command (`argv` None), an interrupted `lgnn` then leaves
-    at once (`os._exit`, streams flushed): interpreter shutdown would tear down Python
+    130 (one dropped inside a callback is delivered again). Run as the process's
+    command (`argv` None), an interrupted `lgnn` then leaves at once (`os._exit`,
+    streams flushed): interpreter shutdown would tear down Python
     objects under XLA's compile threads, still running, and crash (a segmentation fault
     after "lgnn: interrupted"). Outputs are atomic, so nothing half-written remains.
     """
@@ -778,17 +781,39 @@ def main(argv: list[str] | None = None) -> int:
         else:
             default_hook(unraisable)
 
+    received = []
+
+    def on_interrupt(signum, frame):
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    # Ctrl-C as Python takes it, but remembered: one inside a C extension's
+    # initialisation (numpy, jaxlib) comes out as the ImportError it caused. A SIGINT
+    # handler someone else set (or SIG_IGN, inherited) is left alone.
+    own_handler = threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    if own_handler:
+        signal.signal(signal.SIGINT, on_interrupt)
     sys.unraisablehook = redeliver_interrupts
     try:
         return _run(argv)
     except KeyboardInterrupt:
-        print("lgnn: interrupted", file=sys.stderr, flush=True)
-        if argv is None:
-            sys.stdout.flush()
-            os._exit(EXIT_INTERRUPTED)
-        return EXIT_INTERRUPTED
+        return _interrupted(argv)
+    except Exception:
+        if not received:
+            raise  # a bug in lgnn, shown as one
+        return _interrupted(argv)
     finally:
         sys.unraisablehook = default_hook
+        if own_handler:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _interrupted(argv) -> int:
+    print("lgnn: interrupted", file=sys.stderr, flush=True)
+    if argv is None:  # the process's command: leave now (`main`)
+        sys.stdout.flush()
+        os._exit(EXIT_INTERRUPTED)
+    return EXIT_INTERRUPTED
 
 
 def _interrupt_main_later() -> None:
