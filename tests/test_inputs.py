@@ -250,6 +250,8 @@ CASES = [
     Case("compare-directory", ["compare", "{tmp}/a.npz", "{tmp}/d"], 2, "not a regular file", {"a.npz": trajectory(), "d": directory}),
     Case("compare-fifo", ["compare", "{tmp}/a.npz", "{tmp}/b.npz"], 2, "not a regular file", {"a.npz": trajectory(), "b.npz": fifo}, child=True),
     # --- hand-edited checkpoints with a valid checksum -----------------------------------
+    Case("checkpoint-npy", ["checkpoint", "{tmp}/k.npy"], 2, "not a readable lgnn checkpoint", {"k.npy": lambda p: np.save(p, np.zeros(3))}),
+    Case("checkpoint-fifo", ["checkpoint", "{tmp}/k.npz"], 2, "k.npz", {"k.npz": fifo}),
     Case("checkpoint-no-epoch", ["checkpoint", "{tmp}/k.npz"], 2, "epoch", {"k.npz": checkpoint(drop_key("epoch"))}),
     Case("checkpoint-no-history", ["checkpoint", "{tmp}/k.npz"], 2, "history", {"k.npz": checkpoint(drop_key("history"))}),
     Case("checkpoint-history-number", ["checkpoint", "{tmp}/k.npz"], 2, "history", {"k.npz": checkpoint(set_key("history", 5))}),
@@ -376,7 +378,7 @@ def test_an_output_naming_a_device_is_refused_not_replaced(tmp_path, capsys):
 
 from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
 
-from lgnn.engines.lagrangian import MAX_FRAMES, MAX_STEPS, SimulationConfig  # noqa: E402
+from lgnn.engines.lagrangian import SimulationConfig  # noqa: E402
 from lgnn.errors import ConfigError  # noqa: E402
 
 GENERATED = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -489,6 +491,8 @@ def test_a_simulation_config_is_bounded_or_refused(dt, frame_dt, duration):
     except ConfigError as err:
         assert "\n" not in str(err)
         return
+    from lgnn.engines.lagrangian import MAX_FRAMES, MAX_STEPS
+
     assert 1 <= config.n_frames <= MAX_FRAMES and config.n_frames * config.steps_per_frame <= MAX_STEPS
 
 
