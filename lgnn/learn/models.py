@@ -221,8 +221,9 @@ class ModelConfig:
             raise ConfigError(f"model vocabulary must be a list of link types, got {self.vocabulary!r}")
         object.__setattr__(self, "vocabulary", tuple(self.vocabulary))
         # The same bounds wherever a config comes from (a command, a config file, a
-        # checkpoint's meta): a million layers would run for hours before failing.
-        for name, low, high in (("message_passing", 0, MAX_MESSAGE_PASSING), ("latent", 1, MAX_WIDTH), ("hidden", 1, MAX_WIDTH),
+        # checkpoint's meta): a million layers would run for hours before failing. Widths
+        # may be 0: a spec without a network (a cheating model) has none.
+        for name, low, high in (("message_passing", 0, MAX_MESSAGE_PASSING), ("latent", 0, MAX_WIDTH), ("hidden", 0, MAX_WIDTH),
                                 ("n_nodes", 2, None), ("dim", 2, 3)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low or (high is not None and value > high):

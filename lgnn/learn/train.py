@@ -460,9 +460,10 @@ def _meta_problem(meta: dict) -> str | None:
     data = meta.get("data")
     if data is not None and not (isinstance(data, dict) and isinstance(data.get("scene"), str)):
         return f"'data' must be an object naming its scene, got {data!r}"
-    for key in ("epoch", "best_epoch"):
-        if not whole(meta.get(key)):
-            return f"{key!r} must be a whole number >= 0, got {meta.get(key)!r}"
+    if not whole(meta.get("epoch")):
+        return f"'epoch' must be a whole number >= 0, got {meta.get('epoch')!r}"
+    if not whole(meta.get("best_epoch"), -1):  # -1: no validated epoch yet
+        return f"'best_epoch' must be a whole number >= -1, got {meta.get('best_epoch')!r}"
     if meta["best_epoch"] > meta["epoch"]:
         return f"'best_epoch' {meta['best_epoch']} is after 'epoch' {meta['epoch']}"
     if meta.get("best_val") is not None and not (number(meta["best_val"]) and meta["best_val"] >= 0):
