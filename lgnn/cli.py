@@ -33,6 +33,9 @@ MAX_HALVINGS = 20
 # of these, a frame lasts longer than a GIF can say or the stride overflows.
 FPS_RANGE = (0.1, 1000.0)
 SPEED_RANGE = (1e-6, 1e6)
+# `lgnn evaluate --initial-conditions`: the paper's 100 a thousand times over; more
+# would be refused only after sampling them all (their rollouts are kept in memory).
+MAX_INITIAL_CONDITIONS = 100_000
 
 
 class _Parser(argparse.ArgumentParser):
@@ -519,7 +522,7 @@ def _add_evaluation_parsers(commands) -> None:
     evaluate.add_argument("scenes", nargs="+", metavar="SCENE", help="built-in scene names or scene JSON files")
     evaluate.add_argument("--model", required=True, help="checkpoint written by lgnn train or lgnn benchmark")
     _add_model_code_option(evaluate)
-    evaluate.add_argument("--initial-conditions", type=_positive_int, default=1,
+    evaluate.add_argument("--initial-conditions", type=_int_in(1, MAX_INITIAL_CONDITIONS), default=1,
                           help="1: the scene's own state (default); N: N sampled ones (the paper's chain sampler, else projected perturbations)")
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the sampled initial conditions")
     _add_simulation_options(evaluate)

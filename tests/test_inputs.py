@@ -269,6 +269,8 @@ CASES = [
          {"k.npz": checkpoint(set_key("data.scene", ["x"]))}),
     Case("checkpoint-message-passing-huge", ["checkpoint", "{tmp}/k.npz"], 2, "message", {"k.npz": checkpoint(set_key("model.message_passing", 1_000_000))}, child=True),
     # --- partial outputs ---------------------------------------------------------------
+    Case("evaluate-initial-conditions-huge", ["evaluate", "chain4", "--model", str(CHECKPOINT), "--initial-conditions", "1000000000", "--out-dir", "{tmp}"], 2,
+         "--initial-conditions"),
     Case("evaluate-bad-second-scene", ["evaluate", "chain4", "{tmp}/bad.json", "--model", str(CHECKPOINT), *SIMULATE_SHORT, "--out-dir", "{tmp}/d"], 2, "bad.json",
          {"bad.json": text("{"), "d": directory}),
 ]
