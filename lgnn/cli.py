@@ -8,12 +8,16 @@ thread counts, XLA flags) is done here, at the entry point.
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import dataclasses
 import math
 import os
 import re
+import signal
 import sys
+import threading
+import time
 
 from lgnn.errors import ConfigError, LgnnError, SimulationError
 
@@ -21,6 +25,17 @@ from lgnn.errors import ConfigError, LgnnError, SimulationError
 # Exit statuses (README, "Exit statuses").
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3  # a simulation or rollout diverged; the frames before it are kept
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT, as shells report it)
+# `lgnn convergence --halvings`: dt / 2^20 is a millionth of the coarsest step, already
+# more steps than a run finishes in a day.
+MAX_HALVINGS = 20
+# `lgnn animate`: frames per second and simulated seconds per second of animation; out
+# of these, a frame lasts longer than a GIF can say or the stride overflows.
+FPS_RANGE = (0.1, 1000.0)
+SPEED_RANGE = (1e-6, 1e6)
+# `lgnn evaluate --initial-conditions`: the paper's 100 a thousand times over; more
+# would be refused only after sampling them all (their rollouts are kept in memory).
+MAX_INITIAL_CONDITIONS = 100_000
 
 
 class _Parser(argparse.ArgumentParser):
@@ -34,7 +49,17 @@ class _Parser(argparse.ArgumentParser):
         self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
 
     def error(self, message: str):
-        self.exit(2, f"lgnn: error: {message} (see: {self.prog} --help)\n")
+        self.exit(2, f"lgnn: error: {one_line(message)} (see: {self.prog} --help)\n")
+
+
+# Characters that would break the one error line (a newline in a file name) or the
+# terminal's encoding (a lone surrogate from an undecodable name): shown escaped.
+_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")
+
+
+def one_line(message: str) -> str:
+    """`message` with control characters and lone surrogates escaped (`\\n`, `\\udcff`)."""
+    return _UNPRINTABLE.sub(lambda match: repr(match.group())[1:-1], message)
 
 
 def _positive_float(text: str) -> float:
@@ -47,14 +72,37 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive whole number, got {text}")
-    return value
+def _float_in(low: float, high: float):
+    """An option's type: a number in [low, high] (a rate whose reciprocal must stay finite)."""
+
+    def parse(text: str) -> float:
+        value = _positive_float(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be between {low:g} and {high:g}, got {text}")
+        return value
+
+    return parse
+
+
+def _int_in(low: int, high: int | None = None):
+    """An option's type: a whole number >= low (and <= high when given)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be a {'positive' if low == 1 else f'>= {low}'} whole number, got {text}")
+        if high is not None and value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high}, got {text}")
+        return value
+
+    return parse
+
+
+_positive_int = _int_in(1)
+_nonnegative_int = _int_in(0)
 
 
 def _model_reference(text: str) -> str:
@@ -271,12 +319,12 @@ def _add_mujoco_commands(commands) -> None:
     check.add_argument("scenes", nargs="*", help="built-in names or scene files (default: chain4 chain8 chain16 chain100 T1 T2 T3)")
     check.add_argument("--engines", default="lagrangian,mujoco,mjx",
                        help="comma-separated engines, each NAME or NAME:FORM (e.g. mujoco:nested,mujoco:maximal: both MJCF forms in one table)")
-    check.add_argument("--mjx-max-depth", type=int, help="skip MJX on deeper trees (default: skip none)")
+    check.add_argument("--mjx-max-depth", type=_nonnegative_int, help="skip MJX on deeper trees (default: skip none)")
     check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")
-    check.add_argument("--speed-dts", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="--speed: steps of the single-state runs")
-    check.add_argument("--batch", type=int, nargs="+", default=[100], help="--speed: batch sizes of the batched runs (default 100)")
-    check.add_argument("--batch-dts", type=float, nargs="+", default=[1e-4], help="--speed: steps of the batched runs (default 1e-4)")
-    check.add_argument("--max-steps", type=int, default=25_000, help="--speed: skip JAX runs over 16x this many link-steps")
+    check.add_argument("--speed-dts", type=_positive_float, nargs="+", default=[1e-3, 1e-4, 1e-5], help="--speed: steps of the single-state runs")
+    check.add_argument("--batch", type=_positive_int, nargs="+", default=[100], help="--speed: batch sizes of the batched runs (default 100)")
+    check.add_argument("--batch-dts", type=_positive_float, nargs="+", default=[1e-4], help="--speed: steps of the batched runs (default 1e-4)")
+    check.add_argument("--max-steps", type=_positive_int, default=25_000, help="--speed: skip JAX runs over 16x this many link-steps")
     check.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="--speed: precision of the JAX engines")
     check.add_argument("--out-dir", default=None, help="output directory (default: ./lgnn-out; the committed tables are results/)")
     _add_simulation_options(check)
@@ -311,7 +359,7 @@ def _cmd_convergence(args) -> None:
 def _add_convergence_parser(commands) -> None:
     parser = commands.add_parser("convergence", help="measure the Lagrangian reference's convergence in dt on each scene")
     parser.add_argument("scenes", nargs="*", help="built-in names or scene files (default: every built-in scene, then T2-slack and T3-slack)")
-    parser.add_argument("--halvings", type=_positive_int, default=3, help="runs at dt, dt/2, ..., dt/2^halvings (default 3)")
+    parser.add_argument("--halvings", type=_int_in(1, MAX_HALVINGS), default=3, help="runs at dt, dt/2, ..., dt/2^halvings (default 3)")
     parser.add_argument("--dt", type=_positive_float, default=None, help="coarsest step (default: the full benchmark's step for the scene)")
     parser.add_argument("--horizon", type=_positive_float, default=None,
                         help="simulated seconds (default: 1 s, 0.1 s on chain100 and the self-stressed or large scenes)")
@@ -375,13 +423,13 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--scene", default="chain4", help="training scene (built-in name or JSON file)")
     parser.add_argument("--epochs", type=_positive_int, default=default.epochs, help="epoch budget (paper: 10000)")
     parser.add_argument("--minutes", type=_positive_float, default=None, help="optional wall-clock cap (checked after each epoch); the budget is --epochs")
-    parser.add_argument("--patience", type=int, default=default.patience, help="early stopping: epochs without improvement")
+    parser.add_argument("--patience", type=_positive_int, default=default.patience, help="early stopping: epochs without improvement")
     # `lgnn train` keeps the paper's rate and the full warm-up whatever the budget (the
     # benchmark's profiles follow `train.scheduled`'s short-budget rule instead).
     parser.add_argument("--lr", type=_positive_float, default=PAPER_LEARNING_RATE, help=f"peak learning rate (paper: {PAPER_LEARNING_RATE:g})")
-    parser.add_argument("--batch-size", type=int, default=default.batch_size)
-    parser.add_argument("--message-passing", type=int, default=None, help="message-passing layers (default: the model's)")
-    parser.add_argument("--trajectories", type=int, default=100, help="training trajectories (paper: 100)")
+    parser.add_argument("--batch-size", type=_positive_int, default=default.batch_size)
+    parser.add_argument("--message-passing", type=_nonnegative_int, default=None, help="message-passing layers (default: the model's)")
+    parser.add_argument("--trajectories", type=_positive_int, default=100, help="training trajectories (paper: 100)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cache-dir", default=None, help="training data cache (default: datasets/ in $LGNN_CACHE, else $XDG_CACHE_HOME/lgnn, else ~/.cache/lgnn)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
@@ -412,6 +460,7 @@ def _cmd_evaluate(args) -> None:
     from lgnn import physics
     from lgnn.bench import evaluation
     from lgnn.files import check_writable
+    from lgnn.learn.models import check_compatible
     from lgnn.learn.train import load_model
     from lgnn.scene import get_scene
 
@@ -420,16 +469,19 @@ def _cmd_evaluate(args) -> None:
     check_writable(out / "evaluate_summary.md")
     _import_model_code(args)
     model, params = load_model(args.model)
-    scored, written = [], []
-    for name in args.scenes:
-        scene = get_scene(name)
+    scenes = [get_scene(name) for name in args.scenes]  # every scene checked before any rollout
+    for scene in scenes:
+        check_compatible(model, scene)
+    scored, kept = [], {}
+    for scene in scenes:
         states = physics.own_or_sampled_states(scene, args.initial_conditions, args.seed)
         scene_scores, trajectories = evaluation.evaluate_model(model, params, scene, config, states, progress=not args.quiet)
         scored += scene_scores
-        for engine, trajectory in trajectories.items():
-            path = out / f"{scene.name}_{engine}.npz"
-            trajectory.save(path)
-            written.append(path)
+        kept.update({out / f"{scene.name}_{engine}.npz": trajectory for engine, trajectory in trajectories.items()})
+    # Written together once every scene has run: a failed command leaves nothing.
+    for path, trajectory in kept.items():
+        trajectory.save(path)
+    written = list(kept)
     command = "lgnn " + " ".join(args.argv)
     header = (command, f"model {model.name} ({args.model}); {config.integrator} dt {config.dt:g}, frames every {config.frame_dt:g} s, "
               f"{config.duration:g} s; initial conditions: " + ("the scene's own" if args.initial_conditions == 1 else
@@ -474,7 +526,7 @@ def _add_evaluation_parsers(commands) -> None:
     evaluate.add_argument("scenes", nargs="+", metavar="SCENE", help="built-in scene names or scene JSON files")
     evaluate.add_argument("--model", required=True, help="checkpoint written by lgnn train or lgnn benchmark")
     _add_model_code_option(evaluate)
-    evaluate.add_argument("--initial-conditions", type=_positive_int, default=1,
+    evaluate.add_argument("--initial-conditions", type=_int_in(1, MAX_INITIAL_CONDITIONS), default=1,
                           help="1: the scene's own state (default); N: N sampled ones (the paper's chain sampler, else projected perturbations)")
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the sampled initial conditions")
     _add_simulation_options(evaluate)
@@ -491,8 +543,8 @@ def _add_evaluation_parsers(commands) -> None:
     animate = commands.add_parser("animate", help="animate trajectory files over each other (the first underneath)")
     animate.add_argument("files", nargs="+", metavar="FILE", help="trajectory .npz files of one scene, the reference (ground truth) first")
     animate.add_argument("--out", required=True, help="output .gif (Pillow) or .mp4 (needs ffmpeg)")
-    animate.add_argument("--fps", type=_positive_float, default=30.0, help="animation frames per second (default 30)")
-    animate.add_argument("--speed", type=_positive_float, default=1.0, help="simulated seconds per second of animation (default 1)")
+    animate.add_argument("--fps", type=_float_in(*FPS_RANGE), default=30.0, help="animation frames per second (default 30)")
+    animate.add_argument("--speed", type=_float_in(*SPEED_RANGE), default=1.0, help="simulated seconds per second of animation (default 1)")
     animate.set_defaults(run=_cmd_animate)
 
     plot = commands.add_parser("plot", help="per-node error against the first file and energy, against time")
@@ -526,9 +578,12 @@ def _cmd_benchmark(args) -> None:
     from lgnn.bench import grid
     from lgnn.bench.run import STAGES, run
     from lgnn.bench.store import default_out
+    from lgnn.files import check_out_dir
 
     if sum(map(bool, (args.full, args.profile, args.config))) > 1:
         raise ConfigError("give one of --config, --profile and --full")
+    if args.out_dir:
+        check_out_dir(args.out_dir)
     overrides = list(args.set or ()) + ([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])
     # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
     profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
@@ -574,7 +629,9 @@ def _cmd_dataset_export(args) -> None:
     from lgnn.files import check_writable
     from lgnn.learn import data
 
-    check_writable(args.out)
+    from lgnn.learn.export import check_path
+
+    check_path(check_writable(args.out))
     profile = grid.load_profile(args.config or args.profile, args.set or ())
     shapes = export_scene(profile, args.scene, args.out, args.cache_dir or data.default_cache_dir(), progress=not args.quiet)
     print(f"{args.scene}: {shapes['q'][0]} states ({shapes['train'][0]} train, {shapes['val'][0]} validation), "
@@ -632,7 +689,7 @@ def _add_stability_parser(commands) -> None:
     for name in ("long_horizon", "large_step_horizon", "chain1000_horizon", "model_horizon", "singular_horizon"):
         parser.add_argument(f"--{name.replace('_', '-')}", type=_positive_float, default=getattr(default, name),
                             help=f"simulated seconds (default {getattr(default, name):g})")
-    parser.add_argument("--cost-sizes", type=int, nargs="*", default=list(default.cost_sizes), help="chain sizes timed per step (none: skip)")
+    parser.add_argument("--cost-sizes", type=_positive_int, nargs="*", default=list(default.cost_sizes), help="chain sizes timed per step (none: skip)")
     names = list(dict.fromkeys(case.name for case in cases()))
     parser.add_argument("--case", action="append", choices=names, metavar="CASE", help=f"only this case (repeatable): {', '.join(names)}")
     parser.add_argument("--quiet", action="store_true", help="no per-case lines")
@@ -711,6 +768,67 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command `argv` (default: the process's arguments); its exit status.
+
+    Ctrl-C at any moment, while JAX loads or compiles included, is one line and exit
+    130 (one dropped inside a callback is delivered again). Run as the process's
+    command (`argv` None), an interrupted `lgnn` then leaves at once (`os._exit`,
+    streams flushed): interpreter shutdown would tear down Python
+    objects under XLA's compile threads, still running, and crash (a segmentation fault
+    after "lgnn: interrupted"). Outputs are atomic, so nothing half-written remains.
+    """
+    default_hook = sys.unraisablehook
+
+    def redeliver_interrupts(unraisable):
+        # Ctrl-C landing in a callback Python cannot raise from (JAX's garbage-collection
+        # hook, a __del__) is printed and dropped: deliver it again a moment later, from
+        # another thread (not waited for), once the main thread is out of the callback.
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            _thread.start_new_thread(_interrupt_main_later, ())
+        else:
+            default_hook(unraisable)
+
+    received = []
+
+    def on_interrupt(signum, frame):
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    # Ctrl-C as Python takes it, but remembered: one inside a C extension's
+    # initialisation (numpy, jaxlib) comes out as the ImportError it caused. A SIGINT
+    # handler someone else set (or SIG_IGN, inherited) is left alone.
+    own_handler = threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    if own_handler:
+        signal.signal(signal.SIGINT, on_interrupt)
+    sys.unraisablehook = redeliver_interrupts
+    try:
+        return _run(argv)
+    except KeyboardInterrupt:
+        return _interrupted(argv)
+    except Exception:
+        if not received:
+            raise  # a bug in lgnn, shown as one
+        return _interrupted(argv)
+    finally:
+        sys.unraisablehook = default_hook
+        if own_handler:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _interrupted(argv) -> int:
+    print("lgnn: interrupted", file=sys.stderr, flush=True)
+    if argv is None:  # the process's command: leave now (`main`)
+        sys.stdout.flush()
+        os._exit(EXIT_INTERRUPTED)
+    return EXIT_INTERRUPTED
+
+
+def _interrupt_main_later() -> None:
+    time.sleep(0.05)
+    _thread.interrupt_main()
+
+
+def _run(argv: list[str] | None) -> int:
     from lgnn.runtime import accept_interrupts_if_child, configure
 
     configure()  # first: before numpy and JAX load (thread counts, XLA flags, float64)
@@ -722,14 +840,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args.run(args)
     except SimulationError as err:
-        print(f"lgnn: error: {err}", file=sys.stderr)
+        print(f"lgnn: error: {one_line(str(err))}", file=sys.stderr)
         return EXIT_DIVERGED
     except LgnnError as err:
-        print(f"lgnn: error: {err}", file=sys.stderr)
+        print(f"lgnn: error: {one_line(str(err))}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("lgnn: interrupted", file=sys.stderr)
-        return 130
     except BrokenPipeError:
         # The reader went away (`lgnn scenes | head`): stop quietly, as Unix tools do.
         # stdout is pointed at devnull so the interpreter's final flush cannot fail again.

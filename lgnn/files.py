@@ -4,6 +4,12 @@ A crash or a kill never leaves a half-written result: files are written to a tem
 file beside the target, then renamed, so readers see the old file or the new one,
 nothing in between.
 
+Inputs are read only from regular files (`check_regular_input`): a FIFO with no writer
+would block forever, a device would never end. Outputs never replace anything but a
+regular file (`check_writable`): a device, FIFO or socket at an output path is refused.
+A symbolic link is followed to read; at an output path it is replaced by the new file,
+its target left as it was (the rename replaces the name, as every atomic writer does).
+
 No command writes into a repository's committed `results/` unless told to: reports go
 to `DEFAULT_OUT` (`./lgnn-out`, created on demand) unless an output is named; caches
 (training data) go to `user_cache_dir()` (`$LGNN_CACHE`, else `$XDG_CACHE_HOME/lgnn`,
@@ -51,6 +57,31 @@ def check_writable(path: str | os.PathLike) -> Path:
         raise ConfigError(f"output directory is not writable: {parent}")
     if path.is_dir():
         raise ConfigError(f"output path is a directory: {path}")
+    if path.exists() and not path.is_file():
+        raise ConfigError(f"output path is not a regular file (a device, FIFO or socket is never replaced): {path}")
+    return path
+
+
+def check_out_dir(path: str | os.PathLike) -> Path:
+    """An output directory a command creates on demand: `path` itself, if it exists, and
+    else its nearest existing parent must be a directory (one line otherwise)."""
+    path = Path(path)
+    for folder in (path, *path.parents):
+        if folder.exists() or folder.is_symlink():
+            if not folder.is_dir():
+                raise ConfigError(f"output directory {path}: {folder} is not a directory")
+            return path
+    return path
+
+
+def check_regular_input(path: str | os.PathLike, what: str) -> Path:
+    """`path` if it is an existing regular file (symbolic links followed); else one line
+    naming `what` it should have been (a FIFO would block the read forever)."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"{path}: no such {what}")
+    if not path.is_file():
+        raise ConfigError(f"{path}: not a regular file (a {what} is read from a file)")
     return path
 
 

@@ -92,8 +92,10 @@ def read(path: str | os.PathLike, what: str = "record") -> tuple[dict, dict]:
             arrays = {k: np.asarray(stored[k]) for k in stored.files if k not in ("meta", "checksum")}
             meta_text, stored_checksum = str(stored["meta"]), str(stored["checksum"])
         meta = json.loads(meta_text)
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, RecursionError) as err:
         raise RecordError(f"{path}: not a readable lgnn {what} ({type(err).__name__})") from None
+    except (AttributeError, TypeError):  # np.load of a .npy: a bare array, not an archive
+        raise RecordError(f"{path}: not a readable lgnn {what} (not an .npz archive)") from None
     if not isinstance(meta, dict):
         raise RecordError(f"{path}: not a readable lgnn {what} (meta is not an object)")
     if checksum(arrays, meta_text) != stored_checksum:

@@ -22,13 +22,14 @@ which records exist, never what a record holds), so no field can be forgotten.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 import tomllib
 from importlib import resources
 from pathlib import Path
 
-from lgnn.errors import ConfigError
+from lgnn.errors import ConfigError, SceneError
 from lgnn.engines import ENGINES
 from lgnn.engines.lagrangian import SimulationConfig
 from lgnn.learn.data import DataConfig
@@ -70,6 +71,22 @@ def settings_key(settings) -> dict:
         for value in (getattr(settings, field.name),)
         if not (field.metadata.get("in_key") == KEY_UNLESS_DEFAULT["in_key"] and value == field.default)
     }
+
+
+def _check_numbers(group: str, settings, low: float = 0.0, **names: bool) -> None:
+    """`ConfigError` naming `group.field` for each named field (or each item of a tuple
+    field) of `settings` that is not a finite number above `low` (`True`: a whole
+    number >= 1 instead)."""
+    for name, whole in names.items():
+        value = getattr(settings, name)
+        for item in value if isinstance(value, tuple) else (value,):
+            if whole:
+                good = isinstance(item, int) and not isinstance(item, bool) and item >= 1
+            else:
+                good = isinstance(item, (int, float)) and not isinstance(item, bool) and math.isfinite(item) and item > low
+            if not good:
+                kind = "a whole number >= 1" if whole else f"a finite number > {low:g}"
+                raise ConfigError(f"setting '{group}.{name}' must be {kind}, got {value!r}")
 
 
 # ---------------------------------------------------------------------------------
@@ -229,6 +246,18 @@ class EvaluateSettings:
         unknown = [name for name in self.references if name not in ENGINES]
         if unknown:
             raise ConfigError(f"evaluate.references: unknown engine {unknown[0]!r} (choose from {', '.join(ENGINES)})")
+        _check_numbers("evaluate", self, initial_conditions=True, chunk=True, duration=False, dt=False, frame_dt=False, mujoco_dt=False)
+        _check_numbers("evaluate", self, -math.inf, floor_perturbation=False)
+        if self.floor_perturbation < 0:
+            raise ConfigError(f"setting 'evaluate.floor_perturbation' must be >= 0, got {self.floor_perturbation!r}")
+        for scene_name, dt in self.scene_dts:
+            if not (isinstance(dt, float) and math.isfinite(dt) and dt > 0):
+                raise ConfigError(f"setting 'evaluate.scene_dts' of {scene_name}: dt must be a finite number > 0, got {dt!r}")
+        for dt in {self.dt, *dict(self.scene_dts).values()}:
+            try:  # whole multiples and bounded counts, before any stage starts
+                SimulationConfig("rk4", dt, self.frame_dt, self.duration, True)
+            except ConfigError as err:
+                raise ConfigError(f"settings 'evaluate': {err}") from None
 
     def dt_for(self, scene_name: str) -> float:
         return dict(self.scene_dts).get(scene_name, self.dt)
@@ -270,6 +299,7 @@ class SpeedSettings:
     def __post_init__(self):
         if self.repeats < 1:
             raise ConfigError(f"speed.repeats must be >= 1, got {self.repeats}")
+        _check_numbers("speed", self, dts=False, horizon=False, max_link_steps=False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -288,6 +318,9 @@ class ScalingSettings:
     # Batches of `throughput_batch` initial conditions of each of these scenes against MuJoCo C.
     throughput_scenes: tuple[str, ...] = ("chain4", "chain16", "chain100", "T1", "chain4-3d", "chain16-3d")
     throughput_batch: int = 100
+
+    def __post_init__(self):
+        _check_numbers("scaling", self, lengths=True, spatial_lengths=True, steps=True, throughput_batch=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -356,7 +389,44 @@ def load_profile(source: str | os.PathLike, overrides=()) -> Profile:
             base_profile.pop("models", None)  # a grid of one's own is kept whole, not filtered by the shipped profile's models
         data = settings.merged(base_profile, data)
     data = settings.apply_overrides(data, overrides)
-    return _resolved(settings.build(Profile, data), base)
+    profile = _resolved(settings.build(Profile, data), base)
+    _check_names(profile)
+    return profile
+
+
+def _check_names(profile: Profile) -> None:
+    """`ConfigError` for a name that no stage could use, before any stage starts: a
+    grid entry's unknown model or missing scene, a selection (`scenes`, `train_scenes`,
+    `models`) that keeps nothing the grid has, a stage's unknown scene, no seeds."""
+    from lgnn.learn.models import model_names
+
+    if not profile.seeds:
+        raise ConfigError("setting 'seeds' must name at least one training seed")
+    for k, entry in enumerate(profile.grid):
+        if entry.model not in model_names():
+            raise ConfigError(f"grid[{k}]: unknown model {entry.model!r} (choose from {', '.join(model_names())}, or module:attribute)")
+        for name in (entry.train_scene, *entry.eval_scenes):
+            try:
+                get_scene(name)
+            except SceneError as err:
+                raise ConfigError(f"grid[{k}]: {err}") from None
+    unknown_models = sorted(set(profile.models or ()) - set(model_names()))
+    if unknown_models:
+        raise ConfigError(f"setting 'models': unknown model {unknown_models[0]!r} (choose from {', '.join(model_names())})")
+    # A selection filters the grid (a shipped profile's may name scenes a user's grid lacks), but must keep something.
+    in_grid = {"scenes": {n for e in profile.grid for n in e.eval_scenes}, "train_scenes": {e.train_scene for e in profile.grid},
+               "models": {e.model for e in profile.grid}}
+    for key, known in in_grid.items():
+        selected = getattr(profile, key)
+        if selected is not None and not set(selected) & known:
+            raise ConfigError(f"setting {key!r}: {', '.join(selected) or 'none'} keeps nothing of the grid (which has {', '.join(sorted(known))})")
+    for key, names in (("scenes", profile.scenes or ()), ("train_scenes", profile.train_scenes or ()), ("speed.scenes", profile.speed.scenes),
+                       ("scaling.throughput_scenes", profile.scaling.throughput_scenes), ("mass.scenes", profile.mass.scenes)):
+        for name in names:
+            try:
+                get_scene(name)
+            except SceneError as err:
+                raise ConfigError(f"setting {key!r}: {err}") from None
 
 
 def _resolved(profile: Profile, base: Path | None) -> Profile:

@@ -24,19 +24,25 @@ import typing
 from pathlib import Path
 
 from lgnn.errors import ConfigError
+from lgnn.files import check_regular_input
 
 NONE = "none"
 
 
 def read_toml(path: str | Path) -> dict:
     """The TOML file at `path` as a dict; `ConfigError` (one line) if unreadable."""
+    check_regular_input(path, "config file")
     try:
         with open(path, "rb") as handle:
             return tomllib.load(handle)
     except OSError as err:
         raise ConfigError(f"cannot read config {path}: {err.strerror or err}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"config {path}: not a text (UTF-8) file") from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"config {path}: not valid TOML ({err})") from None
+    except RecursionError:
+        raise ConfigError(f"config {path}: not valid TOML (nested too deeply)") from None
 
 
 def build(cls, data: dict, where: str = ""):
@@ -107,6 +113,8 @@ def _value(raw: str):
         return tomllib.loads(f"value = {raw}")["value"]
     except tomllib.TOMLDecodeError:
         pass
+    except RecursionError:
+        raise ConfigError(f"--set value nested too deeply: {raw[:20]}...") from None
     if raw.startswith("[") and raw.endswith("]"):
         return [_value(item.strip()) for item in raw[1:-1].split(",") if item.strip()]
     return raw

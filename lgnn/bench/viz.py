@@ -138,7 +138,13 @@ def plot(paths, out: str | os.PathLike) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     out = check_writable(out)
+    # The format is the suffix's, checked here: matplotlib would otherwise read it off the temporary file's name.
+    formats = FigureCanvasAgg.get_supported_filetypes()
+    if out.suffix.lstrip(".").lower() not in formats:
+        raise ConfigError(f"{out}: a figure is one of {', '.join('.' + f for f in sorted(formats))}, got {out.suffix or 'no suffix'!r}")
     scene, trajectories, frames = load_trajectories(paths)
     reference = trajectories[0]
     t = reference.t[:frames]
@@ -166,6 +172,6 @@ def plot(paths, out: str | os.PathLike) -> None:
     figure.tight_layout()
     try:
         with atomic_path(out) as tmp:
-            figure.savefig(tmp, format=out.suffix.lstrip(".") or None)
+            figure.savefig(tmp, format=out.suffix.lstrip(".").lower())
     finally:
         plt.close(figure)

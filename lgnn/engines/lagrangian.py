@@ -26,16 +26,22 @@ import numpy as np
 
 from lgnn import physics, sharding
 from lgnn.engines.timing import time_compiled
-from lgnn.files import atomic_path
+from lgnn.files import atomic_path, check_regular_input
 from lgnn.metrics import ExplosionBounds
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.integrate import INTEGRATORS, Integrator, advance, rollout
 from lgnn.runtime import in_float64, precision
 from lgnn.scene import Scene, State, scene_to_dict
+from lgnn.scene.schema import MAX_MAGNITUDE
 
 NPZ_KEYS = ("t", "q", "qd", "energy")
 # Precisions an engine can be asked to compute in (`lgnn.engines.get_engine`).
 DTYPES = ("float64", "float32")
+# Bounds of one run, refused before anything is allocated: 1e10 steps is days of
+# integration on any device; 1e7 frames of a 100-node chain are 32 GB of positions
+# and velocities.
+MAX_STEPS = 1e10
+MAX_FRAMES = 1e7
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +65,11 @@ class SimulationConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name.replace('_', '-')} must be a positive number, got {value}")
+        # Ratios first: a duration of 1e308 or a dt of 5e-324 overflows a count of frames.
+        if not self.frame_dt / self.dt <= MAX_STEPS or not self.duration / self.frame_dt * (self.frame_dt / self.dt) <= MAX_STEPS:
+            raise ConfigError(f"duration {self.duration:g} at dt {self.dt:g} is more than {MAX_STEPS:.0e} steps")
+        if not self.duration / self.frame_dt <= MAX_FRAMES:
+            raise ConfigError(f"duration {self.duration:g} at frame-dt {self.frame_dt:g} is more than {MAX_FRAMES:.0e} frames (the trajectory is kept in memory)")
         if abs(self.steps_per_frame * self.dt - self.frame_dt) > 1e-9 * self.frame_dt:
             raise ConfigError(f"frame-dt {self.frame_dt:g} is not a whole multiple of dt {self.dt:g}")
         if abs(self.n_frames * self.frame_dt - self.duration) > 1e-9 * self.duration or self.n_frames < 1:
@@ -103,15 +114,54 @@ class Trajectory:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Trajectory":
+        """The trajectory file at `path`, its arrays and metadata checked (`trajectory_problem`);
+        `ConfigError` (one line) for anything else."""
+        check_regular_input(path, "trajectory file")
         try:
             with np.load(path, allow_pickle=False) as data:
+                if not isinstance(data, np.lib.npyio.NpzFile):
+                    raise ConfigError(f"{path}: not a trajectory file (an .npz of {', '.join(NPZ_KEYS)})")
                 missing = [key for key in NPZ_KEYS if key not in data]
                 if missing:
                     raise ConfigError(f"{path}: not a trajectory file (missing {', '.join(missing)})")
                 metadata = json.loads(str(data["metadata"])) if "metadata" in data else {}
-                return cls(*(np.asarray(data[key]) for key in NPZ_KEYS), metadata=metadata)
+                arrays = [np.asarray(data[key]) for key in NPZ_KEYS]
+        except (AttributeError, TypeError):  # np.load of a .npy: a bare array, no context manager
+            raise ConfigError(f"{path}: not a trajectory file (an .npz of {', '.join(NPZ_KEYS)})") from None
+        except RecursionError:
+            raise ConfigError(f"{path}: trajectory metadata nested too deeply") from None
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"{path}: trajectory metadata is not JSON ({err.msg})") from None
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
             raise ConfigError(f"{path}: cannot read trajectory: {err}") from None
+        problem = trajectory_problem(*arrays, metadata)
+        if problem:
+            raise ConfigError(f"{path}: not a valid trajectory: {problem}")
+        return cls(*arrays, metadata=metadata)
+
+
+def trajectory_problem(t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray, metadata) -> str | None:
+    """What makes arrays and metadata read from a file not one trajectory (`Trajectory`'s
+    shapes, real finite numbers within a scene's `MAX_MAGNITUDE`, a JSON object of metadata whose
+    `scene`, `model` and `engine` are objects), or None."""
+    if not isinstance(metadata, dict):
+        return f"metadata must be a JSON object, got {type(metadata).__name__}"
+    for key in ("scene", "model", "engine"):
+        if key in metadata and not isinstance(metadata[key], dict):
+            return f"metadata {key!r} must be an object, got {metadata[key]!r:.40}"
+    for name, array in zip(NPZ_KEYS, (t, q, qd, energy)):
+        if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+            return f"{name} must hold real numbers, got dtype {array.dtype}"
+        # Frames after a divergence are never kept (the engines stop there).
+        if not np.all(np.abs(array) <= MAX_MAGNITUDE):
+            return f"{name} holds values that are not finite or beyond {MAX_MAGNITUDE:g}"
+    if t.ndim != 1 or len(t) < 1:
+        return f"t must be (frames,), got shape {t.shape}"
+    if q.ndim != 3 or q.shape[0] != len(t) or qd.shape != q.shape:
+        return f"q and qd must be (frames, nodes, dim) with {len(t)} frames, got {q.shape} and {qd.shape}"
+    if energy.shape != t.shape:
+        return f"energy must be (frames,) = {t.shape}, got {energy.shape}"
+    return None
 
 
 def check_state(scene: Scene, state: State) -> State:

@@ -58,6 +58,7 @@ import collections
 import dataclasses
 import math
 from typing import Literal, get_args
+from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 
@@ -403,8 +404,9 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
     solimp = _vec(*SOLIMP)
     what = "maximal coordinates: every link a body under the world, joined by connect equalities" if maximal else "nested bodies"
     lines = [
-        f'<mujoco model="{scene.name}">',
-        f"  <!-- Rendered by lgnn.engines.mjcf.render from scene {scene.name!r} "
+        f"<mujoco model={quoteattr(scene.name)}>",
+        # "--" may not appear inside an XML comment.
+        f"  <!-- Rendered by lgnn.engines.mjcf.render from scene {escape(repr(scene.name)).replace('--', '- -')} "
         f"({scene.n_nodes} nodes, {scene.n_links} links, pins {list(scene.pinned)}); dt {dt:g}"
         + (f"; {what}. -->" if maximal else ". -->"),
     ]

@@ -70,9 +70,54 @@ def read(path: str | os.PathLike) -> tuple[dict, dict]:
         raise CheckpointError(str(err)) from None
     if meta.get("format") not in (LEGACY_FORMAT, FORMAT):
         raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, expected {FORMAT} (or {LEGACY_FORMAT})")
-    if not isinstance(meta.get("model"), dict):
-        raise CheckpointError(f"{path}: checkpoint settings are invalid (no model settings)")
+    problem = meta_problem(meta, arrays)
+    if problem:
+        raise CheckpointError(f"{path}: invalid checkpoint meta: {problem}")
     return meta, arrays
+
+
+def meta_problem(meta: dict, arrays: dict) -> str | None:
+    """What is wrong with a checkpoint's meta (types and ranges of every field `load_checkpoint`
+    reads; a valid checksum says only that nobody edited it by accident), or None."""
+
+    def whole(value, low=0) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+    def real(value) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+    def number(value) -> bool:
+        return real(value) and math.isfinite(value)
+
+    for key in ("model", "train_config"):
+        if not isinstance(meta.get(key), dict):
+            return f"{key!r} must be an object, got {meta.get(key)!r}"
+    data = meta.get("data")
+    if data is not None and not (isinstance(data, dict) and isinstance(data.get("scene"), str)):
+        return f"'data' must be an object naming its scene, got {data!r}"
+    if not whole(meta.get("epoch")):
+        return f"'epoch' must be a whole number >= 0, got {meta.get('epoch')!r}"
+    if not whole(meta.get("best_epoch"), -1):  # -1: no validated epoch yet
+        return f"'best_epoch' must be a whole number >= -1, got {meta.get('best_epoch')!r}"
+    if meta["best_epoch"] > meta["epoch"]:
+        return f"'best_epoch' {meta['best_epoch']} is after 'epoch' {meta['epoch']}"
+    if meta.get("best_val") is not None and not (number(meta["best_val"]) and meta["best_val"] >= 0):
+        return f"'best_val' must be a number >= 0 or null, got {meta['best_val']!r}"
+    if not number(meta.get("elapsed_s", 0.0)) or meta.get("elapsed_s", 0.0) < 0:
+        return f"'elapsed_s' must be a number >= 0, got {meta['elapsed_s']!r}"
+    if meta["format"] == FORMAT:
+        table = arrays.get("history")
+        if table is None or np.ndim(table) != 2 or np.shape(table)[1] != len(HISTORY_FIELDS) or not np.issubdtype(table.dtype, np.floating):
+            return f"'history' must be an array of rows {HISTORY_FIELDS}, got {None if table is None else np.shape(table)}"
+        return None
+    history = meta.get("history")
+    # Losses may be NaN or inf (an epoch that diverged is history too).
+    if not isinstance(history, list):
+        return f"'history' must be a list of [epoch, train loss, validation loss(, seconds)], got {history!r}"
+    for k, entry in enumerate(history):
+        if not (isinstance(entry, list) and len(entry) in (3, 4) and whole(entry[0]) and all(real(v) for v in entry[1:])):
+            return f"'history'[{k}] must be [epoch, train loss, validation loss(, seconds)], got {entry!r}"
+    return None
 
 
 def model_config(path: str | os.PathLike, meta: dict, spec: models.ModelSpec | None = None) -> models.ModelConfig:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -41,6 +42,9 @@ from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
 # caches of another format are regenerated, never misread.
 DATA_FORMAT = 2
 ARRAY_KEYS = ("q", "qd", "qdd", "trajectory", "train", "val")
+# States kept per trajectory at most (the paper's 100; a million is already gigabytes
+# of data for the smallest scene's 100 trajectories).
+MAX_STATES_PER_TRAJECTORY = 1e6
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +67,14 @@ class DataConfig:
     chunk: int = 10
 
     def __post_init__(self):
+        for name in ("duration", "sample_dt", "dt"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"training data {name} must be a positive number, got {value}")
+        if self.chunk < 1:
+            raise ConfigError(f"training data chunk must be >= 1, got {self.chunk}")
+        if not self.duration / self.sample_dt <= MAX_STATES_PER_TRAJECTORY:
+            raise ConfigError(f"training data duration {self.duration:g} holds more than {MAX_STATES_PER_TRAJECTORY:.0e} states at sample_dt {self.sample_dt:g}")
         if self.n_trajectories < 1:
             raise ConfigError(f"need at least one trajectory, got {self.n_trajectories}")
         if not 0 < self.train_fraction < 1:

@@ -186,6 +186,12 @@ def model_names() -> tuple[str, ...]:
     return tuple(_REGISTRY)
 
 
+# Largest message-passing depth and layer width a model config may ask for: far beyond
+# the paper's (L <= 2, widths 5-16), still seconds to initialise.
+MAX_MESSAGE_PASSING = 64
+MAX_WIDTH = 4096
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
     # A registered model name (`model_names()`).
@@ -204,14 +210,27 @@ class ModelConfig:
     dim: int = 2
 
     def __post_init__(self):
+        if not isinstance(self.name, str):
+            raise ConfigError(f"model name must be a string, got {self.name!r}")
         spec = self.spec
         if self.message_passing is None:
             object.__setattr__(self, "message_passing", spec.message_passing)
         object.__setattr__(self, "latent", self.latent or spec.latent)
         object.__setattr__(self, "hidden", self.hidden or spec.hidden)
+        if not isinstance(self.vocabulary, (list, tuple)) or not all(isinstance(v, str) for v in self.vocabulary):
+            raise ConfigError(f"model vocabulary must be a list of link types, got {self.vocabulary!r}")
         object.__setattr__(self, "vocabulary", tuple(self.vocabulary))
-        if self.message_passing < 0:
-            raise ConfigError(f"message-passing layers must be >= 0, got {self.message_passing}")
+        # The same bounds wherever a config comes from (a command, a config file, a
+        # checkpoint's meta): a million layers would run for hours before failing. Widths
+        # may be 0: a spec without a network (a cheating model) has none.
+        for name, low, high in (("message_passing", 0, MAX_MESSAGE_PASSING), ("latent", 0, MAX_WIDTH), ("hidden", 0, MAX_WIDTH),
+                                ("n_nodes", 2, None), ("dim", 2, 3)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low or (high is not None and value > high):
+                bounds = f"from {low} to {high}" if high is not None else f">= {low}"
+                raise ConfigError(f"model {name.replace('_', '-')} must be a whole number {bounds}, got {value!r}")
+        if not isinstance(self.drag, bool):
+            raise ConfigError(f"model drag must be true or false, got {self.drag!r}")
 
     @property
     def spec(self) -> ModelSpec:
@@ -232,7 +251,7 @@ class ModelConfig:
         unknown = sorted(set(data) - fields)
         if unknown:
             raise ConfigError(f"model config: unknown field {unknown[0]!r}")
-        return cls(**{**data, "vocabulary": tuple(data.get("vocabulary", ("link",)))})
+        return cls(**{**data, "vocabulary": data.get("vocabulary", ("link",))})  # a list: a tuple in __post_init__
 
 
 def check_compatible(config: ModelConfig, scene: Scene) -> None:

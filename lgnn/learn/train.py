@@ -122,12 +122,12 @@ class TrainConfig:
     min_improvement: float = 0.0
 
     def __post_init__(self):
-        if self.learning_rate is not None and not self.learning_rate > 0:
-            raise ConfigError(f"learning rate must be > 0, got {self.learning_rate}")
+        if self.learning_rate is not None and not 0 < self.learning_rate < float("inf"):
+            raise ConfigError(f"learning rate must be > 0 and finite, got {self.learning_rate}")
         peak = PAPER_LEARNING_RATE if self.learning_rate is None else self.learning_rate
         if (self.warmup_steps or 0) < 0 or self.decay_steps < 1 or not 0 < self.decay_rate <= 1 or not 0 <= self.min_learning_rate <= peak:
             raise ConfigError("warm-up steps must be >= 0, decay steps >= 1, decay rate in (0, 1], 0 <= minimum learning rate <= learning rate")
-        if self.clip_norm is not None and not self.clip_norm > 0:
+        if self.clip_norm is not None and not 0 < self.clip_norm < float("inf"):
             raise ConfigError(f"clip norm must be > 0, got {self.clip_norm}")
         if self.batch_size < 1 or self.epochs < 0 or self.patience < 1 or self.checkpoint_every < 1:
             raise ConfigError("batch size, patience and checkpoint interval must be >= 1, epochs >= 0")

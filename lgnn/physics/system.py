@@ -27,6 +27,7 @@ import functools
 
 import numpy as np
 
+from lgnn.errors import SceneError
 from lgnn.physics.constraints import Constraints
 from lgnn.physics.energies import constant_node_mass
 from lgnn.physics.local_mass import LocalMass
@@ -134,7 +135,18 @@ class System:
         return requested
 
 
+# Coordinates (nodes x dimension) of the largest scene prepared: the constant node mass
+# and the constraint Jacobian are dense (coordinates^2 and links x coordinates float64),
+# 2 GiB each at this size; a 100 000-node chain would need 149 GiB. Refused before any
+# allocation, naming the limit.
+MAX_COORDINATES = 16_384
+
+
 @functools.lru_cache(maxsize=64)
 def prepare(scene: Scene) -> System:
-    """The `System` of `scene`, shared by every scene of the same content."""
+    """The `System` of `scene`, shared by every scene of the same content; `SceneError`
+    (one line) for a scene above `MAX_COORDINATES`."""
+    if scene.n_nodes * scene.dim > MAX_COORDINATES:
+        raise SceneError(f"scene {scene.name!r}: {scene.n_nodes} nodes in {scene.dim}D are {scene.n_nodes * scene.dim} coordinates, "
+                         f"more than the {MAX_COORDINATES} this solver holds in dense matrices")
     return System(scene)

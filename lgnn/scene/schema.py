@@ -182,7 +182,10 @@ def _number(value, field: str) -> float:
     # bool is an int subclass in Python; `true` is never a valid number in a scene.
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _fail(field, f"expected a number, got {type(value).__name__} {_short(value)}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # a JSON integer of hundreds of digits
+        raise _fail(field, f"magnitude {_short(value)} is beyond {MAX_MAGNITUDE:g} (float64 would overflow)") from None
     if not math.isfinite(value):
         raise _fail(field, f"must be finite, got {value}")
     if abs(value) > MAX_MAGNITUDE:
@@ -243,6 +246,9 @@ def scene_from_dict(data: Any) -> Scene:
     name = data["name"]
     if not isinstance(name, str) or not name.strip():
         raise _fail("name", f"expected a non-empty string, got {_short(name)}")
+    if not name.isprintable():
+        # It names files, tables and MJCF models: no control characters, no half of a UTF-16 pair.
+        raise _fail("name", f"expected printable text, got {name.encode('unicode_escape', 'backslashreplace').decode()}")
     gravity = _number(data.get("gravity", 10.0), "gravity")
     drag = _number(data.get("drag", 0.0), "drag")
     if drag < 0:
@@ -407,6 +413,8 @@ def load_scene_file(path: str | os.PathLike) -> Scene:
         raise SceneError(f"{path}: cannot read: {err.strerror}") from None
     try:
         data = json.loads(text, parse_constant=_reject_constant)
+    except RecursionError:
+        raise SceneError(f"{path}: not a scene: JSON nested too deeply") from None
     except json.JSONDecodeError as err:
         raise SceneError(f"{path}: not valid JSON: {err.msg} at line {err.lineno} column {err.colno}") from None
     except ValueError as err:
