@@ -28,6 +28,10 @@ def _changed(name, value):
         return CHANGED[name]
     if isinstance(value, bool):
         return not value
+    if name.endswith("dt"):  # a step still dividing the frame time, a frame time the duration
+        return value / 2 if name != "frame_dt" else value * 2
+    if name == "duration":
+        return value * 2
     if isinstance(value, (int, float)):
         return value * 2 + 1
     if value is None:

@@ -499,22 +499,27 @@ def test_a_simulation_config_is_bounded_or_refused(dt, frame_dt, duration):
 
 
 def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
-    """Ctrl-C at 50 random moments of `lgnn simulate` (imports, compilation, the run):
+    """Ctrl-C at 12 moments spread over `lgnn simulate` (imports, compilation, the run):
     exit 130 with the one line `lgnn: interrupted`, or, when the signal comes after the
-    run, exit 0; an output is whole or absent. Never a traceback or a crash."""
+    run, exit 0; an output is whole or absent. Never a traceback or a crash. A signal
+    that lands while the interpreter starts or after `main` has returned, before or after
+    Python's own handler, ends the process by SIGINT with nothing said: what a shell
+    reports as 130 too."""
     import random
 
     from lgnn.engines.lagrangian import Trajectory
 
     generator = random.Random(34)
-    for trial in range(50):
+    for trial in range(12):
         out = tmp_path / f"o{trial}.npz"
         child = subprocess.Popen([sys.executable, "-m", "lgnn.cli", "simulate", "chain4", "--duration", "0.2", "--out", str(out), "--quiet"],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        time.sleep(generator.uniform(0.3, 5.0))
+        time.sleep(0.3 + 4.7 * (trial + generator.random()) / 12)
         child.send_signal(signal.SIGINT)
         err = child.communicate(timeout=TIMEOUT_S)[1]
-        assert "Traceback" not in err and child.returncode in (0, 130), (trial, child.returncode, err)
+        assert "Traceback" not in err and child.returncode in (0, 130, -signal.SIGINT), (trial, child.returncode, err)
+        if child.returncode == -signal.SIGINT:
+            assert err == "", err
         if child.returncode == 130:
             assert err.strip() == "lgnn: interrupted", err
         if child.returncode == 0 or out.exists():  # interrupted after the (atomic) save: a whole file
