@@ -28,7 +28,7 @@ from importlib import resources
 from pathlib import Path
 
 from lgnn.errors import ConfigError
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
 from lgnn.learn.data import DataConfig
 from lgnn.learn.models import load_spec
 from lgnn.learn.train import TrainConfig, adam_steps_per_epoch, scheduled

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory
+from lgnn.engines.base import Engine, SimulationConfig, Trajectory
 from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, state_to_qpos_qvel
 from lgnn.engines.timing import time_runs
 from lgnn.errors import ConfigError, SimulationError
@@ -224,7 +224,7 @@ def rollout(scene: Scene, config: SimulationConfig, states: State, form: str = D
 
 
 @dataclasses.dataclass(frozen=True)
-class MjwarpEngine:
+class MjwarpEngine(Engine):
     """MuJoCo Warp as an `lgnn.engines.Engine`: float32 always (MuJoCo Warp has no
     other precision), on the MJCF `form`, on Warp's `device` (default: its preferred)."""
 
@@ -233,14 +233,19 @@ class MjwarpEngine:
     form: str = DEFAULT_FORM
     device: str | None = None
 
+    def form_of(self, scene: Scene) -> str:
+        """The MJCF form this engine runs `scene` in ("auto": `DEFAULT_FORM`)."""
+        return DEFAULT_FORM if self.form == "auto" else self.form
+
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1)
         (lgnn's exact energy of the node states); stopped at the first non-finite or
         exploding frame like every engine."""
         start = time.perf_counter()
-        nodes = rollout(scene, config, states, self.form, self.device)
+        form = self.form_of(scene)
+        nodes = rollout(scene, config, states, form, self.device)
         metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start)
-        metadata["engine"].update(form=self.form, mujoco_warp=versions())
+        metadata["engine"].update(form=form, mujoco_warp=versions())
         if not (np.isfinite(nodes.q).all() and np.isfinite(nodes.qd).all()):
             bad = int(np.argmin(np.isfinite(nodes.q).all(axis=(0, 2, 3)) & np.isfinite(nodes.qd).all(axis=(0, 2, 3))))
             t = bad * config.frame_dt
@@ -249,10 +254,10 @@ class MjwarpEngine:
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, dim))`: compile is the kernels' compilation
-        (and graph capture) when the runner was built (as `lgnn.bench.timing` reports a
+        (and graph capture) when the runner was built (as `lgnn.engines.rollouts` reports a
         cached compile); run is the stepping alone, after one untimed run
         (`lgnn.engines.timing.time_runs`); `q` may be non-finite."""
-        run = runner(scene, config, len(states.q), self.form, self.device)
+        run = runner(scene, config, len(states.q), self.form_of(scene), self.device)
         compile_s = run.prepare()
         qpos, qvel = initial_qpos_qvel(run.compiled, states)
         (run_s,), _ = time_runs(lambda: run.run(qpos, qvel))

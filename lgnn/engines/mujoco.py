@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory
+from lgnn.engines.base import Engine, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import MAX_BODY_DEPTH, MAXIMAL_SOLREF_STEPS, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, render, scene_layout
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.metrics import ExplosionBounds, true_energies
@@ -518,7 +518,7 @@ def engine_metadata(scene: Scene, config: SimulationConfig, engine: str, dtype: 
 
 
 @dataclasses.dataclass(frozen=True)
-class MujocoEngine:
+class MujocoEngine(Engine):
     """MuJoCo C as an `lgnn.engines.Engine`: float64 always (MuJoCo C has no other
     precision), `threads` MjData for batches, the MJCF `form` ("auto": `best_form`)."""
 

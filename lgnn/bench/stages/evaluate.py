@@ -39,12 +39,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn import metrics, physics, records, sharding
+from lgnn import metrics, physics, records
 from lgnn.bench import store
 from lgnn.bench.grid import Pair, Profile, evaluation_pairs, evaluation_scenes, settings_key
 from lgnn.bench.store import Layout, log
-from lgnn.bench.timing import batched_rollouts, compiled_rollouts, stacked_rollouts
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.rollouts import Unparametrised, batched_rollouts
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models, train
 from lgnn.scene import Scene, State, get_scene, is_catalogue_scene, is_pinned_chain, scene_to_dict
@@ -72,6 +72,9 @@ MUJOCO_REFERENCE = 2
 # Array name prefixes made from the MuJoCo reference.
 MUJOCO_ARRAYS = ("truth_vs_mujoco", "rollout_error_vs_mujoco", f"{REST}/rollout_error_vs_mujoco", f"{NO_DRAG}/rollout_error_vs_mujoco",
                  "snapshot/mujoco")
+# The exact dynamics of every reference rollout here, with the solver that vectorises
+# over a batch of initial conditions.
+TRUE_DYNAMICS = Unparametrised(physics.vectorised_true_acceleration_fn)
 # Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s.
 SNAPSHOT_DT = 0.01
 
@@ -171,19 +174,17 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
         f"MuJoCo C at dt {mj_config.dt:g} alongside")
     # A daemon thread: an error or Ctrl-C here does not wait out MuJoCo's minutes.
     mujoco_when_done = _in_background(lambda: _mujoco_reference(scene, mj_config, states))
-    q, qd, compile_s, run_s = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, states, settings.chunk,
-                                               f"truth {scene_name}", progress)
-    energy = metrics.true_energies(scene, q, qd)
-    _check_reference(scene, config, "Lagrangian ground truth", q, qd, energy)
+    # A reference that diverged would turn every error into 1 for every model: it stops there.
+    truth = batched_rollouts(scene, config, TRUE_DYNAMICS, states, chunk=settings.chunk, stop_at_divergence=True, label=f"truth {scene_name}",
+                             progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)")
     noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
     perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
     # The perturbed runs are not references: one that diverges (T2/T3's perturbed
     # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
-    q_floor, qd_floor, _, _ = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, settings.chunk,
-                                               f"floor {scene_name}", progress)
+    floor = batched_rollouts(scene, config, TRUE_DYNAMICS, perturbed, chunk=settings.chunk, label=f"floor {scene_name}", progress=progress)
     q_mj, mujoco_s = mujoco_when_done()
-    return dict(q=q, qd=qd, energy=energy, q_floor=q_floor, qd_floor=qd_floor, q_mujoco=q_mj, states=states,
-                compile_s=compile_s, run_s=run_s, mujoco_s=mujoco_s)
+    return dict(q=truth.q, qd=truth.qd, energy=truth.energy, q_floor=floor.q, qd_floor=floor.qd, q_mujoco=q_mj, states=states,
+                compile_s=truth.compile_s, run_s=truth.run_s, mujoco_s=mujoco_s)
 
 
 def _mujoco_reference(scene: Scene, config: SimulationConfig, states: State) -> tuple[np.ndarray, float]:
@@ -288,24 +289,15 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
     }
     if scene.drag > 0:
         no_drag = scene.replace(drag=0.0)
-        q, qd, _, _ = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), physics.vectorised_true_acceleration_fn, truth["states"],
-                                       profile.evaluate.chunk, f"{scene_name} without drag", progress)
-        scores, diverged = _scores(profile, scene, q, qd, truth)
+        runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth["states"], chunk=profile.evaluate.chunk,
+                                label=f"{scene_name} without drag", progress=progress)
+        scores, diverged = _scores(profile, scene, runs.q, runs.qd, truth)
         arrays.update({k: v for metric in METRICS for k, v in _metric_arrays(f"{NO_DRAG}/{metric}", scores[metric]).items()})
         arrays[f"{NO_DRAG}/diverged_at"] = np.where(diverged >= 0, diverged * frame_dt, np.nan)
     meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=MUJOCO_REFERENCE,
                 **{name: truth[name] for name in TRUTH_TIMINGS})
     store.save(path, key, arrays, meta)
     return path
-
-
-@functools.lru_cache(maxsize=16)
-def _model_accel_factory(checkpoint: Path, digest: str) -> Callable[[Scene], physics.AccelerationFn]:
-    """`scene -> accel` of a checkpoint's best parameters, as constants: one object per
-    checkpoint content (`digest`), so compiled rollouts cached per factory are shared
-    by every timing of it (`timed_rollout_fn`)."""
-    model, params = train.load_model(checkpoint)
-    return lambda scene: models.acceleration_fn(model, params, scene)
 
 
 def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True) -> Path:
@@ -317,7 +309,7 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
     """The evaluation records of `pairs` (module docstring), those not yet recorded
     computed together: pairs on one scene whose models share a configuration (the seeds
     of one training job, projected alike) roll out in one compiled program
-    (`timing.stacked_rollouts`): one compile instead of one per seed, and the GPU's
+    (`rollouts.batched_rollouts`, stacked): one compile instead of one per seed, and the GPU's
     batch as wide as the seeds times the initial conditions. Each pair keeps its own
     record, as `evaluate_pair` writes it."""
     layout = Layout(out)
@@ -352,8 +344,9 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     seeds = ", ".join(f"s{p.job.seed}" for p, *_ in group)
     log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(states.q)} initial conditions")
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for *_, params in group))
-    q_all, qd_all, compile_s, run_s = stacked_rollouts(scene, config, models.AccelerationFactory(group[0][3]), stacked, states,
-                                                       profile.evaluate.chunk, f"{pair.label} {seeds} on {pair.scene}", progress)
+    runs = batched_rollouts(scene, config, models.AccelerationFactory(group[0][3]), states, stacked, stacked=True, chunk=profile.evaluate.chunk,
+                            label=f"{pair.label} {seeds} on {pair.scene}", progress=progress)
+    q_all, qd_all, compile_s, run_s = runs.q, runs.qd, runs.compile_s, runs.run_s
     truth = truth_when_done()
     if not np.allclose(truth["states"].q, states.q, rtol=1e-9, atol=1e-12):
         raise SimulationError(f"{pair.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
@@ -406,17 +399,15 @@ def load_pairs(profile: Profile, out: Path) -> list[tuple[Pair, tuple[dict, dict
 
 
 def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
-    """`(run, steps)`: a no-argument call running the pair's model, alone and with its
-    parameters as constants (evaluation rolls out a model's seeds together,
-    `evaluate_group`), on the first chunk of the evaluation's initial conditions, and
-    the RK4 steps it takes; for pytest-benchmark."""
+    """`(run, steps)`: a no-argument call running the pair's model alone on the first
+    chunk of the evaluation's initial conditions (through the one rollout path, its
+    programs compiled by the first call), and the RK4 steps it takes; for
+    pytest-benchmark."""
     scene = get_scene(pair.scene)
     states = evaluation_initial_states(profile, scene)
-    chunk = sharding.padded_size(min(profile.evaluate.chunk, len(states.q)))
-    checkpoint = Layout(out).checkpoint(pair.job)
-    accel_factory = _model_accel_factory(checkpoint, records.file_digest(checkpoint))
+    chunk = min(profile.evaluate.chunk, len(states.q))
+    first = State(states.q[:chunk], states.qd[:chunk])
+    model, params = train.load_model(Layout(out).checkpoint(pair.job))
     config = profile.evaluate.simulation(pair.scene)
-    compiled, _ = compiled_rollouts(scene, config, accel_factory, chunk, str(states.q.dtype))
-    q, qd = (jnp.asarray(sharding.pad_batch(a[:chunk], chunk)) for a in states)
     steps = chunk * config.n_frames * config.steps_per_frame
-    return (lambda: jax.block_until_ready(compiled(q, qd))), steps
+    return (lambda: batched_rollouts(scene, config, models.AccelerationFactory(model), first, params, chunk=chunk)), steps
