@@ -15,8 +15,8 @@
   - `accuracy(scene, config) -> float | None`: the maximum node position error it
     expects against the exact solution at these settings (None, the default: the
     engine states none).
-- `SimulationConfig`: the rollout settings (step, frame interval, duration, and for
-  now the integrator and projection the JAX engines use).
+- `SimulationConfig`: the rollout settings (step, frame interval, duration, and the
+  integrator and projection the JAX engines use; the MuJoCo engines check theirs).
 - `Trajectory`: the NumPy result of a rollout, and its `.npz` file.
 """
 
