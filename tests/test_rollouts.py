@@ -50,9 +50,9 @@ def test_frames_in_calls_give_the_same_trajectory_as_one_call():
     scene = get_scene("chain4")
     states = _states(scene, 2)
     factory = rollouts.Unparametrised(physics.true_acceleration_fn)
-    whole = rollouts.batched_rollouts(scene, SHORT, factory, states, frames_per_call=SHORT.n_frames)
+    whole = rollouts.batched_rollouts(scene, SHORT, factory, states, frames_per_call=SHORT.n_frames, with_energy=True)
     # 10 frames in calls of 3: four calls, the last running past the end (its extra frames dropped).
-    called = rollouts.batched_rollouts(scene, SHORT, factory, states, frames_per_call=3)
+    called = rollouts.batched_rollouts(scene, SHORT, factory, states, frames_per_call=3, with_energy=True)
     np.testing.assert_array_equal(called.q, whole.q)
     np.testing.assert_array_equal(called.energy, whole.energy)
 
@@ -104,7 +104,7 @@ def test_a_reference_stops_at_its_first_diverging_member_with_the_frames_before_
     np.testing.assert_array_equal(partial.q[0], states.q[1])
     # A model's rollouts (not a reference) run on: the diverged member keeps its frames.
     runs = rollouts.batched_rollouts(scene, config, factory, states)
-    assert runs.q.shape[1] == config.n_frames + 1
+    assert runs.q.shape[1] == config.n_frames + 1 and runs.energy is None, "energies only where asked for"
     np.testing.assert_array_equal(runs.q[0, -1], resting)
 
 

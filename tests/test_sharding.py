@@ -97,7 +97,7 @@ def test_seeds_rolled_out_together_equal_each_alone():
     states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *seeds)
     factory = models.AccelerationFactory(config)
-    runs = batched_rollouts(scene, CONFIG, factory, states, stacked, stacked=True, chunk=2)
+    runs = batched_rollouts(scene, CONFIG, factory, states, stacked, stacked=True, chunk=2, with_energy=True)
     q, qd = runs.q, runs.qd
     assert q.shape == (2, 3, CONFIG.n_frames + 1, scene.n_nodes, scene.dim) and runs.energy.shape == (2, 3, CONFIG.n_frames + 1)
     for params, q_seed, qd_seed in zip(seeds, q, qd):

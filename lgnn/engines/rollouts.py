@@ -70,18 +70,21 @@ class Unparametrised:
 
 @dataclasses.dataclass(frozen=True)
 class Rollouts:
-    """`q`, `qd` (B, F+1, N, D) and true `energy` (B, F+1), float64, frame 0 the initial
-    state (with a leading S axis when stacked); `compile_s` and `run_s` (seconds)."""
+    """`q`, `qd` (B, F+1, N, D) and true `energy` (B, F+1; None where not asked for),
+    float64, frame 0 the initial state (with a leading S axis when stacked);
+    `compile_s` and `run_s` (seconds)."""
 
     q: np.ndarray
     qd: np.ndarray
-    energy: np.ndarray
+    energy: np.ndarray | None
     compile_s: float
     run_s: float
 
     def trajectory(self, scene: Scene, config: SimulationConfig, metadata: dict | None = None) -> Trajectory:
         """The rollouts as a `Trajectory` batch (not stacked), with the scene and settings
-        in its metadata (and `metadata`)."""
+        in its metadata (and `metadata`); rollouts made `with_energy`."""
+        if self.energy is None:
+            raise ValueError("a Trajectory carries energies: roll out with_energy")
         t = np.arange(self.q.shape[-3]) * config.frame_dt
         meta = {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config), **(metadata or {})}
         return Trajectory(t, self.q, self.qd, self.energy, meta)
@@ -93,6 +96,7 @@ class _Programs:
     step: Callable  # (params, carry) -> (carry, q, qd, energy), `frames` frames
     frames: int
     compile_s: float
+    with_energy: bool
 
 
 def params_signature(params) -> tuple:
@@ -103,13 +107,18 @@ def params_signature(params) -> tuple:
 
 @functools.lru_cache(maxsize=64)
 def compiled_programs(scene: Scene, config: SimulationConfig, accel_factory: Callable, batch: int, dtype: str, frames: int,
-                      stacked: bool, signature: tuple) -> _Programs:
+                      stacked: bool, signature: tuple, with_energy: bool = True) -> _Programs:
     """The compiled `start` and `step` programs of `batched_rollouts` for `batch`
     initial conditions (a multiple of the device count) and parameters of
-    `signature` (`params_signature`), `frames` frames per `step`; cached (a scene is a
-    key by content), so `compiled_programs.cache_info().misses` counts compilations."""
+    `signature` (`params_signature`), `frames` frames per `step`, the true energy of
+    each frame computed `with_energy` (else None: about a quarter of a small scene's
+    compile time); cached (a scene is a key by content), so
+    `compiled_programs.cache_info().misses` counts compilations."""
     project = physics.projection_fn(scene)
-    energy = physics.energy_fn(scene)
+    true_energy = physics.energy_fn(scene)
+
+    def energy(q, qd):
+        return true_energy(q, qd) if with_energy else None
 
     def integrator(params):
         return config.integrator_for(accel_factory(scene, params), project)
@@ -120,7 +129,7 @@ def compiled_programs(scene: Scene, config: SimulationConfig, accel_factory: Cal
 
     def step(params, carry):
         carry, states = advance(integrator(params), carry, frames, config.steps_per_frame)
-        return carry, states.q, states.qd, jax.vmap(energy)(states.q, states.qd)
+        return carry, states.q, states.qd, jax.vmap(energy)(states.q, states.qd) if with_energy else None
 
     start, step = jax.vmap(start, in_axes=(None, 0, 0)), jax.vmap(step, in_axes=(None, 0))
     if stacked:
@@ -134,16 +143,19 @@ def compiled_programs(scene: Scene, config: SimulationConfig, accel_factory: Cal
     carry = start.out_info[0]
     start = start.compile()
     step = jax.jit(step, in_shardings=(whole, batched), out_shardings=batched).lower(params, carry).compile()
-    return _Programs(start, step, frames, time.perf_counter() - began)
+    return _Programs(start, step, frames, time.perf_counter() - began, with_energy)
 
 
 def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, states: State, params=None, *,
                      stacked: bool = False, dtype: str = "float64", chunk: int | None = None, frames_per_call: int = FRAMES_PER_CALL,
-                     stop_at_divergence: bool = False, label: str = "", progress: bool = False, hint: str = "try a smaller dt") -> Rollouts:
+                     stop_at_divergence: bool = False, with_energy: bool = False, label: str = "", progress: bool = False,
+                     hint: str = "try a smaller dt") -> Rollouts:
     """Rollouts of initial `states` (B, N, D) under `accel_factory(scene, params)`
     (module docstring): at most `chunk` (None: all) initial conditions per program,
     computed in `dtype`; `stop_at_divergence` for a reference, `hint` ending its error;
-    `label` names the run in progress bars and messages (default: the scene's name)."""
+    the true energies `with_energy` or `stop_at_divergence` (else `Rollouts.energy` is
+    None); `label` names the run in progress bars and messages (default: the scene's
+    name)."""
     if stop_at_divergence and stacked:
         raise ValueError("stop_at_divergence is for a reference's rollouts, not stacked parameter sets")
     label = label or scene.name
@@ -158,7 +170,8 @@ def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Call
         compile_total = 0.0
         while True:
             try:
-                programs = compiled_programs(scene, config, accel_factory, size, dtype, frames, stacked, signature)
+                programs = compiled_programs(scene, config, accel_factory, size, dtype, frames, stacked, signature,
+                                             with_energy or stop_at_divergence)
                 compile_total += programs.compile_s
                 out, run_s = _run(scene, config, programs, params, State(q0, qd0), size, stacked, stop_at_divergence, label, progress, hint)
                 return Rollouts(*out, compile_s=compile_total, run_s=run_s)
@@ -188,7 +201,8 @@ def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, st
     count, n_frames = len(states.q), config.n_frames
     lead = (len(jax.tree.leaves(params)[0]),) if stacked else ()
     q_all = np.empty(lead + (count, n_frames + 1, scene.n_nodes, scene.dim))
-    qd_all, energy_all = np.empty_like(q_all), np.empty(lead + (count, n_frames + 1))
+    qd_all = np.empty_like(q_all)
+    energy_all = np.empty(lead + (count, n_frames + 1)) if programs.with_energy else None
     run_s = 0.0
     ics = (slice(None),) * len(lead)
     with tqdm(total=count * n_frames, desc=label, unit="frame", disable=not progress, leave=False, file=sys.stderr) as bar:
@@ -200,7 +214,8 @@ def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, st
             carry, energy0 = jax.block_until_ready(programs.start(params, *padded))
             run_s += time.perf_counter() - began
             q_all[batch + (0,)], qd_all[batch + (0,)] = states.q[first:first + taken], states.qd[first:first + taken]
-            energy_all[batch + (0,)] = np.asarray(energy0)[(*ics, slice(0, taken))]
+            if energy_all is not None:
+                energy_all[batch + (0,)] = np.asarray(energy0)[(*ics, slice(0, taken))]
             bounds = [ExplosionBounds.of(scene, State(states.q[c], states.qd[c]), float(energy_all[(c, 0)]))
                       for c in range(first, first + taken)] if stop else None
             done = 0
@@ -212,7 +227,8 @@ def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, st
                 frames = slice(done + 1, done + 1 + kept)
                 part = (*ics, slice(0, taken), slice(0, kept))
                 q_all[batch + (frames,)], qd_all[batch + (frames,)] = np.asarray(q)[part], np.asarray(qd)[part]
-                energy_all[batch + (frames,)] = np.asarray(energy)[part]
+                if energy_all is not None:
+                    energy_all[batch + (frames,)] = np.asarray(energy)[part]
                 if bounds is not None:
                     _stop_at_divergence(scene, config, bounds, first, q_all, qd_all, energy_all, done, kept, label, hint)
                 done += kept
