@@ -18,7 +18,7 @@ from lgnn.engines import mjx
 from lgnn.engines import mujoco as lm
 from lgnn.scene import State
 from lgnn.scene import get_scene, sample_initial_states
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
 
 CONFIG = SimulationConfig(dt=1e-4, frame_dt=0.01, duration=0.01)
 STEPS = 100

@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import pytest
 
 from lgnn.scene import get_scene, sample_initial_states
-from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.lagrangian import rollout_fn
 
 STEPS = 20
 CONFIG = SimulationConfig(dt=1e-4, frame_dt=STEPS * 1e-4, duration=STEPS * 1e-4)

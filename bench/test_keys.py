@@ -14,6 +14,7 @@ import pytest
 from lgnn import metrics
 from lgnn.bench import grid, store
 from lgnn.bench.stages import evaluate, mass, scaling, speed
+from lgnn.engines.rollouts import Rollouts
 from lgnn.scene import get_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -165,13 +166,14 @@ def test_a_models_rollouts_do_not_wait_for_its_scenes_ground_truth(tmp_path, mon
         energy = metrics.true_energies(scene, q, qd)
         return dict(q=q, qd=qd, energy=energy, q_mujoco=q, energy_mujoco=energy, states=states)
 
-    def rollouts(scene, config, factory, stacked, initial, *args):
+    def rollouts(scene, config, factory, initial, params, **options):
         rollouts_started.set()
         np.testing.assert_array_equal(initial.q, states.q)
-        return (*held_states(len(jax.tree.leaves(stacked)[0])), 1.0, 1.0)
+        q, qd = held_states(len(jax.tree.leaves(params)[0]))
+        return Rollouts(q, qd, metrics.true_energies(scene, q, qd), 1.0, 1.0)
 
     monkeypatch.setattr(evaluate, "ground_truth", truth_after_rollouts)
-    monkeypatch.setattr(evaluate, "stacked_rollouts", rollouts)
+    monkeypatch.setattr(evaluate, "batched_rollouts", rollouts)
     model = models.ModelConfig("lgnn", latent=4, hidden=8)
     pair = grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), SCENE)
     path = tmp_path / "pair.npz"

@@ -165,7 +165,7 @@ def _cmd_scene_export(args) -> None:
 
 def _add_simulation_options(parser: argparse.ArgumentParser) -> None:
     from lgnn.integrate import INTEGRATORS
-    from lgnn.engines.lagrangian import SimulationConfig
+    from lgnn.engines.base import SimulationConfig
 
     default = SimulationConfig()
     parser.add_argument("--integrator", choices=sorted(INTEGRATORS), default=default.integrator)
@@ -176,7 +176,7 @@ def _add_simulation_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _simulation_config(args):
-    from lgnn.engines.lagrangian import SimulationConfig
+    from lgnn.engines.base import SimulationConfig
 
     if args.dt > args.frame_dt:
         raise ConfigError(f"dt {args.dt:g} is longer than the interval between frames (--frame-dt {args.frame_dt:g}): "
@@ -750,7 +750,8 @@ def build_parser() -> argparse.ArgumentParser:
     simulate = commands.add_parser("simulate", help="simulate a scene with a ground-truth engine")
     simulate.add_argument("scene", help="built-in scene name or scene JSON file")
     simulate.add_argument("--engine", default="lagrangian", choices=list(ENGINES), help="ground-truth engine (default: lagrangian)")
-    simulate.add_argument("--dtype", choices=["float64", "float32"], default="float64", help="MJX precision (default float64)")
+    simulate.add_argument("--dtype", choices=["float64", "float32"], default=None,
+                          help="precision of the engine (default: its own, float64 but MuJoCo Warp's float32); one it lacks is refused")
     simulate.add_argument("--form", choices=["auto", "nested", "maximal"], help="MuJoCo engines: MJCF form (default auto: the engine's choice)")
     _add_simulation_options(simulate)
     simulate.add_argument("--out", required=True, help="output .npz file")

@@ -2,7 +2,9 @@
 
 Evaluation and data generation integrate many initial conditions that never interact:
 `batch_jit(fn)` is `jax.jit(fn)` with the leading (batch) axis of every argument and
-output split across `jax.local_devices()` on a one-axis mesh named `"batch"`. The same
+output split across `jax.local_devices()` on a one-axis mesh named `"batch"`;
+`axis_sharding(axis)` splits another axis (or none: arrays whole on every device), for
+programs whose arguments are batched differently (`lgnn.engines.rollouts`). The same
 code then uses one CPU, every GPU of a host, or forced host devices
 (`XLA_FLAGS=--xla_force_host_platform_device_count=N`, as the tests do); there is no
 hand-made multiprocessing and no communication between devices.
@@ -25,25 +27,22 @@ def device_count() -> int:
     return len(jax.local_devices())
 
 
+def axis_sharding(axis: int | None) -> NamedSharding:
+    """Axis `axis` of every array split over the local devices (None: arrays whole on
+    each device)."""
+    spec = PartitionSpec() if axis is None else PartitionSpec(*([None] * axis), "batch")
+    return NamedSharding(Mesh(np.asarray(jax.local_devices()), ("batch",)), spec)
+
+
 def batch_sharding() -> NamedSharding:
     """Leading axis split over the local devices, other axes whole on each."""
-    return NamedSharding(Mesh(np.asarray(jax.local_devices()), ("batch",)), PartitionSpec("batch"))
+    return axis_sharding(0)
 
 
 def batch_jit(fn: Callable) -> Callable:
     """`jax.jit(fn)` with every argument and output sharded along its leading axis."""
     sharding = batch_sharding()
     return jax.jit(fn, in_shardings=sharding, out_shardings=sharding)
-
-
-def shared_batch_jit(fn: Callable, n_batched: int) -> Callable:
-    """`jax.jit(fn)` of `fn(shared, *batched)`: `shared` (a pytree, e.g. the parameters
-    of several seeds of one model) whole on every device, the `n_batched` other
-    arguments split along their leading axis, every output along its second axis (its
-    first is `shared`'s own, e.g. the seeds')."""
-    batch = batch_sharding()
-    whole, second = NamedSharding(batch.mesh, PartitionSpec()), NamedSharding(batch.mesh, PartitionSpec(None, "batch"))
-    return jax.jit(fn, in_shardings=(whole,) + (batch,) * n_batched, out_shardings=second)
 
 
 def padded_size(size: int) -> int:

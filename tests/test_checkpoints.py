@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from lgnn import records
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
 from lgnn.errors import CheckpointError
 from lgnn.learn import checkpoints, data, models, train
 from lgnn.learn.models import ModelSpec

@@ -11,7 +11,7 @@ import pytest
 
 from lgnn.cli import main
 from lgnn.scene import CATALOGUE
-from lgnn.engines.lagrangian import Trajectory
+from lgnn.engines.base import Trajectory
 
 
 def run(capsys, *argv):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lgnn.bench import convergence
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
 from lgnn.scene import get_scene
 
 

@@ -11,7 +11,8 @@ import pytest
 from lgnn import physics
 from lgnn.bench import evaluation
 from lgnn.cli import main
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
+from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines.lagrangian import simulate
 from lgnn.learn import models, train
 from lgnn.scene import get_scene, sample_initial_states
 from lgnn.scene.catalogue import double_pinned_chain

@@ -19,7 +19,8 @@ from lgnn.bench.grid import get_profile
 from lgnn.bench.tables import write_table
 from lgnn.cli import main
 from lgnn.engines import mjwarp
-from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.lagrangian import rollout_fn
 from lgnn.errors import ConfigError
 from lgnn.scene import get_scene
 

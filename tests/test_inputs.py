@@ -380,7 +380,7 @@ def test_an_output_naming_a_device_is_refused_not_replaced(tmp_path, capsys):
 
 from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
 
-from lgnn.engines.lagrangian import SimulationConfig  # noqa: E402
+from lgnn.engines.base import SimulationConfig  # noqa: E402
 from lgnn.errors import ConfigError  # noqa: E402
 
 GENERATED = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -493,7 +493,7 @@ def test_a_simulation_config_is_bounded_or_refused(dt, frame_dt, duration):
     except ConfigError as err:
         assert "\n" not in str(err)
         return
-    from lgnn.engines.lagrangian import MAX_FRAMES, MAX_STEPS
+    from lgnn.engines.base import MAX_FRAMES, MAX_STEPS
 
     assert 1 <= config.n_frames <= MAX_FRAMES and config.n_frames * config.steps_per_frame <= MAX_STEPS
 
@@ -507,7 +507,7 @@ def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
     reports as 130 too."""
     import random
 
-    from lgnn.engines.lagrangian import Trajectory
+    from lgnn.engines.base import Trajectory
 
     generator = random.Random(34)
     for trial in range(12):

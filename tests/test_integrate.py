@@ -8,7 +8,8 @@ import pytest
 from lgnn import physics
 from lgnn.integrate import rk4, rollout, velocity_verlet
 from lgnn.scene import get_scene, sample_initial_states, scene_names
-from lgnn.engines.lagrangian import SimulationConfig, rollout_fn, simulate
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.lagrangian import rollout_fn, simulate
 from lgnn.scene.catalogue import double_pinned_chain, free_triangle, pendulum
 
 

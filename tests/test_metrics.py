@@ -8,7 +8,8 @@ import pytest
 
 from lgnn import metrics
 from lgnn.cli import main
-from lgnn.engines.lagrangian import SimulationConfig, simulate
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.lagrangian import simulate
 from lgnn.scene import State, get_scene, scene_from_dict
 
 

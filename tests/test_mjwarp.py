@@ -17,7 +17,7 @@ import pytest
 from lgnn.cli import main
 from lgnn.engines import get_engine, mjwarp
 from lgnn.engines import mujoco as lm
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
 from lgnn.errors import ConfigError
 from lgnn.scene import State, get_scene, sample_initial_states
 

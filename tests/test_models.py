@@ -15,7 +15,8 @@ from lgnn.cli import main
 from lgnn.errors import CheckpointError, ConfigError
 from lgnn.scene import scene_from_dict, scene_to_dict
 from lgnn.scene import get_scene
-from lgnn.engines.lagrangian import SimulationConfig, simulate
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.lagrangian import simulate
 
 SHORT = SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.2)
 TINY_DATA = data.DataConfig(n_trajectories=10, duration=0.2, sample_dt=0.01, dt=1e-3)

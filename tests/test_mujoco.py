@@ -27,7 +27,8 @@ from lgnn.engines import mujoco as lm
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.scene import State, scene_from_dict, scene_to_dict
 from lgnn.scene import chain, get_scene, sample_initial_states, scene_names
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
+from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines.lagrangian import simulate
 
 # The engines' chain4 rollouts (0.25 s: MJX's CPU run of a whole second took most of a
 # 2-core CI minute; a quarter already swings every link through large angles).

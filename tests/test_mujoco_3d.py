@@ -21,7 +21,8 @@ from lgnn import physics
 from lgnn.cli import main
 from lgnn.engines import get_engine, mjcf
 from lgnn.engines import mujoco as lm
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
+from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines.lagrangian import simulate
 from lgnn.scene import embedded_in_3d, get_scene, scene_from_dict, scene_to_dict, spatial_chain, spatial_net
 from lgnn.scene.catalogue import double_pinned_chain
 

@@ -16,12 +16,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from lgnn.bench.timing import batched_rollouts, compiled_rollouts
+from lgnn.engines.rollouts import Unparametrised, batched_rollouts
 from lgnn.learn import data
 from lgnn import physics, sharding
 from lgnn.scene import get_scene, sample_initial_states
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
 
+TRUE = Unparametrised(physics.true_acceleration_fn)
 CONFIG = SimulationConfig(dt=1e-3, frame_dt=5e-3, duration=0.02)
 DATA = data.DataConfig(n_trajectories=3, duration=0.04, sample_dt=0.01, chunk=3)
 
@@ -30,23 +31,23 @@ import json, sys
 import lgnn, jax
 lgnn.configure()
 import numpy as np
-from lgnn.bench.timing import batched_rollouts, compiled_rollouts
+from lgnn.engines import rollouts
 from lgnn.learn import data
 from lgnn import physics, sharding
 from lgnn.scene import get_scene, sample_initial_states
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
 assert jax.device_count() == 2, jax.devices()
 config = SimulationConfig(**json.loads(sys.argv[1]))
 scene = get_scene("chain4")
 states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
-compiled, _ = compiled_rollouts(scene, config, physics.true_acceleration_fn, 4, "float64")
-q, qd = (jax.numpy.asarray(sharding.pad_batch(np.asarray(a), 4)) for a in states)
-out = compiled(q, qd)
-devices = sorted(d.id for d in out.q.sharding.device_set)
-q, _, _, _ = batched_rollouts(scene, config, physics.true_acceleration_fn, states, 3, "sharded", False)
+true = rollouts.Unparametrised(physics.true_acceleration_fn)
+q = rollouts.batched_rollouts(scene, config, true, states, chunk=3).q
+programs = rollouts.compiled_programs(scene, config, true, 4, "float64", config.n_frames, False, rollouts.params_signature(None))
+q0, qd0 = (jax.numpy.asarray(sharding.pad_batch(np.asarray(a), 4)) for a in states)
+carry, _ = programs.start(None, q0, qd0)
+devices = sorted(d.id for d in carry.state.q.sharding.device_set)
 # Two parameter sets (ignored by the factory) sharing the sharded initial conditions.
-from lgnn.bench.timing import stacked_rollouts
-stacked, _, _, _ = stacked_rollouts(scene, config, lambda s, p: physics.true_acceleration_fn(s), np.zeros((2, 1)), states, 3, "stacked", False)
+stacked = rollouts.batched_rollouts(scene, config, true, states, np.zeros((2, 1)), stacked=True, chunk=3).q
 assert stacked.shape == (2,) + q.shape and np.abs(stacked - q).max() < 1e-13, "stacked, sharded"
 dataset = data.generate(data.DataConfig(**json.loads(sys.argv[2])))
 np.savez(sys.argv[3], q=q, data_q=dataset.q, data_qdd=dataset.qdd)
@@ -69,7 +70,7 @@ def test_rollouts_and_data_sharded_over_two_devices_equal_one_device(tmp_path):
     assert sharding.device_count() == 1
     scene = get_scene("chain4")
     states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
-    q, _, _, _ = batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 3, "single", False)
+    q = batched_rollouts(scene, CONFIG, TRUE, states, chunk=3).q
     np.testing.assert_allclose(sharded["q"], q, rtol=0, atol=1e-13)
     dataset = data.generate(DATA)
     np.testing.assert_allclose(sharded["data_q"], dataset.q, rtol=0, atol=1e-13)
@@ -85,10 +86,9 @@ def test_pad_batch_repeats_the_last_element():
 
 
 def test_seeds_rolled_out_together_equal_each_alone():
-    """`stacked_rollouts` (one compiled program for several parameter sets of one model,
-    the evaluation's seeds) gives each set's trajectories as `batched_rollouts` does with
-    that set's parameters as constants, with a padded last chunk."""
-    from lgnn.bench.timing import stacked_rollouts
+    """A stacked rollout (one compiled program for several parameter sets of one model,
+    the evaluation's seeds) gives each set's trajectories as a rollout of that set
+    alone does, with a padded last chunk."""
     from lgnn.learn import models
 
     scene = get_scene("chain4")
@@ -96,39 +96,41 @@ def test_seeds_rolled_out_together_equal_each_alone():
     seeds = [models.init(jax.random.PRNGKey(seed), config) for seed in (0, 1)]
     states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *seeds)
-    q, qd, _, _ = stacked_rollouts(scene, CONFIG, models.AccelerationFactory(config), stacked, states, 2, "stacked", False)
-    assert q.shape == (2, 3, CONFIG.n_frames + 1, scene.n_nodes, scene.dim)
+    factory = models.AccelerationFactory(config)
+    runs = batched_rollouts(scene, CONFIG, factory, states, stacked, stacked=True, chunk=2, with_energy=True)
+    q, qd = runs.q, runs.qd
+    assert q.shape == (2, 3, CONFIG.n_frames + 1, scene.n_nodes, scene.dim) and runs.energy.shape == (2, 3, CONFIG.n_frames + 1)
     for params, q_seed, qd_seed in zip(seeds, q, qd):
-        alone, alone_qd, _, _ = batched_rollouts(scene, CONFIG, lambda s, p=params: models.acceleration_fn(config, p, s), states, 2, "alone", False)
-        np.testing.assert_allclose(q_seed, alone, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(qd_seed, alone_qd, rtol=0, atol=1e-10)
+        alone = batched_rollouts(scene, CONFIG, factory, states, params, chunk=2)
+        np.testing.assert_allclose(q_seed, alone.q, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(qd_seed, alone.qd, rtol=0, atol=1e-10)
     assert np.abs(q[0] - q[1]).max() > 1e-6, "the two seeds' models differ"
 
 
 def test_a_chunk_that_runs_out_of_device_memory_is_halved_and_the_last_one_is_a_clear_error(monkeypatch, capsys):
-    """`batched_rollouts` (and `stacked_rollouts`, through the same loop): a call that
+    """`batched_rollouts` (stacked or not, through the same loop): a call that
     runs out of device memory (a stand-in for XLA's RESOURCE_EXHAUSTED above 2 initial
     conditions per call) is retried with half the chunk, the trajectories unchanged; out
     of memory at the smallest chunk is one line, not a traceback from inside JAX."""
     import pytest
 
-    from lgnn.bench import timing
+    from lgnn.engines import rollouts
     from lgnn.errors import SimulationError
 
     scene = get_scene("chain4")
     states = sample_initial_states(scene, jax.random.PRNGKey(3), 5)
-    whole, _, _, _ = batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 8, "whole", False)
-    real = timing._run_chunks
+    whole = batched_rollouts(scene, CONFIG, TRUE, states, chunk=8).q
+    real = rollouts._run
 
-    def limited(run, states, chunk, axis, label, progress, limit=2):
-        if chunk > limit:
-            raise jax.errors.JaxRuntimeError(f"RESOURCE_EXHAUSTED: Out of memory while trying to allocate {chunk} GiB")
-        return real(run, states, chunk, axis, label, progress)
+    def limited(scene, config, programs, params, states, size, *args, limit=2):
+        if size > limit:
+            raise jax.errors.JaxRuntimeError(f"RESOURCE_EXHAUSTED: Out of memory while trying to allocate {size} GiB")
+        return real(scene, config, programs, params, states, size, *args)
 
-    monkeypatch.setattr(timing, "_run_chunks", limited)
-    halved, _, _, _ = batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 8, "halved", False)
+    monkeypatch.setattr(rollouts, "_run", limited)
+    halved = batched_rollouts(scene, CONFIG, TRUE, states, chunk=8, label="halved").q
     np.testing.assert_array_equal(halved, whole)
     assert "halved: out of device memory with 5 initial conditions per call; retrying with 2" in capsys.readouterr().err
-    monkeypatch.setattr(timing, "_run_chunks", lambda *args: limited(*args, limit=0))
+    monkeypatch.setattr(rollouts, "_run", lambda *args: limited(*args, limit=0))
     with pytest.raises(SimulationError, match="^none: out of device memory even with 1 rollouts per call"):
-        batched_rollouts(scene, CONFIG, physics.true_acceleration_fn, states, 8, "none", False)
+        batched_rollouts(scene, CONFIG, TRUE, states, chunk=8, label="none")

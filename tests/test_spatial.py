@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from lgnn import integrate, physics
-from lgnn.engines.lagrangian import SimulationConfig, simulate
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.lagrangian import simulate
 from lgnn.scene import embedded_in_3d, get_scene, sample_initial_states, scene_names, spatial_chain, spatial_net
 from lgnn.scene.catalogue import SPATIAL_CHAIN_CONE, SPATIAL_CHAIN_SPIN, double_pinned_chain
 

@@ -28,12 +28,13 @@ from hypothesis import strategies as st
 from lgnn.learn import data, models, train
 from lgnn import physics, records
 from lgnn.bench import stability
-from lgnn.engines.lagrangian import Trajectory
+from lgnn.engines.base import Trajectory
 from lgnn.cli import main
 from lgnn.errors import SceneError, SimulationError
 from lgnn.scene import scene_from_dict, scene_to_dict
 from lgnn.scene import chain, get_scene, taut_chain
-from lgnn.engines.lagrangian import SimulationConfig, rollout_fn, simulate
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.lagrangian import rollout_fn, simulate
 from lgnn.metrics import EXPLOSION_FACTOR, ExplosionBounds
 
 ROOT = Path(__file__).resolve().parents[1]

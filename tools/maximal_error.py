@@ -32,7 +32,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from lgnn.engines import mujoco as lm  # noqa: E402
-from lgnn.engines.lagrangian import SimulationConfig  # noqa: E402
+from lgnn.engines.base import SimulationConfig  # noqa: E402
 from lgnn.engines.mjcf import scene_layout  # noqa: E402
 from lgnn.scene import chain, spatial_chain  # noqa: E402
 

@@ -17,7 +17,8 @@ from lgnn.provenance import environment
 def truth(path):
     import numpy as np
 
-    from lgnn.engines.lagrangian import SimulationConfig, simulate
+    from lgnn.engines.base import SimulationConfig
+    from lgnn.engines.lagrangian import simulate
     from lgnn.scene import get_scene, scene_names
 
     arrays = {}
@@ -38,7 +39,8 @@ def compare(first, second):
 
 
 def lgnn_t3(seconds=1.0):
-    from lgnn.engines.lagrangian import SimulationConfig, simulate
+    from lgnn.engines.base import SimulationConfig
+    from lgnn.engines.lagrangian import simulate
     from lgnn.errors import SimulationError
     from lgnn.learn import models
     from lgnn.learn.train import load_model

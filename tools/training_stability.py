@@ -40,7 +40,8 @@ def main() -> None:
     import numpy as np
 
     from lgnn import provenance
-    from lgnn.engines.lagrangian import SimulationConfig, simulate
+    from lgnn.engines.base import SimulationConfig
+    from lgnn.engines.lagrangian import simulate
     from lgnn.errors import SimulationError
     from lgnn.learn import data, models, train
     from lgnn.metrics import relative_error

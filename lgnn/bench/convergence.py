@@ -43,7 +43,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from lgnn import metrics
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory, simulate
+from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines.lagrangian import simulate
 from lgnn.errors import SimulationError
 from lgnn.scene import Scene, is_pinned_chain
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from lgnn import metrics, provenance
 from lgnn.engines import ENGINES, batch_of_one, form_of, get_engine
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
 from lgnn.engines.mjcf import scene_layout
 from lgnn.scene import Scene, State
 
@@ -112,7 +112,8 @@ def speed_error(scenes, engines=tuple(ENGINES), dts=(1e-3, 1e-4, 1e-5), batches=
         ref_config = SimulationConfig(dt=min(dts) / 10, frame_dt=horizon, duration=horizon)
         reference = get_engine("mujoco").rollout(scene, ref_config, single).q[0, -1]
         for engine in engines:
-            timed = get_engine(engine, dtype=dtype)
+            # `dtype` is for the JAX engines; MuJoCo C computes in float64 only.
+            timed = get_engine(engine, dtype=dtype if dtype in ENGINES[engine].dtypes else None)
             form = form_of(timed, scene)
             if engine == "mjx" and mjx_max_depth is not None and depth > mjx_max_depth:
                 rows.append(dict(scene=name, engine=engine, form=form, batch=0, dt=float("nan"), dtype=dtype, steps_per_s=float("nan"), compile_s=float("nan"),

@@ -32,9 +32,9 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench.tables import write_csv, write_table
-from lgnn.bench.timing import batched_rollouts
 from lgnn.engines import get_engine
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory
+from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines.rollouts import batched_rollouts
 from lgnn.errors import ConfigError
 from lgnn.learn import models
 from lgnn.metrics import Scored
@@ -62,8 +62,11 @@ def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config
     models.check_compatible(model, scene)
     states = State(np.asarray(states.q, np.float64), np.asarray(states.qd, np.float64))
     references = {name: get_engine(name, progress=progress).rollout(scene, config, states) for name in ("lagrangian", "mujoco")}
-    accel_factory = lambda s: models.acceleration_fn(model, params, s)  # noqa: E731
-    q, qd, _, _ = batched_rollouts(scene, config, accel_factory, states, CHUNK, f"{model.name} on {scene.name}", progress)
+    # The params are an argument of the compiled program: another checkpoint of the
+    # same model config compiles nothing.
+    runs = batched_rollouts(scene, config, models.AccelerationFactory(model), states, params, chunk=CHUNK, label=f"{model.name} on {scene.name}",
+                            progress=progress)
+    q, qd = runs.q, runs.qd
     t = references["lagrangian"].t
     scored = [score(scene, t, q, qd, truth.q, truth.qd, model.name, name) for name, truth in references.items()]
     metadata = {**references["lagrangian"].metadata, "model": model.to_dict()}

@@ -48,8 +48,8 @@ import numpy as np
 
 from lgnn import physics, provenance
 from lgnn.bench.tables import write_table
-from lgnn.bench.timing import compiled_rollouts
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.rollouts import Unparametrised, timed_rollouts
 from lgnn.engines.timing import compile_timed, time_runs
 from lgnn.errors import ConfigError, LgnnError
 from lgnn.scene import Scene, State
@@ -96,10 +96,8 @@ class GpuTruthSettings:
 
 def _lagrangian(scene: Scene, config: SimulationConfig, states: State, dtype: str, repeats: int):
     factory = physics.vectorised_true_acceleration_fn if len(states.q) > 1 else physics.true_acceleration_fn
-    compiled, compile_s = compiled_rollouts(scene, config, factory, len(states.q), dtype)
-    q, qd = jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype)
-    run_s, out = time_runs(lambda: compiled(q, qd), repeats)
-    return compile_s, run_s, np.asarray(out.q[:, -1], np.float64)
+    compile_s, run_s, runs = timed_rollouts(scene, config, Unparametrised(factory), states, repeats=repeats, dtype=dtype)
+    return compile_s, run_s, runs.q[:, -1]
 
 
 def _mjx(scene: Scene, config: SimulationConfig, states: State, dtype: str, repeats: int, form: str):

@@ -31,7 +31,7 @@ from pathlib import Path
 
 from lgnn.errors import ConfigError, SceneError
 from lgnn.engines import ENGINES
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
 from lgnn.learn.data import DataConfig
 from lgnn.learn.models import load_spec
 from lgnn.learn.train import TrainConfig, adam_steps_per_epoch, scheduled

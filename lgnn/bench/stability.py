@@ -52,8 +52,7 @@ from lgnn.errors import SimulationError
 from lgnn.scene import Scene
 from lgnn.scene import chain, get_scene
 from lgnn.engines import batch_of_one, get_engine
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory, rollout_fn
-from lgnn.engines.timing import time_compiled
+from lgnn.engines.base import SimulationConfig, Trajectory
 
 STATUSES = ("ok", "detected", "silent")
 COLUMNS = (
@@ -271,7 +270,7 @@ def step_cost(n_links: int, steps: int = 3) -> float:
     compile excluded: the second of two runs of `steps` steps."""
     scene = chain(n_links, SEED)
     config = SimulationConfig("rk4", 1e-3, 1e-3, steps * 1e-3)
-    _, run_s, _ = time_compiled(jax.jit(rollout_fn(scene, config)), jnp.asarray(scene.nodes), jnp.asarray(scene.velocities))
+    _, run_s, _ = get_engine("lagrangian").timed_rollout(scene, config, batch_of_one(scene.initial_state))
     return run_s / steps
 
 

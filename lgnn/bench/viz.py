@@ -23,7 +23,7 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench.evaluation import load_trajectories, score
-from lgnn.engines.lagrangian import Trajectory
+from lgnn.engines.base import Trajectory
 from lgnn.errors import ConfigError
 from lgnn.files import atomic_path, check_writable
 

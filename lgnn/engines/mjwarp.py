@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory
+from lgnn.engines.base import Engine, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form
 from lgnn.engines.mjx import best_form
 from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, resolve_form, state_to_qpos_qvel, stepped_config
@@ -218,7 +218,7 @@ def rollout(scene: Scene, config: SimulationConfig, states: State, form: Form = 
 
 
 @dataclasses.dataclass(frozen=True)
-class MjwarpEngine:
+class MjwarpEngine(Engine):
     """MuJoCo Warp as an `lgnn.engines.Engine`: float32 always (MuJoCo Warp has no
     other precision), on the MJCF `form` ("auto": MJX's `best_form`), on Warp's
     `device` (default: its preferred); the maximal form meets `tolerance` as MJX's does."""
@@ -261,7 +261,7 @@ class MjwarpEngine:
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, dim))`: compile is the kernels' compilation
-        (and graph capture) when the runner was built (as `lgnn.bench.timing` reports a
+        (and graph capture) when the runner was built (as `lgnn.engines.rollouts` reports a
         cached compile); run is the stepping alone, after one untimed run
         (`lgnn.engines.timing.time_runs`); `q` may be non-finite."""
         form, stepped = self.stepped(scene, config)

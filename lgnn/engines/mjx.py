@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from lgnn.engines.lagrangian import DTYPES, SimulationConfig, Trajectory
+from lgnn.engines.base import DTYPES, Engine, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form, form_error, scene_layout
 from lgnn.engines.mujoco import (check_rk4, checked_trajectory, compile_scene, engine_metadata, qpos_rate, quat_mul, resolve_form,
                                  state_to_qpos_qvel, stepped_config)
@@ -338,7 +338,7 @@ def best_form(scene: Scene) -> Form:
 
 
 @dataclasses.dataclass(frozen=True)
-class MjxEngine:
+class MjxEngine(Engine):
     """MJX as an `lgnn.engines.Engine`, computing in `dtype`, on the MJCF `form`
     ("auto": `best_form`); `log` (e.g. `print`) is told before a compile starts. In
     the maximal form MuJoCo steps at `dt / mjcf.maximal_substeps` so that the run meets

@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import os
 import time
 from typing import ClassVar
 
@@ -37,7 +38,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory
+from lgnn.engines.base import Engine, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import (MAX_BODY_DEPTH, MAXIMAL_SOLREF_STEPS, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, form_error,
                                maximal_substeps, render, scene_layout)
 from lgnn.errors import ConfigError, SceneError, SimulationError
@@ -532,13 +533,14 @@ def stepped_config(scene: Scene, config: SimulationConfig, form: Form, tolerance
 
 
 @dataclasses.dataclass(frozen=True)
-class MujocoEngine:
+class MujocoEngine(Engine):
     """MuJoCo C as an `lgnn.engines.Engine`: float64 always (MuJoCo C has no other
-    precision), `threads` MjData for batches, the MJCF `form` ("auto": `best_form`)."""
+    precision), `threads` MjData for a batch's rollout (default: one per core; timing
+    uses `TIMING_THREADS`), the MJCF `form` ("auto": `best_form`)."""
 
     name: ClassVar[str] = "mujoco"
     dtype: ClassVar[str] = "float64"
-    threads: int = 1
+    threads: int = dataclasses.field(default_factory=lambda: os.cpu_count() or 1)
     form: str = "auto"
 
     def form_of(self, scene: Scene) -> Form:

@@ -1,10 +1,12 @@
 """Timing of compiled runs: compile apart from running, one-off costs dropped.
 
-`time_compiled(run, *args)` is what every speed measurement of lgnn reports (the
-engines' `timed_rollout`, the stability cost per step, the benchmark's speed and
-scaling stages), so their numbers mean the same thing. `time_runs(call, repeats)` is
-its running half for anything already compiled (a cached executable, MuJoCo Warp's
-captured step), with repeats for a spread.
+`time_compiled(run, *args)` is the timing rule of lgnn's speed measurements: compile
+apart, one untimed run, then timed runs; `lgnn.engines.rollouts.timed_rollouts` applies
+the same rule to the one rollout path (the Lagrangian engine, learned models, the
+benchmark's speed and scaling stages), and MJX's `timed_rollout` uses it directly, so
+their numbers mean the same thing. `time_runs(call, repeats)` is its running half for
+anything already compiled (a cached executable, MuJoCo Warp's captured step), with
+repeats for a spread.
 """
 
 from __future__ import annotations

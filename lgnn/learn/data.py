@@ -36,7 +36,8 @@ from lgnn.files import user_cache_dir
 from lgnn.runtime import in_float64
 from lgnn.scene import Scene, scene_to_dict
 from lgnn.scene import get_scene
-from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.lagrangian import rollout_fn
 
 # 2: an `lgnn.records` record (1: its own layout and checksum); part of the key, so
 # caches of another format are regenerated, never misread.

@@ -66,11 +66,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics
-from lgnn.engines.lagrangian import SimulationConfig, Trajectory, rollout_fn, simulate
-from lgnn.engines.timing import time_compiled
+from lgnn.engines.base import Engine, SimulationConfig, Trajectory
+from lgnn.engines.lagrangian import simulate
+from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
 from lgnn.errors import ConfigError
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
-from lgnn.runtime import precision
 from lgnn.scene import Scene, State
 
 
@@ -648,11 +648,13 @@ def rollout(config: ModelConfig, params: dict, scene: Scene, simulation: Simulat
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class ModelEngine:
+class ModelEngine(Engine):
     """A learned model as an `lgnn.engines.Engine`: the same `rollout(scene, config,
-    states) -> Trajectory` and `timed_rollout` as the ground-truth engines, so
-    cross-checks and tools treat a model like any other engine. Its trajectories'
-    `energy` is the scene's true Hamiltonian of the predicted states."""
+    states) -> Trajectory` and `timed_rollout` as the ground-truth engines, through the
+    one rollout path (`lgnn.engines.rollouts.batched_rollouts`: the batch vmapped in one
+    program, the params an argument of it), so cross-checks and tools treat a model like
+    any other engine. Its trajectories' `energy` is the scene's true Hamiltonian of the
+    predicted states; `rollout` stops at divergence like every engine."""
 
     config: ModelConfig
     params: dict
@@ -665,19 +667,14 @@ class ModelEngine:
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """Predicted trajectories from initial states (B, N, D): q, qd (B, F+1, N, D), energy (B, F+1)."""
-        runs = [rollout(self.config, self.params, scene, config, State(q, qd), progress=self.progress) for q, qd in zip(states.q, states.qd)]
-        q, qd, energy = (np.stack([getattr(run, field) for run in runs]) for field in ("q", "qd", "energy"))
-        return Trajectory(runs[0].t, q, qd, energy, runs[0].metadata)
+        check_compatible(self.config, scene)
+        runs = batched_rollouts(scene, config, AccelerationFactory(self.config), states, self.params, dtype=self.dtype,
+                                stop_at_divergence=True, progress=self.progress, label=f"{self.config.name} on {scene.name}",
+                                hint=f"the {self.config.name} model's predicted dynamics diverge (its rollout stops there)")
+        return runs.trajectory(scene, config, {"model": self.config.to_dict()})
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
-        """`(compile_s, run_s, q (B, F+1, N, D))` of the batch as one compiled, vmapped run."""
+        """`(compile_s, run_s, q (B, F+1, N, D))` of the batch (`rollouts.timed_rollouts`)."""
         check_compatible(self.config, scene)
-        with precision(self.dtype):
-            return self._timed_rollout(scene, config, states)
-
-    def _timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
-        factory = AccelerationFactory(self.config)
-        run = jax.jit(lambda params, q, qd: jax.vmap(rollout_fn(scene, config, lambda s: factory(s, params)))(q, qd))
-        params = jax.tree.map(lambda leaf: jnp.asarray(leaf, self.dtype), self.params)
-        compile_s, run_s, (q, _) = time_compiled(run, params, jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype))
-        return compile_s, run_s, np.asarray(q, np.float64)
+        compile_s, (run_s,), runs = timed_rollouts(scene, config, AccelerationFactory(self.config), states, self.params, dtype=self.dtype)
+        return compile_s, run_s, runs.q

@@ -50,13 +50,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn import metrics, physics, records, sharding
+from lgnn import metrics, physics, records
 from lgnn.bench import store
 from lgnn.bench.grid import Pair, Profile, evaluation_pairs, evaluation_scenes, settings_key
 from lgnn.bench.store import Layout, log
-from lgnn.bench.timing import batched_rollouts, compiled_rollouts, stacked_rollouts
 from lgnn.engines import get_engine
-from lgnn.engines.lagrangian import SimulationConfig
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.rollouts import Unparametrised, batched_rollouts
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models, train
 from lgnn.scene import OWN_STATE, Scene, State, get_scene, initial_state_policy, scene_to_dict
@@ -124,6 +124,9 @@ def scene_level_scores(references: tuple[str, ...]) -> tuple[tuple[str, str], ..
     against each engine of `references` on each metric `against_references`."""
     return (*((FLOOR, name) for name in _floor_metrics()),
             *((truth_against(engine), name) for engine in references for name in _against_references()))
+# The exact dynamics of every reference rollout here, with the solver that vectorises
+# over a batch of initial conditions.
+TRUE_DYNAMICS = Unparametrised(physics.vectorised_true_acceleration_fn)
 
 
 # Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s.
@@ -236,18 +239,16 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
         f"{', '.join(settings.references) or 'no reference engine'} at dt {reference_config.dt:g} alongside")
     # A daemon thread: an error or Ctrl-C here does not wait out MuJoCo's minutes.
     references_when_done = _in_background(lambda: _reference_rollouts(scene, reference_config, states, settings.references))
-    q, qd, compile_s, run_s = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, states, settings.chunk,
-                                               f"truth {scene_name}", progress)
-    energy = metrics.true_energies(scene, q, qd)
-    _check_reference(scene, config, "Lagrangian ground truth", q, qd, energy)
+    # A reference that diverged would turn every error into 1 for every model: it stops there.
+    truth = batched_rollouts(scene, config, TRUE_DYNAMICS, states, chunk=settings.chunk, stop_at_divergence=True, label=f"truth {scene_name}",
+                             progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)")
     noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
     perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
     # The perturbed runs are not references: one that diverges (T2/T3's perturbed
     # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
-    q_floor, qd_floor, _, _ = batched_rollouts(scene, config, physics.vectorised_true_acceleration_fn, perturbed, settings.chunk,
-                                               f"floor {scene_name}", progress)
-    return dict(q=q, qd=qd, energy=energy, q_floor=q_floor, qd_floor=qd_floor, states=states, compile_s=compile_s, run_s=run_s,
-                **references_when_done())
+    floor = batched_rollouts(scene, config, TRUE_DYNAMICS, perturbed, chunk=settings.chunk, label=f"floor {scene_name}", progress=progress)
+    return dict(q=truth.q, qd=truth.qd, energy=truth.energy, q_floor=floor.q, qd_floor=floor.qd, states=states,
+                compile_s=truth.compile_s, run_s=truth.run_s, **references_when_done())
 
 
 def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, references: tuple[str, ...]) -> dict:
@@ -262,23 +263,6 @@ def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, r
         found.update({f"q_{engine}": np.asarray(trajectory.q), f"energy_{engine}": np.asarray(trajectory.energy),
                       f"{engine}_s": time.perf_counter() - start})
     return found
-
-
-def _divergence(scene: Scene, config: SimulationConfig, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> np.ndarray:
-    """(C,) first diverged frame of each trajectory (`lgnn.metrics`' one rule), or -1."""
-    return metrics.divergence_frames(scene, np.arange(q.shape[1]) * config.frame_dt, q, qd, energy)
-
-
-def _check_reference(scene: Scene, config: SimulationConfig, what: str, q: np.ndarray, qd: np.ndarray, energy: np.ndarray) -> None:
-    """A reference trajectory that diverged would turn every error into 1 for every
-    model: stop with one line instead of recording meaningless numbers."""
-    diverged = _divergence(scene, config, q, qd, energy)
-    if (diverged >= 0).any():
-        first = int(np.argmax(diverged >= 0))
-        raise SimulationError(
-            f"{scene.name}: the {what} diverged at t = {diverged[first] * config.frame_dt:g} s (initial condition {first}, "
-            f"RK4 dt {config.dt:g}): give the scene a smaller step (EvaluateSettings.scene_dts)"
-        )
 
 
 def _snapshot(profile: Profile, trajectory: np.ndarray) -> np.ndarray:
@@ -373,29 +357,20 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
         "mid_state": np.stack([truth["q"][0, truth["q"].shape[1] // 2], truth["qd"][0, truth["qd"].shape[1] // 2]]),
     }
     for engine in references:
-        # The ground truth never diverges (`_check_reference`), so neither side's
+        # The ground truth never diverges (it stops at divergence: `batched_rollouts`), so neither side's
         # errors are capped.
         versus = metrics.score_rollouts(scene, t, truth["q"], truth["qd"], truth[f"q_{engine}"], truth[f"energy_{engine}"], names=_against_references())
         arrays.update(_scene_level_arrays(truth_against(engine), versus))
         arrays[f"snapshot/{engine}"] = _snapshot(profile, truth[f"q_{engine}"])
     if scene.drag > 0:
         no_drag = scene.replace(drag=0.0)
-        q, qd, _, _ = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), physics.vectorised_true_acceleration_fn, truth["states"],
-                                       profile.evaluate.chunk, f"{scene_name} without drag", progress)
-        arrays.update(_record_arrays(f"{NO_DRAG}/", _scores(profile, scene, q, qd, truth), frame_dt))
+        runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth["states"], chunk=profile.evaluate.chunk,
+                                label=f"{scene_name} without drag", progress=progress)
+        arrays.update(_record_arrays(f"{NO_DRAG}/", _scores(profile, scene, runs.q, runs.qd, truth), frame_dt))
     meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=REFERENCE_VERSION,
                 **{name: truth[name] for name in truth_timings(references)})
     store.save(path, key, arrays, meta)
     return path
-
-
-@functools.lru_cache(maxsize=16)
-def _model_accel_factory(checkpoint: Path, digest: str) -> Callable[[Scene], physics.AccelerationFn]:
-    """`scene -> accel` of a checkpoint's best parameters, as constants: one object per
-    checkpoint content (`digest`), so compiled rollouts cached per factory are shared
-    by every timing of it (`timed_rollout_fn`)."""
-    model, params = train.load_model(checkpoint)
-    return lambda scene: models.acceleration_fn(model, params, scene)
 
 
 def evaluate_pair(profile: Profile, pair: Pair, out: Path, progress: bool = True) -> Path:
@@ -407,7 +382,7 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
     """The evaluation records of `pairs` (module docstring), those not yet recorded
     computed together: pairs on one scene whose models share a configuration (the seeds
     of one training job, projected alike) roll out in one compiled program
-    (`timing.stacked_rollouts`): one compile instead of one per seed, and the GPU's
+    (`rollouts.batched_rollouts`, stacked): one compile instead of one per seed, and the GPU's
     batch as wide as the seeds times the initial conditions. Each pair keeps its own
     record, as `evaluate_pair` writes it."""
     layout = Layout(out)
@@ -442,8 +417,9 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     seeds = ", ".join(f"s{p.job.seed}" for p, *_ in group)
     log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(states.q)} initial conditions")
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for *_, params in group))
-    q_all, qd_all, compile_s, run_s = stacked_rollouts(scene, config, models.AccelerationFactory(group[0][3]), stacked, states,
-                                                       profile.evaluate.chunk, f"{pair.label} {seeds} on {pair.scene}", progress)
+    runs = batched_rollouts(scene, config, models.AccelerationFactory(group[0][3]), states, stacked, stacked=True, chunk=profile.evaluate.chunk,
+                            label=f"{pair.label} {seeds} on {pair.scene}", progress=progress)
+    q_all, qd_all, compile_s, run_s = runs.q, runs.qd, runs.compile_s, runs.run_s
     truth = truth_when_done()
     if not np.allclose(truth["states"].q, states.q, rtol=1e-9, atol=1e-12):
         raise SimulationError(f"{pair.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
@@ -490,17 +466,15 @@ def load_pairs(profile: Profile, out: Path) -> list[tuple[Pair, tuple[dict, dict
 
 
 def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
-    """`(run, steps)`: a no-argument call running the pair's model, alone and with its
-    parameters as constants (evaluation rolls out a model's seeds together,
-    `evaluate_group`), on the first chunk of the evaluation's initial conditions, and
-    the RK4 steps it takes; for pytest-benchmark."""
+    """`(run, steps)`: a no-argument call running the pair's model alone on the first
+    chunk of the evaluation's initial conditions (through the one rollout path, its
+    programs compiled by the first call), and the RK4 steps it takes; for
+    pytest-benchmark."""
     scene = get_scene(pair.scene)
     states = evaluation_initial_states(profile, scene)
-    chunk = sharding.padded_size(min(profile.evaluate.chunk, len(states.q)))
-    checkpoint = Layout(out).checkpoint(pair.job)
-    accel_factory = _model_accel_factory(checkpoint, records.file_digest(checkpoint))
+    chunk = min(profile.evaluate.chunk, len(states.q))
+    first = State(states.q[:chunk], states.qd[:chunk])
+    model, params = train.load_model(Layout(out).checkpoint(pair.job))
     config = profile.evaluate.simulation(pair.scene)
-    compiled, _ = compiled_rollouts(scene, config, accel_factory, chunk, str(states.q.dtype))
-    q, qd = (jnp.asarray(sharding.pad_batch(a[:chunk], chunk)) for a in states)
     steps = chunk * config.n_frames * config.steps_per_frame
-    return (lambda: jax.block_until_ready(compiled(q, qd))), steps
+    return (lambda: batched_rollouts(scene, config, models.AccelerationFactory(model), first, params, chunk=chunk)), steps

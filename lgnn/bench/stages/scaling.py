@@ -12,16 +12,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics, records
 from lgnn.bench import store
 from lgnn.engines import get_engine
-from lgnn.engines.timing import time_compiled
 from lgnn.bench.grid import TRAINING_SCENES, Profile, lgnn_job, settings_key
 from lgnn.bench.store import Layout, log
-from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.rollouts import Unparametrised, timed_rollouts
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.learn import models, train
 from lgnn.scene import State, chain, get_scene, sample_initial_states, spatial_chain
@@ -93,12 +92,12 @@ def _size_rows(scene, config: SimulationConfig, ic_seed: int, model_params) -> l
     steps = round(config.duration / config.dt)
     states = sample_initial_states(scene, jax.random.PRNGKey(ic_seed), 1)
     single = State(np.asarray(states.q), np.asarray(states.qd))
-    factories = {"lagrangian": physics.true_acceleration_fn, "mujoco": None}
+    factories = {"lagrangian": (Unparametrised(physics.true_acceleration_fn), None), "mujoco": (None, None)}
     if model_params is not None:
         model, params = model_params
-        factories["lgnn"] = lambda s: models.acceleration_fn(model, params, s)
+        factories["lgnn"] = (models.AccelerationFactory(model), params)
     rows = []
-    for solver, factory in factories.items():
+    for solver, (factory, params) in factories.items():
         row = dict(kind="size", scene=scene.name, dim=scene.dim, n_links=scene.n_links, solver=solver, batch=1,
                    s_per_step=float("nan"), compile_s=float("nan"), note="")
         if factory is None:
@@ -114,9 +113,8 @@ def _size_rows(scene, config: SimulationConfig, ic_seed: int, model_params) -> l
                 log(f"scaling {scene.name} mujoco: {row['note']}")
                 continue
         else:
-            # One trajectory, not vmapped (as the speed stage times learned models).
-            run = jax.jit(rollout_fn(scene, config, factory))
-            compile_s, run_s, _ = time_compiled(run, jnp.asarray(single.q[0]), jnp.asarray(single.qd[0]))
+            # One trajectory (a batch of one), as the speed stage times learned models.
+            compile_s, (run_s,), _ = timed_rollouts(scene, config, factory, single, params)
         rows.append({**row, "s_per_step": run_s / steps, "compile_s": compile_s})
         log(f"scaling {scene.name} {solver}: {run_s / steps:.3g} s per step (compile {compile_s:.1f} s)")
     return rows

@@ -12,18 +12,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from lgnn import metrics, records
 from lgnn.bench import store
 from lgnn.engines import form_of, get_engine
-from lgnn.engines.timing import compile_timed, time_runs
 from lgnn.bench.grid import TRAINING_SCENES, Profile, TrainingJob, evaluated_jobs, settings_key
 from lgnn.bench.stages.evaluate import evaluation_initial_states
 from lgnn.bench.store import Layout, log
-from lgnn.engines.lagrangian import SimulationConfig, rollout_fn
+from lgnn.engines.base import SimulationConfig
+from lgnn.engines.rollouts import timed_rollouts
 from lgnn.learn import models, train
 from lgnn.scene import State, get_scene, scene_to_dict
 
@@ -109,12 +107,8 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
             row(job.label, "learned", config.dt, note="no checkpoint")
             continue
         model, params = train.load_model(layout.checkpoint(job))
-        run = jax.jit(rollout_fn(scene, config, lambda s: models.acceleration_fn(model, params, s)))
-        args = jnp.asarray(single.q[0]), jnp.asarray(single.qd[0])
-        compiled, compile_s = compile_timed(run, *args)
-        run_s, out_state = time_runs(lambda: compiled(*args), settings.repeats)
-        q = np.asarray(out_state.q)
-        row(job.label, "learned", config.dt, run_s=run_s, compile_s=compile_s, rollout_error=metrics.gmean_error(q, reference))
+        compile_s, run_s, runs = timed_rollouts(scene, config, models.AccelerationFactory(model), single, params, repeats=settings.repeats)
+        row(job.label, "learned", config.dt, run_s=run_s, compile_s=compile_s, rollout_error=metrics.gmean_error(runs.q[0], reference))
         log(f"speed/error {scene_name} {job.label}: {rows[-1]['wall_s_per_sim_s']:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     store.save_json(path, key, horizon=horizon, rows=rows)
     return path

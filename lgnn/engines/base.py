@@ -1,0 +1,195 @@
+"""The engine contract: what every engine is, takes and returns; no engine owns it.
+
+- `Engine`: the base class of every engine (the Lagrangian ground truth, MuJoCo C,
+  MJX, MuJoCo Warp, a learned model's `lgnn.learn.models.ModelEngine`). An engine has
+  a `name`, the precision it computes in (`dtype`, one of `DTYPES`), and
+  - `rollout(scene, config, states) -> Trajectory`: initial states `q`, `qd`
+    (B, N, D) integrated for `config.duration`; the trajectory's `q`, `qd` are
+    (B, F+1, N, D) and `energy` (B, F+1) lgnn's exact energy, frame 0 the initial
+    state. It raises `SimulationError` at the first non-finite or exploding frame
+    (`lgnn.metrics.ExplosionBounds`), carrying the failing member's frames before it;
+  - `timed_rollout(scene, config, states) -> (compile_s, run_s, q)`: the same run
+    timed with one-off costs (compilation, model building) apart, `q` (B, F+1, N, D);
+  - `form_of(scene) -> str`: the MJCF form it runs `scene` in ("" for engines
+    without MJCF, the default);
+  - `accuracy(scene, config) -> float | None`: the maximum node position error it
+    expects against the exact solution at these settings (None, the default: the
+    engine states none).
+- `SimulationConfig`: the rollout settings (step, frame interval, duration, and the
+  integrator and projection the JAX engines use; the MuJoCo engines check theirs).
+- `Trajectory`: the NumPy result of a rollout, and its `.npz` file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import zipfile
+from typing import ClassVar
+
+import numpy as np
+
+from lgnn import physics
+from lgnn.errors import ConfigError
+from lgnn.files import atomic_path, check_regular_input
+from lgnn.integrate import INTEGRATORS, Integrator
+from lgnn.scene import Scene, State
+from lgnn.scene.schema import MAX_MAGNITUDE
+
+NPZ_KEYS = ("t", "q", "qd", "energy")
+# Precisions an engine can be asked to compute in (`lgnn.engines.get_engine`).
+DTYPES = ("float64", "float32")
+# Bounds of one run, refused before anything is allocated: 1e10 steps is days of
+# integration on any device; 1e7 frames of a 100-node chain are 32 GB of positions
+# and velocities.
+MAX_STEPS = 1e10
+MAX_FRAMES = 1e7
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulationConfig:
+    # RK4 at 1e-4 keeps max node error over 1 s below 1e-6 on the chains and T1
+    # (tests/test_integrate.py::test_default_settings_are_accurate, and the MuJoCo
+    # cross-check); not on the self-stressed T2/T3, whose references do not converge
+    # in dt (issue 13). The paper's Verlet needs ~1e-5 for that.
+    integrator: str = "rk4"
+    dt: float = 1e-4
+    # The paper saves a frame every 1e-3 s.
+    frame_dt: float = 1e-3
+    duration: float = 1.0
+    # Projection keeps link lengths to round-off (per-link blocks: linear in a chain's length).
+    project: bool = True
+
+    def __post_init__(self):
+        if self.integrator not in INTEGRATORS:
+            raise ConfigError(f"unknown integrator {self.integrator!r} (choose from {', '.join(INTEGRATORS)})")
+        for name in ("dt", "frame_dt", "duration"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name.replace('_', '-')} must be a positive number, got {value}")
+        # Ratios first: a duration of 1e308 or a dt of 5e-324 overflows a count of frames.
+        if not self.frame_dt / self.dt <= MAX_STEPS or not self.duration / self.frame_dt * (self.frame_dt / self.dt) <= MAX_STEPS:
+            raise ConfigError(f"duration {self.duration:g} at dt {self.dt:g} is more than {MAX_STEPS:.0e} steps")
+        if not self.duration / self.frame_dt <= MAX_FRAMES:
+            raise ConfigError(f"duration {self.duration:g} at frame-dt {self.frame_dt:g} is more than {MAX_FRAMES:.0e} frames (the trajectory is kept in memory)")
+        if abs(self.steps_per_frame * self.dt - self.frame_dt) > 1e-9 * self.frame_dt:
+            raise ConfigError(f"frame-dt {self.frame_dt:g} is not a whole multiple of dt {self.dt:g}")
+        if abs(self.n_frames * self.frame_dt - self.duration) > 1e-9 * self.duration or self.n_frames < 1:
+            raise ConfigError(f"duration {self.duration:g} is not a whole (positive) multiple of frame-dt {self.frame_dt:g}")
+
+    @property
+    def steps_per_frame(self) -> int:
+        return max(1, round(self.frame_dt / self.dt))
+
+    @property
+    def n_frames(self) -> int:
+        """Frames after the initial one."""
+        return round(self.duration / self.frame_dt)
+
+    def integrator_for(self, accel: physics.AccelerationFn, project=None) -> Integrator:
+        return INTEGRATORS[self.integrator](accel, self.dt, project if self.project else None)
+
+
+@dataclasses.dataclass(frozen=True)
+class Trajectory:
+    """A simulated or predicted trajectory (NumPy arrays), frame 0 the initial state:
+    `t` (F,), `q`, `qd` (F, N, D), `energy` (F,); an engine's `rollout` returns a batch,
+    `q`, `qd` (B, F, N, D) and `energy` (B, F), whose `member(b)` is one trajectory."""
+
+    t: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    energy: np.ndarray
+    metadata: dict = dataclasses.field(default_factory=dict)
+
+    def member(self, index: int) -> "Trajectory":
+        """Trajectory `index` of a batch (B, F, N, D)."""
+        if np.ndim(self.q) != 4:
+            raise ValueError(f"member() of a batch (B, F, N, D), got q of shape {np.shape(self.q)}")
+        return Trajectory(self.t, self.q[index], self.qd[index], self.energy[index], self.metadata)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the `.npz` layout (`t, q, qd, energy` + a JSON `metadata` string), atomically."""
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as handle:
+                np.savez(handle, t=self.t, q=self.q, qd=self.qd, energy=self.energy, metadata=json.dumps(self.metadata))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Trajectory":
+        """The trajectory file at `path`, its arrays and metadata checked (`trajectory_problem`);
+        `ConfigError` (one line) for anything else."""
+        check_regular_input(path, "trajectory file")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                if not isinstance(data, np.lib.npyio.NpzFile):
+                    raise ConfigError(f"{path}: not a trajectory file (an .npz of {', '.join(NPZ_KEYS)})")
+                missing = [key for key in NPZ_KEYS if key not in data]
+                if missing:
+                    raise ConfigError(f"{path}: not a trajectory file (missing {', '.join(missing)})")
+                metadata = json.loads(str(data["metadata"])) if "metadata" in data else {}
+                arrays = [np.asarray(data[key]) for key in NPZ_KEYS]
+        except (AttributeError, TypeError):  # np.load of a .npy: a bare array, no context manager
+            raise ConfigError(f"{path}: not a trajectory file (an .npz of {', '.join(NPZ_KEYS)})") from None
+        except RecursionError:
+            raise ConfigError(f"{path}: trajectory metadata nested too deeply") from None
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"{path}: trajectory metadata is not JSON ({err.msg})") from None
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+            raise ConfigError(f"{path}: cannot read trajectory: {err}") from None
+        problem = trajectory_problem(*arrays, metadata)
+        if problem:
+            raise ConfigError(f"{path}: not a valid trajectory: {problem}")
+        return cls(*arrays, metadata=metadata)
+
+
+def trajectory_problem(t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray, metadata) -> str | None:
+    """What makes arrays and metadata read from a file not one trajectory (`Trajectory`'s
+    shapes, real finite numbers within a scene's `MAX_MAGNITUDE`, a JSON object of metadata whose
+    `scene`, `model` and `engine` are objects), or None."""
+    if not isinstance(metadata, dict):
+        return f"metadata must be a JSON object, got {type(metadata).__name__}"
+    for key in ("scene", "model", "engine"):
+        if key in metadata and not isinstance(metadata[key], dict):
+            return f"metadata {key!r} must be an object, got {metadata[key]!r:.40}"
+    for name, array in zip(NPZ_KEYS, (t, q, qd, energy)):
+        if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+            return f"{name} must hold real numbers, got dtype {array.dtype}"
+        # Frames after a divergence are never kept (the engines stop there).
+        if not np.all(np.abs(array) <= MAX_MAGNITUDE):
+            return f"{name} holds values that are not finite or beyond {MAX_MAGNITUDE:g}"
+    if t.ndim != 1 or len(t) < 1:
+        return f"t must be (frames,), got shape {t.shape}"
+    if q.ndim != 3 or q.shape[0] != len(t) or qd.shape != q.shape:
+        return f"q and qd must be (frames, nodes, dim) with {len(t)} frames, got {q.shape} and {qd.shape}"
+    if energy.shape != t.shape:
+        return f"energy must be (frames,) = {t.shape}, got {energy.shape}"
+    return None
+
+
+class Engine:
+    """What every engine answers (module docstring). Subclasses set `name` (a class
+    attribute or a property) and `dtype`, and implement `rollout` and `timed_rollout`;
+    `form_of` and `accuracy` have defaults for engines without MJCF or a stated
+    accuracy."""
+
+    name: ClassVar[str] = ""
+    dtype: str = "float64"
+
+    def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
+        """`Trajectory` of initial states (B, N, D): q, qd (B, F+1, N, D), energy (B, F+1)."""
+        raise NotImplementedError
+
+    def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
+        """`(compile_s, run_s, q (B, F+1, N, D))` of the same run, one-off costs apart."""
+        raise NotImplementedError
+
+    def form_of(self, scene: Scene) -> str:
+        """The MJCF form this engine runs `scene` in; "" for an engine without MJCF."""
+        return ""
+
+    def accuracy(self, scene: Scene, config: SimulationConfig) -> float | None:
+        """The maximum node position error (scene length units) this engine expects
+        against the exact solution of `scene` at `config`; None: it states none."""
+        return None

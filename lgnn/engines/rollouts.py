@@ -1,0 +1,265 @@
+"""The one rollout path of the JAX engines: a batch of initial conditions, compiled once.
+
+`batched_rollouts(scene, config, accel_factory, states, params)` integrates initial
+states (B, N, D) with the accelerations `accel_factory(scene, params)` (a ground truth
+ignores `params`: `Unparametrised(physics.true_acceleration_fn)`; a learned model's
+factory is `lgnn.learn.models.AccelerationFactory`) and returns `Rollouts`: `q`, `qd`
+(B, F+1, N, D), the scene's true `energy` (B, F+1), and the seconds spent compiling
+and running. How:
+
+- `vmap` over the initial conditions, the batch sharded over every local device
+  (`lgnn.sharding`; padded to a multiple of the device count, padding dropped);
+- one compiled program per (scene content, settings, acceleration factory, batch
+  size, dtype, frames per call, parameter shapes) (`compiled_programs`, cached): the
+  parameters are an ARGUMENT of the program, never constants, so a second checkpoint
+  of one model config compiles nothing;
+- `stacked=True`: `params` holds S parameter sets of one model stacked along every
+  leaf's first axis (a model's seeds), rolled out in the same program from the same
+  initial conditions: `q`, `qd` (S, B, F+1, N, D), `energy` (S, B, F+1);
+- frames in calls of `frames_per_call` (about 100), so a long run shows progress and a
+  reference (`stop_at_divergence`) stops at the first non-finite or exploding frame of
+  any member (`lgnn.metrics.ExplosionBounds`) with a `SimulationError` naming its time
+  and carrying that member's frames before it (`err.trajectory`); a model's rollouts
+  run on (their frames from divergence on count as each metric's maximum);
+- at most `chunk` initial conditions per program; a chunk that runs out of device
+  memory is halved (and recompiled) until it fits, and one line says so;
+- compile time apart from run time: `compile_s` is what compiling the programs took
+  (when they were compiled, perhaps by an earlier call; the halved chunks' added up),
+  `run_s` the compiled calls alone.
+
+`timed_rollouts` is the timing rule on top (a warm-up call, then timed repeats), for
+`Engine.timed_rollout` and the benchmark's speed and scaling stages.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import sys
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lgnn import physics, sharding
+from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.errors import SimulationError
+from lgnn.integrate import advance
+from lgnn.metrics import ExplosionBounds
+from lgnn.runtime import precision
+from lgnn.scene import Scene, State, scene_to_dict
+
+# Frames per compiled call: a long run reports progress and is checked for divergence
+# this often, at a cost of one host round trip per call.
+FRAMES_PER_CALL = 100
+
+
+@dataclasses.dataclass(frozen=True)
+class Unparametrised:
+    """`factory(scene) -> accel` (e.g. `physics.true_acceleration_fn`) as the
+    `(scene, params) -> accel` factory `batched_rollouts` takes, ignoring `params`;
+    equal for equal factories, so its programs are cached like any other."""
+
+    factory: Callable[[Scene], physics.AccelerationFn]
+
+    def __call__(self, scene: Scene, params) -> physics.AccelerationFn:
+        return self.factory(scene)
+
+
+@dataclasses.dataclass(frozen=True)
+class Rollouts:
+    """`q`, `qd` (B, F+1, N, D) and true `energy` (B, F+1; None where not asked for),
+    float64, frame 0 the initial state (with a leading S axis when stacked);
+    `compile_s` and `run_s` (seconds)."""
+
+    q: np.ndarray
+    qd: np.ndarray
+    energy: np.ndarray | None
+    compile_s: float
+    run_s: float
+
+    def trajectory(self, scene: Scene, config: SimulationConfig, metadata: dict | None = None) -> Trajectory:
+        """The rollouts as a `Trajectory` batch (not stacked), with the scene and settings
+        in its metadata (and `metadata`); rollouts made `with_energy`."""
+        if self.energy is None:
+            raise ValueError("a Trajectory carries energies: roll out with_energy")
+        t = np.arange(self.q.shape[-3]) * config.frame_dt
+        meta = {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config), **(metadata or {})}
+        return Trajectory(t, self.q, self.qd, self.energy, meta)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Programs:
+    start: Callable  # (params, q, qd) -> (carry, energy0)
+    step: Callable  # (params, carry) -> (carry, q, qd, energy), `frames` frames
+    frames: int
+    compile_s: float
+    with_energy: bool
+
+
+def params_signature(params) -> tuple:
+    """A hashable description of `params`' structure, shapes and dtypes."""
+    leaves, treedef = jax.tree.flatten(params)
+    return treedef, tuple((np.shape(leaf), str(np.asarray(leaf).dtype)) for leaf in leaves)
+
+
+@functools.lru_cache(maxsize=64)
+def compiled_programs(scene: Scene, config: SimulationConfig, accel_factory: Callable, batch: int, dtype: str, frames: int,
+                      stacked: bool, signature: tuple, with_energy: bool = True) -> _Programs:
+    """The compiled `start` and `step` programs of `batched_rollouts` for `batch`
+    initial conditions (a multiple of the device count) and parameters of
+    `signature` (`params_signature`), `frames` frames per `step`, the true energy of
+    each frame computed `with_energy` (else None: about a quarter of a small scene's
+    compile time); cached (a scene is a key by content), so
+    `compiled_programs.cache_info().misses` counts compilations."""
+    project = physics.projection_fn(scene)
+    true_energy = physics.energy_fn(scene)
+
+    def energy(q, qd):
+        return true_energy(q, qd) if with_energy else None
+
+    def integrator(params):
+        return config.integrator_for(accel_factory(scene, params), project)
+
+    def start(params, q, qd):
+        carry = integrator(params).init_fn(State(q, qd))
+        return carry, energy(carry.state.q, carry.state.qd)
+
+    def step(params, carry):
+        carry, states = advance(integrator(params), carry, frames, config.steps_per_frame)
+        return carry, states.q, states.qd, jax.vmap(energy)(states.q, states.qd) if with_energy else None
+
+    start, step = jax.vmap(start, in_axes=(None, 0, 0)), jax.vmap(step, in_axes=(None, 0))
+    if stacked:
+        start, step = jax.vmap(start, in_axes=(0, None, None)), jax.vmap(step, in_axes=(0, 0))
+    whole, ics, batched = sharding.axis_sharding(None), sharding.axis_sharding(0), sharding.axis_sharding(1 if stacked else 0)
+    treedef, leaves = signature
+    params = jax.tree.unflatten(treedef, [jax.ShapeDtypeStruct(shape, dtype_) for shape, dtype_ in leaves])
+    state = jax.ShapeDtypeStruct((batch, scene.n_nodes, scene.dim), jnp.dtype(dtype))
+    began = time.perf_counter()
+    start = jax.jit(start, in_shardings=(whole, ics, ics), out_shardings=batched).lower(params, state, state)
+    carry = start.out_info[0]
+    start = start.compile()
+    step = jax.jit(step, in_shardings=(whole, batched), out_shardings=batched).lower(params, carry).compile()
+    return _Programs(start, step, frames, time.perf_counter() - began, with_energy)
+
+
+def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, states: State, params=None, *,
+                     stacked: bool = False, dtype: str = "float64", chunk: int | None = None, frames_per_call: int = FRAMES_PER_CALL,
+                     stop_at_divergence: bool = False, with_energy: bool = False, label: str = "", progress: bool = False,
+                     hint: str = "try a smaller dt") -> Rollouts:
+    """Rollouts of initial `states` (B, N, D) under `accel_factory(scene, params)`
+    (module docstring): at most `chunk` (None: all) initial conditions per program,
+    computed in `dtype`; `stop_at_divergence` for a reference, `hint` ending its error;
+    the true energies `with_energy` or `stop_at_divergence` (else `Rollouts.energy` is
+    None); `label` names the run in progress bars and messages (default: the scene's
+    name)."""
+    if stop_at_divergence and stacked:
+        raise ValueError("stop_at_divergence is for a reference's rollouts, not stacked parameter sets")
+    label = label or scene.name
+    count = len(states.q)
+    calls = -(-config.n_frames // max(1, frames_per_call))
+    frames = -(-config.n_frames // calls)  # the last call runs past the end; its extra frames are dropped
+    with precision(dtype):
+        params = None if params is None else jax.tree.map(lambda leaf: jnp.asarray(leaf, _param_dtype(leaf, dtype)), params)
+        q0, qd0 = (np.asarray(a, dtype) for a in states)
+        signature = params_signature(params)
+        size = sharding.padded_size(min(chunk or count, count))
+        compile_total = 0.0
+        while True:
+            try:
+                programs = compiled_programs(scene, config, accel_factory, size, dtype, frames, stacked, signature,
+                                             with_energy or stop_at_divergence)
+                compile_total += programs.compile_s
+                out, run_s = _run(scene, config, programs, params, State(q0, qd0), size, stacked, stop_at_divergence, label, progress, hint)
+                return Rollouts(*out, compile_s=compile_total, run_s=run_s)
+            except jax.errors.JaxRuntimeError as err:
+                if "RESOURCE_EXHAUSTED" not in str(err):
+                    raise
+                smaller = sharding.padded_size(max(1, size // 2))
+                if smaller >= size:
+                    raise SimulationError(f"{label}: out of device memory even with {size} rollouts per call (a larger device, or fewer "
+                                          "models at once: --job)") from None
+                print(f"{label}: out of device memory with {size} initial conditions per call; retrying with {smaller}", file=sys.stderr,
+                      flush=True)
+                size = smaller
+
+
+def _param_dtype(leaf, dtype: str):
+    # Floating parameters compute in the rollout's precision; integer ones stay as they are.
+    return dtype if jnp.issubdtype(jnp.asarray(leaf).dtype, jnp.floating) else jnp.asarray(leaf).dtype
+
+
+def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, states: State, size: int, stacked: bool, stop: bool,
+         label: str, progress: bool, hint: str):
+    """`((q, qd, energy), run_s)` of `programs` over `states` in chunks of `size`
+    initial conditions (the last padded), `programs.frames` frames per call."""
+    from tqdm.auto import tqdm
+
+    count, n_frames = len(states.q), config.n_frames
+    lead = (len(jax.tree.leaves(params)[0]),) if stacked else ()
+    q_all = np.empty(lead + (count, n_frames + 1, scene.n_nodes, scene.dim))
+    qd_all = np.empty_like(q_all)
+    energy_all = np.empty(lead + (count, n_frames + 1)) if programs.with_energy else None
+    run_s = 0.0
+    ics = (slice(None),) * len(lead)
+    with tqdm(total=count * n_frames, desc=label, unit="frame", disable=not progress, leave=False, file=sys.stderr) as bar:
+        for first in range(0, count, size):
+            taken = min(size, count - first)
+            batch = (*ics, slice(first, first + taken))
+            padded = [jnp.asarray(sharding.pad_batch(a[first:first + taken], size)) for a in states]
+            began = time.perf_counter()
+            carry, energy0 = jax.block_until_ready(programs.start(params, *padded))
+            run_s += time.perf_counter() - began
+            q_all[batch + (0,)], qd_all[batch + (0,)] = states.q[first:first + taken], states.qd[first:first + taken]
+            if energy_all is not None:
+                energy_all[batch + (0,)] = np.asarray(energy0)[(*ics, slice(0, taken))]
+            bounds = [ExplosionBounds.of(scene, State(states.q[c], states.qd[c]), float(energy_all[(c, 0)]))
+                      for c in range(first, first + taken)] if stop else None
+            done = 0
+            while done < n_frames:
+                began = time.perf_counter()
+                carry, q, qd, energy = jax.block_until_ready(programs.step(params, carry))
+                run_s += time.perf_counter() - began
+                kept = min(programs.frames, n_frames - done)
+                frames = slice(done + 1, done + 1 + kept)
+                part = (*ics, slice(0, taken), slice(0, kept))
+                q_all[batch + (frames,)], qd_all[batch + (frames,)] = np.asarray(q)[part], np.asarray(qd)[part]
+                if energy_all is not None:
+                    energy_all[batch + (frames,)] = np.asarray(energy)[part]
+                if bounds is not None:
+                    _stop_at_divergence(scene, config, bounds, first, q_all, qd_all, energy_all, done, kept, label, hint)
+                done += kept
+                bar.update(taken * kept)
+    return (q_all, qd_all, energy_all), run_s
+
+
+def _stop_at_divergence(scene: Scene, config: SimulationConfig, bounds: list[ExplosionBounds], first: int, q: np.ndarray, qd: np.ndarray,
+                        energy: np.ndarray, done: int, kept: int, label: str, hint: str) -> None:
+    """Raise `SimulationError` at the first non-finite or exploding frame among frames
+    `done + 1 ... done + kept` of initial conditions `first, first + 1, ...`."""
+    frames = slice(done + 1, done + 1 + kept)
+    t = (done + 1 + np.arange(kept)) * config.frame_dt
+    found = [(violation[0], c, violation[1]) for c, member in enumerate(bounds, first)
+             if (violation := member.first_violation(t, q[c, frames], qd[c, frames], energy[c, frames])) is not None]
+    if not found:
+        return
+    k, c, reason = min(found)
+    end = done + 1 + k
+    partial = Trajectory(np.arange(end) * config.frame_dt, q[c, :end].copy(), qd[c, :end].copy(), energy[c, :end].copy(),
+                         {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config)})
+    member = f", initial condition {c}" if len(q) > 1 else ""
+    raise SimulationError(f"{label}: state {reason} at t = {t[k]:.6g} s ({config.integrator}, dt = {config.dt:g}{member}); {hint}",
+                          time=float(t[k]), trajectory=partial)
+
+
+def timed_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, states: State, params=None, *, repeats: int = 1,
+                   **options) -> tuple[float, list[float], Rollouts]:
+    """`(compile_s, run_s, rollouts)`: `batched_rollouts` (same options) once to compile
+    and warm up (its one-off costs dropped), then `repeats` timed calls; `run_s` lists
+    their seconds and `rollouts` is the last call's."""
+    warm = batched_rollouts(scene, config, accel_factory, states, params, **options)
+    timed = [batched_rollouts(scene, config, accel_factory, states, params, **options) for _ in range(repeats)]
+    return warm.compile_s, [run.run_s for run in timed], timed[-1]

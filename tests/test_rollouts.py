@@ -1,0 +1,156 @@
+"""The one rollout path (`lgnn.engines.rollouts`) and the engine contract (`lgnn.engines.base`).
+
+A batch of initial conditions is one compiled, vmapped program whose parameters are an
+argument: the Lagrangian engine's batch equals `simulate` of each member with no loop
+over members, a second parameter set of one model config compiles nothing (in
+`ModelEngine` and in `lgnn evaluate`), a reference stops at the first diverging member,
+and `get_engine` refuses what an engine cannot do in one line.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lgnn import physics
+from lgnn.engines import ENGINES, EngineEntry, get_engine, lagrangian, register_engine, rollouts
+from lgnn.engines.base import Engine, SimulationConfig
+from lgnn.errors import ConfigError, SimulationError
+from lgnn.learn import models
+from lgnn.scene import State, get_scene, sample_initial_states
+
+SHORT = SimulationConfig(dt=1e-3, frame_dt=5e-3, duration=0.05)
+
+
+def _states(scene, count, seed=3):
+    states = sample_initial_states(scene, jax.random.PRNGKey(seed), count)
+    return State(np.asarray(states.q), np.asarray(states.qd))
+
+
+def test_the_lagrangian_batch_is_one_program_equal_to_simulate_of_each_member(monkeypatch):
+    scene = get_scene("chain4")
+    states = _states(scene, 3)
+    alone = [lagrangian.simulate(scene, SHORT, State(q, qd)) for q, qd in zip(states.q, states.qd)]
+
+    def no_loop(*args, **kwargs):
+        raise AssertionError("the engine rolled out a member alone")
+
+    monkeypatch.setattr(lagrangian, "simulate", no_loop)
+    batch = get_engine("lagrangian").rollout(scene, SHORT, states)
+    assert batch.q.shape == (3, SHORT.n_frames + 1, scene.n_nodes, scene.dim) and batch.energy.shape == (3, SHORT.n_frames + 1)
+    for member, run in enumerate(alone):
+        np.testing.assert_allclose(batch.q[member], run.q, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(batch.energy[member], run.energy, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(batch.t, alone[0].t)
+
+
+def test_frames_in_calls_give_the_same_trajectory_as_one_call():
+    scene = get_scene("chain4")
+    states = _states(scene, 2)
+    factory = rollouts.Unparametrised(physics.true_acceleration_fn)
+    whole = rollouts.batched_rollouts(scene, SHORT, factory, states, frames_per_call=SHORT.n_frames, with_energy=True)
+    # 10 frames in calls of 3: four calls, the last running past the end (its extra frames dropped).
+    called = rollouts.batched_rollouts(scene, SHORT, factory, states, frames_per_call=3, with_energy=True)
+    np.testing.assert_array_equal(called.q, whole.q)
+    np.testing.assert_array_equal(called.energy, whole.energy)
+
+
+def test_a_second_parameter_set_of_one_model_compiles_nothing():
+    scene = get_scene("chain4")
+    config = models.ModelConfig("lgnn", latent=4, hidden=8)
+    first, second = (models.init(jax.random.PRNGKey(seed), config) for seed in (0, 1))
+    states = _states(scene, 2)
+    a = models.ModelEngine(config, first).rollout(scene, SHORT, states)
+    compiled = rollouts.compiled_programs.cache_info().misses
+    b = models.ModelEngine(config, second).rollout(scene, SHORT, states)
+    assert rollouts.compiled_programs.cache_info().misses == compiled, "the second parameter set compiled a program"
+    assert np.abs(a.q - b.q).max() > 1e-6, "each parameter set gives its own trajectories"
+    alone = models.rollout(config, second, scene, SHORT, State(states.q[1], states.qd[1]))
+    np.testing.assert_allclose(b.q[1], alone.q, rtol=0, atol=1e-12)
+
+
+def test_lgnn_evaluate_of_a_second_checkpoint_of_one_config_compiles_nothing():
+    from lgnn.bench import evaluation
+
+    scene = get_scene("chain4")
+    config = models.ModelConfig.for_scene("lgnn", scene, latent=4, hidden=8)
+    states = _states(scene, 2)
+    evaluation.evaluate_model(config, models.init(jax.random.PRNGKey(0), config), scene, SHORT, states)
+    compiled = rollouts.compiled_programs.cache_info().misses
+    scored, _ = evaluation.evaluate_model(config, models.init(jax.random.PRNGKey(1), config), scene, SHORT, states)
+    assert rollouts.compiled_programs.cache_info().misses == compiled
+    assert {item.reference for item in scored} == {"lagrangian", "mujoco"}
+
+
+def _growing_factory(scene):
+    # Accelerations that blow up nodes placed beyond x = 5 and leave the others at rest.
+    return lambda q, qd: jnp.where(q[:, :1] > 5.0, 1e4 * q, 0.0 * q)
+
+
+def test_a_reference_stops_at_its_first_diverging_member_with_the_frames_before_it():
+    scene = get_scene("chain4")
+    config = SimulationConfig(dt=1e-3, frame_dt=1e-3, duration=0.3, project=False)
+    resting = np.asarray(scene.nodes, np.float64)
+    states = State(np.stack([resting, resting + 10.0]), np.zeros((2, scene.n_nodes, scene.dim)))
+    factory = rollouts.Unparametrised(_growing_factory)
+    with pytest.raises(SimulationError) as info:
+        rollouts.batched_rollouts(scene, config, factory, states, stop_at_divergence=True, frames_per_call=100, hint="a hint")
+    message = str(info.value)
+    assert "\n" not in message and "initial condition 1" in message and message.endswith("a hint")
+    partial = info.value.trajectory
+    assert 1 <= len(partial.t) < 100, "stopped within the first call of frames"
+    np.testing.assert_array_equal(partial.q[0], states.q[1])
+    # A model's rollouts (not a reference) run on: the diverged member keeps its frames.
+    runs = rollouts.batched_rollouts(scene, config, factory, states)
+    assert runs.q.shape[1] == config.n_frames + 1 and runs.energy is None, "energies only where asked for"
+    np.testing.assert_array_equal(runs.q[0, -1], resting)
+
+
+def test_get_engine_refuses_what_an_engine_lacks_in_one_line():
+    for call, words in [(lambda: get_engine("mujoco", dtype="float32"), ("mujoco", "float64", "float32")),
+                        (lambda: get_engine("mjwarp", dtype="float64"), ("mjwarp", "float32")),
+                        (lambda: get_engine("lagrangian", form="nested"), ("lagrangian", "form")),
+                        (lambda: get_engine("mjx", form="flat"), ("flat", "auto", "nested", "maximal"))]:
+        with pytest.raises(ConfigError) as info:
+            call()
+        assert "\n" not in str(info.value) and all(word in str(info.value) for word in words), str(info.value)
+    assert get_engine("mujoco").dtype == "float64" and get_engine("lagrangian", dtype="float32").dtype == "float32"
+
+
+def test_every_engine_answers_the_contract_and_auto_works_for_every_mujoco_engine():
+    scene = get_scene("chain4")
+    for name, entry in ENGINES.items():
+        engine = get_engine(name)
+        assert isinstance(engine, Engine) and engine.name == name and engine.dtype == entry.dtypes[0]
+        assert engine.accuracy(scene, SHORT) is None or engine.accuracy(scene, SHORT) > 0
+        if entry.forms:
+            assert get_engine(name, form="auto").form_of(scene) in ("nested", "maximal")
+        else:
+            assert engine.form_of(scene) == ""
+
+
+@dataclasses.dataclass(frozen=True)
+class _Resting(Engine):
+    """An engine whose bodies never move (for the registry test)."""
+
+    name = "resting"
+    dtype: str = "float64"
+
+    def rollout(self, scene, config, states):
+        q = np.repeat(np.asarray(states.q)[:, None], config.n_frames + 1, axis=1)
+        return rollouts.Rollouts(q, np.zeros_like(q), np.zeros(q.shape[:2]), 0.0, 0.0).trajectory(scene, config)
+
+
+def test_a_registered_engine_is_got_like_the_built_ins():
+    entry = register_engine(EngineEntry("resting", lambda dtype, progress, form: _Resting(dtype), ("float64",)))
+    try:
+        engine = get_engine("resting")
+        assert isinstance(engine, _Resting) and engine.form_of(get_scene("chain4")) == ""
+        with pytest.raises(ConfigError, match="already registered"):
+            register_engine(dataclasses.replace(entry, dtypes=("float32",)))
+        with pytest.raises(ConfigError, match="float32"):
+            get_engine("resting", dtype="float32")
+    finally:
+        ENGINES.pop("resting", None)
