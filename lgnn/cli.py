@@ -22,7 +22,7 @@ import time
 from lgnn.errors import ConfigError, LgnnError, SimulationError
 
 
-# Exit statuses (README, "Exit statuses").
+# Exit statuses (docs/cli.md, "Behaviour common to every command").
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3  # a simulation or rollout diverged; the frames before it are kept
 EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT, as shells report it)
@@ -191,7 +191,7 @@ def _trajectory_out(path: str):
 
     checked = check_writable(path)
     if checked.suffix != ".npz":
-        raise ConfigError(f"--out: trajectories are written as .npz (t, q, qd, energy; README), got {path!r}")
+        raise ConfigError(f"--out: trajectories are written as .npz (t, q, qd, energy; docs/formats.md), got {path!r}")
     return checked
 
 
@@ -419,7 +419,7 @@ def _add_train_parser(commands) -> None:
     parser = commands.add_parser("train", help="train a learned model on ground-truth data")
     parser.add_argument("--model", required=True, type=_model_reference, metavar="{" + ",".join(model_names()) + "}|MODULE:ATTR",
                         help=f"a built-in model ({', '.join(model_names())}) or your own ModelSpec as module:attribute "
-                             "or file.py:attribute (README, 'Bring your own model')")
+                             "or file.py:attribute (docs/models.md)")
     parser.add_argument("--scene", default="chain4", help="training scene (built-in name or JSON file)")
     parser.add_argument("--epochs", type=_positive_int, default=default.epochs, help="epoch budget (paper: 10000)")
     parser.add_argument("--minutes", type=_positive_float, default=None, help="optional wall-clock cap (checked after each epoch); the budget is --epochs")
@@ -607,7 +607,7 @@ def _add_benchmark_parser(commands) -> None:
     parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
     parser.add_argument("--full", action="store_true", help="the full profile (default: the quick one, minutes on a laptop)")
     parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
-    parser.add_argument("--config", help="a benchmark config file (TOML; README, 'Benchmark configs')")
+    parser.add_argument("--config", help="a benchmark config file (TOML; docs/benchmark.md, 'Configs')")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2] (repeatable)")
     parser.add_argument("--stage", default=None, choices=("all", *STAGES),
@@ -643,7 +643,7 @@ def _add_dataset_parser(commands) -> None:
 
     parser = commands.add_parser("dataset", help="training and evaluation data for other frameworks")
     sub = parser.add_subparsers(dest="dataset_command", required=True, metavar="SUBCOMMAND")
-    export = sub.add_parser("export", help="write a scene's training data and evaluation initial conditions (.npz or .h5; README 'Exported datasets')")
+    export = sub.add_parser("export", help="write a scene's training data and evaluation initial conditions (.npz or .h5; docs/formats.md)")
     export.add_argument("--scene", required=True, help="built-in scene name or scene JSON file")
     export.add_argument("--out", required=True, help="output file: .npz, or .h5 (needs h5py: pip install 'lgnn[hdf5]')")
     export.add_argument("--profile", choices=grid.PROFILE_NAMES, default="full", help="data and evaluation settings (default: full, the paper's)")

@@ -1,7 +1,7 @@
 """Process-wide runtime settings, applied by an explicit call, never at import.
 
 `configure()` is what the command line, the test configuration and a user's script call
-before they compute anything (the README's Python example shows it):
+before they compute anything (docs/engines.md, "Precision"):
 
 - float64 (`jax_enable_x64`) unless asked otherwise: accuracy is the point of a ground
   truth (float32 drifts the energy of a 4-link chain by 1e-4 over 1 s, float64 by 1e-13);

@@ -1,4 +1,4 @@
-"""The user documentation is true: README.md, CHANGELOG.md and docs/*.md.
+"""The user documentation is true: README.md, CHANGELOG.md, ARCHITECTURE.md and docs/*.md.
 
 - every relative link (and every `#anchor` within a page) resolves;
 - every `lgnn COMMAND --option` written in them is an option of that command's
@@ -27,7 +27,7 @@ from lgnn.cli import build_parser
 from lgnn.learn import models
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = sorted([ROOT / "README.md", ROOT / "CHANGELOG.md", *(ROOT / "docs").glob("*.md")])
+PAGES = sorted([ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "ARCHITECTURE.md", *(ROOT / "docs").glob("*.md")])
 # The section of results/README.md the README's headline table is copied from.
 HEADLINE_SECTION = "## Rollout error against the Lagrangian ground truth (planar: trained on chain4, chain4-varied, chain4-drag)"
 FIRST_COMMANDS = (

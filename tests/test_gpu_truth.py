@@ -1,7 +1,7 @@
 """`lgnn gpu-truth` (`lgnn.bench.gpu_truth`) small on the CPU: the table's rows, the
 float32 engines really in float32, and non-finite runs said plainly.
 
-The GPU runs themselves are made on a lent machine (README, "GPU ground truth"); here
+The GPU runs themselves are made on a lent machine (results/gpu/truth/README.md has the commands); here
 chain4 and chain4-3d, 2 worlds, 10 steps, with the engines this machine has (MJX is left out for its
 ~35 s CPU compile, tested in test_mujoco.py; MuJoCo Warp only where installed).
 """

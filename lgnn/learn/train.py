@@ -144,7 +144,7 @@ def adam_steps_per_epoch(data: DataConfig, config: TrainConfig) -> int:
 
 
 def scheduled(config: TrainConfig, steps_per_epoch: int) -> TrainConfig:
-    """`config` with the one schedule rule for every model (README, "Training budgets")
+    """`config` with the one schedule rule for every model (docs/benchmark.md, "Training recipe")
     filling what it leaves None: the peak rate PAPER_LEARNING_RATE (SHORT_BUDGET_RATE
     for a budget under SHORT_BUDGET_STEPS Adam steps), a warm-up over a fifth of the
     budget's steps but at most WARMUP_STEPS (Adam's moments settle; a short budget is
