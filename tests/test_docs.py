@@ -8,7 +8,9 @@
 - the README's headline table is copied cell by cell from `results/README.md`;
 - the bring-your-own-model example of docs/models.md runs: its model files load, make
   parameters and accelerations of the right shape (zero at pinned nodes), the
-  Lagrangian one equals the true dynamics at its truth, and one rollout runs.
+  Lagrangian one equals the true dynamics at its truth, and one rollout runs;
+- the scene file of docs/scenes.md and the benchmark config of docs/benchmark.md load
+  as written (the config names that scene and that model file).
 """
 
 import contextlib
@@ -23,6 +25,7 @@ import pytest
 
 import lgnn
 from lgnn import physics
+from lgnn.bench import grid
 from lgnn.cli import build_parser
 from lgnn.learn import models
 
@@ -198,3 +201,23 @@ def test_the_models_page_models_step_and_roll_out(model_dir, reference):
         np.testing.assert_allclose(models.acceleration_fn(config, truth, scene)(q, qd), physics.true_acceleration_fn(scene)(q, qd), atol=1e-10)
     trajectory = models.rollout(config, params, scene, lgnn.SimulationConfig(dt=1e-3, frame_dt=1e-3, duration=2e-3))
     assert trajectory.q.shape == (3, scene.n_nodes, scene.dim) and np.isfinite(trajectory.q).all()
+
+
+def _blocks(page: str, language: str) -> list[str]:
+    text = (ROOT / "docs" / page).read_text()
+    return re.findall(rf"^```{language}\n(.*?)^```", text, re.S | re.M)
+
+
+def test_the_scene_file_and_benchmark_config_examples_load(model_dir):
+    (scene_json,) = _blocks("scenes.md", "json")
+    (config,) = _blocks("benchmark.md", "toml")
+    (model_dir / "my-scene.json").write_text(scene_json)
+    (model_dir / "my.toml").write_text(config)
+    scene = lgnn.get_scene(str(model_dir / "my-scene.json"))
+    assert (scene.n_nodes, scene.n_links, scene.pinned, float(scene.gravity)) == (3, 2, (0,), 10.0)
+    # The overrides its first line shows, as `--set` gives them.
+    profile = grid.load_profile(model_dir / "my.toml", ["training.train.epochs=50", "seeds=[0,1,2]"])
+    (entry,) = profile.grid
+    assert entry.model == "my-scaled-truth" and entry.train_scene == "chain4"
+    assert profile.seeds == (0, 1, 2) and profile.training.train.epochs == 50
+    assert profile.stages == ("train", "evaluate", "report")
