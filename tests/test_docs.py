@@ -9,6 +9,7 @@
 - the bring-your-own-model example of docs/models.md runs: its model files load, make
   parameters and accelerations of the right shape (zero at pinned nodes), the
   Lagrangian one equals the true dynamics at its truth, and one rollout runs;
+- the user pages (README.md, docs/) name no commit, issue or machine path;
 - the scene file of docs/scenes.md and the benchmark config of docs/benchmark.md load
   as written (the config names that scene and that model file).
 """
@@ -221,3 +222,14 @@ def test_the_scene_file_and_benchmark_config_examples_load(model_dir):
     assert entry.model == "my-scaled-truth" and entry.train_scene == "chain4"
     assert profile.seeds == (0, 1, 2) and profile.training.train.epochs == 50
     assert profile.stages == ("train", "evaluate", "report")
+
+
+@pytest.mark.parametrize("page", [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))], ids=lambda page: page.relative_to(ROOT).as_posix())
+def test_user_pages_hold_no_history_or_machine_paths(page):
+    """History (commits, issues) belongs in CHANGELOG.md or beside a result; a path of one
+    machine helps no reader."""
+    text = page.read_text()
+    commits = [word for word in re.findall(r"\b[0-9a-f]{7,40}\b", text) if re.search(r"[a-f]", word) and re.search(r"\d", word)]
+    assert not commits, f"{page.name} names commits {commits}"
+    assert not re.search(r"\bissues? #?\d+|(?<![\w/])#\d+\b", text, re.I), f"{page.name} names an issue"
+    assert not re.search(r"(?<![\w.])/(work|home|Users|tmp)/", text), f"{page.name} names a machine path"
