@@ -46,7 +46,7 @@ import numpy as np
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
 from lgnn.bench.grid import (GRID, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs, evaluation_scenes,
-                             model_order, settings_key)
+                             model_order, settings_key, train_config)
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
@@ -555,7 +555,7 @@ def _training_lines(profile: Profile, out: Path) -> list[str]:
     checkpoints = load_checkpoints(profile, out)
     for job, state in checkpoints:
         lines.append(f"| {job.model} | {job.scene} | {job.seed} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) "
-                     f"| {_stopped_by(state, profile.training.train)} |")
+                     f"| {_stopped_by(state, train_config(profile, job))} |")
     for dim, training_scene in TRAINING_SCENES.items():
         chosen, scores = default_lgnn(profile, out, training_scene, checkpoints)
         if scores:

@@ -207,10 +207,11 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     1e-10 and better); about 1.2 GB for chain100-3d, in the git-ignored datasets folder."""
     if out is None:
         return _computed_ground_truth(profile, scene_name, progress)
-    path, key = Layout(out).truth_trajectories(scene_name), truth_key(profile, scene_name)
+    layout = store.layout(profile, out)
+    path, key = layout.truth_trajectories(scene_name), truth_key(profile, scene_name)
     trajectories, timings = truth_trajectories(profile.evaluate.references), truth_timings(profile.evaluate.references)
     with store.exclusive(path):  # parallel workers on one scene: the first computes, the others read
-        stored = store.load(path, key)
+        stored = layout.load(path, key)
         # Files written before their reference was fixed, or before references' energies
         # were kept, lack a version or trajectory: computed again.
         if (stored is not None and stored[1].get("mujoco_reference") == REFERENCE_VERSION
@@ -333,7 +334,7 @@ def _pair_needs(profile: Profile) -> tuple[str, ...]:
 def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool = True) -> Path:
     """The ground-truth record of a scene: chaos floor, rest baseline and the ground
     truth against each reference engine (module docstring)."""
-    path = Layout(out).truth_record(scene_name)
+    path = store.layout(profile, out).truth_record(scene_name)
     with store.exclusive(path):  # parallel workers on one scene: the first writes it
         return _evaluated_scene(profile, scene_name, out, progress, path)
 
@@ -341,7 +342,7 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
 def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: bool, path: Path) -> Path:
     key = truth_key(profile, scene_name)
     scene = get_scene(scene_name)
-    if _has(store.load(path, key), _truth_needs(profile, scene)):
+    if _has(store.layout(profile, out).load(path, key), _truth_needs(profile, scene)):
         return path
     truth = ground_truth(profile, scene_name, progress, out)
     references = profile.evaluate.references
@@ -385,15 +386,15 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
     (`rollouts.batched_rollouts`, stacked): one compile instead of one per seed, and the GPU's
     batch as wide as the seeds times the initial conditions. Each pair keeps its own
     record, as `evaluate_pair` writes it."""
-    layout = Layout(out)
+    layout = store.layout(profile, out)
     paths, todo = [], {}
     for pair in pairs:
-        checkpoint = layout.checkpoint(pair.job)
+        checkpoint = layout.found(layout.checkpoint(pair.job))
         if not checkpoint.exists():
             raise ConfigError(f"no checkpoint for {pair.job.name} at {checkpoint}: run the training stage first")
         path, key = layout.pair_record(pair), pair_key(profile, pair, checkpoint)
         paths.append(path)
-        if not _has(store.load(path, key), _pair_needs(profile)):
+        if not _has(layout.load(path, key), _pair_needs(profile)):
             model, params = train.load_model(checkpoint)
             shared = (pair.scene, pair.projected, records.digest(model.to_dict()))
             todo.setdefault(shared, []).append((pair, path, key, model, params))
@@ -441,16 +442,17 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
 
 def load_truth(profile: Profile, scene_name: str, out: Path) -> tuple[dict, dict] | None:
     """`(arrays, meta)` of a scene's ground-truth record if it matches the profile, else None."""
-    return store.load(Layout(out).truth_record(scene_name), truth_key(profile, scene_name))
+    layout = store.layout(profile, out)
+    return layout.load(layout.truth_record(scene_name), truth_key(profile, scene_name))
 
 
 def load_pair(profile: Profile, pair: Pair, out: Path) -> tuple[dict, dict] | None:
     """`(arrays, meta)` of a pair's record if it matches the profile and checkpoint, else None."""
-    layout = Layout(out)
-    checkpoint = layout.checkpoint(pair.job)
+    layout = store.layout(profile, out)
+    checkpoint = layout.found(layout.checkpoint(pair.job))
     if not checkpoint.exists():
         return None
-    return store.load(layout.pair_record(pair), pair_key(profile, pair, checkpoint))
+    return layout.load(layout.pair_record(pair), pair_key(profile, pair, checkpoint))
 
 
 def load_truths(profile: Profile, out: Path) -> dict[str, tuple[dict, dict]]:
@@ -474,7 +476,8 @@ def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
     states = evaluation_initial_states(profile, scene)
     chunk = min(profile.evaluate.chunk, len(states.q))
     first = State(states.q[:chunk], states.qd[:chunk])
-    model, params = train.load_model(Layout(out).checkpoint(pair.job))
+    layout = store.layout(profile, out)
+    model, params = train.load_model(layout.found(layout.checkpoint(pair.job)))
     config = profile.evaluate.simulation(pair.scene)
     steps = chunk * config.n_frames * config.steps_per_frame
     return (lambda: batched_rollouts(scene, config, models.AccelerationFactory(model), first, params, chunk=chunk)), steps
