@@ -217,7 +217,7 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
         if (stored is not None and stored[1].get("mujoco_reference") == REFERENCE_VERSION
                 and all(name in stored[0] for name in trajectories)):
             arrays, meta = stored
-            log(f"ground truth {scene_name}: read from {path}")
+            log(f"ground truth {scene_name}: read from {meta['folder']}")
             return dict(**{name: arrays[name] for name in trajectories}, states=State(arrays["states/q"], arrays["states/qd"]),
                         **{name: meta[name] for name in timings})
         truth = _computed_ground_truth(profile, scene_name, progress)
