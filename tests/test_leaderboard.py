@@ -126,3 +126,15 @@ def test_records_read_from_the_base_say_so(tmp_path):
     profile = grid.load_profile(tmp_path / "committed.toml", [f'base="{base}"'])
     ((pair, (_, meta)),) = evaluate.load_pairs(profile, tmp_path / "elsewhere")
     assert meta["folder"] == str(base) and pair.job.model == COMMITTED.name
+    assert evaluate.unmatched_base_pairs(profile, tmp_path / "elsewhere") == []
+
+
+def test_base_results_made_with_other_evaluation_settings_are_named_never_mixed_or_recomputed(tmp_path):
+    _, base = _committed(tmp_path)
+    longer = grid.load_profile(tmp_path / "committed.toml", [f'base="{base}"', "evaluate.duration=0.03"])
+    out = tmp_path / "mine"
+    assert evaluate.unmatched_base_pairs(longer, out) == grid.evaluation_pairs(longer)
+    evaluate.evaluate_group(longer, grid.evaluation_pairs(longer), out, progress=False)
+    assert not out.exists() and evaluate.load_pairs(longer, out) == []  # nothing rolled out, nothing written
+    (line,) = report._unmatched_lines(longer, out)
+    assert line.startswith("**Not compared:** 1 evaluation(s)") and "cheat-leaderboard" in line

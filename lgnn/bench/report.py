@@ -50,7 +50,7 @@ from lgnn.bench.grid import (GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, E
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
-from lgnn.bench.stages.evaluate import scene_level_prefix, scene_level_scores, truth_against
+from lgnn.bench.stages.evaluate import scene_level_prefix, scene_level_scores, truth_against, unmatched_base_pairs
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
@@ -628,6 +628,18 @@ def banner(profile: Profile) -> list[str]:
     return [line for text in lines for line in (text, "")]
 
 
+def _unmatched_lines(profile: Profile, out: Path) -> list[str]:
+    """One line naming the base folder's evaluations made with other settings than this
+    report's (`evaluate.unmatched_base_pairs`): their cells say "not evaluated"."""
+    if profile.base is None:
+        return []
+    unmatched = unmatched_base_pairs(profile, out)
+    if not unmatched:
+        return []
+    return [f"**Not compared:** {len(unmatched)} evaluation(s) of `{profile.base}`'s models have no record with this report's evaluation "
+            f"settings ({', '.join(dict.fromkeys(pair.label for pair in unmatched))}): they read \"not evaluated\", never mixed in."]
+
+
 def _unrankable(out: Path) -> dict[str, str]:
     """`{scene: why}` from the reference convergence table beside the report
     (`<out>/convergence.csv`, written by `lgnn convergence`), if there is one."""
@@ -684,6 +696,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         + f"; {env['versions']}.",
         *([f"Records and checkpoints of `{p.base}` are read in place (never copied or written) beside this folder's; "
            "each record's folder and commit are under \"Where each record was made\"."] if p.base is not None else []),
+        *_unmatched_lines(p, out),
         "Each number's own commit, versions and device are columns of `benchmark/summary.csv` (the stages may run on different machines): "
         + "; ".join(envs) + ".",
         "",

@@ -388,13 +388,17 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
     record, as `evaluate_pair` writes it."""
     layout = store.layout(profile, out)
     paths, todo = [], {}
+    unmatched = set(unmatched_base_pairs(profile, out, pairs))
+    if unmatched:
+        log(f"evaluate: {len(unmatched)} pair(s) of the base folder's checkpoints have no record there with these evaluation settings "
+            f"({', '.join(sorted(f'{p.label} s{p.job.seed} on {p.scene}' for p in unmatched))}): left out, never recomputed or mixed")
     for pair in pairs:
         checkpoint = layout.found(layout.checkpoint(pair.job))
         if not checkpoint.exists():
             raise ConfigError(f"no checkpoint for {pair.job.name} at {checkpoint}: run the training stage first")
         path, key = layout.pair_record(pair), pair_key(profile, pair, checkpoint)
         paths.append(path)
-        if not _has(layout.load(path, key), _pair_needs(profile)):
+        if pair not in unmatched and not _has(layout.load(path, key), _pair_needs(profile)):
             model, params = train.load_model(checkpoint)
             shared = (pair.scene, pair.projected, records.digest(model.to_dict()))
             todo.setdefault(shared, []).append((pair, path, key, model, params))
@@ -438,6 +442,18 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
         n_div = int(np.sum(diverged >= 0))
         log(f"evaluate {pair.label} s{pair.job.seed} on {pair.scene}: rollout error {metrics.summarise(arrays['rollout_error/per_ic_log'])[0]:.3g}"
             + (f", {n_div} diverged" if n_div else "") + f" ({run_s:.1f} s + compile {compile_s:.1f} s for {len(group)})")
+
+
+def unmatched_base_pairs(profile: Profile, out: Path, pairs: list[Pair] | None = None) -> list[Pair]:
+    """The pairs (of `pairs`, default the profile's) whose checkpoint is the base
+    folder's (`Profile.base`) and which have no record with this profile's evaluation
+    settings, there or under `out`: results made with other settings, which are never
+    mixed with these and never recomputed (the base's models are not this run's)."""
+    layout = store.layout(profile, out)
+    return [pair for pair in (evaluation_pairs(profile) if pairs is None else pairs)
+            if not layout.checkpoint(pair.job).exists() and layout.in_base(layout.checkpoint(pair.job)) is not None
+            and not _has(layout.load(layout.pair_record(pair), pair_key(profile, pair, layout.found(layout.checkpoint(pair.job)))),
+                         _pair_needs(profile))]
 
 
 def load_truth(profile: Profile, scene_name: str, out: Path) -> tuple[dict, dict] | None:
