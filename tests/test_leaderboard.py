@@ -138,3 +138,19 @@ def test_base_results_made_with_other_evaluation_settings_are_named_never_mixed_
     assert not out.exists() and evaluate.load_pairs(longer, out) == []  # nothing rolled out, nothing written
     (line,) = report._unmatched_lines(longer, out)
     assert line.startswith("**Not compared:** 1 evaluation(s)") and "cheat-leaderboard" in line
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--add-model", "no_such_module:SPEC"], "cannot import 'no_such_module'"),
+    (["--add-model", f"{__name__}:OWN", "--set", "add.epochs=0"], "must be a whole number >= 1"),
+    (["--add-model", f"{__name__}:OWN", "--set", "add.seeds=[]"], "at least one training seed"),
+    (["--add-model", f"{__name__}:OWN", "--set", "add.colour=red"], "unknown setting 'add[0].colour'"),
+    (["--with-results", "{tmp}/absent"], "is not a folder"),
+    (["--config", "{tmp}/c.toml"], "'add' must be a list of tables"),
+])
+def test_bad_leaderboard_input_is_one_line(argv, words, tmp_path, capsys):
+    (tmp_path / "c.toml").write_text("add = 3\n")
+    argv = [arg.replace("{tmp}", str(tmp_path)) for arg in argv]
+    assert main(["benchmark", *argv, "--out-dir", str(tmp_path / "out"), "--stage", "report", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and words in err, err

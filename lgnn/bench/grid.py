@@ -413,9 +413,10 @@ def load_profile(source: str | os.PathLike, overrides=(), add: tuple[str, ...] =
         if "grid" in data and "models" not in data:
             base_profile.pop("models", None)  # a grid of one's own is kept whole, not filtered by the shipped profile's models
         data = settings.merged(base_profile, data)
-    added = [*data.pop("add", []), *({"model": model} for model in add)]
+    added = data.pop("add", [])
     if not isinstance(added, list) or not all(isinstance(entry, dict) for entry in added):
         raise ConfigError("setting 'add' must be a list of tables ([[add]] entries)")
+    added = [*added, *({"model": model} for model in add)]
     entry_overrides = [text.partition(".")[2] for text in overrides if text.strip().startswith("add.")]
     data = settings.apply_overrides(data, [text for text in overrides if not text.strip().startswith("add.")])
     added = [settings.build(GridEntry, added_entry(settings.apply_overrides(entry, entry_overrides)), f"add[{k}].") for k, entry in enumerate(added)]
