@@ -589,7 +589,10 @@ def _cmd_benchmark(args) -> None:
     # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
     # --with-results as an absolute path: a config's own `base` is relative to the config, this one to here.
     overrides += [f"base={json.dumps(str(Path(args.with_results).resolve()))}"] if args.with_results else []
-    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides, tuple(args.add_model or ()))
+    # An --add-model file likewise: relative to here, not to a config's directory.
+    added = tuple(f"{Path(code).resolve()}:{name}" if code.endswith(".py") else model
+                  for model in args.add_model or () for code, _, name in (model.rpartition(":"),))
+    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides, added)
     stages = None if args.stage is None else tuple(STAGES) if args.stage == "all" else (args.stage,)
     print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     # What selects this profile, for the child processes of --workers.

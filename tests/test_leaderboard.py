@@ -154,3 +154,14 @@ def test_bad_leaderboard_input_is_one_line(argv, words, tmp_path, capsys):
     assert main(["benchmark", *argv, "--out-dir", str(tmp_path / "out"), "--stage", "report", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and words in err, err
+
+
+def test_an_added_model_file_is_relative_to_the_working_directory_not_the_config(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "own.py").write_text("import jax.numpy as jnp\nfrom lgnn import physics\nfrom lgnn.learn.models import ModelSpec\n"
+                                     "SPEC = ModelSpec('file-leaderboard', lambda key, config: {'s': jnp.zeros(1)},\n"
+                                     "                 acceleration=lambda config, params, scene: physics.true_acceleration_fn(scene))\n")
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "c.toml").write_text(SETTINGS)
+    assert main(["benchmark", "--config", "configs/c.toml", "--add-model", "own.py:SPEC", "--stage", "report", "--out-dir", "out", "--quiet"]) == 0
+    assert "file-leaderboard" in models.model_names() and (tmp_path / "out" / "README.md").exists()
