@@ -298,8 +298,9 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
             if scene in (unrankable or {}) and (len(match) or (scene, model) in expected):
                 cells.append("not rankable")
                 continue
-            # A trained model's cell says how many seeds it holds, one included (the rest baseline is not trained).
-            row = {**match.iloc[0].to_dict(), **({"seeds": 1} if model != REST and match.iloc[0]["seed"] != ALL_SEEDS else {})} if len(match) else None
+            # A trained model's cell says how many seeds it holds, one included (the baselines are not trained).
+            trained = model not in (REST, EXACT_NO_DRAG)
+            row = {**match.iloc[0].to_dict(), **({"seeds": 1} if trained and match.iloc[0]["seed"] != ALL_SEEDS else {})} if len(match) else None
             cells.append(_interval(row) if row is not None else "not computed" if record
                          else "not evaluated" if (scene, model) in expected else "")
         for truth_metric in truth_metrics:
@@ -583,8 +584,8 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
         add(meta, f"ground truth {scene}")
     for pair, (_, meta) in pairs:
         add(meta, f"{pair.label} s{pair.job.seed} on {pair.scene}")
-    for scene, device, commit in dict.fromkeys((r["scene"], r["device"], r["commit"]) for r in speed_rows):
-        add({"device": device, "commit": commit}, f"speed {scene}")
+    for scene, device, commit, folder in dict.fromkeys((r["scene"], r["device"], r["commit"], r.get("folder", str(out))) for r in speed_rows):
+        add({"device": device, "commit": commit, "folder": folder}, f"speed {scene}")
     for _, meta in mass_records:
         add(meta, f"mass matrix {meta['scene']}")
     lines = ["| folder | machine | commit | records |", "|---|---|---|---|"]
@@ -636,8 +637,8 @@ def _unmatched_lines(profile: Profile, out: Path) -> list[str]:
     unmatched = unmatched_base_pairs(profile, out)
     if not unmatched:
         return []
-    return [f"**Not compared:** {len(unmatched)} evaluation(s) of `{profile.base}`'s models have no record with this report's evaluation "
-            f"settings ({', '.join(dict.fromkeys(pair.label for pair in unmatched))}): they read \"not evaluated\", never mixed in."]
+    return [f"**Not compared:** {len(unmatched)} evaluation(s) of `{profile.base}`'s models were made with other evaluation settings than "
+            f"this report's ({', '.join(dict.fromkeys(pair.label for pair in unmatched))}): they read \"not evaluated\", never mixed in."]
 
 
 def _unrankable(out: Path) -> dict[str, str]:
@@ -1041,7 +1042,8 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
     write_csv(summary, bench_dir / "summary.csv")
     write_csv(curves, bench_dir / CURVES)
     speed_rows = load_speed_rows(profile, out)
-    write_csv(pd.DataFrame(speed_rows), bench_dir / "speed_error.csv")
+    # Where each row was read from is the provenance table's, not a column of the table.
+    write_csv(pd.DataFrame([{k: v for k, v in r.items() if k != "folder"} for r in speed_rows]), bench_dir / "speed_error.csv")
     write_text_atomic(bench_dir / "speed_error.md", speed_markdown(speed_rows))
     if speed_rows:
         write_text_atomic(out / "performance.md", performance_markdown(profile, speed_rows, load_scaling(profile, out), out))

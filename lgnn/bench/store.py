@@ -99,10 +99,13 @@ class Layout:
         return None
 
     def load_json(self, path: Path, key: str) -> dict | None:
-        """`load_json` of the record at `path` under `out`, else of the base's in its place."""
-        record = load_json(path, key)
-        copy = self.in_base(path)
-        return record if record is not None or copy is None else load_json(copy, key)
+        """`load_json` of the record at `path` under `out`, else of the base's in its
+        place; its `folder` says which folder it was read from."""
+        for where, candidate in ((self.out, path), (self.base, self.in_base(path))):
+            record = None if candidate is None else load_json(candidate, key)
+            if record is not None:
+                return {**record, "folder": str(where)}
+        return None
 
 
 def layout(profile: Profile, out: Path) -> Layout:

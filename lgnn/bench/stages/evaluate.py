@@ -385,12 +385,14 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
     of one training job, projected alike) roll out in one compiled program
     (`rollouts.batched_rollouts`, stacked): one compile instead of one per seed, and the GPU's
     batch as wide as the seeds times the initial conditions. Each pair keeps its own
-    record, as `evaluate_pair` writes it."""
+    record, as `evaluate_pair` writes it. A pair whose checkpoint is the base folder's
+    (`Profile.base`) is never evaluated here: its record is the base's, or there is none
+    (one made with other settings is named on stderr: `unmatched_base_pairs`)."""
     layout = store.layout(profile, out)
     paths, todo = [], {}
-    unmatched = set(unmatched_base_pairs(profile, out, pairs))
+    unmatched = unmatched_base_pairs(profile, out, pairs)
     if unmatched:
-        log(f"evaluate: {len(unmatched)} pair(s) of the base folder's checkpoints have no record there with these evaluation settings "
+        log(f"evaluate: {len(unmatched)} pair(s) of the base folder's checkpoints were evaluated there with other settings "
             f"({', '.join(sorted(f'{p.label} s{p.job.seed} on {p.scene}' for p in unmatched))}): left out, never recomputed or mixed")
     for pair in pairs:
         checkpoint = layout.found(layout.checkpoint(pair.job))
@@ -398,7 +400,9 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
             raise ConfigError(f"no checkpoint for {pair.job.name} at {checkpoint}: run the training stage first")
         path, key = layout.pair_record(pair), pair_key(profile, pair, checkpoint)
         paths.append(path)
-        if pair not in unmatched and not _has(layout.load(path, key), _pair_needs(profile)):
+        # The base's models are not this run's: a pair of one without a record (there or here) is not evaluated here.
+        from_base = not layout.checkpoint(pair.job).exists()
+        if not from_base and not _has(layout.load(path, key), _pair_needs(profile)):
             model, params = train.load_model(checkpoint)
             shared = (pair.scene, pair.projected, records.digest(model.to_dict()))
             todo.setdefault(shared, []).append((pair, path, key, model, params))
@@ -446,12 +450,13 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
 
 def unmatched_base_pairs(profile: Profile, out: Path, pairs: list[Pair] | None = None) -> list[Pair]:
     """The pairs (of `pairs`, default the profile's) whose checkpoint is the base
-    folder's (`Profile.base`) and which have no record with this profile's evaluation
-    settings, there or under `out`: results made with other settings, which are never
-    mixed with these and never recomputed (the base's models are not this run's)."""
+    folder's (`Profile.base`) and whose record there was made with other evaluation
+    settings than this profile's (and none under `out` with them): results never mixed
+    with these and never recomputed (the base's models are not this run's)."""
     layout = store.layout(profile, out)
     return [pair for pair in (evaluation_pairs(profile) if pairs is None else pairs)
             if not layout.checkpoint(pair.job).exists() and layout.in_base(layout.checkpoint(pair.job)) is not None
+            and layout.in_base(layout.pair_record(pair)) is not None
             and not _has(layout.load(layout.pair_record(pair), pair_key(profile, pair, layout.found(layout.checkpoint(pair.job)))),
                          _pair_needs(profile))]
 

@@ -123,11 +123,12 @@ def load_speed(profile: Profile, scene_name: str, out: Path) -> dict | None:
 
 def speed_rows(profile: Profile, out: Path) -> list[dict]:
     """Tidy rows of every matching speed record (`speed_error`'s columns, `horizon_s`
-    and the `commit, versions, device` that made them); a stale record is not reported."""
+    and the `commit, versions, device` that made them, `folder` the one it was read
+    from: `store.Layout.load_json`); a stale record is not reported."""
     rows = []
     for scene in profile.speed.scenes:
         stored = load_speed(profile, scene, out)
         if stored is not None:
             env = {k: stored.get("environment", {}).get(k, "unknown") for k in ("commit", "versions", "device")}
-            rows += [{**r, "horizon_s": stored["horizon"], **env} for r in stored["rows"]]
+            rows += [{**r, "horizon_s": stored["horizon"], **env, "folder": stored["folder"]} for r in stored["rows"]]
     return rows
