@@ -779,7 +779,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
               "| `benchmark/checkpoints/` | the trained models (`lgnn rollout --model ...` runs them) |",
               "| `benchmark/runs/` | the per-stage records the tables are made from (resumable) |"]
     lines += [f"| `figures/{name}` | figure |" for name in figures]
-    if p.name == "full":
+    if p.name == "full" and p.base is None:  # the repository's results/ beside the report
         lines += [
             "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 chain100 T1 T2 T3 --duration 0.1 --out-dir DIR`, float64 on a CPU: the table's header names the machine; 0.1 s, as MJX's CPU compile takes 15-25 s a scene) |",
             "| `engines_speed_error.csv`, `.md` | engines' steps/s and error at dt 1e-3..1e-5 (`lgnn crosscheck --speed chain4 chain16 chain100 T1 --out-dir results`) |",
