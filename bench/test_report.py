@@ -66,7 +66,7 @@ def test_rest_rms_error_and_its_ratio_to_the_chaos_floor():
     rms = report.summary_markdown(summary, "node_rms_error")
     chain4 = _row(rms, "chain4")
     # The model's 1e-3 against the floor's 2e-4; the rest baseline's 3e-2.
-    assert chain4["lgnn"] == "1.00e-03 [1.00e-03, 1.00e-03], 5x floor" and chain4["chaos floor"] == "2.00e-04"
+    assert chain4["lgnn"] == "1.00e-03 [1.00e-03, 1.00e-03] (1 seed), 5x floor" and chain4["chaos floor"] == "2.00e-04"
     assert chain4["rest"] == "3.00e-02 [3.00e-02, 3.00e-02], 150x floor"
     ratio = summary[(summary.statistic == "chaos_floor_ratio") & (summary.scene == "chain4") & (summary.model == "lgnn")]
     assert np.isclose(ratio.value.item(), 5.0)
@@ -84,7 +84,7 @@ def test_no_chaos_floor_number_where_a_perturbed_run_diverged():
     for metric, column in (("rollout_error", "chaos floor"), ("node_rms_error", "chaos floor"), ("rollout_error_vs_mujoco", "chaos floor")):
         row = _row(report.summary_markdown(summary, metric), "chain8")
         assert row[column] == "diverged (1 of 2 perturbed runs, first at 0.5 s)"
-    assert _row(report.summary_markdown(summary, "node_rms_error"), "chain8")["lgnn"] == "1.00e-03 [1.00e-03, 1.00e-03]"
+    assert _row(report.summary_markdown(summary, "node_rms_error"), "chain8")["lgnn"] == "1.00e-03 [1.00e-03, 1.00e-03] (1 seed)"
 
 
 def test_records_without_the_new_metrics_read_not_computed():

@@ -573,6 +573,7 @@ def _cmd_checkpoint(args) -> None:
 
 
 def _cmd_benchmark(args) -> None:
+    import json
     from pathlib import Path
 
     from lgnn.bench import grid
@@ -586,15 +587,22 @@ def _cmd_benchmark(args) -> None:
         check_out_dir(args.out_dir)
     overrides = list(args.set or ()) + ([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])
     # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
-    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
+    # --with-results as an absolute path: a config's own `base` is relative to the config, this one to here.
+    overrides += [f"base={json.dumps(str(Path(args.with_results).resolve()))}"] if args.with_results else []
+    # An --add-model file likewise: relative to here, not to a config's directory.
+    added = tuple(f"{Path(code).resolve()}:{name}" if code.endswith(".py") else model
+                  for model in args.add_model or () for code, _, name in (model.rpartition(":"),))
+    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides, added)
     stages = None if args.stage is None else tuple(STAGES) if args.stage == "all" else (args.stage,)
     print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     # What selects this profile, for the child processes of --workers.
     profile_argv = ((["--config", args.config] if args.config else []) + (["--profile", args.profile] if args.profile else [])
                     + (["--full"] if args.full else []) + [arg for value in args.set or () for arg in ("--set", value)]
-                    + (["--chunk", str(args.chunk)] if args.chunk is not None else []))
+                    + (["--chunk", str(args.chunk)] if args.chunk is not None else [])
+                    + [arg for value in args.add_model or () for arg in ("--add-model", value)]
+                    + (["--with-results", args.with_results] if args.with_results else []))
     out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet,
-              workers=args.workers, profile_argv=profile_argv)
+              workers=args.workers, profile_argv=profile_argv, command="lgnn " + " ".join(args.argv))
     if "report" in (stages or profile.stages or STAGES):
         print((out / "README.md").read_text())
     print(f"wrote {out}/")
@@ -609,7 +617,16 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
     parser.add_argument("--config", help="a benchmark config file (TOML; docs/benchmark.md, 'Configs')")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2] (repeatable)")
+                        help="override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2]; add.KEY=VALUE sets KEY of every "
+                             "added model's grid entry, e.g. add.epochs=20, add.seeds=[0], add.eval_scenes=[chain4,chain8] (repeatable)")
+    parser.add_argument("--add-model", action="append", metavar="FILE.py:ATTR",
+                        help="add a model to the grid (its spec as file.py:attribute or module:attribute, or a registered name), trained "
+                             "on chain4 and evaluated on the planar transfer scenes as the built-in models are (repeatable)")
+    parser.add_argument("--with-results", metavar="DIR",
+                        help="rank beside the results in DIR (e.g. the committed results/), read in place, never copied or written: "
+                             "its checkpoints are not retrained, its records are reused where their settings match; runs the train, "
+                             "evaluate and report stages into --out-dir (default ./lgnn-out/PROFILE/). One command from a model file "
+                             "to its leaderboard row: lgnn benchmark --full --add-model my_model.py:SPEC --with-results results")
     parser.add_argument("--stage", default=None, choices=("all", *STAGES),
                         help="run one stage (default: the config's stages, else all, resuming finished work)")
     parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")

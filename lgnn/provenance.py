@@ -1,8 +1,10 @@
 """Where a result came from: commit, versions, machine.
 
-Every results file records these next to its numbers. The commit is read from git in
-the working directory, or from `LGNN_COMMIT` where the tree is a copy without `.git`
-(the lent GPU machine); a dirty tree is marked `+dirty`.
+Every results file records these next to its numbers. The commit is lgnn's own, read
+from git in the directory of the `lgnn` package (whatever the working directory: a
+researcher runs the benchmark from a project of their own), or from `LGNN_COMMIT`
+where the tree is a copy without `.git` (the lent GPU machine); a dirty tree is marked
+`+dirty`; "unknown" where neither gives it (an install without git).
 """
 
 from __future__ import annotations
@@ -12,11 +14,12 @@ import importlib.metadata
 import os
 import platform
 import subprocess
+from pathlib import Path
 
 
 def _git(*args: str) -> str | None:
     try:
-        out = subprocess.run(["git", *args], capture_output=True, text=True, timeout=10, check=True)
+        out = subprocess.run(["git", *args], capture_output=True, text=True, timeout=10, check=True, cwd=Path(__file__).parent)
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip()

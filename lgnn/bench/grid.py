@@ -96,7 +96,8 @@ def _check_numbers(group: str, settings, low: float = 0.0, **names: bool) -> Non
 
 @dataclasses.dataclass(frozen=True)
 class GridEntry:
-    """A model trained on `train_scene`, evaluated on `eval_scenes`."""
+    """A model trained on `train_scene`, evaluated on `eval_scenes`, with the profile's
+    seeds and training budget unless the entry gives its own."""
 
     model: str
     train_scene: str
@@ -104,6 +105,19 @@ class GridEntry:
     # Also evaluated without projecting its rollouts onto the constraints (GNS: its
     # accelerations know no constraints; the projected row hides that, issue 13).
     unprojected: bool = False
+    # This entry's training seeds (None: the profile's `seeds`).
+    seeds: tuple[int, ...] | None = None
+    # This entry's budget: epochs and minutes (None: the profile's `training.train`). Only
+    # where its training stops differs: its optimisation (rate, warm-up, batch) is the
+    # profile's, so its checkpoint is trained as the profile trains every model.
+    epochs: int | None = None
+    minutes: float | None = None
+
+    def __post_init__(self):
+        if self.seeds is not None and not self.seeds:
+            raise ConfigError(f"grid entry {self.model}: 'seeds' must name at least one training seed")
+        _check_numbers(f"grid entry {self.model}", self, **{name: name == "epochs" for name in ("epochs", "minutes")
+                                                            if getattr(self, name) is not None})
 
 
 # The LGNN variants (`lgnn.learn.models`): the per-edge one, the paper's equations with
@@ -354,23 +368,34 @@ class Profile:
     stages: tuple[str, ...] | None = None
     # Models kept from the grid (None: all of them).
     models: tuple[str, ...] | None = None
+    # A results folder (e.g. the committed `results/`) read in place beside this run's
+    # output folder, never written: its checkpoints are never retrained, its records are
+    # reused where their settings key matches, the report merges both
+    # (`lgnn.bench.store.Layout`). None: the output folder alone.
+    base: str | None = None
 
 
 # The shipped profiles: TOML files in `lgnn/bench/profiles/` (`load_profile`).
 PROFILE_NAMES = ("quick", "full")
 
 
-def load_profile(source: str | os.PathLike, overrides=()) -> Profile:
+def load_profile(source: str | os.PathLike, overrides=(), add: tuple[str, ...] = ()) -> Profile:
     """A profile from a shipped name (`quick`, `full`) or a TOML config file, with
     `KEY=VALUE` overrides (`lgnn.bench.settings`; an unknown key is a one-line
     `ConfigError` naming it). A config file starts from the shipped profile its
     `profile` key names (default `quick`) and sets `Profile`'s fields over it: `name`
-    (default: the file's stem), `seeds`, `train_scenes`, `scenes`, `stages`, `[[grid]]` entries
-    (default: `GRID`), and one table per settings group (`[training.data]`,
-    `[training.train]`, `[evaluate]`, `[speed]`, `[scaling]`, `[mass]`). Scene files
-    and `file.py:attribute` model references are relative to the config's directory;
-    a `module:attribute` or `file.py:attribute` model is imported and registered
-    (`lgnn.learn.models.load_spec`) and the grid names it by its spec's name."""
+    (default: the file's stem), `seeds`, `train_scenes`, `scenes`, `stages`, `base`,
+    `[[grid]]` entries (replacing `GRID`), `[[add]]` entries (added to the grid, `GRID`
+    or the config's), and one table per settings group (`[training.data]`,
+    `[training.train]`, `[evaluate]`, `[speed]`, `[scaling]`, `[mass]`). Scene files,
+    `base` and `file.py:attribute` model references are relative to the config's
+    directory; a `module:attribute` or `file.py:attribute` model is imported and
+    registered (`lgnn.learn.models.load_spec`) and the grid names it by its spec's name.
+
+    `add` names more models to add, as `[[add]]` entries of their model alone. An added
+    entry's `train_scene` defaults to `TRAINING_SCENE`, its `eval_scenes` to its
+    training scene's grid (`added_entry`); it passes a profile's `models` selection;
+    an override `add.KEY=VALUE` sets `KEY` of every added entry (e.g. `add.epochs=20`)."""
     from lgnn.bench import settings
 
     def shipped(name: str) -> dict:
@@ -388,10 +413,29 @@ def load_profile(source: str | os.PathLike, overrides=()) -> Profile:
         if "grid" in data and "models" not in data:
             base_profile.pop("models", None)  # a grid of one's own is kept whole, not filtered by the shipped profile's models
         data = settings.merged(base_profile, data)
-    data = settings.apply_overrides(data, overrides)
-    profile = _resolved(settings.build(Profile, data), base)
+    added = data.pop("add", [])
+    if not isinstance(added, list) or not all(isinstance(entry, dict) for entry in added):
+        raise ConfigError("setting 'add' must be a list of tables ([[add]] entries)")
+    added = [*added, *({"model": model} for model in add)]
+    entry_overrides = [text.partition(".")[2] for text in overrides if text.strip().startswith("add.")]
+    data = settings.apply_overrides(data, [text for text in overrides if not text.strip().startswith("add.")])
+    added = [settings.build(GridEntry, added_entry(settings.apply_overrides(entry, entry_overrides)), f"add[{k}].") for k, entry in enumerate(added)]
+    profile = settings.build(Profile, data)
+    if added:
+        profile = dataclasses.replace(profile, grid=(*profile.grid, *added),
+                                      models=None if profile.models is None else (*profile.models, *(e.model for e in added)))
+    profile = _resolved(profile, base)
     _check_names(profile)
     return profile
+
+
+def added_entry(entry: dict) -> dict:
+    """An `[[add]]` table with its defaults filled in: trained on `TRAINING_SCENE`,
+    evaluated on its training scene's transfer scenes (`TRANSFER_SCENES`,
+    `SPATIAL_TRANSFER_SCENES`; another training scene: itself alone)."""
+    train_scene = entry.get("train_scene", TRAINING_SCENE)
+    grids = {TRAINING_SCENE: TRANSFER_SCENES, SPATIAL_TRAINING_SCENE: SPATIAL_TRANSFER_SCENES}
+    return {"train_scene": train_scene, "eval_scenes": list(grids.get(train_scene, (train_scene,))), **entry}
 
 
 def _check_names(profile: Profile) -> None:
@@ -446,7 +490,10 @@ def _resolved(profile: Profile, base: Path | None) -> Profile:
         return load_spec(name, base).name if ":" in name else name
 
     entries = tuple(dataclasses.replace(e, model=model(e.model), train_scene=scene(e.train_scene), eval_scenes=scenes(e.eval_scenes)) for e in profile.grid)
-    return dataclasses.replace(profile, grid=entries, train_scenes=scenes(profile.train_scenes), scenes=scenes(profile.scenes))
+    models = None if profile.models is None else tuple(dict.fromkeys(map(model, profile.models)))
+    results = None if profile.base is None else str(Path(base or ".", profile.base))
+    return dataclasses.replace(profile, grid=entries, train_scenes=scenes(profile.train_scenes), scenes=scenes(profile.scenes), models=models,
+                               base=results)
 
 
 PROFILES = {name: load_profile(name) for name in PROFILE_NAMES}
@@ -463,14 +510,28 @@ def _entries(profile: Profile) -> list[GridEntry]:
             and (profile.models is None or e.model in profile.models)]
 
 
+def entry_seeds(profile: Profile, entry: GridEntry) -> tuple[int, ...]:
+    """The training seeds of a grid entry: its own, else the profile's."""
+    return profile.seeds if entry.seeds is None else entry.seeds
+
+
 def training_jobs(profile: Profile) -> list[TrainingJob]:
-    return [TrainingJob(e.model, e.train_scene, seed) for e in _entries(profile) for seed in profile.seeds]
+    return list(dict.fromkeys(TrainingJob(e.model, e.train_scene, seed) for e in _entries(profile) for seed in entry_seeds(profile, e)))
+
+
+def train_config(profile: Profile, job: TrainingJob) -> TrainConfig:
+    """The training settings of a job: the profile's `training.train` with the job's seed
+    and the budget (epochs, minutes) of the first grid entry that trains it, where it
+    gives one."""
+    entry = next((e for e in _entries(profile) if (e.model, e.train_scene) == (job.model, job.scene)), None)
+    budget = {} if entry is None else {name: getattr(entry, name) for name in ("epochs", "minutes") if getattr(entry, name) is not None}
+    return dataclasses.replace(profile.training.train, seed=job.seed, **budget)
 
 
 def evaluation_pairs(profile: Profile) -> list[Pair]:
     pairs = []
     for entry in _entries(profile):
-        for seed in profile.seeds:
+        for seed in entry_seeds(profile, entry):
             for scene in entry.eval_scenes:
                 if profile.scenes is None or scene in profile.scenes:
                     pairs.append(Pair(TrainingJob(entry.model, entry.train_scene, seed), scene))
@@ -487,7 +548,7 @@ def evaluated_jobs(profile: Profile, scene_name: str) -> list[TrainingJob]:
     """The jobs the grid evaluates on `scene_name` (the entries whose `eval_scenes` name
     it: the spatial entries on 3D scenes, CLNN on its own training scene only), whether
     or not the profile's `scenes` keep it, in `training_jobs` order."""
-    return [TrainingJob(e.model, e.train_scene, seed) for e in _entries(profile) if scene_name in e.eval_scenes for seed in profile.seeds]
+    return [TrainingJob(e.model, e.train_scene, seed) for e in _entries(profile) if scene_name in e.eval_scenes for seed in entry_seeds(profile, e)]
 
 
 def lgnn_job(profile: Profile, scene_name: str | None = None) -> TrainingJob:

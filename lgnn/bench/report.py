@@ -45,19 +45,19 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
-from lgnn.bench.grid import (GRID, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs, evaluation_scenes,
-                             model_order, settings_key)
+from lgnn.bench.grid import (GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs,
+                             evaluation_scenes, model_order, settings_key, train_config, training_jobs)
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
-from lgnn.bench.stages.evaluate import scene_level_prefix, scene_level_scores, truth_against
+from lgnn.bench.stages.evaluate import scene_level_prefix, scene_level_scores, truth_against, unmatched_base_pairs
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
 from lgnn.bench.stages.train import default_lgnn, load_checkpoints
 from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
-from lgnn.learn.train import stop_reason
+from lgnn.learn.train import stop_reason, training_key
 from lgnn.scene import CHAIN_SAMPLER, OWN_STATE, PROJECTED, get_scene, initial_state_policy, is_pinned_chain
 
 # Column order of the built-in grid's models (a profile's own models follow: `grid.model_order`).
@@ -206,7 +206,7 @@ def _interval(row: dict) -> str:
     if math.isfinite(row.get("diverged", float("nan"))) and row["diverged"] > 0:
         text += f" ({int(row['diverged'])} diverged, first at {row['first_divergence_s']:.3g} s)"
     if math.isfinite(row.get("seeds", float("nan"))):
-        text += f" ({int(row['seeds'])} seeds)"
+        text += f" ({int(row['seeds'])} seed{'s' if row['seeds'] != 1 else ''})"
     if math.isfinite(row.get("chaos_floor_ratio", float("nan"))):
         text += f", {row['chaos_floor_ratio']:.3g}x floor"
     return text
@@ -298,7 +298,10 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
             if scene in (unrankable or {}) and (len(match) or (scene, model) in expected):
                 cells.append("not rankable")
                 continue
-            cells.append(_interval(match.iloc[0].to_dict()) if len(match) else "not computed" if record
+            # A trained model's cell says how many seeds it holds, one included (the baselines are not trained).
+            trained = model not in (REST, EXACT_NO_DRAG)
+            row = {**match.iloc[0].to_dict(), **({"seeds": 1} if trained and match.iloc[0]["seed"] != ALL_SEEDS else {})} if len(match) else None
+            cells.append(_interval(row) if row is not None else "not computed" if record
                          else "not evaluated" if (scene, model) in expected else "")
         for truth_metric in truth_metrics:
             match = wide[(wide.scene == scene) & (wide.model == "ground truth") & (wide.metric == truth_metric)]
@@ -541,8 +544,10 @@ def _plot_speed_error(rows: list[dict], path: Path, colors: dict[str, str] | Non
 # ---------------------------------------------------------------------------------
 
 
-def _command(profile: Profile) -> str:
-    return "pytest bench/ --benchmark" if profile.name == "full" else "pytest bench/  (or: lgnn benchmark)"
+def _command(profile: Profile, command: str | None) -> str:
+    """What wrote the report: the command given (`lgnn benchmark ...`), else a call of
+    `lgnn.bench.run.run` or `report.write` on the profile (the tests' and notebooks' way)."""
+    return command or f"lgnn.bench.run.run(load_profile(...)), profile {profile.name!r}"
 
 
 def _stopped_by(state, config) -> str:
@@ -555,7 +560,7 @@ def _training_lines(profile: Profile, out: Path) -> list[str]:
     checkpoints = load_checkpoints(profile, out)
     for job, state in checkpoints:
         lines.append(f"| {job.model} | {job.scene} | {job.seed} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) "
-                     f"| {_stopped_by(state, profile.training.train)} |")
+                     f"| {_stopped_by(state, train_config(profile, job))} |")
     for dim, training_scene in TRAINING_SCENES.items():
         chosen, scores = default_lgnn(profile, out, training_scene, checkpoints)
         if scores:
@@ -565,23 +570,26 @@ def _training_lines(profile: Profile, out: Path) -> list[str]:
     return lines
 
 
-def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_records: list) -> list[str]:
-    """Which machine and commit made each record, grouped (the stages may run apart)."""
-    groups: dict[tuple[str, str], list[str]] = {}
+def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_records: list, out: Path) -> list[str]:
+    """Which folder (this report's `out`, or the base read in place: `store.Layout.load`),
+    machine and commit made each record, grouped (the stages may run apart)."""
+    groups: dict[tuple[str, str, str], list[str]] = {}
 
-    def add(env: dict, label: str) -> None:
-        groups.setdefault((env.get("device", "unknown"), env.get("commit", "unknown")), []).append(label)
+    def add(meta: dict, label: str) -> None:
+        env = meta.get("environment", meta)
+        folder = meta.get("folder", str(out))
+        groups.setdefault((folder, env.get("device", "unknown"), env.get("commit", "unknown")), []).append(label)
 
     for scene, (_, meta) in truths.items():
-        add(meta.get("environment", {}), f"ground truth {scene}")
+        add(meta, f"ground truth {scene}")
     for pair, (_, meta) in pairs:
-        add(meta.get("environment", {}), f"{pair.label} s{pair.job.seed} on {pair.scene}")
-    for scene, device, commit in dict.fromkeys((r["scene"], r["device"], r["commit"]) for r in speed_rows):
-        add({"device": device, "commit": commit}, f"speed {scene}")
+        add(meta, f"{pair.label} s{pair.job.seed} on {pair.scene}")
+    for scene, device, commit, folder in dict.fromkeys((r["scene"], r["device"], r["commit"], r.get("folder", str(out))) for r in speed_rows):
+        add({"device": device, "commit": commit, "folder": folder}, f"speed {scene}")
     for _, meta in mass_records:
-        add(meta.get("environment", {}), f"mass matrix {meta['scene']}")
-    lines = ["| machine | commit | records |", "|---|---|---|"]
-    lines += [f"| {device} | {commit} | {', '.join(labels)} |" for (device, commit), labels in groups.items()]
+        add(meta, f"mass matrix {meta['scene']}")
+    lines = ["| folder | machine | commit | records |", "|---|---|---|---|"]
+    lines += [f"| `{folder}` | {device} | {commit} | {', '.join(labels)} |" for (folder, device, commit), labels in groups.items()]
     return lines
 
 
@@ -591,6 +599,46 @@ QUICK_WARNING = ("**Not results.** This profile checks that the pipeline runs: i
                  "shared machine, which vary several-fold between benchmark runs (single runs gave a Lagrangian/MuJoCo ratio of 3.05 "
                  "in one, 0.41 in the next; the speed table's spread column shows the runs of this one). "
                  "Numbers: `lgnn benchmark --full`, or the committed `results/`.")
+
+
+def banner(profile: Profile) -> list[str]:
+    """The report's opening warning, from what was run, not the profile's name:
+    `QUICK_WARNING` unless the evaluation settings and training data are the full
+    profile's; with those, the training jobs whose settings differ from the full
+    profile's (a smaller budget, or another optimisation), each named: their rows rank
+    what that training learned, not the full recipe's. No warning otherwise."""
+    full = PROFILES["full"]
+    if settings_key(profile.evaluate) != settings_key(full.evaluate) or profile.training.data != full.training.data:
+        return [QUICK_WARNING, ""]
+    recipe = full.training.train
+    short, other = [], []
+    for job in training_jobs(profile):
+        config = train_config(profile, job)
+        if training_key(config) | {"seed": 0} != training_key(recipe) | {"seed": 0}:
+            other.append(job.name)
+        elif config.epochs < recipe.epochs or (config.minutes is not None and (recipe.minutes is None or config.minutes < recipe.minutes)):
+            short.append(f"{job.name} ({config.epochs} epochs" + (f" or {config.minutes:g} minutes" if config.minutes else "") + ")")
+    lines = []
+    if short:
+        lines.append(f"**Full-profile evaluation, shorter training.** Trained on a smaller budget than the full profile's "
+                     f"({recipe.epochs} epochs" + (f" or {recipe.minutes:g} minutes" if recipe.minutes else "") + ", or its plateau rule): "
+                     + ", ".join(short) + ". Their rows rank what that budget learned, not what the full recipe would.")
+    if other:
+        lines.append("**Full-profile evaluation, other training.** Trained with other optimisation settings than the full profile's "
+                     "(batch, rate, schedule): " + ", ".join(other) + ".")
+    return [line for text in lines for line in (text, "")]
+
+
+def _unmatched_lines(profile: Profile, out: Path) -> list[str]:
+    """One line naming the base folder's evaluations made with other settings than this
+    report's (`evaluate.unmatched_base_pairs`): their cells say "not evaluated"."""
+    if profile.base is None:
+        return []
+    unmatched = unmatched_base_pairs(profile, out)
+    if not unmatched:
+        return []
+    return [f"**Not compared:** {len(unmatched)} evaluation(s) of `{profile.base}`'s models were made with other evaluation settings than "
+            f"this report's ({', '.join(dict.fromkeys(pair.label for pair in unmatched))}): they read \"not evaluated\", never mixed in."]
 
 
 def _unrankable(out: Path) -> dict[str, str]:
@@ -637,19 +685,23 @@ def _initial_states_text(profile: Profile) -> str:
 
 
 def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str], env: dict[str, str],
-           stage_lines: list[str] = ()) -> str:
+           stage_lines: list[str] = (), command: str | None = None) -> str:
     p, t, e = profile, profile.training, profile.evaluate
     envs = sorted(set(summary["device"])) if not summary.empty else []
     unrankable = _unrankable(out)
     lines = [
         f"# Benchmark results ({p.name} profile)",
         "",
-        f"Written by `{_command(p)}` (report stage: `lgnn benchmark{' --full' if p.name == 'full' else ''} --stage report`); nothing here is edited by hand.",
-        f"Report written at commit {env['commit']}; {env['versions']}.",
+        f"Written by `{_command(p, command)}`; nothing here is edited by hand.",
+        f"Report written at commit {env['commit']}" + (" (lgnn not run from a git checkout; `LGNN_COMMIT` names it)" if env["commit"] == "unknown" else "")
+        + f"; {env['versions']}.",
+        *([f"Records and checkpoints of `{p.base}` are read in place (never copied or written) beside this folder's; "
+           "each record's folder and commit are under \"Where each record was made\"."] if p.base is not None else []),
+        *_unmatched_lines(p, out),
         "Each number's own commit, versions and device are columns of `benchmark/summary.csv` (the stages may run on different machines): "
         + "; ".join(envs) + ".",
         "",
-        *([QUICK_WARNING, ""] if p.name != "full" else []),
+        *banner(p),
         "## Settings",
         "",
         f"- Training: {t.data.n_trajectories} trajectories of {t.data.duration:g} s, a state every {t.data.sample_dt:g} s (75:25 split), "
@@ -716,18 +768,18 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
               f"report: `lgnn benchmark{' --full' if p.name == 'full' else ''} --stage train|evaluate|speed|mass|report "
               "[--scene S] [--job J] [--chunk N]`. `+dirty` marks a record written while the working tree had uncommitted "
               "changes. Each record also holds the versions (`benchmark/summary.csv`).", "",
-              *_provenance_lines(*records, speed_rows, mass_records), ""]
+              *_provenance_lines(*records, speed_rows, mass_records, out), ""]
     lines += ["## Files", "", "| file | what |", "|---|---|",
               "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
               "| `benchmark/curves.csv.gz` | per-frame geometric means and 95% bands (every 0.01 s; provenance: the matching `summary.csv` rows) |",
               "| `benchmark/speed_error.csv`, `.md` | speed against error |",
-              "| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, each 3D chain beside the planar one, "
-            "and cost against chain length in 2D and 3D |",
+              *(["| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, each 3D chain beside the planar one, "
+                 "and cost against chain length in 2D and 3D |"] if speed_rows else []),
               "| `benchmark/mass_matrix.csv` | learned mass matrix errors |",
               "| `benchmark/checkpoints/` | the trained models (`lgnn rollout --model ...` runs them) |",
               "| `benchmark/runs/` | the per-stage records the tables are made from (resumable) |"]
     lines += [f"| `figures/{name}` | figure |" for name in figures]
-    if p.name == "full":
+    if p.name == "full" and p.base is None:  # the repository's results/ beside the report
         lines += [
             "| `crosscheck.csv`, `.md` | ground-truth engines against each other (`lgnn crosscheck chain4 chain8 chain16 chain100 T1 T2 T3 --duration 0.1 --out-dir DIR`, float64 on a CPU: the table's header names the machine; 0.1 s, as MJX's CPU compile takes 15-25 s a scene) |",
             "| `engines_speed_error.csv`, `.md` | engines' steps/s and error at dt 1e-3..1e-5 (`lgnn crosscheck --speed chain4 chain16 chain100 T1 --out-dir results`) |",
@@ -967,9 +1019,11 @@ def stage_sections(profile: Profile, out: Path, sections) -> list[str]:
     return lines
 
 
-def write(profile: Profile, out: Path, sections=()) -> Path:
-    """Write every report file under `out` from the records there, with the registered
-    stages' `sections` (`stage_sections`) before the provenance; returns README.md's path."""
+def write(profile: Profile, out: Path, sections=(), command: str | None = None) -> Path:
+    """Write every report file under `out` from the records there (and in the profile's
+    `base` folder, read in place), with the registered stages' `sections`
+    (`stage_sections`) before the provenance; `command`: what the header says wrote it
+    (`_command`). Returns README.md's path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -988,7 +1042,8 @@ def write(profile: Profile, out: Path, sections=()) -> Path:
     write_csv(summary, bench_dir / "summary.csv")
     write_csv(curves, bench_dir / CURVES)
     speed_rows = load_speed_rows(profile, out)
-    write_csv(pd.DataFrame(speed_rows), bench_dir / "speed_error.csv")
+    # Where each row was read from is the provenance table's, not a column of the table.
+    write_csv(pd.DataFrame([{k: v for k, v in r.items() if k != "folder"} for r in speed_rows]), bench_dir / "speed_error.csv")
     write_text_atomic(bench_dir / "speed_error.md", speed_markdown(speed_rows))
     if speed_rows:
         write_text_atomic(out / "performance.md", performance_markdown(profile, speed_rows, load_scaling(profile, out), out))
@@ -1015,5 +1070,5 @@ def write(profile: Profile, out: Path, sections=()) -> Path:
                 figures.append(name)
     path = out / "README.md"
     write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures, env,
-                                   stage_sections(profile, out, sections)))
+                                   stage_sections(profile, out, sections), command))
     return path

@@ -10,6 +10,10 @@ when the settings it was made with match, redone otherwise; so stages may run ap
 on several machines, and be assembled by the report. With `workers` > 1 the training
 groups and the evaluation (scene, model) parts run in that many child processes at
 once (`lgnn.bench.parallel`).
+
+With a profile's `base` (a results folder read in place, `lgnn.bench.store.layout`),
+`run` runs `BASE_STAGES` unless told otherwise: what puts a model beside the base's
+rows; the base's speed, scaling and mass records are read, not remade.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from typing import Any, Callable
 
 from lgnn.bench import report
 from lgnn.bench.grid import Pair, Profile, TrainingJob, evaluation_pairs, evaluation_scenes, training_jobs
+from lgnn.bench import store
 from lgnn.bench.parallel import run_split
 from lgnn.bench.stages.evaluate import evaluate_group, evaluate_scene
 from lgnn.bench.stages.mass import mass_matrices
@@ -44,6 +49,9 @@ class StageRun:
     progress: bool
     workers: int
     profile_argv: list[str] | None
+    # The command that asked for this run, as the report's header names it (None: a
+    # call of `run` from Python).
+    command: str | None = None
 
     def keeps(self, scene: str) -> bool:
         """Whether a stage's scene is selected (every scene unless `--scene` named some)."""
@@ -120,7 +128,7 @@ def _mass(request: StageRun) -> None:
 
 def _report(request: StageRun) -> None:
     sections = [(stage.name, stage.settings, stage.load, stage.section) for stage in STAGES.values() if stage.section is not None]
-    report.write(request.profile, request.out, sections)
+    report.write(request.profile, request.out, sections, request.command)
 
 
 STAGES: dict[str, Stage] = {
@@ -136,6 +144,10 @@ STAGES: dict[str, Stage] = {
 }
 
 
+# The stages a run with a `base` folder runs unless told otherwise.
+BASE_STAGES = ("train", "evaluate", "report")
+
+
 def register_stage(stage: Stage) -> None:
     """Add `stage` to `STAGES`, before the report (which reads every other stage's
     records); a name already registered is a `ConfigError`."""
@@ -147,17 +159,19 @@ def register_stage(stage: Stage) -> None:
 
 
 def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] | None = None, scenes: list[str] | None = None,
-        progress: bool = True, workers: int = 1, profile_argv: list[str] | None = None) -> Path:
-    """Run the chosen stages of the benchmark (default: the profile's `stages`, or all of
-    `STAGES`), in registry order, restricted to the named training jobs and evaluation
-    scenes when given; returns the output directory. With `workers` > 1, training (one
-    part per model and training scene) and evaluation (one part per scene and model's
-    seeds) run in child `lgnn benchmark` processes given `profile_argv`, the arguments
-    that select this profile."""
+        progress: bool = True, workers: int = 1, profile_argv: list[str] | None = None, command: str | None = None) -> Path:
+    """Run the chosen stages of the benchmark (default: the profile's `stages`, else
+    `BASE_STAGES` with a `base` folder, else all of `STAGES`), in registry order,
+    restricted to the named training jobs and evaluation scenes when given; returns the
+    output directory. With `workers` > 1, training (one part per model and training
+    scene) and evaluation (one part per scene and model's seeds) run in child `lgnn
+    benchmark` processes given `profile_argv`, the arguments that select this profile.
+    `command`: what the report's header says wrote it."""
     if workers > 1 and profile_argv is None:
         raise ConfigError("parallel workers need the profile's command-line arguments (profile_argv)")
-    stages = stages or profile.stages or tuple(STAGES)
+    stages = stages or profile.stages or (BASE_STAGES if profile.base is not None else tuple(STAGES))
     out = Path(out) if out is not None else default_out(profile)
+    store.layout(profile, out)  # a base that is no folder, or is `out`, fails before any stage
     unknown = sorted(set(stages) - set(STAGES))
     if unknown:
         raise ConfigError(f"unknown benchmark stage {unknown[0]!r} (choose from {', '.join(STAGES)})")
@@ -170,7 +184,7 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
         if name not in evaluation_scenes(profile):
             raise ConfigError(f"scene {name!r} is not evaluated in the {profile.name} profile (choose from {', '.join(evaluation_scenes(profile))})")
     request = StageRun(profile, out, [j for j in all_jobs if not jobs or j.name in jobs],
-                       [s for s in evaluation_scenes(profile) if not scenes or s in scenes], bool(scenes), progress, workers, profile_argv)
+                       [s for s in evaluation_scenes(profile) if not scenes or s in scenes], bool(scenes), progress, workers, profile_argv, command)
     out.mkdir(parents=True, exist_ok=True)
     for stage in list(STAGES.values()):
         if stage.name in stages:

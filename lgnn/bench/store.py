@@ -7,6 +7,13 @@ record (arrays) or JSON record whose meta holds the settings `key` it was made w
 has the wanted key: an absent or stale one is None (recomputed), a damaged one too,
 with a warning on stderr. Progress goes to stderr (`log`). `exclusive` lets parallel
 workers compute a record they share once.
+
+A profile's `base` (e.g. the committed `results/`) is a second folder of the same
+layout, read in place and never written (`layout(profile, out)`): every path a
+`Layout` gives is under `out`, where records are written; `Layout.found` and
+`Layout.load` read a file from `out`, else from `base`, so a record or checkpoint the
+base holds with the wanted key is reused as it is, and one it lacks or holds with
+other settings is made under `out`.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ import sys
 from pathlib import Path
 
 from lgnn import records
+from lgnn.errors import ConfigError
 from lgnn.files import DEFAULT_OUT
 from lgnn.bench.grid import Pair, Profile, TrainingJob
 
@@ -31,9 +39,11 @@ def log(message: str) -> None:
 
 @dataclasses.dataclass(frozen=True)
 class Layout:
-    """Where a profile's outputs live under `out`."""
+    """Where a profile's outputs live under `out` (written), and the read-only `base`
+    folder of the same layout read beside it (module docstring)."""
 
     out: Path
+    base: Path | None = None
 
     @property
     def bench(self) -> Path:
@@ -67,6 +77,49 @@ class Layout:
     def datasets(self) -> Path:
         return self.out / "datasets"
 
+    def in_base(self, path: Path) -> Path | None:
+        """The file of the base folder at `path`'s place under `out`, if the base has it."""
+        if self.base is None:
+            return None
+        copy = self.base / Path(path).relative_to(self.out)
+        return copy if copy.exists() else None
+
+    def found(self, path: Path) -> Path:
+        """`path` (under `out`) if it exists, else the base's file in its place if that
+        exists, else `path`."""
+        return path if path.exists() else self.in_base(path) or path
+
+    def load(self, path: Path, key: str | None = None) -> tuple[dict, dict] | None:
+        """`load` of the record at `path` under `out`, else of the base's in its place.
+        The meta's `folder` says which folder it was read from."""
+        for where, candidate in ((self.out, path), (self.base, self.in_base(path))):
+            record = None if candidate is None else load(candidate, key)
+            if record is not None:
+                return record[0], {**record[1], "folder": str(where)}
+        return None
+
+    def load_json(self, path: Path, key: str) -> dict | None:
+        """`load_json` of the record at `path` under `out`, else of the base's in its
+        place; its `folder` says which folder it was read from."""
+        for where, candidate in ((self.out, path), (self.base, self.in_base(path))):
+            record = None if candidate is None else load_json(candidate, key)
+            if record is not None:
+                return {**record, "folder": str(where)}
+        return None
+
+
+def layout(profile: Profile, out: Path) -> Layout:
+    """The layout of a profile's outputs under `out`, with its `base` folder read beside
+    them; `ConfigError` if `out` is the base (the base is never written)."""
+    if profile.base is None:
+        return Layout(Path(out))
+    base = Path(profile.base)
+    if not base.is_dir():
+        raise ConfigError(f"base results folder {base} is not a folder")
+    if Path(out).resolve() == base.resolve():
+        raise ConfigError(f"the output folder {out} is the base results folder, which is read, never written: give another output folder")
+    return Layout(Path(out), base)
+
 
 def file_name(name: str) -> str:
     """A job or scene name as one file name: built-in names as they are; a name holding
@@ -81,8 +134,9 @@ def file_name(name: str) -> str:
 
 def default_out(profile: Profile) -> Path:
     """The full profile's records are the repository's committed `results/` (a run
-    resumes and updates them); any other profile writes under `lgnn.files.DEFAULT_OUT`."""
-    return Path("results") if profile.name == "full" else DEFAULT_OUT / profile.name
+    resumes and updates them) unless it reads a `base` folder; any other profile, and a
+    profile with a base, writes under `lgnn.files.DEFAULT_OUT`."""
+    return Path("results") if profile.name == "full" and profile.base is None else DEFAULT_OUT / profile.name
 
 
 @contextlib.contextmanager

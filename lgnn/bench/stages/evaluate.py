@@ -207,16 +207,17 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     1e-10 and better); about 1.2 GB for chain100-3d, in the git-ignored datasets folder."""
     if out is None:
         return _computed_ground_truth(profile, scene_name, progress)
-    path, key = Layout(out).truth_trajectories(scene_name), truth_key(profile, scene_name)
+    layout = store.layout(profile, out)
+    path, key = layout.truth_trajectories(scene_name), truth_key(profile, scene_name)
     trajectories, timings = truth_trajectories(profile.evaluate.references), truth_timings(profile.evaluate.references)
     with store.exclusive(path):  # parallel workers on one scene: the first computes, the others read
-        stored = store.load(path, key)
+        stored = layout.load(path, key)
         # Files written before their reference was fixed, or before references' energies
         # were kept, lack a version or trajectory: computed again.
         if (stored is not None and stored[1].get("mujoco_reference") == REFERENCE_VERSION
                 and all(name in stored[0] for name in trajectories)):
             arrays, meta = stored
-            log(f"ground truth {scene_name}: read from {path}")
+            log(f"ground truth {scene_name}: read from {meta['folder']}")
             return dict(**{name: arrays[name] for name in trajectories}, states=State(arrays["states/q"], arrays["states/qd"]),
                         **{name: meta[name] for name in timings})
         truth = _computed_ground_truth(profile, scene_name, progress)
@@ -333,7 +334,7 @@ def _pair_needs(profile: Profile) -> tuple[str, ...]:
 def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool = True) -> Path:
     """The ground-truth record of a scene: chaos floor, rest baseline and the ground
     truth against each reference engine (module docstring)."""
-    path = Layout(out).truth_record(scene_name)
+    path = store.layout(profile, out).truth_record(scene_name)
     with store.exclusive(path):  # parallel workers on one scene: the first writes it
         return _evaluated_scene(profile, scene_name, out, progress, path)
 
@@ -341,7 +342,7 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
 def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: bool, path: Path) -> Path:
     key = truth_key(profile, scene_name)
     scene = get_scene(scene_name)
-    if _has(store.load(path, key), _truth_needs(profile, scene)):
+    if _has(store.layout(profile, out).load(path, key), _truth_needs(profile, scene)):
         return path
     truth = ground_truth(profile, scene_name, progress, out)
     references = profile.evaluate.references
@@ -384,16 +385,24 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
     of one training job, projected alike) roll out in one compiled program
     (`rollouts.batched_rollouts`, stacked): one compile instead of one per seed, and the GPU's
     batch as wide as the seeds times the initial conditions. Each pair keeps its own
-    record, as `evaluate_pair` writes it."""
-    layout = Layout(out)
+    record, as `evaluate_pair` writes it. A pair whose checkpoint is the base folder's
+    (`Profile.base`) is never evaluated here: its record is the base's, or there is none
+    (one made with other settings is named on stderr: `unmatched_base_pairs`)."""
+    layout = store.layout(profile, out)
     paths, todo = [], {}
+    unmatched = unmatched_base_pairs(profile, out, pairs)
+    if unmatched:
+        log(f"evaluate: {len(unmatched)} pair(s) of the base folder's checkpoints were evaluated there with other settings "
+            f"({', '.join(sorted(f'{p.label} s{p.job.seed} on {p.scene}' for p in unmatched))}): left out, never recomputed or mixed")
     for pair in pairs:
-        checkpoint = layout.checkpoint(pair.job)
+        checkpoint = layout.found(layout.checkpoint(pair.job))
         if not checkpoint.exists():
             raise ConfigError(f"no checkpoint for {pair.job.name} at {checkpoint}: run the training stage first")
         path, key = layout.pair_record(pair), pair_key(profile, pair, checkpoint)
         paths.append(path)
-        if not _has(store.load(path, key), _pair_needs(profile)):
+        # The base's models are not this run's: a pair of one without a record (there or here) is not evaluated here.
+        from_base = not layout.checkpoint(pair.job).exists()
+        if not from_base and not _has(layout.load(path, key), _pair_needs(profile)):
             model, params = train.load_model(checkpoint)
             shared = (pair.scene, pair.projected, records.digest(model.to_dict()))
             todo.setdefault(shared, []).append((pair, path, key, model, params))
@@ -439,18 +448,32 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
             + (f", {n_div} diverged" if n_div else "") + f" ({run_s:.1f} s + compile {compile_s:.1f} s for {len(group)})")
 
 
+def unmatched_base_pairs(profile: Profile, out: Path, pairs: list[Pair] | None = None) -> list[Pair]:
+    """The pairs (of `pairs`, default the profile's) whose checkpoint is the base
+    folder's (`Profile.base`) and whose record there was made with other evaluation
+    settings than this profile's (and none under `out` with them): results never mixed
+    with these and never recomputed (the base's models are not this run's)."""
+    layout = store.layout(profile, out)
+    return [pair for pair in (evaluation_pairs(profile) if pairs is None else pairs)
+            if not layout.checkpoint(pair.job).exists() and layout.in_base(layout.checkpoint(pair.job)) is not None
+            and layout.in_base(layout.pair_record(pair)) is not None
+            and not _has(layout.load(layout.pair_record(pair), pair_key(profile, pair, layout.found(layout.checkpoint(pair.job)))),
+                         _pair_needs(profile))]
+
+
 def load_truth(profile: Profile, scene_name: str, out: Path) -> tuple[dict, dict] | None:
     """`(arrays, meta)` of a scene's ground-truth record if it matches the profile, else None."""
-    return store.load(Layout(out).truth_record(scene_name), truth_key(profile, scene_name))
+    layout = store.layout(profile, out)
+    return layout.load(layout.truth_record(scene_name), truth_key(profile, scene_name))
 
 
 def load_pair(profile: Profile, pair: Pair, out: Path) -> tuple[dict, dict] | None:
     """`(arrays, meta)` of a pair's record if it matches the profile and checkpoint, else None."""
-    layout = Layout(out)
-    checkpoint = layout.checkpoint(pair.job)
+    layout = store.layout(profile, out)
+    checkpoint = layout.found(layout.checkpoint(pair.job))
     if not checkpoint.exists():
         return None
-    return store.load(layout.pair_record(pair), pair_key(profile, pair, checkpoint))
+    return layout.load(layout.pair_record(pair), pair_key(profile, pair, checkpoint))
 
 
 def load_truths(profile: Profile, out: Path) -> dict[str, tuple[dict, dict]]:
@@ -474,7 +497,8 @@ def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
     states = evaluation_initial_states(profile, scene)
     chunk = min(profile.evaluate.chunk, len(states.q))
     first = State(states.q[:chunk], states.qd[:chunk])
-    model, params = train.load_model(Layout(out).checkpoint(pair.job))
+    layout = store.layout(profile, out)
+    model, params = train.load_model(layout.found(layout.checkpoint(pair.job)))
     config = profile.evaluate.simulation(pair.scene)
     steps = chunk * config.n_frames * config.steps_per_frame
     return (lambda: batched_rollouts(scene, config, models.AccelerationFactory(model), first, params, chunk=chunk)), steps

@@ -21,7 +21,7 @@ from lgnn import physics, records
 from lgnn.bench import store
 from lgnn.bench.grid import Profile, TrainingJob, lgnn_job, settings_key
 from lgnn.bench.stages.evaluate import load_truth, truth_key
-from lgnn.bench.store import Layout, log
+from lgnn.bench.store import log
 from lgnn.errors import ConfigError
 from lgnn.learn import models, train
 from lgnn.scene import get_scene
@@ -42,11 +42,11 @@ def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob
     (`c L` has the same Euler-Lagrange equations), so both are also given for
     `c M_hat`, `c` the least-squares factor on the tangent space (recorded as `scale`)."""
     job = job or lgnn_job(profile, scene_name)
-    layout = Layout(out)
-    checkpoint = layout.checkpoint(job)
+    layout = store.layout(profile, out)
+    checkpoint = layout.found(layout.checkpoint(job))
     scene = get_scene(scene_name)
     path, key = layout.mass_record(scene_name), mass_key(profile, scene_name, checkpoint)
-    if store.load(path, key) is not None:
+    if layout.load(path, key) is not None:
         return path
     truth = load_truth(profile, scene_name, out)
     if truth is None:
@@ -76,9 +76,9 @@ def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob
 def load_mass(profile: Profile, out: Path) -> list[tuple[dict, dict]]:
     """`(arrays, meta)` of every mass-matrix record that matches the profile and the
     LGNN checkpoint it analyses."""
-    found = []
+    found, layout = [], store.layout(profile, out)
     for scene in profile.mass.scenes:
-        checkpoint = Layout(out).checkpoint(lgnn_job(profile, scene))
+        checkpoint = layout.found(layout.checkpoint(lgnn_job(profile, scene)))
         if checkpoint.exists():
-            found.append(store.load(Layout(out).mass_record(scene), mass_key(profile, scene, checkpoint)))
+            found.append(layout.load(layout.mass_record(scene), mass_key(profile, scene, checkpoint)))
     return [record for record in found if record is not None]

@@ -18,7 +18,7 @@ from lgnn import physics, records
 from lgnn.bench import store
 from lgnn.engines import get_engine
 from lgnn.bench.grid import TRAINING_SCENES, Profile, lgnn_job, settings_key
-from lgnn.bench.store import Layout, log
+from lgnn.bench.store import log
 from lgnn.engines.base import SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, timed_rollouts
 from lgnn.errors import ConfigError, SceneError, SimulationError
@@ -30,7 +30,8 @@ CHAINS = {2: chain, 3: spatial_chain}
 
 
 def _checkpoint(profile: Profile, out: Path, dim: int = 2) -> tuple[Path, str | None]:
-    checkpoint = Layout(out).checkpoint(lgnn_job(profile, TRAINING_SCENES[dim]))
+    layout = store.layout(profile, out)
+    checkpoint = layout.found(layout.checkpoint(lgnn_job(profile, TRAINING_SCENES[dim])))
     return checkpoint, records.file_digest(checkpoint) if checkpoint.exists() else None
 
 
@@ -62,8 +63,9 @@ def scaling(profile: Profile, out: Path) -> Path:
       Lagrangian ground truth and MuJoCo C.
     Each timing runs `steps` steps after a compile (or warm-up) run kept apart."""
     settings = profile.scaling
-    path, key = Layout(out).scaling_record, scaling_key(profile, out)
-    if store.load_json(path, key) is not None:
+    layout = store.layout(profile, out)
+    path, key = layout.scaling_record, scaling_key(profile, out)
+    if layout.load_json(path, key) is not None:
         return path
     steps, dt, ic_seed = settings.steps, profile.evaluate.dt, profile.evaluate.ic_seed
     config = SimulationConfig("rk4", dt, steps * dt, steps * dt, True)
@@ -122,4 +124,5 @@ def _size_rows(scene, config: SimulationConfig, ic_seed: int, model_params) -> l
 
 def load_scaling(profile: Profile, out: Path) -> dict | None:
     """The scaling record if it matches the profile and checkpoint, else None."""
-    return store.load_json(Layout(out).scaling_record, scaling_key(profile, out))
+    layout = store.layout(profile, out)
+    return layout.load_json(layout.scaling_record, scaling_key(profile, out))

@@ -19,7 +19,7 @@ from lgnn.bench import store
 from lgnn.engines import form_of, get_engine
 from lgnn.bench.grid import TRAINING_SCENES, Profile, TrainingJob, evaluated_jobs, settings_key
 from lgnn.bench.stages.evaluate import evaluation_initial_states
-from lgnn.bench.store import Layout, log
+from lgnn.bench.store import log
 from lgnn.engines.base import SimulationConfig
 from lgnn.engines.rollouts import timed_rollouts
 from lgnn.learn import models, train
@@ -37,8 +37,9 @@ def timed_jobs(profile: Profile, scene_name: str, jobs: list[TrainingJob] | None
 
 
 def _checkpoint_digests(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> dict[str, str]:
-    layout = Layout(out)
-    return {j.name: records.file_digest(layout.checkpoint(j)) for j in timed_jobs(profile, scene_name, jobs) if layout.checkpoint(j).exists()}
+    layout = store.layout(profile, out)
+    return {j.name: records.file_digest(layout.found(layout.checkpoint(j))) for j in timed_jobs(profile, scene_name, jobs)
+            if layout.found(layout.checkpoint(j)).exists()}
 
 
 def speed_key(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> str:
@@ -66,10 +67,10 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
 
     settings = profile.speed
     scene = get_scene(scene_name)
-    layout = Layout(out)
+    layout = store.layout(profile, out)
     checkpoints = _checkpoint_digests(profile, scene_name, out, jobs)
     path, key = layout.speed_record(scene_name), speed_key(profile, scene_name, out, jobs)
-    if store.load_json(path, key) is not None:
+    if layout.load_json(path, key) is not None:
         return path
     states = evaluation_initial_states(profile, scene)
     single = State(states.q[:1], states.qd[:1])
@@ -106,7 +107,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
         if job.name not in checkpoints:
             row(job.label, "learned", config.dt, note="no checkpoint")
             continue
-        model, params = train.load_model(layout.checkpoint(job))
+        model, params = train.load_model(layout.found(layout.checkpoint(job)))
         compile_s, run_s, runs = timed_rollouts(scene, config, models.AccelerationFactory(model), single, params, repeats=settings.repeats)
         row(job.label, "learned", config.dt, run_s=run_s, compile_s=compile_s, rollout_error=metrics.gmean_error(runs.q[0], reference))
         log(f"speed/error {scene_name} {job.label}: {rows[-1]['wall_s_per_sim_s']:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
@@ -116,16 +117,18 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
 
 def load_speed(profile: Profile, scene_name: str, out: Path) -> dict | None:
     """A scene's speed record if it matches the profile and checkpoints, else None."""
-    return store.load_json(Layout(out).speed_record(scene_name), speed_key(profile, scene_name, out))
+    layout = store.layout(profile, out)
+    return layout.load_json(layout.speed_record(scene_name), speed_key(profile, scene_name, out))
 
 
 def speed_rows(profile: Profile, out: Path) -> list[dict]:
     """Tidy rows of every matching speed record (`speed_error`'s columns, `horizon_s`
-    and the `commit, versions, device` that made them); a stale record is not reported."""
+    and the `commit, versions, device` that made them, `folder` the one it was read
+    from: `store.Layout.load_json`); a stale record is not reported."""
     rows = []
     for scene in profile.speed.scenes:
         stored = load_speed(profile, scene, out)
         if stored is not None:
             env = {k: stored.get("environment", {}).get(k, "unknown") for k in ("commit", "versions", "device")}
-            rows += [{**r, "horizon_s": stored["horizon"], **env} for r in stored["rows"]]
+            rows += [{**r, "horizon_s": stored["horizon"], **env, "folder": stored["folder"]} for r in stored["rows"]]
     return rows

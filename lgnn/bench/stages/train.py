@@ -18,6 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.bench.grid import LGNN_VARIANTS, TRAINING_SCENE, Profile, TrainingJob, training_jobs
+from lgnn.bench.grid import train_config as train_config_of
+from lgnn.bench import store
 from lgnn.bench.store import Layout, log
 from lgnn.errors import CheckpointError
 from lgnn.learn import data, models, train
@@ -30,7 +32,7 @@ def job_settings(profile: Profile, job: TrainingJob):
     scene = get_scene(job.scene)
     model = models.ModelConfig.for_scene(job.model, scene)
     data_config = profile.training.data_for(job.scene)
-    train_config = dataclasses.replace(profile.training.train, seed=job.seed)
+    train_config = train_config_of(profile, job)
     return scene, model, data_config, train_config
 
 
@@ -66,9 +68,12 @@ def train_jobs(profile: Profile, jobs: list[TrainingJob], out: Path, progress: b
     """Checkpoints of `jobs` (in order). The seeds of one (model, training scene) are
     trained together, one compiled program (`train.train_seeds`), each resumed from its
     own checkpoint or started afresh; finished checkpoints are reused."""
-    layout = Layout(out)
+    layout = store.layout(profile, out)
     groups: dict[tuple[str, str], list[TrainingJob]] = {}
     for job in jobs:
+        if layout.in_base(layout.checkpoint(job)) is not None:
+            log(f"train {job.name}: the base folder's checkpoint, read in place, never trained")
+            continue
         groups.setdefault((job.model, job.scene), []).append(job)
     for group in groups.values():
         paths = [layout.checkpoint(job) for job in group]
@@ -95,7 +100,7 @@ def train_jobs(profile: Profile, jobs: list[TrainingJob], out: Path, progress: b
         states = train.train_seeds(model, configs, dataset, scene, outs=[path for _, path, _, _ in todo], data_config=data_config, resume=True, progress=progress)
         for (job, _, _, _), state in zip(todo, states):
             log(f"train {job.name}: {state.epoch} epochs in {state.elapsed_s / 60:.1f} min, best validation MSE {state.best_val:.3g} (epoch {state.best_epoch})")
-    return [layout.checkpoint(job) for job in jobs]
+    return [layout.found(layout.checkpoint(job)) for job in jobs]
 
 
 def prepare_datasets(profile: Profile, jobs: list[TrainingJob], out: Path, progress: bool = True) -> None:
@@ -110,8 +115,9 @@ def prepare_datasets(profile: Profile, jobs: list[TrainingJob], out: Path, progr
 
 def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, train.TrainState]]:
     """`(job, training state)` of every job of the profile with a checkpoint under `out`."""
-    layout = Layout(out)
-    return [(job, train.load_checkpoint(layout.checkpoint(job))[0]) for job in training_jobs(profile) if layout.checkpoint(job).exists()]
+    layout = store.layout(profile, out)
+    found = [(job, layout.found(layout.checkpoint(job))) for job in training_jobs(profile)]
+    return [(job, train.load_checkpoint(path)[0]) for job, path in found if path.exists()]
 
 
 def default_lgnn(profile: Profile, out: Path, training_scene: str = TRAINING_SCENE,
@@ -135,7 +141,8 @@ def timed_epoch_fn(profile: Profile, job: TrainingJob, out: Path):
     compiled function training used, from the checkpoint's parameters), and the Adam
     steps it takes; for pytest-benchmark."""
     scene, model, data_config, train_config = job_settings(profile, job)
-    state, _ = train.load_checkpoint(Layout(out).checkpoint(job))
+    layout = store.layout(profile, out)
+    state, _ = train.load_checkpoint(layout.found(layout.checkpoint(job)))
     dataset = data.load_or_generate(data_config, Layout(out).datasets)
     arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
     epoch = train.compiled_epoch_fn(model, scene, train_config)
