@@ -1,3 +1,3 @@
-"""Learned models: graph features (`graphs`), the models (`models`), training data
-(`data`), checkpoint files and inference from them (`checkpoints`) and training
-(`train`)."""
+"""Learned models: graph features (`graphs`), the models (`models`; the strong GNS's
+network in `strong_gns`), training data (`data`), checkpoint files and inference from
+them (`checkpoints`) and training (`train`)."""

@@ -1,4 +1,4 @@
-"""Learned dynamics: LGNN and the baselines GNS, LGN and CLNN, in a registry of models.
+"""Learned dynamics: LGNN and the baselines GNS, LGN, CLNN and the strong GNS, in a registry of models.
 
 A model is a `ModelConfig` (its registered name, architecture, the edge-type vocabulary
 and, for CLNN, the system size; stored in checkpoints) and a params pytree (nested
@@ -9,7 +9,12 @@ dicts of arrays):
 
 Each name maps to a `ModelSpec` (`register`, `get_spec`, `model_names`): its init, its
 output (a Lagrangian or accelerations), its default sizes, whether it is tied to one
-system size. Adding a model is one `register(ModelSpec(...))`; nothing else compares
+system size, the training-set statistics it normalises by and its training recipe
+(weight decay, input noise). Statistics are constants in the params pytree
+(`params[STATISTICS]`): `init` makes placeholders, training fills them in once from
+its training states (`training_statistics`, `with_statistics`) and steps only the
+rest (`split_statistics`), checkpoints keep them like any leaf, so inference needs
+nothing else. Adding a model is one `register(ModelSpec(...))`; nothing else compares
 names. Every Lagrangian model (LGNN, LGN, CLNN) goes through `physics.acceleration_fn`,
 the very same constrained Euler-Lagrange solve as the ground truth; GNS predicts node
 accelerations directly (pinned nodes, a known boundary condition, get zero). Rollouts
@@ -44,6 +49,9 @@ Architectures (paper section 3 and appendix):
 - GNS: node (q, qd) and edge (type, dq, w) encoders to latent 8, the same message-passing
   layers with MLPs of 128 hidden units, a node decoder MLP to accelerations. No
   constraints.
+- `gns-10-128` (`strong_gns`): the GNS-10-128 recipe (10 unshared message-passing
+  steps with residuals, latent 128, LayerNorm, inputs normalised by training-set
+  statistics, a node-type embedding, rod features).
 - LGN: the same graph network, read out as one global Lagrangian `MLP(sum_i h_i ||
   sum_ij h_ij)`.
 - CLNN: MLP with 2 hidden layers of 128 on the concatenated `(q, qd)` of a fixed-size
@@ -70,6 +78,7 @@ from lgnn.engines.base import Engine, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
 from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
 from lgnn.errors import ConfigError
+from lgnn.learn import strong_gns
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
 from lgnn.scene import Scene, State
 
@@ -106,10 +115,25 @@ class ModelSpec:
     # `local_mass(config) -> bool`: whether `d2L/dqd2` couples only linked nodes, so
     # the Euler-Lagrange solve may use that structure (`physics.acceleration_fn`).
     local_mass: Callable = lambda config: False
+    # `statistics(config, scene, q, qd, qdd) -> {name: array}`: constants the model
+    # normalises by, computed once by training from its training states and targets
+    # (each (S, N, D)) and kept in `params[STATISTICS]`, where `init` puts placeholders
+    # of the same shapes (so a checkpoint restores them; `with_statistics`). None: none.
+    statistics: Callable | None = None
+    # The model's training recipe where it has one (`lgnn.learn.train`): AdamW's
+    # decoupled weight decay (0: the paper's Adam), and the std of Gaussian noise added
+    # to the training inputs' free-node velocities, as a fraction of the training
+    # velocities' std per dimension (0: none).
+    weight_decay: float = 0.0
+    velocity_noise: float = 0.0
 
     def __post_init__(self):
         if (self.lagrangian is None) == (self.acceleration is None):
             raise ConfigError(f"model {self.name!r}: give exactly one of a Lagrangian and an acceleration")
+        for name in ("weight_decay", "velocity_noise"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < float("inf"):
+                raise ConfigError(f"model {self.name!r}: {name.replace('_', ' ')} must be a finite number >= 0, got {value!r}")
 
     @property
     def is_lagrangian(self) -> bool:
@@ -562,6 +586,13 @@ register(ModelSpec(
     apply=_apply_lgn, lagrangian=_lgn_lagrangian, latent=8, hidden=128, message_passing=2,
 ))
 register(ModelSpec("clnn", _init_clnn, lagrangian=_clnn_lagrangian, hidden=128, fixed_size=True))
+# The strong GNS (`strong_gns`): the GNS-10-128 recipe's sizes, LagrangeBench's AdamW
+# weight decay (1e-8) and noise of 5e-4 of the normalised velocities (the recipe's
+# 3e-4..7e-4).
+register(ModelSpec(
+    "gns-10-128", strong_gns.init, acceleration=strong_gns.acceleration, statistics=strong_gns.statistics,
+    latent=128, hidden=128, message_passing=10, weight_decay=1e-8, velocity_noise=5e-4,
+))
 
 
 # ---------------------------------------------------------------------------------
@@ -569,8 +600,46 @@ register(ModelSpec("clnn", _init_clnn, lagrangian=_clnn_lagrangian, hidden=128, 
 # ---------------------------------------------------------------------------------
 
 
+# The params key of a model's training-set statistics (`ModelSpec.statistics`):
+# constants, never trained.
+STATISTICS = "statistics"
+
+
+def training_statistics(config: ModelConfig, scene: Scene, q, qd, qdd) -> dict | None:
+    """The statistics `config`'s model normalises by, of training states `q, qd` and
+    targets `qdd` (each (S, N, D)) of `scene` (None for a model without any)."""
+    spec = config.spec
+    if spec.statistics is None:
+        return None
+    return {name: jnp.asarray(value) for name, value in spec.statistics(config, scene, q, qd, qdd).items()}
+
+
+def with_statistics(params: dict, statistics: dict | None) -> dict:
+    """`params` with `statistics` (from `training_statistics`) in place of its own:
+    the placeholders `init` made, of the same names and shapes (`ConfigError` if not)."""
+    if statistics is None:
+        return params
+    placeholder = params.get(STATISTICS) if isinstance(params, dict) else None
+    if placeholder is None or set(placeholder) != set(statistics) or any(np.shape(placeholder[k]) != np.shape(statistics[k]) for k in statistics):
+        raise ConfigError(f"the model's init must hold placeholders of its statistics ({', '.join(sorted(statistics))}) under params[{STATISTICS!r}]")
+    return {**params, STATISTICS: {k: jnp.asarray(v, jnp.asarray(placeholder[k]).dtype) for k, v in statistics.items()}}
+
+
+def split_statistics(params) -> tuple:
+    """`(trainable, statistics)`: what an optimiser steps, and the constants (None if none)."""
+    if isinstance(params, dict) and STATISTICS in params:
+        return {k: v for k, v in params.items() if k != STATISTICS}, params[STATISTICS]
+    return params, None
+
+
+def join_statistics(trainable, statistics):
+    """The params `split_statistics` split."""
+    return trainable if statistics is None else {**trainable, STATISTICS: statistics}
+
+
 def init(key, config: ModelConfig) -> dict:
-    """Fresh parameters of `config`'s model (float64 under x64)."""
+    """Fresh parameters of `config`'s model (float64 under x64); statistics, if the
+    model has any, at `init`'s placeholders until `with_statistics`."""
     params = config.spec.init(key, config)
     if config.drag and config.spec.is_lagrangian:
         params["drag"] = jnp.zeros(len(config.vocabulary))
@@ -603,6 +672,9 @@ def acceleration_fn(config: ModelConfig, params: dict, scene: Scene) -> physics.
     """`accel(q, qd) -> qdd` (N, D) of the model on `scene` (any size for graph models)."""
     check_compatible(config, scene)
     spec = config.spec
+    trainable, statistics = split_statistics(params)
+    # Constants: no gradient reaches them, whoever differentiates.
+    params = join_statistics(trainable, None if statistics is None else jax.lax.stop_gradient(statistics))
     if not spec.is_lagrangian:
         return spec.acceleration(config, params, scene)
     lagrangian = lagrangian_fn(config, params, scene)

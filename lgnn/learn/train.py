@@ -28,6 +28,14 @@ best params, Adam state, epoch, losses) is written atomically to `out`, so an
 interrupted run resumed from it (`resume=True`) reaches exactly the same result as an
 uninterrupted one.
 
+A model's spec may carry its own recipe (`models.ModelSpec`): AdamW's weight decay in
+place of Adam, Gaussian noise on the training inputs' free-node velocities (a fraction
+of the training velocities' std per dimension, a fresh draw every step; the targets
+stay the clean accelerations, so the model learns to be robust to the state errors a
+rollout accumulates), and statistics of the training states it normalises by:
+computed once before the first epoch, kept in the params, never stepped (the
+optimiser sees only `models.split_statistics`'s trainable part).
+
 Checkpoints (`lgnn.learn.checkpoints`: leaves by pytree path, compressed) hold the
 whole training state; `load_checkpoint` rebuilds it from the model config and the
 optimiser's template, for resuming, and refuses, with one `CheckpointError` line, a
@@ -224,10 +232,12 @@ def learning_rate_schedule(config: TrainConfig) -> optax.Schedule | float:
     )
 
 
-def optimizer(config: TrainConfig) -> optax.GradientTransformation:
+def optimizer(config: TrainConfig, weight_decay: float = 0.0) -> optax.GradientTransformation:
     """Adam on the schedule, after global-norm clipping when `config.clip_norm` is set
-    (the paper's `optax.adam(1e-3)` for the legacy settings, state and all)."""
-    adam = optax.adam(learning_rate_schedule(config))
+    (the paper's `optax.adam(1e-3)` for the legacy settings, state and all); AdamW
+    with a model's recipe's `weight_decay` (`ModelSpec.weight_decay`) when above 0."""
+    schedule = learning_rate_schedule(config)
+    adam = optax.adamw(schedule, weight_decay=weight_decay) if weight_decay else optax.adam(schedule)
     return adam if config.clip_norm is None else optax.chain(optax.clip_by_global_norm(config.clip_norm), adam)
 
 
@@ -248,19 +258,29 @@ def _epoch_fn(model, scene, config: TrainConfig, vmapped: bool = False):
     `vmapped`, one compiled program steps several seeds at once: params, Adam states
     and shuffle keys carry a leading seed axis, the data are shared."""
     loss = loss_fn(model, scene)
-    opt = optimizer(config)
+    opt = optimizer(config, model.spec.weight_decay)
+    free = np.zeros((scene.n_nodes, 1))
+    free[list(scene.free_nodes)] = 1.0
 
     def step(carry, batch):
-        params, opt_state = carry
-        value, grads = jax.value_and_grad(loss)(params, *batch)
-        updates, opt_state = opt.update(grads, opt_state, params)
-        return (optax.apply_updates(params, updates), opt_state), value
+        (params, opt_state), (q, qd, qdd, key, noise_std) = carry, batch
+        if model.spec.velocity_noise:
+            qd = qd + noise_std * free * jax.random.normal(key, qd.shape, qd.dtype)
+        # Only the trainable params are stepped; the statistics are constants.
+        trainable, statistics = models.split_statistics(params)
+        value, grads = jax.value_and_grad(lambda p: loss(models.join_statistics(p, statistics), q, qd, qdd))(trainable)
+        updates, opt_state = opt.update(grads, opt_state, trainable)
+        return (models.join_statistics(optax.apply_updates(trainable, updates), statistics), opt_state), value
 
     def epoch(params, opt_state, q, qd, qdd, key):
         n_batches = q.shape[0] // config.batch_size
         order = jax.random.permutation(key, q.shape[0])[: n_batches * config.batch_size]
         batches = tuple(a[order].reshape(n_batches, config.batch_size, *a.shape[1:]) for a in (q, qd, qdd))
-        (params, opt_state), losses = jax.lax.scan(step, (params, opt_state), batches)
+        # The recipe's input noise, per dimension a fraction of the training
+        # velocities' spread over the free nodes (pinned ones are zero).
+        noise_std = model.spec.velocity_noise * jnp.std(qd[:, list(scene.free_nodes)], axis=(0, 1))
+        noise = (jax.random.split(jax.random.fold_in(key, 1), n_batches), jnp.broadcast_to(noise_std, (n_batches, *noise_std.shape)))
+        (params, opt_state), losses = jax.lax.scan(step, (params, opt_state), (*batches, *noise))
         return params, opt_state, jnp.mean(losses)
 
     return jax.jit(jax.vmap(epoch, in_axes=(0, 0, None, None, None, 0)) if vmapped else epoch)
@@ -291,11 +311,15 @@ def evaluate_fn(model: models.ModelConfig, scene: Scene, chunk: int = 500):
     return evaluate
 
 
-def initial_state(model: models.ModelConfig, config: TrainConfig) -> TrainState:
-    params = models.init(jax.random.fold_in(jax.random.PRNGKey(config.seed), 0), model)
+def initial_state(model: models.ModelConfig, config: TrainConfig, statistics: dict | None = None) -> TrainState:
+    """The untrained state: fresh params (with the training set's `statistics`, from
+    `models.training_statistics`, where the model has any) and the optimiser's state
+    of their trainable part."""
+    params = models.with_statistics(models.init(jax.random.fold_in(jax.random.PRNGKey(config.seed), 0), model), statistics)
     # Adam's initial state holds no rate or warm-up, only whether there is a schedule
     # (always, by the rule), so a config that leaves them to the rule has one too.
-    return TrainState(params, optimizer(scheduled(config, 1)).init(params), params, float("inf"), -1, 0, [], 0.0)
+    opt_state = optimizer(scheduled(config, 1), model.spec.weight_decay).init(models.split_statistics(params)[0])
+    return TrainState(params, opt_state, params, float("inf"), -1, 0, [], 0.0)
 
 
 @in_float64
@@ -344,8 +368,9 @@ def train_seeds(
     if len(dataset.train) < configs[0].batch_size:
         raise ConfigError(f"{len(dataset.train)} training states is fewer than one batch of {configs[0].batch_size}")
     outs = [None] * len(configs) if outs is None else list(outs)
+    statistics = models.training_statistics(model, scene, *(a[dataset.train] for a in (dataset.q, dataset.qd, dataset.qdd)))
     states = [
-        check_resumable(out, model, config)[0] if resume and out is not None and Path(out).exists() else initial_state(model, config)
+        check_resumable(out, model, config)[0] if resume and out is not None and Path(out).exists() else initial_state(model, config, statistics)
         for config, out in zip(configs, outs)
     ]
     vmapped = len(configs) > 1
