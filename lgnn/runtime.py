@@ -35,6 +35,7 @@ from __future__ import annotations
 import functools
 import os
 import signal
+import threading
 from typing import Callable, ContextManager
 
 from lgnn.errors import ConfigError
@@ -107,3 +108,27 @@ def in_float64(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
 
     return float64_fn
+
+
+def in_background(call: Callable[[], object]) -> Callable[[], object]:
+    """Start `call()` in a daemon thread; returns a function that waits for it and gives
+    its value (or raises its exception). A daemon, so that an error or Ctrl-C in the
+    caller does not wait out a long computation (a ground truth's MuJoCo reference)."""
+    outcome: dict[str, object] = {}
+
+    def run() -> None:
+        try:
+            outcome["value"] = call()
+        except BaseException as error:  # handed to the caller, whatever it was
+            outcome["error"] = error
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+
+    def result() -> object:
+        thread.join()
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome["value"]
+
+    return result

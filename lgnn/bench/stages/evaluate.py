@@ -41,10 +41,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import threading
 import time
 from pathlib import Path
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -57,6 +55,7 @@ from lgnn.bench.store import Layout, log
 from lgnn.engines import get_engine
 from lgnn.engines.base import SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, batched_rollouts
+from lgnn.runtime import in_background
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models, train
 from lgnn.scene import OWN_STATE, Scene, State, get_scene, initial_state_policy, scene_to_dict
@@ -167,30 +166,6 @@ def truth_timings(references: tuple[str, ...]) -> tuple[str, ...]:
     return ("compile_s", "run_s", *(f"{engine}_s" for engine in references))
 
 
-def _in_background(call: Callable[[], object]) -> Callable[[], object]:
-    """Start `call()` in a daemon thread; returns a function that waits for it and gives
-    its value (or raises its exception). A daemon, so that an error or Ctrl-C in the
-    caller does not wait out a long computation (a ground truth's MuJoCo reference)."""
-    outcome: dict[str, object] = {}
-
-    def run() -> None:
-        try:
-            outcome["value"] = call()
-        except BaseException as error:  # handed to the caller, whatever it was
-            outcome["error"] = error
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-
-    def result() -> object:
-        thread.join()
-        if "error" in outcome:
-            raise outcome["error"]
-        return outcome["value"]
-
-    return result
-
-
 @functools.lru_cache(maxsize=2)
 def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: Path | None = None) -> dict:
     """The ground truth of a scene's evaluation: `q`, `qd` (C, F, N, D) and true `energy`
@@ -239,7 +214,7 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s; "
         f"{', '.join(settings.references) or 'no reference engine'} at dt {reference_config.dt:g} alongside")
     # A daemon thread: an error or Ctrl-C here does not wait out MuJoCo's minutes.
-    references_when_done = _in_background(lambda: _reference_rollouts(scene, reference_config, states, settings.references))
+    references_when_done = in_background(lambda: _reference_rollouts(scene, reference_config, states, settings.references))
     # A reference that diverged would turn every error into 1 for every model: it stops there.
     truth = batched_rollouts(scene, config, TRUE_DYNAMICS, states, chunk=settings.chunk, stop_at_divergence=True, label=f"truth {scene_name}",
                              progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)")
@@ -421,7 +396,7 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     # The models need only the initial conditions; the ground truth (chain100-3d's MuJoCo
     # C reference: 8-14 minutes on 16 cores, beside 20 GPU minutes of LGN's rollouts) is
     # computed or read meanwhile, and waited for only to score.
-    truth_when_done = _in_background(lambda: ground_truth(profile, pair.scene, progress, out))
+    truth_when_done = in_background(lambda: ground_truth(profile, pair.scene, progress, out))
     states = evaluation_initial_states(profile, scene)
     seeds = ", ".join(f"s{p.job.seed}" for p, *_ in group)
     log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(states.q)} initial conditions")
