@@ -16,7 +16,7 @@ import pytest
 
 from lgnn import physics
 from lgnn.engines import ENGINES, EngineEntry, get_engine, lagrangian, register_engine, rollouts
-from lgnn.engines.base import Engine, SimulationConfig
+from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models
 from lgnn.scene import State, get_scene, sample_initial_states
@@ -119,6 +119,26 @@ def test_get_engine_refuses_what_an_engine_lacks_in_one_line():
     assert get_engine("mujoco").dtype == "float64" and get_engine("lagrangian", dtype="float32").dtype == "float32"
 
 
+def test_an_integration_is_the_lagrangian_engines_and_no_mujoco_engines():
+    scene = get_scene("chain4")
+    states = _states(scene, 2)
+    verlet = Integration("verlet", project=False)
+    batch = get_engine("lagrangian", integration=verlet).rollout(scene, SHORT, states)
+    alone = lagrangian.simulate(scene, SHORT, State(states.q[1], states.qd[1]), integration=verlet)
+    np.testing.assert_allclose(batch.q[1], alone.q, rtol=0, atol=1e-12)
+    assert batch.metadata["integration"] == {"integrator": "verlet", "project": False}
+    # The integration is part of the compiled program: RK4 with projection is another run.
+    rk4 = get_engine("lagrangian").rollout(scene, SHORT, states)
+    assert np.max(np.abs(rk4.q[1] - batch.q[1])) > 1e-9
+    for name, entry in ENGINES.items():
+        if not entry.integrates:
+            with pytest.raises(ConfigError) as info:
+                get_engine(name, integration=verlet)
+            assert "\n" not in str(info.value) and name in str(info.value) and "lagrangian" in str(info.value)
+    with pytest.raises(ConfigError, match="unknown integrator 'euler'"):
+        Integration("euler")
+
+
 def test_every_engine_answers_the_contract_and_auto_works_for_every_mujoco_engine():
     scene = get_scene("chain4")
     for name, entry in ENGINES.items():
@@ -140,11 +160,11 @@ class _Resting(Engine):
 
     def rollout(self, scene, config, states):
         q = np.repeat(np.asarray(states.q)[:, None], config.n_frames + 1, axis=1)
-        return rollouts.Rollouts(q, np.zeros_like(q), np.zeros(q.shape[:2]), 0.0, 0.0).trajectory(scene, config)
+        return Trajectory(np.arange(config.n_frames + 1) * config.frame_dt, q, np.zeros_like(q), np.zeros(q.shape[:2]))
 
 
 def test_a_registered_engine_is_got_like_the_built_ins():
-    entry = register_engine(EngineEntry("resting", lambda dtype, progress, form: _Resting(dtype), ("float64",)))
+    entry = register_engine(EngineEntry("resting", lambda dtype, progress, form, integration: _Resting(dtype), ("float64",)))
     try:
         engine = get_engine("resting")
         assert isinstance(engine, _Resting) and engine.form_of(get_scene("chain4")) == ""
