@@ -32,8 +32,8 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench.tables import write_csv, write_table
-from lgnn.engines import get_engine
-from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines import ENGINES, get_engine
+from lgnn.engines.base import Integration, SimulationConfig, Trajectory
 from lgnn.engines.rollouts import batched_rollouts
 from lgnn.errors import ConfigError
 from lgnn.learn import models
@@ -55,17 +55,19 @@ def score(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference_
 
 
 def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config: SimulationConfig, states: State,
-                   progress: bool = False) -> tuple[list[Scored], dict[str, Trajectory]]:
+                   integration: Integration = Integration(), progress: bool = False) -> tuple[list[Scored], dict[str, Trajectory]]:
     """The model's rollouts from `states` (C, N, D) scored against the Lagrangian engine
-    and MuJoCo C (the same `config`), and the three trajectories of initial condition 0
+    and MuJoCo C (the same `config`; the model and the Lagrangian engine integrated by
+    `integration`, MuJoCo by its RK4), and the three trajectories of initial condition 0
     (`{"model", "lagrangian", "mujoco"}`, for `lgnn animate` and `lgnn plot`)."""
     models.check_compatible(model, scene)
     states = State(np.asarray(states.q, np.float64), np.asarray(states.qd, np.float64))
-    references = {name: get_engine(name, progress=progress).rollout(scene, config, states) for name in ("lagrangian", "mujoco")}
+    references = {name: get_engine(name, progress=progress, integration=integration if ENGINES[name].integrates else None).rollout(scene, config, states)
+                  for name in ("lagrangian", "mujoco")}
     # The params are an argument of the compiled program: another checkpoint of the
     # same model config compiles nothing.
-    runs = batched_rollouts(scene, config, models.AccelerationFactory(model), states, params, chunk=CHUNK, label=f"{model.name} on {scene.name}",
-                            progress=progress)
+    runs = batched_rollouts(scene, config, models.AccelerationFactory(model), states, params, integration=integration, chunk=CHUNK,
+                            label=f"{model.name} on {scene.name}", progress=progress)
     q, qd = runs.q, runs.qd
     t = references["lagrangian"].t
     scored = [score(scene, t, q, qd, truth.q, truth.qd, model.name, name) for name, truth in references.items()]

@@ -54,21 +54,19 @@ MAX_FRAMES = 1e7
 
 @dataclasses.dataclass(frozen=True)
 class SimulationConfig:
+    """The rollout settings every engine takes (module docstring): how an engine
+    integrates is the engine's own (`Integration` for the JAX engines)."""
+
     # RK4 at 1e-4 keeps max node error over 1 s below 1e-6 on the chains and T1
     # (tests/test_integrate.py::test_default_settings_are_accurate, and the MuJoCo
     # cross-check); not on the self-stressed T2/T3, whose references do not converge
     # in dt (issue 13). The paper's Verlet needs ~1e-5 for that.
-    integrator: str = "rk4"
     dt: float = 1e-4
     # The paper saves a frame every 1e-3 s.
     frame_dt: float = 1e-3
     duration: float = 1.0
-    # Projection keeps link lengths to round-off (per-link blocks: linear in a chain's length).
-    project: bool = True
 
     def __post_init__(self):
-        if self.integrator not in INTEGRATORS:
-            raise ConfigError(f"unknown integrator {self.integrator!r} (choose from {', '.join(INTEGRATORS)})")
         for name in ("dt", "frame_dt", "duration"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -91,9 +89,6 @@ class SimulationConfig:
     def n_frames(self) -> int:
         """Frames after the initial one."""
         return round(self.duration / self.frame_dt)
-
-    def integrator_for(self, accel: physics.AccelerationFn, project=None) -> Integrator:
-        return INTEGRATORS[self.integrator](accel, self.dt, project if self.project else None)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -47,13 +47,11 @@ def rollout_fn(
     scene: Scene,
     config: SimulationConfig,
     accel_factory: Callable[[Scene], physics.AccelerationFn] = physics.true_acceleration_fn,
-    integration: Integration | None = None,
+    integration: Integration = Integration(),
 ) -> Callable[[jax.Array, jax.Array], State]:
     """`run(q, qd) -> State` of the `config.n_frames + 1` frames from one initial state
     integrated by `integration`: the pure function behind `simulate`, for callers to
     `jit` and `vmap` over initial conditions (benchmarks, data generation)."""
-    if integration is None:  # TRANSITION: the settings' own, until SimulationConfig loses them
-        integration = Integration(config.integrator, config.project)
     integrator = integration.integrator_for(accel_factory(scene), config.dt, physics.projection_fn(scene))
 
     def run(q, qd):
@@ -68,7 +66,7 @@ def simulate(
     config: SimulationConfig = SimulationConfig(),
     state: State | None = None,
     *,
-    integration: Integration | None = None,
+    integration: Integration = Integration(),
     accel_factory: Callable[..., physics.AccelerationFn] = physics.true_acceleration_fn,
     params=None,
     chunk_frames: int = 100,
@@ -88,8 +86,6 @@ def simulate(
     `hint` ends its message. Computes in float64 whether or not `lgnn.configure()` was
     called (`lgnn.runtime.precision`).
     """
-    if integration is None:  # TRANSITION: the settings' own, until SimulationConfig loses them
-        integration = Integration(config.integrator, config.project)
     state = check_state(scene, scene.initial_state if state is None else state)
     factory = accel_factory if params is not None else Unparametrised(accel_factory)
     runs = batched_rollouts(scene, config, factory, State(state.q[None], state.qd[None]), params, integration=integration,

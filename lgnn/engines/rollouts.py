@@ -28,6 +28,9 @@ and running. How:
   (when they were compiled, perhaps by an earlier call; the halved chunks' added up),
   `run_s` the compiled calls alone.
 
+`integration` (`lgnn.engines.base.Integration`) is a required argument: the caller
+(an engine, a stage) says how it integrates; nothing falls back to a default here.
+
 `timed_rollouts` is the timing rule on top (a warm-up call, then timed repeats), for
 `Engine.timed_rollout` and the benchmark's speed and scaling stages.
 """
@@ -154,17 +157,15 @@ def compiled_programs(scene: Scene, config: SimulationConfig, integration: Integ
 
 
 def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, states: State, params=None, *,
-                     integration: Integration | None = None, stacked: bool = False, dtype: str = "float64", chunk: int | None = None, frames_per_call: int = FRAMES_PER_CALL,
-                     stop_at_divergence: bool = False, with_energy: bool = False, label: str = "", progress: bool = False,
-                     hint: str = "try a smaller dt") -> Rollouts:
+                     integration: Integration, stacked: bool = False, dtype: str = "float64", chunk: int | None = None,
+                     frames_per_call: int = FRAMES_PER_CALL, stop_at_divergence: bool = False, with_energy: bool = False, label: str = "",
+                     progress: bool = False, hint: str = "try a smaller dt") -> Rollouts:
     """Rollouts of initial `states` (B, N, D) under `accel_factory(scene, params)`
     (module docstring) integrated by `integration` (its integrator and projection):
     at most `chunk` (None: all) initial conditions per program, computed in `dtype`;
     `stop_at_divergence` for a reference, `hint` ending its error; the true energies
     `with_energy` or `stop_at_divergence` (else `Rollouts.energy` is None); `label`
     names the run in progress bars and messages (default: the scene's name)."""
-    if integration is None:  # TRANSITION: the settings' own, until SimulationConfig loses them
-        integration = Integration(config.integrator, config.project)
     if stop_at_divergence and stacked:
         raise ValueError("stop_at_divergence is for a reference's rollouts, not stacked parameter sets")
     label = label or scene.name
@@ -245,8 +246,8 @@ def _run(scene: Scene, config: SimulationConfig, integration: Integration, progr
     return (q_all, qd_all, energy_all), run_s
 
 
-def _stop_at_divergence(scene: Scene, config: SimulationConfig, integration: Integration, bounds: list[ExplosionBounds], first: int, q: np.ndarray, qd: np.ndarray,
-                        energy: np.ndarray, done: int, kept: int, label: str, hint: str) -> None:
+def _stop_at_divergence(scene: Scene, config: SimulationConfig, integration: Integration, bounds: list[ExplosionBounds], first: int,
+                        q: np.ndarray, qd: np.ndarray, energy: np.ndarray, done: int, kept: int, label: str, hint: str) -> None:
     """Raise `SimulationError` at the first non-finite or exploding frame among frames
     `done + 1 ... done + kept` of initial conditions `first, first + 1, ...`."""
     frames = slice(done + 1, done + 1 + kept)

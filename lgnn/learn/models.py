@@ -630,7 +630,7 @@ class AccelerationFactory:
 
 
 def rollout(config: ModelConfig, params: dict, scene: Scene, simulation: SimulationConfig | None = None, state=None, *,
-            integration: Integration | None = None, progress: bool = False) -> Trajectory:
+            integration: Integration = Integration(), progress: bool = False) -> Trajectory:
     """The model's predicted `Trajectory` of `scene` from `state` (default: the scene's
     own), through the ground truth's integrators (`engines.lagrangian.simulate`, by
     `integration`); its
