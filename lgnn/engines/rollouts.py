@@ -101,6 +101,7 @@ class _Programs:
     frames: int
     compile_s: float
     with_energy: bool
+    integration: Integration  # what the programs integrate by (named in a divergence's message)
 
 
 def params_signature(params) -> tuple:
@@ -153,7 +154,7 @@ def compiled_programs(scene: Scene, config: SimulationConfig, integration: Integ
     carry = start.out_info[0]
     start = start.compile()
     step = jax.jit(step, in_shardings=(whole, batched), out_shardings=batched).lower(params, carry).compile()
-    return _Programs(start, step, frames, time.perf_counter() - began, with_energy)
+    return _Programs(start, step, frames, time.perf_counter() - began, with_energy, integration)
 
 
 def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, states: State, params=None, *,
@@ -183,7 +184,7 @@ def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Call
                 programs = compiled_programs(scene, config, integration, accel_factory, size, dtype, frames, stacked, signature,
                                              with_energy or stop_at_divergence)
                 compile_total += programs.compile_s
-                out, run_s = _run(scene, config, integration, programs, params, State(q0, qd0), size, stacked, stop_at_divergence, label, progress, hint)
+                out, run_s = _run(scene, config, programs, params, State(q0, qd0), size, stacked, stop_at_divergence, label, progress, hint)
                 return Rollouts(*out, compile_s=compile_total, run_s=run_s)
             except jax.errors.JaxRuntimeError as err:
                 if "RESOURCE_EXHAUSTED" not in str(err):
@@ -202,8 +203,8 @@ def _param_dtype(leaf, dtype: str):
     return dtype if jnp.issubdtype(jnp.asarray(leaf).dtype, jnp.floating) else jnp.asarray(leaf).dtype
 
 
-def _run(scene: Scene, config: SimulationConfig, integration: Integration, programs: _Programs, params, states: State, size: int,
-         stacked: bool, stop: bool, label: str, progress: bool, hint: str):
+def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, states: State, size: int, stacked: bool, stop: bool,
+         label: str, progress: bool, hint: str):
     """`((q, qd, energy), run_s)` of `programs` over `states` in chunks of `size`
     initial conditions (the last padded), `programs.frames` frames per call."""
     from tqdm.auto import tqdm
@@ -240,7 +241,7 @@ def _run(scene: Scene, config: SimulationConfig, integration: Integration, progr
                 if energy_all is not None:
                     energy_all[batch + (frames,)] = np.asarray(energy)[part]
                 if bounds is not None:
-                    _stop_at_divergence(scene, config, integration, bounds, first, q_all, qd_all, energy_all, done, kept, label, hint)
+                    _stop_at_divergence(scene, config, programs.integration, bounds, first, q_all, qd_all, energy_all, done, kept, label, hint)
                 done += kept
                 bar.update(taken * kept)
     return (q_all, qd_all, energy_all), run_s
