@@ -13,8 +13,9 @@ The public interface, by lifecycle stage (layers from the bottom; see ARCHITECTU
 - metrics (`lgnn.metrics`): one definition each of energy drift, divergence,
   constraint violation, rollout and energy error and their statistics;
 - engines (`lgnn.engines`): one interface, `get_engine(name).rollout(scene, config,
-  states) -> Trajectory`, for the Lagrangian ground truth (`simulate`,
-  `SimulationConfig`), MuJoCo C and MJX (MJCF rendered by `lgnn.engines.mjcf`);
+  states) -> Trajectory` with neutral settings (`SimulationConfig`: dt, frame
+  interval, duration), for the Lagrangian ground truth (`simulate`; its integrator
+  and projection an `Integration`), MuJoCo C and MJX (MJCF rendered by `lgnn.engines.mjcf`);
 - learned models (`lgnn.learn`): graph features, a model registry (LGNN, GNS, LGN,
   CLNN), data, training; a model as an engine (`lgnn.learn.models.ModelEngine`);
 - records (`lgnn.records`): the one on-disk format of datasets, checkpoints and
@@ -49,6 +50,7 @@ _PUBLIC = {
     "scene_from_dict": "lgnn.scene",
     "scene_to_dict": "lgnn.scene",
     "scene_to_json": "lgnn.scene",
+    "Integration": "lgnn.engines.base",
     "SimulationConfig": "lgnn.engines.base",
     "Trajectory": "lgnn.engines.base",
     "simulate": "lgnn.engines.lagrangian",

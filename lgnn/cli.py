@@ -165,14 +165,18 @@ def _cmd_scene_export(args) -> None:
 
 def _add_simulation_options(parser: argparse.ArgumentParser) -> None:
     from lgnn.integrate import INTEGRATORS
-    from lgnn.engines.base import SimulationConfig
+    from lgnn.engines.base import Integration, SimulationConfig
 
     default = SimulationConfig()
-    parser.add_argument("--integrator", choices=sorted(INTEGRATORS), default=default.integrator)
+    # Integration options default to None: given, they are refused by an engine that
+    # integrates its own way (the MuJoCo engines), not silently dropped.
+    parser.add_argument("--integrator", choices=sorted(INTEGRATORS), default=None,
+                        help=f"integrator of the Lagrangian engine and learned models (default {Integration().integrator})")
     parser.add_argument("--dt", type=_positive_float, default=default.dt, help="integration step (s)")
     parser.add_argument("--frame-dt", type=_positive_float, default=default.frame_dt, help="interval between saved frames (s)")
     parser.add_argument("--duration", type=_positive_float, default=default.duration, help="simulated time (s)")
-    parser.add_argument("--no-project", dest="project", action="store_false", help="do not project onto the constraints after each step")
+    parser.add_argument("--no-project", dest="project", action="store_const", const=False, default=None,
+                        help="do not project onto the constraints after each step (Lagrangian engine and learned models)")
 
 
 def _simulation_config(args):
@@ -181,7 +185,18 @@ def _simulation_config(args):
     if args.dt > args.frame_dt:
         raise ConfigError(f"dt {args.dt:g} is longer than the interval between frames (--frame-dt {args.frame_dt:g}): "
                           f"pass --frame-dt too, a whole multiple of dt (e.g. --frame-dt {args.dt:g})")
-    return SimulationConfig(args.integrator, args.dt, args.frame_dt, args.duration, args.project)
+    return SimulationConfig(args.dt, args.frame_dt, args.duration)
+
+
+def _integration(args):
+    """The `Integration` that `--integrator` and `--no-project` ask for; None where
+    neither is given (each engine's own)."""
+    from lgnn.engines.base import Integration
+
+    if args.integrator is None and args.project is None:
+        return None
+    default = Integration()
+    return Integration(args.integrator or default.integrator, default.project if args.project is None else args.project)
 
 
 def _trajectory_out(path: str):
@@ -221,12 +236,14 @@ def _cmd_simulate(args) -> None:
 
     config = _simulation_config(args)
     _trajectory_out(args.out)
-    engine = get_engine(args.engine, dtype=args.dtype, progress=not args.quiet, form=args.form)
+    engine = get_engine(args.engine, dtype=args.dtype, progress=not args.quiet, form=args.form, integration=_integration(args))
     scene = get_scene(args.scene)
     trajectory = _save_rollout(lambda: engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0), args.out)
+    # A JAX engine's trajectory names its integration; a MuJoCo engine steps by its own RK4.
+    integrator = trajectory.metadata["integration"]["integrator"] if "integration" in trajectory.metadata else "MuJoCo's RK4"
     print(
         f"{scene.name}: {len(trajectory.t)} frames over {config.duration:g} s "
-        f"({config.integrator}, dt {config.dt:g}); energy drift {energy_drift(scene, trajectory):.2e}; wrote {args.out}"
+        f"({integrator}, dt {config.dt:g}); energy drift {energy_drift(scene, trajectory):.2e}; wrote {args.out}"
     )
 
 
@@ -295,7 +312,7 @@ def _cmd_crosscheck(args) -> None:
         rows = []
         for name in args.scenes or cc.SCENES:
             scene = get_scene(name)
-            rows += cc.crosscheck(scene, config, engines, args.mjx_max_depth, progress=True)
+            rows += cc.crosscheck(scene, config, engines, args.mjx_max_depth, progress=True, integration=_integration(args))
             # Rows name the scene, not the argument (a scene file's path).
             print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['form']:16s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == scene.name))
         columns = ["scene", "engine", "form", "metric", "value", "note"]
@@ -349,7 +366,7 @@ def _cmd_convergence(args) -> None:
         config = evaluate.simulation(scene.name)
         horizon = args.horizon or convergence.default_horizon(scene)
         config = dataclasses.replace(config, dt=args.dt or config.dt, frame_dt=args.frame_dt, duration=horizon)
-        rows += convergence.reference_convergence(scene, config, args.halvings, log=log)
+        rows += convergence.reference_convergence(scene, config, args.halvings, log=log, integration=evaluate.integration)
     command = "lgnn " + " ".join(args.argv)
     convergence.write_report(rows, f"{args.out_dir}/convergence.csv", f"{args.out_dir}/convergence.md", command)
     print("\n".join(convergence.summary(rows)))
@@ -393,6 +410,7 @@ def _cmd_train(args) -> None:
 
 
 def _cmd_rollout(args) -> None:
+    from lgnn.engines.base import Integration
     from lgnn.learn import checkpoints, models, train
     from lgnn.scene import get_scene
     from lgnn.metrics import energy_drift
@@ -406,7 +424,9 @@ def _cmd_rollout(args) -> None:
     differences = train.physics_differences(meta, scene)
     if differences:
         print(f"lgnn: warning: {scene.name} differs from the scene {model.name} was trained on: {'; '.join(differences)}", file=sys.stderr)
-    trajectory = _save_rollout(lambda: models.rollout(model, params, scene, config, progress=not args.quiet), args.out)
+    integration = _integration(args) or Integration()
+    trajectory = _save_rollout(lambda: models.rollout(model, params, scene, config, integration=integration, progress=not args.quiet),
+                               args.out)
     print(f"{model.name} on {scene.name}: {len(trajectory.t)} frames over {config.duration:g} s; "
           f"true energy drift {energy_drift(scene, trajectory):.2e}; wrote {args.out}")
 
@@ -459,12 +479,14 @@ def _cmd_evaluate(args) -> None:
 
     from lgnn import physics
     from lgnn.bench import evaluation
+    from lgnn.engines.base import Integration
     from lgnn.files import check_writable
     from lgnn.learn.models import check_compatible
     from lgnn.learn.train import load_model
     from lgnn.scene import get_scene
 
     config = _simulation_config(args)
+    integration = _integration(args) or Integration()
     out = Path(args.out_dir)
     check_writable(out / "evaluate_summary.md")
     _import_model_code(args)
@@ -475,7 +497,7 @@ def _cmd_evaluate(args) -> None:
     scored, kept = [], {}
     for scene in scenes:
         states = physics.own_or_sampled_states(scene, args.initial_conditions, args.seed)
-        scene_scores, trajectories = evaluation.evaluate_model(model, params, scene, config, states, progress=not args.quiet)
+        scene_scores, trajectories = evaluation.evaluate_model(model, params, scene, config, states, integration, progress=not args.quiet)
         scored += scene_scores
         kept.update({out / f"{scene.name}_{engine}.npz": trajectory for engine, trajectory in trajectories.items()})
     # Written together once every scene has run: a failed command leaves nothing.
@@ -483,7 +505,7 @@ def _cmd_evaluate(args) -> None:
         trajectory.save(path)
     written = list(kept)
     command = "lgnn " + " ".join(args.argv)
-    header = (command, f"model {model.name} ({args.model}); {config.integrator} dt {config.dt:g}, frames every {config.frame_dt:g} s, "
+    header = (command, f"model {model.name} ({args.model}); {integration.integrator} dt {config.dt:g}, frames every {config.frame_dt:g} s, "
               f"{config.duration:g} s; initial conditions: " + ("the scene's own" if args.initial_conditions == 1 else
               f"{args.initial_conditions} sampled (seed {args.seed})"))
     written = evaluation.write_outputs(scored, out, "evaluate", f"Evaluation of {args.model}", header) + written

@@ -489,7 +489,7 @@ def test_generated_settings_are_accepted_or_refused_before_any_stage(tmp_path_fa
 @given(dt=st.floats(), frame_dt=st.floats(), duration=st.floats())
 def test_a_simulation_config_is_bounded_or_refused(dt, frame_dt, duration):
     try:
-        config = SimulationConfig("rk4", dt, frame_dt, duration)
+        config = SimulationConfig(dt, frame_dt, duration)
     except ConfigError as err:
         assert "\n" not in str(err)
         return

@@ -8,7 +8,7 @@ import pytest
 from lgnn import physics
 from lgnn.integrate import rk4, rollout, velocity_verlet
 from lgnn.scene import get_scene, sample_initial_states, scene_names
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.lagrangian import rollout_fn, simulate
 from lgnn.scene.catalogue import double_pinned_chain, free_triangle, pendulum
 
@@ -22,7 +22,7 @@ def relative_energy_drift(trajectory):
 
 
 def test_rk4_conserves_energy_on_chain4():
-    trajectory = simulate(get_scene("chain4"), SimulationConfig("rk4", dt=1e-4, duration=1.0))
+    trajectory = simulate(get_scene("chain4"), SimulationConfig(dt=1e-4, duration=1.0))
     assert relative_energy_drift(trajectory) < 1e-8
 
 
@@ -30,7 +30,7 @@ def test_verlet_energy_error_is_bounded_and_second_order():
     scene = get_scene("chain4")
     drifts = {}
     for dt in (1e-3, 5e-4):
-        trajectory = simulate(scene, SimulationConfig("verlet", dt=dt, frame_dt=1e-2, duration=2.0))
+        trajectory = simulate(scene, SimulationConfig(dt=dt, frame_dt=1e-2, duration=2.0), integration=Integration("verlet"))
         error = np.abs(trajectory.energy - trajectory.energy[0]) / abs(trajectory.energy[0])
         # bounded: no secular growth (second half of the run no worse than 3x the first)
         half = len(error) // 2
@@ -43,7 +43,7 @@ def test_verlet_energy_error_is_bounded_and_second_order():
 @pytest.mark.parametrize("project", [True, False])
 def test_constraint_drift_with_and_without_projection(project, record_property):
     scene = get_scene("T1")
-    trajectory = simulate(scene, SimulationConfig("rk4", dt=1e-3, frame_dt=1e-2, duration=1.0, project=project))
+    trajectory = simulate(scene, SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=1.0), integration=Integration(project=project))
     violation = max(float(physics.constraint_violation(scene, q)) for q in trajectory.q)
     record_property("max_constraint_violation", violation)
     if project:
@@ -58,9 +58,9 @@ def test_constraint_drift_with_and_without_projection(project, record_property):
 def test_convergence_order(name, dts, expected_order):
     scene = get_scene("chain4")
     duration = 0.4
-    reference = simulate(scene, SimulationConfig("rk4", dt=5e-5, frame_dt=duration, duration=duration, project=False))
+    reference = simulate(scene, SimulationConfig(dt=5e-5, frame_dt=duration, duration=duration), integration=Integration(project=False))
     errors = [
-        max_node_error(simulate(scene, SimulationConfig(name, dt=dt, frame_dt=duration, duration=duration, project=False)), reference)
+        max_node_error(simulate(scene, SimulationConfig(dt=dt, frame_dt=duration, duration=duration), integration=Integration(name, project=False)), reference)
         for dt in dts
     ]
     slope = np.polyfit(np.log(dts), np.log(errors), 1)[0]
@@ -72,7 +72,7 @@ def test_pendulum_small_angle_period():
     length, gravity, amplitude = 1.0, 10.0, 1e-3
     scene = pendulum(amplitude, length, 1.0, gravity)
     period = 2 * np.pi * np.sqrt(2 * length / (3 * gravity))
-    trajectory = simulate(scene, SimulationConfig("rk4", dt=1e-4, frame_dt=1e-3, duration=2.0))
+    trajectory = simulate(scene, SimulationConfig(dt=1e-4, frame_dt=1e-3, duration=2.0))
     x = trajectory.q[:, 1, 0]
     crossings = np.flatnonzero((x[:-1] > 0) & (x[1:] <= 0))  # downward zero crossings of the tip
     times = trajectory.t[crossings] + x[crossings] / (x[crossings] - x[crossings + 1]) * (trajectory.t[1] - trajectory.t[0])
@@ -86,7 +86,7 @@ def test_pendulum_small_angle_period():
 @pytest.mark.parametrize("name", list(scene_names("paper")))
 def test_every_builtin_scene_runs(name):
     scene = get_scene(name)
-    trajectory = simulate(scene, SimulationConfig("rk4", dt=1e-4, frame_dt=1e-2, duration=0.1))
+    trajectory = simulate(scene, SimulationConfig(dt=1e-4, frame_dt=1e-2, duration=0.1))
     assert np.all(np.isfinite(trajectory.q)) and np.all(np.isfinite(trajectory.energy))
     # singular (self-stressed) starts are held less tightly: the projection's shift
     # trades exactness along the self-stress for stability (lgnn/physics/projection.py)
@@ -182,7 +182,7 @@ def test_float32_rollout_error_is_that_of_the_links_not_of_the_positions(name, b
     ulp 1e-6) after every step gave 1.05e-5 and 1.5e-6."""
     scene = get_scene(name)
     states = physics.benchmark_initial_states(scene, 4, 0)
-    config = SimulationConfig("rk4", dt=1e-3, frame_dt=0.1, duration=0.1)
+    config = SimulationConfig(dt=1e-3, frame_dt=0.1, duration=0.1)
     run = jax.jit(jax.vmap(rollout_fn(scene, config, physics.vectorised_true_acceleration_fn)))
     final = {dtype: np.asarray(run(jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype)).q[:, -1], np.float64)
              for dtype in ("float32", "float64")}

@@ -15,7 +15,7 @@ from lgnn.cli import main
 from lgnn.errors import CheckpointError, ConfigError
 from lgnn.scene import scene_from_dict, scene_to_dict
 from lgnn.scene import get_scene
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.lagrangian import simulate
 
 SHORT = SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.2)
@@ -91,6 +91,11 @@ def test_a_model_is_an_engine_like_the_ground_truth():
     np.testing.assert_array_equal(predicted.q, truth.q)
     _, _, timed_q = engine.timed_rollout(scene, SHORT, states)
     np.testing.assert_allclose(timed_q, truth.q, atol=1e-12)
+    # The model engine integrates by its own `integration`, as the Lagrangian engine does.
+    verlet = Integration("verlet", project=False)
+    predicted = dataclasses.replace(engine, integration=verlet).rollout(scene, SHORT, states)
+    np.testing.assert_array_equal(predicted.q, get_engine("lagrangian", integration=verlet).rollout(scene, SHORT, states).q)
+    assert predicted.metadata["integration"] == dataclasses.asdict(verlet) and np.max(np.abs(predicted.q - truth.q)) > 1e-9
 
 
 def test_rollouts_with_other_params_compile_once():

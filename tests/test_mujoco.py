@@ -27,12 +27,12 @@ from lgnn.engines import mujoco as lm
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.scene import State, scene_from_dict, scene_to_dict
 from lgnn.scene import chain, get_scene, sample_initial_states, scene_names
-from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines.base import Integration, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
 
 # The engines' chain4 rollouts (0.25 s: MJX's CPU run of a whole second took most of a
 # 2-core CI minute; a quarter already swings every link through large angles).
-CHAIN4_ROLLOUT = SimulationConfig(integrator="rk4", dt=1e-4, frame_dt=1e-3, duration=0.25)
+CHAIN4_ROLLOUT = SimulationConfig(dt=1e-4, frame_dt=1e-3, duration=0.25)
 
 
 def tree_scene():
@@ -256,8 +256,8 @@ def test_mixed_chain_is_as_accurate_as_mujoco_at_equal_dt():
     drift off the constraints feeds back into the motion)."""
     s, duration = get_scene("chain8-mixed"), 0.5
 
-    def config(dt, project=True):
-        return SimulationConfig(dt=dt, frame_dt=duration, duration=duration, project=project)
+    def config(dt):
+        return SimulationConfig(dt=dt, frame_dt=duration, duration=duration)
 
     def mujoco_error(dt):
         return np.max(np.abs(lm.rollout(s, config(dt)).q[0, -1] - reference))
@@ -268,7 +268,7 @@ def test_mixed_chain_is_as_accurate_as_mujoco_at_equal_dt():
     assert 3.6 <= order <= 4.4, ours
     for dt, error in ours.items():
         assert error <= 1.2 * mujoco_error(dt), (dt, error, mujoco_error(dt))
-    unprojected = np.max(np.abs(simulate(s, config(2e-3, project=False)).q[-1] - reference))
+    unprojected = np.max(np.abs(simulate(s, config(2e-3), integration=Integration(project=False)).q[-1] - reference))
     assert unprojected >= 3 * ours[2e-3], (unprojected, ours)
 
 
@@ -471,9 +471,12 @@ def test_cli_renders_a_scene_file_in_either_form(tmp_path, capsys):
     assert code == 2 and "no MJCF form" in capsys.readouterr().err
 
 
-def test_cli_rejects_verlet_for_mujoco(tmp_path, capsys):
-    code = main(["simulate", "chain4", "--engine", "mujoco", "--integrator", "verlet", "--out", str(tmp_path / "x.npz")])
-    assert code == 2 and "RK4 only" in capsys.readouterr().err
+@pytest.mark.parametrize("option", [["--integrator", "verlet"], ["--no-project"]])
+def test_cli_refuses_an_integration_for_a_mujoco_engine_in_one_line(tmp_path, capsys, option):
+    code = main(["simulate", "chain4", "--engine", "mujoco", *option, "--out", str(tmp_path / "x.npz")])
+    err = capsys.readouterr().err
+    assert code == 2 and "takes no integrator or projection" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "x.npz").exists()
 
 
 # --------------------------------------------------------------------- the engine interface

@@ -16,7 +16,7 @@ import pytest
 
 from lgnn import physics
 from lgnn.engines import ENGINES, EngineEntry, get_engine, lagrangian, register_engine, rollouts
-from lgnn.engines.base import Engine, SimulationConfig
+from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models
 from lgnn.scene import State, get_scene, sample_initial_states
@@ -50,9 +50,9 @@ def test_frames_in_calls_give_the_same_trajectory_as_one_call():
     scene = get_scene("chain4")
     states = _states(scene, 2)
     factory = rollouts.Unparametrised(physics.true_acceleration_fn)
-    whole = rollouts.batched_rollouts(scene, SHORT, factory, states, frames_per_call=SHORT.n_frames, with_energy=True)
+    whole = rollouts.batched_rollouts(scene, SHORT, factory, states, integration=Integration(), frames_per_call=SHORT.n_frames, with_energy=True)
     # 10 frames in calls of 3: four calls, the last running past the end (its extra frames dropped).
-    called = rollouts.batched_rollouts(scene, SHORT, factory, states, frames_per_call=3, with_energy=True)
+    called = rollouts.batched_rollouts(scene, SHORT, factory, states, integration=Integration(), frames_per_call=3, with_energy=True)
     np.testing.assert_array_equal(called.q, whole.q)
     np.testing.assert_array_equal(called.energy, whole.energy)
 
@@ -91,19 +91,19 @@ def _growing_factory(scene):
 
 def test_a_reference_stops_at_its_first_diverging_member_with_the_frames_before_it():
     scene = get_scene("chain4")
-    config = SimulationConfig(dt=1e-3, frame_dt=1e-3, duration=0.3, project=False)
+    config, unprojected = SimulationConfig(dt=1e-3, frame_dt=1e-3, duration=0.3), Integration(project=False)
     resting = np.asarray(scene.nodes, np.float64)
     states = State(np.stack([resting, resting + 10.0]), np.zeros((2, scene.n_nodes, scene.dim)))
     factory = rollouts.Unparametrised(_growing_factory)
     with pytest.raises(SimulationError) as info:
-        rollouts.batched_rollouts(scene, config, factory, states, stop_at_divergence=True, frames_per_call=100, hint="a hint")
+        rollouts.batched_rollouts(scene, config, factory, states, integration=unprojected, stop_at_divergence=True, frames_per_call=100, hint="a hint")
     message = str(info.value)
     assert "\n" not in message and "initial condition 1" in message and message.endswith("a hint")
     partial = info.value.trajectory
     assert 1 <= len(partial.t) < 100, "stopped within the first call of frames"
     np.testing.assert_array_equal(partial.q[0], states.q[1])
     # A model's rollouts (not a reference) run on: the diverged member keeps its frames.
-    runs = rollouts.batched_rollouts(scene, config, factory, states)
+    runs = rollouts.batched_rollouts(scene, config, factory, states, integration=unprojected)
     assert runs.q.shape[1] == config.n_frames + 1 and runs.energy is None, "energies only where asked for"
     np.testing.assert_array_equal(runs.q[0, -1], resting)
 
@@ -117,6 +117,33 @@ def test_get_engine_refuses_what_an_engine_lacks_in_one_line():
             call()
         assert "\n" not in str(info.value) and all(word in str(info.value) for word in words), str(info.value)
     assert get_engine("mujoco").dtype == "float64" and get_engine("lagrangian", dtype="float32").dtype == "float32"
+
+
+def test_the_rollout_settings_are_neutral():
+    # How an engine integrates is its own (`Integration`), not the settings every engine takes.
+    assert [field.name for field in dataclasses.fields(SimulationConfig)] == ["dt", "frame_dt", "duration"]
+    with pytest.raises(TypeError):
+        SimulationConfig(integrator="verlet")
+
+
+def test_an_integration_is_the_lagrangian_engines_and_no_mujoco_engines():
+    scene = get_scene("chain4")
+    states = _states(scene, 2)
+    verlet = Integration("verlet", project=False)
+    batch = get_engine("lagrangian", integration=verlet).rollout(scene, SHORT, states)
+    alone = lagrangian.simulate(scene, SHORT, State(states.q[1], states.qd[1]), integration=verlet)
+    np.testing.assert_allclose(batch.q[1], alone.q, rtol=0, atol=1e-12)
+    assert batch.metadata["integration"] == {"integrator": "verlet", "project": False}
+    # The integration is part of the compiled program: RK4 with projection is another run.
+    rk4 = get_engine("lagrangian").rollout(scene, SHORT, states)
+    assert np.max(np.abs(rk4.q[1] - batch.q[1])) > 1e-9
+    for name, entry in ENGINES.items():
+        if not entry.integrates:
+            with pytest.raises(ConfigError) as info:
+                get_engine(name, integration=verlet)
+            assert "\n" not in str(info.value) and name in str(info.value) and "lagrangian" in str(info.value)
+    with pytest.raises(ConfigError, match="unknown integrator 'euler'"):
+        Integration("euler")
 
 
 def test_every_engine_answers_the_contract_and_auto_works_for_every_mujoco_engine():
@@ -140,11 +167,11 @@ class _Resting(Engine):
 
     def rollout(self, scene, config, states):
         q = np.repeat(np.asarray(states.q)[:, None], config.n_frames + 1, axis=1)
-        return rollouts.Rollouts(q, np.zeros_like(q), np.zeros(q.shape[:2]), 0.0, 0.0).trajectory(scene, config)
+        return Trajectory(np.arange(config.n_frames + 1) * config.frame_dt, q, np.zeros_like(q), np.zeros(q.shape[:2]))
 
 
 def test_a_registered_engine_is_got_like_the_built_ins():
-    entry = register_engine(EngineEntry("resting", lambda dtype, progress, form: _Resting(dtype), ("float64",)))
+    entry = register_engine(EngineEntry("resting", lambda dtype, progress, form, integration: _Resting(dtype), ("float64",)))
     try:
         engine = get_engine("resting")
         assert isinstance(engine, _Resting) and engine.form_of(get_scene("chain4")) == ""

@@ -20,7 +20,7 @@ from lgnn.engines.rollouts import Unparametrised, batched_rollouts
 from lgnn.learn import data
 from lgnn import physics, sharding
 from lgnn.scene import get_scene, sample_initial_states
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 
 TRUE = Unparametrised(physics.true_acceleration_fn)
 CONFIG = SimulationConfig(dt=1e-3, frame_dt=5e-3, duration=0.02)
@@ -35,19 +35,19 @@ from lgnn.engines import rollouts
 from lgnn.learn import data
 from lgnn import physics, sharding
 from lgnn.scene import get_scene, sample_initial_states
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 assert jax.device_count() == 2, jax.devices()
 config = SimulationConfig(**json.loads(sys.argv[1]))
 scene = get_scene("chain4")
 states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
 true = rollouts.Unparametrised(physics.true_acceleration_fn)
-q = rollouts.batched_rollouts(scene, config, true, states, chunk=3).q
-programs = rollouts.compiled_programs(scene, config, true, 4, "float64", config.n_frames, False, rollouts.params_signature(None))
+q = rollouts.batched_rollouts(scene, config, true, states, integration=Integration(), chunk=3).q
+programs = rollouts.compiled_programs(scene, config, Integration(), true, 4, "float64", config.n_frames, False, rollouts.params_signature(None))
 q0, qd0 = (jax.numpy.asarray(sharding.pad_batch(np.asarray(a), 4)) for a in states)
 carry, _ = programs.start(None, q0, qd0)
 devices = sorted(d.id for d in carry.state.q.sharding.device_set)
 # Two parameter sets (ignored by the factory) sharing the sharded initial conditions.
-stacked = rollouts.batched_rollouts(scene, config, true, states, np.zeros((2, 1)), stacked=True, chunk=3).q
+stacked = rollouts.batched_rollouts(scene, config, true, states, np.zeros((2, 1)), integration=Integration(), stacked=True, chunk=3).q
 assert stacked.shape == (2,) + q.shape and np.abs(stacked - q).max() < 1e-13, "stacked, sharded"
 dataset = data.generate(data.DataConfig(**json.loads(sys.argv[2])))
 np.savez(sys.argv[3], q=q, data_q=dataset.q, data_qdd=dataset.qdd)
@@ -70,7 +70,7 @@ def test_rollouts_and_data_sharded_over_two_devices_equal_one_device(tmp_path):
     assert sharding.device_count() == 1
     scene = get_scene("chain4")
     states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
-    q = batched_rollouts(scene, CONFIG, TRUE, states, chunk=3).q
+    q = batched_rollouts(scene, CONFIG, TRUE, states, integration=Integration(), chunk=3).q
     np.testing.assert_allclose(sharded["q"], q, rtol=0, atol=1e-13)
     dataset = data.generate(DATA)
     np.testing.assert_allclose(sharded["data_q"], dataset.q, rtol=0, atol=1e-13)
@@ -97,11 +97,11 @@ def test_seeds_rolled_out_together_equal_each_alone():
     states = sample_initial_states(scene, jax.random.PRNGKey(3), 3)
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *seeds)
     factory = models.AccelerationFactory(config)
-    runs = batched_rollouts(scene, CONFIG, factory, states, stacked, stacked=True, chunk=2, with_energy=True)
+    runs = batched_rollouts(scene, CONFIG, factory, states, stacked, integration=Integration(), stacked=True, chunk=2, with_energy=True)
     q, qd = runs.q, runs.qd
     assert q.shape == (2, 3, CONFIG.n_frames + 1, scene.n_nodes, scene.dim) and runs.energy.shape == (2, 3, CONFIG.n_frames + 1)
     for params, q_seed, qd_seed in zip(seeds, q, qd):
-        alone = batched_rollouts(scene, CONFIG, factory, states, params, chunk=2)
+        alone = batched_rollouts(scene, CONFIG, factory, states, params, integration=Integration(), chunk=2)
         np.testing.assert_allclose(q_seed, alone.q, rtol=0, atol=1e-12)
         np.testing.assert_allclose(qd_seed, alone.qd, rtol=0, atol=1e-10)
     assert np.abs(q[0] - q[1]).max() > 1e-6, "the two seeds' models differ"
@@ -119,7 +119,7 @@ def test_a_chunk_that_runs_out_of_device_memory_is_halved_and_the_last_one_is_a_
 
     scene = get_scene("chain4")
     states = sample_initial_states(scene, jax.random.PRNGKey(3), 5)
-    whole = batched_rollouts(scene, CONFIG, TRUE, states, chunk=8).q
+    whole = batched_rollouts(scene, CONFIG, TRUE, states, integration=Integration(), chunk=8).q
     real = rollouts._run
 
     def limited(scene, config, programs, params, states, size, *args, limit=2):
@@ -128,9 +128,9 @@ def test_a_chunk_that_runs_out_of_device_memory_is_halved_and_the_last_one_is_a_
         return real(scene, config, programs, params, states, size, *args)
 
     monkeypatch.setattr(rollouts, "_run", limited)
-    halved = batched_rollouts(scene, CONFIG, TRUE, states, chunk=8, label="halved").q
+    halved = batched_rollouts(scene, CONFIG, TRUE, states, integration=Integration(), chunk=8, label="halved").q
     np.testing.assert_array_equal(halved, whole)
     assert "halved: out of device memory with 5 initial conditions per call; retrying with 2" in capsys.readouterr().err
     monkeypatch.setattr(rollouts, "_run", lambda *args: limited(*args, limit=0))
     with pytest.raises(SimulationError, match="^none: out of device memory even with 1 rollouts per call"):
-        batched_rollouts(scene, CONFIG, TRUE, states, chunk=8, label="none")
+        batched_rollouts(scene, CONFIG, TRUE, states, integration=Integration(), chunk=8, label="none")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lgnn import integrate, physics
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.lagrangian import simulate
 from lgnn.scene import embedded_in_3d, get_scene, sample_initial_states, scene_names, spatial_chain, spatial_net
 from lgnn.scene.catalogue import SPATIAL_CHAIN_CONE, SPATIAL_CHAIN_SPIN, double_pinned_chain
@@ -246,7 +246,7 @@ def relative_energy_drift(trajectory):
 ])
 def test_spatial_rk4_conserves_energy_and_constraints(name, dt, duration):
     scene = get_scene(name)
-    trajectory = simulate(scene, SimulationConfig("rk4", dt=dt, frame_dt=1e-2, duration=duration))
+    trajectory = simulate(scene, SimulationConfig(dt=dt, frame_dt=1e-2, duration=duration))
     assert np.all(np.isfinite(trajectory.q))
     assert relative_energy_drift(trajectory) < 1e-8
     assert max(float(physics.constraint_violation(scene, q)) for q in trajectory.q) < 1e-10
@@ -256,7 +256,7 @@ def test_spatial_rk4_conserves_energy_and_constraints(name, dt, duration):
 
 def test_spatial_constraint_drift_without_projection_is_the_truncation_error():
     scene = get_scene("net4x4-3d")
-    trajectory = simulate(scene, SimulationConfig("rk4", dt=1e-3, frame_dt=1e-2, duration=0.5, project=False))
+    trajectory = simulate(scene, SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.5), integration=Integration(project=False))
     violation = max(float(physics.constraint_violation(scene, q)) for q in trajectory.q)
     assert 1e-14 < violation < 1e-4
 

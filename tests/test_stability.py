@@ -33,7 +33,7 @@ from lgnn.cli import main
 from lgnn.errors import SceneError, SimulationError
 from lgnn.scene import scene_from_dict, scene_to_dict
 from lgnn.scene import chain, get_scene, taut_chain
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.lagrangian import rollout_fn, simulate
 from lgnn.metrics import EXPLOSION_FACTOR, ExplosionBounds
 
@@ -105,7 +105,7 @@ def test_diverging_large_step_stops_at_the_first_bad_frame():
     assert row["status"] == "detected", row
     assert 0 < row["time_to_failure"] < 10 and f"t = {row['time_to_failure']:g} s" in row["message"]
     with pytest.raises(SimulationError) as info:
-        simulate(get_scene("chain4"), SimulationConfig("verlet", 1e-2, 1e-2, 10.0, project=False))
+        simulate(get_scene("chain4"), SimulationConfig(1e-2, 1e-2, 10.0), integration=Integration("verlet", project=False))
     err = info.value
     assert err.time == row["time_to_failure"]
     partial = err.trajectory

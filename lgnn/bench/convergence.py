@@ -43,7 +43,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from lgnn import metrics
-from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines.base import Integration, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
 from lgnn.errors import SimulationError
 from lgnn.scene import Scene, is_pinned_chain
@@ -219,9 +219,10 @@ def _relative_difference(a: Trajectory, b: Trajectory) -> float:
 
 
 def reference_convergence(scene: Scene, config: SimulationConfig, halvings: int = 3,
-                          log: Callable[[str], None] = lambda line: None) -> list[dict]:
+                          log: Callable[[str], None] = lambda line: None, integration: Integration = Integration()) -> list[dict]:
     """Rows (module docstring) of `halvings + 1` runs from the scene's initial state at
-    `config.dt / 2^k`, k = 0..halvings, frames every `config.frame_dt` over `config.duration`."""
+    `config.dt / 2^k`, k = 0..halvings, frames every `config.frame_dt` over
+    `config.duration`, integrated by `integration`."""
     if halvings < 1:
         raise ValueError(f"halvings must be at least 1, got {halvings}")
     runs, rows = [], []
@@ -230,7 +231,7 @@ def reference_convergence(scene: Scene, config: SimulationConfig, halvings: int 
         start = time.perf_counter()
         note = ""
         try:
-            trajectory = simulate(scene, run_config)
+            trajectory = simulate(scene, run_config, integration=integration)
         except SimulationError as err:
             trajectory, note = None, str(err)
         wall = time.perf_counter() - start
@@ -240,13 +241,13 @@ def reference_convergence(scene: Scene, config: SimulationConfig, halvings: int 
         drift = metrics.energy_drift(scene, trajectory) if trajectory is not None else math.nan
         change = float(trajectory.energy[-1] - trajectory.energy[0]) / scale if trajectory is not None else math.nan
         displacement = float(np.max(np.linalg.norm(trajectory.q - trajectory.q[0], axis=-1))) if trajectory is not None else math.nan
-        rows.append(dict(scene=scene.name, integrator=config.integrator, horizon=config.duration, dt=run_config.dt, steps=steps,
+        rows.append(dict(scene=scene.name, integrator=integration.integrator, horizon=config.duration, dt=run_config.dt, steps=steps,
                          displacement=displacement, energy_drift=drift, energy_change=change, wall_s=wall, note=note))
         log(f"{scene.name} dt {run_config.dt:.4g}: {steps} steps in {wall:.1f} s, energy drift {drift:.2e}{' ' + note if note else ''}")
     rows[0]["note"] = "; ".join(n for n in (rigidity(scene).describe(), rows[0]["note"]) if n)
     differences = [_node_distance(a, b) for a, b in zip(runs, runs[1:])]
     floors = [roundoff_floor(scene, row["steps"]) for row in rows[1:]]
-    assessments = assess(differences, floors, INTEGRATOR_ORDERS[config.integrator])
+    assessments = assess(differences, floors, INTEGRATOR_ORDERS[integration.integrator])
     relative = [_relative_difference(a, b) for a, b in zip(runs, runs[1:])] + [math.nan]
     for row, d, r, a in zip(rows, differences + [math.nan], relative, assessments + [None]):
         estimate = a.error_estimate if a else math.nan

@@ -26,7 +26,7 @@ import numpy as np
 
 from lgnn import metrics, provenance
 from lgnn.engines import ENGINES, batch_of_one, form_of, get_engine
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.mjcf import scene_layout
 from lgnn.scene import Scene, State
 
@@ -44,15 +44,16 @@ def engine_spec(spec: str) -> tuple[str, str | None]:
 
 
 def crosscheck(scene: Scene, config: SimulationConfig, engines=tuple(ENGINES), mjx_max_depth: int | None = None,
-               progress: bool = False) -> list[dict]:
-    """Tidy rows (module docstring) of the engine specs `engines` (`engine_spec`). Wall
-    time of MJX includes its compile (once per process); `progress` lets the engines
-    say so before compiling."""
+               progress: bool = False, integration: Integration | None = None) -> list[dict]:
+    """Tidy rows (module docstring) of the engine specs `engines` (`engine_spec`), each
+    engine that takes an integration (the Lagrangian one) integrating by `integration`
+    (None: its own), the MuJoCo engines by their RK4. Wall time of MJX includes its
+    compile (once per process); `progress` lets the engines say so before compiling."""
     rows, trajectories, forms, names = [], {}, {}, {}
     for spec in engines:
         name, chosen = engine_spec(spec)
         names[spec] = name
-        engine = get_engine(name, progress=progress and name == "mjx", form=chosen)
+        engine = get_engine(name, progress=progress and name == "mjx", form=chosen, integration=integration if ENGINES[name].integrates else None)
         form = forms[spec] = form_of(engine, scene)
         depth = scene_layout(scene).depth
         if name == "mjx" and mjx_max_depth is not None and depth > mjx_max_depth:

@@ -32,7 +32,7 @@ def export_scene(profile: Profile, scene_name: str, out: str | os.PathLike, cach
         "scene": scene_to_dict(scene),
         "data": dataclasses.asdict(config),
         "profile": profile.name,
-        "evaluation": {**dataclasses.asdict(simulation), "seed": profile.evaluate.ic_seed},
+        "evaluation": {**dataclasses.asdict(simulation), **dataclasses.asdict(profile.evaluate.integration), "seed": profile.evaluate.ic_seed},
     }
     export.export_dataset(out, arrays, meta)
     return {name: value.shape for name, value in arrays.items()}

@@ -34,8 +34,8 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench.tables import write_csv, write_table
-from lgnn.engines import get_engine
-from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines import ENGINES, get_engine
+from lgnn.engines.base import Integration, SimulationConfig, Trajectory
 from lgnn.engines.rollouts import batched_rollouts
 from lgnn.errors import ConfigError
 from lgnn.learn import models
@@ -63,21 +63,22 @@ def score(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference_
 
 
 def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config: SimulationConfig, states: State,
-                   progress: bool = False) -> tuple[list[Scored], dict[str, Trajectory]]:
+                   integration: Integration = Integration(), progress: bool = False) -> tuple[list[Scored], dict[str, Trajectory]]:
     """The model's rollouts from `states` (C, N, D) scored against the Lagrangian engine
-    and MuJoCo C (the same `config`), and the three trajectories of initial condition 0
+    and MuJoCo C (the same `config`; the model and the Lagrangian engine integrated by
+    `integration`, MuJoCo by its RK4), and the three trajectories of initial condition 0
     (`{"model", "lagrangian", "mujoco"}`, for `lgnn animate` and `lgnn plot`)."""
     models.check_compatible(model, scene)
     states = State(np.asarray(states.q, np.float64), np.asarray(states.qd, np.float64))
     # The references run beside the model's rollouts (MuJoCo C's batch on every core
     # while JAX runs the model), waited for only to score.
-    references_when_done = {name: in_background(functools.partial(_reference, name, scene, config, states, progress))
+    references_when_done = {name: in_background(functools.partial(_reference, name, scene, config, states, integration, progress))
                             for name in REFERENCES}
     # The params are an argument of the compiled program: another checkpoint of the
     # same model config compiles nothing.
     chunk = CPU_CHUNK if jax.default_backend() == "cpu" else None
-    runs = batched_rollouts(scene, config, models.AccelerationFactory(model), states, params, chunk=chunk, label=f"{model.name} on {scene.name}",
-                            progress=progress)
+    runs = batched_rollouts(scene, config, models.AccelerationFactory(model), states, params, integration=integration, chunk=chunk,
+                            label=f"{model.name} on {scene.name}", progress=progress)
     references = {name: when_done() for name, when_done in references_when_done.items()}
     q, qd = runs.q, runs.qd
     t = references["lagrangian"].t
@@ -87,8 +88,9 @@ def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config
     return scored, {"model": predicted, **{name: truth.member(0) for name, truth in references.items()}}
 
 
-def _reference(name: str, scene: Scene, config: SimulationConfig, states: State, progress: bool) -> Trajectory:
-    return get_engine(name, progress=progress).rollout(scene, config, states)
+def _reference(name: str, scene: Scene, config: SimulationConfig, states: State, integration: Integration, progress: bool) -> Trajectory:
+    """Engine `name`'s rollouts, with `integration` where the engine takes one."""
+    return get_engine(name, progress=progress, integration=integration if ENGINES[name].integrates else None).rollout(scene, config, states)
 
 
 def trajectory_scene(trajectory: Trajectory, path: str | os.PathLike) -> Scene:

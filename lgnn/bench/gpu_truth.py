@@ -48,7 +48,7 @@ import numpy as np
 
 from lgnn import physics, provenance
 from lgnn.bench.tables import write_table
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, timed_rollouts
 from lgnn.engines.timing import compile_timed, time_runs
 from lgnn.errors import ConfigError, LgnnError
@@ -91,12 +91,13 @@ class GpuTruthSettings:
     def config(self) -> SimulationConfig:
         """One frame after `steps` steps: only the final state is compared."""
         duration = self.steps * self.dt
-        return SimulationConfig(integrator="rk4", dt=self.dt, frame_dt=duration, duration=duration)
+        return SimulationConfig(dt=self.dt, frame_dt=duration, duration=duration)
 
 
 def _lagrangian(scene: Scene, config: SimulationConfig, states: State, dtype: str, repeats: int):
     factory = physics.vectorised_true_acceleration_fn if len(states.q) > 1 else physics.true_acceleration_fn
-    compile_s, run_s, runs = timed_rollouts(scene, config, Unparametrised(factory), states, repeats=repeats, dtype=dtype)
+    compile_s, run_s, runs = timed_rollouts(scene, config, Unparametrised(factory), states, integration=Integration(), repeats=repeats,
+                                              dtype=dtype)
     return compile_s, run_s, runs.q[:, -1]
 
 

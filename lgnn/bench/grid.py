@@ -31,7 +31,7 @@ from pathlib import Path
 
 from lgnn.errors import ConfigError, SceneError
 from lgnn.engines import ENGINES
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.learn.data import DataConfig
 from lgnn.learn.models import load_spec
 from lgnn.learn.train import TrainConfig, adam_steps_per_epoch, scheduled
@@ -269,7 +269,7 @@ class EvaluateSettings:
                 raise ConfigError(f"setting 'evaluate.scene_dts' of {scene_name}: dt must be a finite number > 0, got {dt!r}")
         for dt in {self.dt, *dict(self.scene_dts).values()}:
             try:  # whole multiples and bounded counts, before any stage starts
-                SimulationConfig("rk4", dt, self.frame_dt, self.duration, True)
+                SimulationConfig(dt, self.frame_dt, self.duration)
             except ConfigError as err:
                 raise ConfigError(f"settings 'evaluate': {err}") from None
 
@@ -278,7 +278,13 @@ class EvaluateSettings:
 
     def simulation(self, scene_name: str) -> SimulationConfig:
         """Rollout settings of models and Lagrangian ground truth on a scene."""
-        return SimulationConfig("rk4", self.dt_for(scene_name), self.frame_dt, self.duration, True)
+        return SimulationConfig(self.dt_for(scene_name), self.frame_dt, self.duration)
+
+    @property
+    def integration(self) -> Integration:
+        """How models and the Lagrangian ground truth integrate: RK4 with projection (a
+        property, not a field: no record key holds it)."""
+        return Integration("rk4", project=True)
 
     def for_scene(self, scene_name: str) -> EvaluateSettings:
         """The settings a scene's evaluation uses: its own step as `dt`, no other scene's."""

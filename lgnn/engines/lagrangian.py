@@ -1,14 +1,16 @@
 """The Lagrangian ground-truth engine: the scene's exact constrained dynamics.
 
-`simulate(scene, config)` integrates the scene's exact constrained Lagrangian dynamics
-from its initial state and returns a `Trajectory` (NumPy): `t` (F,), `q` and `qd`
+`simulate(scene, config, integration=...)` integrates the scene's exact constrained
+Lagrangian dynamics from its initial state (RK4 with projection unless another
+`Integration` is given) and returns a `Trajectory` (NumPy): `t` (F,), `q` and `qd`
 (F, N, D), `energy` (F,), frame 0 being the initial state. It is a batch of one of the
 one rollout path (`lgnn.engines.rollouts.batched_rollouts`): frames in compiled calls
 so long runs show progress, stopped at the first non-finite or exploding frame
 (`lgnn.metrics.ExplosionBounds`) with a `SimulationError` that names its time and
 carries the frames before it; a NaN trajectory is never returned.
 `LagrangianEngine` is the `lgnn.engines.Engine` on top: a batch of initial states in
-one compiled, vmapped program, and its timing. `rollout_fn` is the pure per-state run
+one compiled, vmapped program, and its timing; its `integration` field says how it
+integrates. `rollout_fn` is the pure per-state run
 for callers that compile their own batch (data generation).
 """
 
@@ -21,7 +23,7 @@ import jax
 import numpy as np
 
 from lgnn import physics
-from lgnn.engines.base import Engine, SimulationConfig, Trajectory
+from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.engines.rollouts import Unparametrised, batched_rollouts, timed_rollouts
 from lgnn.errors import SceneError
 from lgnn.integrate import rollout
@@ -45,11 +47,12 @@ def rollout_fn(
     scene: Scene,
     config: SimulationConfig,
     accel_factory: Callable[[Scene], physics.AccelerationFn] = physics.true_acceleration_fn,
+    integration: Integration = Integration(),
 ) -> Callable[[jax.Array, jax.Array], State]:
-    """`run(q, qd) -> State` of the `config.n_frames + 1` frames from one initial state:
-    the pure function behind `simulate`, for callers to `jit` and `vmap` over initial
-    conditions (benchmarks, data generation)."""
-    integrator = config.integrator_for(accel_factory(scene), physics.projection_fn(scene))
+    """`run(q, qd) -> State` of the `config.n_frames + 1` frames from one initial state
+    integrated by `integration`: the pure function behind `simulate`, for callers to
+    `jit` and `vmap` over initial conditions (benchmarks, data generation)."""
+    integrator = integration.integrator_for(accel_factory(scene), config.dt, physics.projection_fn(scene))
 
     def run(q, qd):
         return rollout(integrator, State(q, qd), config.n_frames, config.steps_per_frame)
@@ -63,13 +66,15 @@ def simulate(
     config: SimulationConfig = SimulationConfig(),
     state: State | None = None,
     *,
+    integration: Integration = Integration(),
     accel_factory: Callable[..., physics.AccelerationFn] = physics.true_acceleration_fn,
     params=None,
     chunk_frames: int = 100,
     progress: bool = False,
     hint: str = "try a smaller dt",
 ) -> Trajectory:
-    """Integrate from `state` (default: the scene's initial state) for `config.duration`.
+    """Integrate from `state` (default: the scene's initial state) for `config.duration`
+    by `integration` (its integrator and projection).
 
     `accel_factory(scene) -> accel` selects the dynamics (ground truth by default; a
     learned model's factory gives its rollout). With `params`, the factory is called as
@@ -83,33 +88,35 @@ def simulate(
     """
     state = check_state(scene, scene.initial_state if state is None else state)
     factory = accel_factory if params is not None else Unparametrised(accel_factory)
-    runs = batched_rollouts(scene, config, factory, State(state.q[None], state.qd[None]), params, frames_per_call=chunk_frames,
-                            stop_at_divergence=True, progress=progress, hint=hint)
-    return runs.trajectory(scene, config).member(0)
+    runs = batched_rollouts(scene, config, factory, State(state.q[None], state.qd[None]), params, integration=integration,
+                            frames_per_call=chunk_frames, stop_at_divergence=True, progress=progress, hint=hint)
+    return runs.trajectory(scene, config, integration).member(0)
 
 
 @dataclasses.dataclass(frozen=True)
 class LagrangianEngine(Engine):
     """The exact Lagrangian engine as an `lgnn.engines.Engine`: a batch of initial
     states in one compiled, vmapped program in `dtype` (`rollouts.batched_rollouts`),
-    spread over every local device, stopped at divergence; a progress bar if
-    `progress`."""
+    spread over every local device, stopped at divergence, integrated by
+    `integration`; a progress bar if `progress`."""
 
     name: ClassVar[str] = "lagrangian"
     dtype: str = "float64"
     progress: bool = False
+    integration: Integration = Integration()
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """`Trajectory` of initial states (B, N, D): q, qd (B, F+1, N, D), energy (B, F+1)."""
         for q, qd in zip(states.q, states.qd):
             check_state(scene, State(q, qd))
-        runs = batched_rollouts(scene, config, _ground_truth(len(states.q)), states, dtype=self.dtype, stop_at_divergence=True,
-                                progress=self.progress)
-        return runs.trajectory(scene, config)
+        runs = batched_rollouts(scene, config, _ground_truth(len(states.q)), states, integration=self.integration, dtype=self.dtype,
+                                stop_at_divergence=True, progress=self.progress)
+        return runs.trajectory(scene, config, self.integration)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, D))` of the compiled batch (`rollouts.timed_rollouts`)."""
-        compile_s, (run_s,), runs = timed_rollouts(scene, config, _ground_truth(len(states.q)), states, dtype=self.dtype)
+        compile_s, (run_s,), runs = timed_rollouts(scene, config, _ground_truth(len(states.q)), states, integration=self.integration,
+                                                   dtype=self.dtype)
         return compile_s, run_s, runs.q
 
 

@@ -45,7 +45,7 @@ import numpy as np
 from lgnn.engines.base import Engine, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form
 from lgnn.engines.mjx import best_form
-from lgnn.engines.mujoco import check_rk4, checked_trajectory, compile_scene, engine_metadata, resolve_form, state_to_qpos_qvel, stepped_config
+from lgnn.engines.mujoco import checked_trajectory, compile_scene, engine_metadata, resolve_form, state_to_qpos_qvel, stepped_config
 from lgnn.engines.timing import time_runs
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.scene import Scene, State
@@ -172,7 +172,6 @@ def runner(scene: Scene, config: SimulationConfig, batch: int, form: Form = DEFA
     content, settings, batch, form and device; default device: Warp's preferred, a GPU
     when there is one)."""
     wp, mjw, mujoco = _modules()
-    check_rk4(config)
     if scene.drag:
         raise ConfigError(f"{scene.name}: the mjwarp engine does not model drag (use mujoco or mjx)")
     compiled = compile_scene(scene, config.dt, form)

@@ -48,7 +48,7 @@ import numpy as np
 
 from lgnn.engines.base import DTYPES, Engine, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form, form_error, scene_layout
-from lgnn.engines.mujoco import (check_rk4, checked_trajectory, compile_scene, engine_metadata, qpos_rate, quat_mul, resolve_form,
+from lgnn.engines.mujoco import (checked_trajectory, compile_scene, engine_metadata, qpos_rate, quat_mul, resolve_form,
                                  state_to_qpos_qvel, stepped_config)
 from lgnn.engines.timing import time_compiled
 from lgnn.errors import ConfigError, SimulationError
@@ -259,7 +259,6 @@ def runner(scene: Scene, config: SimulationConfig, dtype: str = "float64", form:
     CPU) happens once per process.
     Call it inside `lgnn.runtime.precision(dtype)`."""
     mjx = _mjx()
-    check_rk4(config)
     if dtype not in DTYPES:
         raise ConfigError(f"MJX dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
     if dtype == "float64" and not jax.config.jax_enable_x64:

@@ -41,7 +41,7 @@ import numpy as np
 from lgnn.engines.base import Engine, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import (MAX_BODY_DEPTH, MAXIMAL_SOLREF_STEPS, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, form_error,
                                maximal_substeps, render, scene_layout)
-from lgnn.errors import ConfigError, SceneError, SimulationError
+from lgnn.errors import SceneError, SimulationError
 from lgnn.metrics import ExplosionBounds, true_energies
 from lgnn.runtime import precision
 from lgnn.scene import Scene, State, scene_to_dict
@@ -324,12 +324,6 @@ def equality_jacobian(compiled: Compiled, qpos: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------
 
 
-def check_rk4(config: SimulationConfig) -> None:
-    """`ConfigError` unless `config` integrates with RK4 (the MuJoCo engines' only one)."""
-    if config.integrator != "rk4":
-        raise ConfigError(f"the MuJoCo engines integrate with RK4 only, got integrator {config.integrator!r}")
-
-
 @functools.lru_cache(maxsize=64)
 def _to_mj_fn(compiled: Compiled):
     # Cached: a fresh jit per call would recompile on every rollout.
@@ -420,7 +414,6 @@ def joint_rollout(scene: Scene, config, states: State | None = None, *, threads:
     silently reset) or a non-finite one raises `SimulationError` with the time by
     which it happened.
     """
-    check_rk4(config)
     compiled = compile_scene(scene, config.dt, form)
     model = compiled.model
     if states is None:

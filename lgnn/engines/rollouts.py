@@ -1,7 +1,8 @@
 """The one rollout path of the JAX engines: a batch of initial conditions, compiled once.
 
-`batched_rollouts(scene, config, accel_factory, states, params)` integrates initial
-states (B, N, D) with the accelerations `accel_factory(scene, params)` (a ground truth
+`batched_rollouts(scene, config, accel_factory, states, params, integration=...)`
+integrates initial states (B, N, D) with the accelerations `accel_factory(scene,
+params)` by the `Integration` given (integrator and projection; a ground truth
 ignores `params`: `Unparametrised(physics.true_acceleration_fn)`; a learned model's
 factory is `lgnn.learn.models.AccelerationFactory`) and returns `Rollouts`: `q`, `qd`
 (B, F+1, N, D), the scene's true `energy` (B, F+1), and the seconds spent compiling
@@ -9,8 +10,8 @@ and running. How:
 
 - `vmap` over the initial conditions, the batch sharded over every local device
   (`lgnn.sharding`; padded to a multiple of the device count, padding dropped);
-- one compiled program per (scene content, settings, acceleration factory, batch
-  size, dtype, frames per call, parameter shapes) (`compiled_programs`, cached): the
+- one compiled program per (scene content, settings, integration, acceleration
+  factory, batch size, dtype, frames per call, parameter shapes) (`compiled_programs`, cached): the
   parameters are an ARGUMENT of the program, never constants, so a second checkpoint
   of one model config compiles nothing;
 - `stacked=True`: `params` holds S parameter sets of one model stacked along every
@@ -26,6 +27,9 @@ and running. How:
 - compile time apart from run time: `compile_s` is what compiling the programs took
   (when they were compiled, perhaps by an earlier call; the halved chunks' added up),
   `run_s` the compiled calls alone.
+
+`integration` (`lgnn.engines.base.Integration`) is a required argument: the caller
+(an engine, a stage) says how it integrates; nothing falls back to a default here.
 
 `timed_rollouts` is the timing rule on top (a warm-up call, then timed repeats), for
 `Engine.timed_rollout` and the benchmark's speed and scaling stages.
@@ -44,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics, sharding
-from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines.base import Integration, SimulationConfig, Trajectory
 from lgnn.errors import SimulationError
 from lgnn.integrate import advance
 from lgnn.metrics import ExplosionBounds
@@ -80,13 +84,13 @@ class Rollouts:
     compile_s: float
     run_s: float
 
-    def trajectory(self, scene: Scene, config: SimulationConfig, metadata: dict | None = None) -> Trajectory:
-        """The rollouts as a `Trajectory` batch (not stacked), with the scene and settings
-        in its metadata (and `metadata`); rollouts made `with_energy`."""
+    def trajectory(self, scene: Scene, config: SimulationConfig, integration: Integration, metadata: dict | None = None) -> Trajectory:
+        """The rollouts as a `Trajectory` batch (not stacked), with the scene, settings
+        and integration in its metadata (and `metadata`); rollouts made `with_energy`."""
         if self.energy is None:
             raise ValueError("a Trajectory carries energies: roll out with_energy")
         t = np.arange(self.q.shape[-3]) * config.frame_dt
-        meta = {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config), **(metadata or {})}
+        meta = {**run_metadata(scene, config, integration), **(metadata or {})}
         return Trajectory(t, self.q, self.qd, self.energy, meta)
 
 
@@ -97,6 +101,7 @@ class _Programs:
     frames: int
     compile_s: float
     with_energy: bool
+    integration: Integration  # what the programs integrate by (named in a divergence's message)
 
 
 def params_signature(params) -> tuple:
@@ -105,9 +110,15 @@ def params_signature(params) -> tuple:
     return treedef, tuple((np.shape(leaf), str(np.asarray(leaf).dtype)) for leaf in leaves)
 
 
+def run_metadata(scene: Scene, config: SimulationConfig, integration: Integration) -> dict:
+    """A JAX rollout's `Trajectory.metadata`: the scene, the settings (`config`) and
+    the integration that ran (`integration`)."""
+    return {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config), "integration": dataclasses.asdict(integration)}
+
+
 @functools.lru_cache(maxsize=64)
-def compiled_programs(scene: Scene, config: SimulationConfig, accel_factory: Callable, batch: int, dtype: str, frames: int,
-                      stacked: bool, signature: tuple, with_energy: bool = True) -> _Programs:
+def compiled_programs(scene: Scene, config: SimulationConfig, integration: Integration, accel_factory: Callable, batch: int, dtype: str,
+                      frames: int, stacked: bool, signature: tuple, with_energy: bool = True) -> _Programs:
     """The compiled `start` and `step` programs of `batched_rollouts` for `batch`
     initial conditions (a multiple of the device count) and parameters of
     `signature` (`params_signature`), `frames` frames per `step`, the true energy of
@@ -121,7 +132,7 @@ def compiled_programs(scene: Scene, config: SimulationConfig, accel_factory: Cal
         return true_energy(q, qd) if with_energy else None
 
     def integrator(params):
-        return config.integrator_for(accel_factory(scene, params), project)
+        return integration.integrator_for(accel_factory(scene, params), config.dt, project)
 
     def start(params, q, qd):
         carry = integrator(params).init_fn(State(q, qd))
@@ -143,19 +154,19 @@ def compiled_programs(scene: Scene, config: SimulationConfig, accel_factory: Cal
     carry = start.out_info[0]
     start = start.compile()
     step = jax.jit(step, in_shardings=(whole, batched), out_shardings=batched).lower(params, carry).compile()
-    return _Programs(start, step, frames, time.perf_counter() - began, with_energy)
+    return _Programs(start, step, frames, time.perf_counter() - began, with_energy, integration)
 
 
 def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, states: State, params=None, *,
-                     stacked: bool = False, dtype: str = "float64", chunk: int | None = None, frames_per_call: int = FRAMES_PER_CALL,
-                     stop_at_divergence: bool = False, with_energy: bool = False, label: str = "", progress: bool = False,
-                     hint: str = "try a smaller dt") -> Rollouts:
+                     integration: Integration, stacked: bool = False, dtype: str = "float64", chunk: int | None = None,
+                     frames_per_call: int = FRAMES_PER_CALL, stop_at_divergence: bool = False, with_energy: bool = False, label: str = "",
+                     progress: bool = False, hint: str = "try a smaller dt") -> Rollouts:
     """Rollouts of initial `states` (B, N, D) under `accel_factory(scene, params)`
-    (module docstring): at most `chunk` (None: all) initial conditions per program,
-    computed in `dtype`; `stop_at_divergence` for a reference, `hint` ending its error;
-    the true energies `with_energy` or `stop_at_divergence` (else `Rollouts.energy` is
-    None); `label` names the run in progress bars and messages (default: the scene's
-    name)."""
+    (module docstring) integrated by `integration` (its integrator and projection):
+    at most `chunk` (None: all) initial conditions per program, computed in `dtype`;
+    `stop_at_divergence` for a reference, `hint` ending its error; the true energies
+    `with_energy` or `stop_at_divergence` (else `Rollouts.energy` is None); `label`
+    names the run in progress bars and messages (default: the scene's name)."""
     if stop_at_divergence and stacked:
         raise ValueError("stop_at_divergence is for a reference's rollouts, not stacked parameter sets")
     label = label or scene.name
@@ -170,7 +181,7 @@ def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Call
         compile_total = 0.0
         while True:
             try:
-                programs = compiled_programs(scene, config, accel_factory, size, dtype, frames, stacked, signature,
+                programs = compiled_programs(scene, config, integration, accel_factory, size, dtype, frames, stacked, signature,
                                              with_energy or stop_at_divergence)
                 compile_total += programs.compile_s
                 out, run_s = _run(scene, config, programs, params, State(q0, qd0), size, stacked, stop_at_divergence, label, progress, hint)
@@ -230,14 +241,14 @@ def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, st
                 if energy_all is not None:
                     energy_all[batch + (frames,)] = np.asarray(energy)[part]
                 if bounds is not None:
-                    _stop_at_divergence(scene, config, bounds, first, q_all, qd_all, energy_all, done, kept, label, hint)
+                    _stop_at_divergence(scene, config, programs.integration, bounds, first, q_all, qd_all, energy_all, done, kept, label, hint)
                 done += kept
                 bar.update(taken * kept)
     return (q_all, qd_all, energy_all), run_s
 
 
-def _stop_at_divergence(scene: Scene, config: SimulationConfig, bounds: list[ExplosionBounds], first: int, q: np.ndarray, qd: np.ndarray,
-                        energy: np.ndarray, done: int, kept: int, label: str, hint: str) -> None:
+def _stop_at_divergence(scene: Scene, config: SimulationConfig, integration: Integration, bounds: list[ExplosionBounds], first: int,
+                        q: np.ndarray, qd: np.ndarray, energy: np.ndarray, done: int, kept: int, label: str, hint: str) -> None:
     """Raise `SimulationError` at the first non-finite or exploding frame among frames
     `done + 1 ... done + kept` of initial conditions `first, first + 1, ...`."""
     frames = slice(done + 1, done + 1 + kept)
@@ -249,9 +260,9 @@ def _stop_at_divergence(scene: Scene, config: SimulationConfig, bounds: list[Exp
     k, c, reason = min(found)
     end = done + 1 + k
     partial = Trajectory(np.arange(end) * config.frame_dt, q[c, :end].copy(), qd[c, :end].copy(), energy[c, :end].copy(),
-                         {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config)})
+                         run_metadata(scene, config, integration))
     member = f", initial condition {c}" if len(q) > 1 else ""
-    raise SimulationError(f"{label}: state {reason} at t = {t[k]:.6g} s ({config.integrator}, dt = {config.dt:g}{member}); {hint}",
+    raise SimulationError(f"{label}: state {reason} at t = {t[k]:.6g} s ({integration.integrator}, dt = {config.dt:g}{member}); {hint}",
                           time=float(t[k]), trajectory=partial)
 
 

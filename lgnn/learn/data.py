@@ -36,7 +36,7 @@ from lgnn.files import user_cache_dir
 from lgnn.runtime import in_float64
 from lgnn.scene import Scene, scene_to_dict
 from lgnn.scene import get_scene
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.lagrangian import rollout_fn
 
 # 2: an `lgnn.records` record (1: its own layout and checksum); part of the key, so
@@ -83,6 +83,7 @@ class DataConfig:
         if self.states_per_trajectory < 2:
             raise ConfigError(f"duration {self.duration:g} holds fewer than 2 states at sample-dt {self.sample_dt:g}")
         self.simulation  # validates dt / sample_dt
+        self.integration  # validates the integrator's name
 
     @property
     def states_per_trajectory(self) -> int:
@@ -91,7 +92,12 @@ class DataConfig:
     @property
     def simulation(self) -> SimulationConfig:
         n = self.states_per_trajectory - 1
-        return SimulationConfig(self.integrator, self.dt, self.sample_dt, n * self.sample_dt, True)
+        return SimulationConfig(self.dt, self.sample_dt, n * self.sample_dt)
+
+    @property
+    def integration(self) -> Integration:
+        """The ground truth's integration: `integrator`, projected."""
+        return Integration(self.integrator, project=True)
 
     def key(self, scene: Scene) -> dict:
         """Everything the data depend on (the cache key)."""
@@ -119,7 +125,7 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
     from tqdm.auto import tqdm
 
     scene = get_scene(config.scene)
-    run, targets = _compiled(scene, config.simulation)
+    run, targets = _compiled(scene, config.simulation, config.integration)
     initial_q, initial_qd = physics.benchmark_initial_states(scene, config.n_trajectories, config.seed)
     # One batch shape for every call (the last batch padded): one compile, sharded over
     # every local device.
@@ -147,10 +153,10 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
 
 
 @functools.lru_cache(maxsize=8)
-def _compiled(scene: Scene, sim: SimulationConfig):
-    """Jitted, vmapped trajectory and target functions, cached per scene content and
-    settings (regenerating a cache in the same process does not recompile)."""
-    run = sharding.batch_jit(jax.vmap(rollout_fn(scene, sim, physics.vectorised_true_acceleration_fn)))
+def _compiled(scene: Scene, sim: SimulationConfig, integration: Integration):
+    """Jitted, vmapped trajectory and target functions, cached per scene content,
+    settings and integration (regenerating a cache in the same process does not recompile)."""
+    run = sharding.batch_jit(jax.vmap(rollout_fn(scene, sim, physics.vectorised_true_acceleration_fn, integration)))
     return run, sharding.batch_jit(jax.vmap(physics.vectorised_true_acceleration_fn(scene)))
 
 

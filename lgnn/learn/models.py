@@ -74,7 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics
-from lgnn.engines.base import Engine, SimulationConfig, Trajectory
+from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
 from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
 from lgnn.errors import ConfigError
@@ -701,9 +701,11 @@ class AccelerationFactory:
         return acceleration_fn(self.config, params, scene)
 
 
-def rollout(config: ModelConfig, params: dict, scene: Scene, simulation: SimulationConfig | None = None, state=None, *, progress: bool = False) -> Trajectory:
+def rollout(config: ModelConfig, params: dict, scene: Scene, simulation: SimulationConfig | None = None, state=None, *,
+            integration: Integration = Integration(), progress: bool = False) -> Trajectory:
     """The model's predicted `Trajectory` of `scene` from `state` (default: the scene's
-    own), through the ground truth's integrators (`engines.lagrangian.simulate`); its
+    own), through the ground truth's integrators (`engines.lagrangian.simulate`, by
+    `integration`); its
     `energy` is the scene's true Hamiltonian of the predicted states. A prediction that
     becomes non-finite or explodes stops with `SimulationError` naming the time."""
     check_compatible(config, scene)
@@ -711,6 +713,7 @@ def rollout(config: ModelConfig, params: dict, scene: Scene, simulation: Simulat
         scene,
         simulation or SimulationConfig(),
         state,
+        integration=integration,
         accel_factory=AccelerationFactory(config),
         params=params,
         progress=progress,
@@ -725,13 +728,15 @@ class ModelEngine(Engine):
     states) -> Trajectory` and `timed_rollout` as the ground-truth engines, through the
     one rollout path (`lgnn.engines.rollouts.batched_rollouts`: the batch vmapped in one
     program, the params an argument of it), so cross-checks and tools treat a model like
-    any other engine. Its trajectories' `energy` is the scene's true Hamiltonian of the
-    predicted states; `rollout` stops at divergence like every engine."""
+    any other engine, integrated by `integration` (RK4 with projection, as the ground
+    truth, by default). Its trajectories' `energy` is the scene's true Hamiltonian of
+    the predicted states; `rollout` stops at divergence like every engine."""
 
     config: ModelConfig
     params: dict
     dtype: str = "float64"
     progress: bool = False
+    integration: Integration = Integration()
 
     @property
     def name(self) -> str:
@@ -740,13 +745,14 @@ class ModelEngine(Engine):
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """Predicted trajectories from initial states (B, N, D): q, qd (B, F+1, N, D), energy (B, F+1)."""
         check_compatible(self.config, scene)
-        runs = batched_rollouts(scene, config, AccelerationFactory(self.config), states, self.params, dtype=self.dtype,
-                                stop_at_divergence=True, progress=self.progress, label=f"{self.config.name} on {scene.name}",
+        runs = batched_rollouts(scene, config, AccelerationFactory(self.config), states, self.params, integration=self.integration,
+                                dtype=self.dtype, stop_at_divergence=True, progress=self.progress, label=f"{self.config.name} on {scene.name}",
                                 hint=f"the {self.config.name} model's predicted dynamics diverge (its rollout stops there)")
-        return runs.trajectory(scene, config, {"model": self.config.to_dict()})
+        return runs.trajectory(scene, config, self.integration, {"model": self.config.to_dict()})
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, D))` of the batch (`rollouts.timed_rollouts`)."""
         check_compatible(self.config, scene)
-        compile_s, (run_s,), runs = timed_rollouts(scene, config, AccelerationFactory(self.config), states, self.params, dtype=self.dtype)
+        compile_s, (run_s,), runs = timed_rollouts(scene, config, AccelerationFactory(self.config), states, self.params,
+                                                   integration=self.integration, dtype=self.dtype)
         return compile_s, run_s, runs.q

@@ -210,19 +210,20 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     scene = get_scene(scene_name)
     states = evaluation_initial_states(profile, scene)
     config = settings.simulation(scene_name)
-    reference_config = SimulationConfig("rk4", settings.mujoco_dt, settings.frame_dt, settings.duration, True)
+    reference_config = SimulationConfig(settings.mujoco_dt, settings.frame_dt, settings.duration)
     log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s; "
         f"{', '.join(settings.references) or 'no reference engine'} at dt {reference_config.dt:g} alongside")
     # A daemon thread: an error or Ctrl-C here does not wait out MuJoCo's minutes.
     references_when_done = in_background(lambda: _reference_rollouts(scene, reference_config, states, settings.references))
     # A reference that diverged would turn every error into 1 for every model: it stops there.
-    truth = batched_rollouts(scene, config, TRUE_DYNAMICS, states, chunk=settings.chunk, stop_at_divergence=True, label=f"truth {scene_name}",
-                             progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)")
+    truth = batched_rollouts(scene, config, TRUE_DYNAMICS, states, integration=settings.integration, chunk=settings.chunk, stop_at_divergence=True,
+                             label=f"truth {scene_name}", progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)")
     noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
     perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
     # The perturbed runs are not references: one that diverges (T2/T3's perturbed
     # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
-    floor = batched_rollouts(scene, config, TRUE_DYNAMICS, perturbed, chunk=settings.chunk, label=f"floor {scene_name}", progress=progress)
+    floor = batched_rollouts(scene, config, TRUE_DYNAMICS, perturbed, integration=settings.integration, chunk=settings.chunk,
+                             label=f"floor {scene_name}", progress=progress)
     return dict(q=truth.q, qd=truth.qd, energy=truth.energy, q_floor=floor.q, qd_floor=floor.qd, states=states,
                 compile_s=truth.compile_s, run_s=truth.run_s, **references_when_done())
 
@@ -340,8 +341,9 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
         arrays[f"snapshot/{engine}"] = _snapshot(profile, truth[f"q_{engine}"])
     if scene.drag > 0:
         no_drag = scene.replace(drag=0.0)
-        runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth["states"], chunk=profile.evaluate.chunk,
-                                label=f"{scene_name} without drag", progress=progress)
+        runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth["states"],
+                                integration=profile.evaluate.integration, chunk=profile.evaluate.chunk, label=f"{scene_name} without drag",
+                                progress=progress)
         arrays.update(_record_arrays(f"{NO_DRAG}/", _scores(profile, scene, runs.q, runs.qd, truth), frame_dt))
     meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=REFERENCE_VERSION,
                 **{name: truth[name] for name in truth_timings(references)})
@@ -392,7 +394,8 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     sets in one program, and save each pair's record."""
     pair = group[0][0]
     scene = get_scene(pair.scene)
-    config = dataclasses.replace(profile.evaluate.simulation(pair.scene), project=pair.projected)
+    config = profile.evaluate.simulation(pair.scene)
+    integration = dataclasses.replace(profile.evaluate.integration, project=pair.projected)
     # The models need only the initial conditions; the ground truth (chain100-3d's MuJoCo
     # C reference: 8-14 minutes on 16 cores, beside 20 GPU minutes of LGN's rollouts) is
     # computed or read meanwhile, and waited for only to score.
@@ -401,8 +404,8 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     seeds = ", ".join(f"s{p.job.seed}" for p, *_ in group)
     log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(states.q)} initial conditions")
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for *_, params in group))
-    runs = batched_rollouts(scene, config, models.AccelerationFactory(group[0][3]), states, stacked, stacked=True, chunk=profile.evaluate.chunk,
-                            label=f"{pair.label} {seeds} on {pair.scene}", progress=progress)
+    runs = batched_rollouts(scene, config, models.AccelerationFactory(group[0][3]), states, stacked, integration=integration, stacked=True,
+                            chunk=profile.evaluate.chunk, label=f"{pair.label} {seeds} on {pair.scene}", progress=progress)
     q_all, qd_all, compile_s, run_s = runs.q, runs.qd, runs.compile_s, runs.run_s
     truth = truth_when_done()
     if not np.allclose(truth["states"].q, states.q, rtol=1e-9, atol=1e-12):
@@ -476,4 +479,5 @@ def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
     model, params = train.load_model(layout.found(layout.checkpoint(pair.job)))
     config = profile.evaluate.simulation(pair.scene)
     steps = chunk * config.n_frames * config.steps_per_frame
-    return (lambda: batched_rollouts(scene, config, models.AccelerationFactory(model), first, params, chunk=chunk)), steps
+    integration = profile.evaluate.integration
+    return (lambda: batched_rollouts(scene, config, models.AccelerationFactory(model), first, params, integration=integration, chunk=chunk)), steps

@@ -19,7 +19,7 @@ from lgnn.bench import store
 from lgnn.engines import get_engine
 from lgnn.bench.grid import TRAINING_SCENES, Profile, lgnn_job, settings_key
 from lgnn.bench.store import log
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, timed_rollouts
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.learn import models, train
@@ -68,13 +68,13 @@ def scaling(profile: Profile, out: Path) -> Path:
     if layout.load_json(path, key) is not None:
         return path
     steps, dt, ic_seed = settings.steps, profile.evaluate.dt, profile.evaluate.ic_seed
-    config = SimulationConfig("rk4", dt, steps * dt, steps * dt, True)
+    config = SimulationConfig(dt, steps * dt, steps * dt)
     rows = []
     for dim, lengths in _lengths(profile).items():
         checkpoint, digest = _checkpoint(profile, out, dim) if lengths else (None, None)
         model_params = train.load_model(checkpoint) if digest else None
         for n in lengths:
-            rows += _size_rows(CHAINS[dim](n), config, ic_seed, model_params)
+            rows += _size_rows(CHAINS[dim](n), config, profile.evaluate.integration, ic_seed, model_params)
     for name in settings.throughput_scenes:
         scene = get_scene(name)
         states = sample_initial_states(scene, jax.random.PRNGKey(ic_seed), settings.throughput_batch)
@@ -88,9 +88,10 @@ def scaling(profile: Profile, out: Path) -> Path:
     return path
 
 
-def _size_rows(scene, config: SimulationConfig, ic_seed: int, model_params) -> list[dict]:
+def _size_rows(scene, config: SimulationConfig, integration: Integration, ic_seed: int, model_params) -> list[dict]:
     """The size rows of one chain (`scaling`): Lagrangian, MuJoCo C and, with
-    `model_params`, the LGNN, each `config.duration / config.dt` steps."""
+    `model_params`, the LGNN, each `config.duration / config.dt` steps (the JAX ones
+    integrated by `integration`)."""
     steps = round(config.duration / config.dt)
     states = sample_initial_states(scene, jax.random.PRNGKey(ic_seed), 1)
     single = State(np.asarray(states.q), np.asarray(states.qd))
@@ -116,7 +117,7 @@ def _size_rows(scene, config: SimulationConfig, ic_seed: int, model_params) -> l
                 continue
         else:
             # One trajectory (a batch of one), as the speed stage times learned models.
-            compile_s, (run_s,), _ = timed_rollouts(scene, config, factory, single, params)
+            compile_s, (run_s,), _ = timed_rollouts(scene, config, factory, single, params, integration=integration)
         rows.append({**row, "s_per_step": run_s / steps, "compile_s": compile_s})
         log(f"scaling {scene.name} {solver}: {run_s / steps:.3g} s per step (compile {compile_s:.1f} s)")
     return rows

@@ -75,7 +75,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     states = evaluation_initial_states(profile, scene)
     single = State(states.q[:1], states.qd[:1])
     horizon, frame_dt = settings.horizon, profile.evaluate.frame_dt
-    reference_config = SimulationConfig("rk4", min(settings.dts) / 10, frame_dt, horizon, True)
+    reference_config = SimulationConfig(min(settings.dts) / 10, frame_dt, horizon)
     log(f"speed/error {scene_name}: MuJoCo C reference at dt {reference_config.dt:g}")
     reference = lm.rollout(scene, reference_config, single).q[0]
     rows = []
@@ -95,20 +95,21 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
             if engine != "mujoco" and horizon / dt * scene.n_links > settings.max_link_steps:
                 row(engine, "engine", dt, note=f"not run: over {settings.max_link_steps:g} link-steps")
                 continue
-            config = SimulationConfig("rk4", dt, frame_dt, horizon, True)
-            runner = get_engine(engine)
+            config = SimulationConfig(dt, frame_dt, horizon)
+            runner = get_engine(engine)  # each engine's own integration: RK4 (with projection for the Lagrangian one)
             timed = [runner.timed_rollout(scene, config, single) for _ in range(settings.repeats)]
             compile_s, _, q = timed[0]
             row(engine, "engine", dt, run_s=[t[1] for t in timed], compile_s=compile_s, rollout_error=metrics.gmean_error(q[0], reference),
                 form=form_of(runner, scene))
             log(f"speed/error {scene_name} {engine} dt {dt:g}: {rows[-1]['wall_s_per_sim_s']:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
-    config = SimulationConfig("rk4", profile.evaluate.dt_for(scene_name), frame_dt, horizon, True)
+    config = SimulationConfig(profile.evaluate.dt_for(scene_name), frame_dt, horizon)
     for job in timed_jobs(profile, scene_name, jobs):
         if job.name not in checkpoints:
             row(job.label, "learned", config.dt, note="no checkpoint")
             continue
         model, params = train.load_model(layout.found(layout.checkpoint(job)))
-        compile_s, run_s, runs = timed_rollouts(scene, config, models.AccelerationFactory(model), single, params, repeats=settings.repeats)
+        compile_s, run_s, runs = timed_rollouts(scene, config, models.AccelerationFactory(model), single, params,
+                                                integration=profile.evaluate.integration, repeats=settings.repeats)
         row(job.label, "learned", config.dt, run_s=run_s, compile_s=compile_s, rollout_error=metrics.gmean_error(runs.q[0], reference))
         log(f"speed/error {scene_name} {job.label}: {rows[-1]['wall_s_per_sim_s']:.3g} s per simulated s, error {rows[-1]['rollout_error']:.2e}")
     store.save_json(path, key, horizon=horizon, rows=rows)
