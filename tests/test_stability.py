@@ -357,7 +357,9 @@ def scene_dicts(draw, min_links=1, max_links=6):
         if draw(st.booleans()):
             link["type"] = draw(st.sampled_from(["link", "rod", "rope"]))
         links.append(link)
-    scene = {"name": draw(st.text(min_size=1, max_size=8).filter(str.strip)), "nodes": nodes, "pinned": pinned, "links": links}
+    # A valid name is printable text (an unprintable one is refused: tests/test_inputs.py).
+    name = draw(st.text(min_size=1, max_size=8).filter(lambda text: text.strip() and text.isprintable()))
+    scene = {"name": name, "nodes": nodes, "pinned": pinned, "links": links}
     if draw(st.booleans()):
         scene["gravity"] = draw(finite)
     if draw(st.booleans()):
