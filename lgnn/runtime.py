@@ -13,7 +13,8 @@ before they compute anything (docs/engines.md, "Precision"):
 - XLA's concurrency-optimised CPU scheduler off: it deadlocks (all threads idle,
   forever) on vmapped rollouts whose steps hold several batched LAPACK calls (measured:
   chain16 x 100, one RK4 step with projection, jax 0.10). XLA reads the flag when the
-  CPU backend starts, at the first computation.
+  CPU backend starts, at the first computation;
+- XLA's parallel CPU code generation off (`XLA_CODEGEN_FLAG`: see its comment).
 
 A setting the user made in the environment wins over the thread count; the XLA flag is
 appended to whatever `XLA_FLAGS` holds.
@@ -45,6 +46,13 @@ OPENBLAS_THREADS = "1"
 # (`lgnn.bench.parallel`), which their parent stops with SIGINT.
 BENCHMARK_CHILD = "LGNN_BENCHMARK_CHILD"
 XLA_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+# XLA:CPU compiles a program's LLVM module in parallel parts by default. Test workers
+# compiling the batched rollout programs (`lgnn.engines.rollouts`) were aborted inside
+# XLA's compile, at random and without a message (a different test each time, on 2
+# cores, jax 0.10); compiling each module whole is the mitigation taken while the cause
+# is not established (a race in the parallel codegen is the suspect).
+XLA_CODEGEN_FLAG = "--xla_cpu_parallel_codegen_split_count=1"
+XLA_CPU_FLAGS = (XLA_SCHEDULER_FLAG, XLA_CODEGEN_FLAG)
 
 
 def configure(*, x64: bool = True) -> None:
@@ -52,8 +60,10 @@ def configure(*, x64: bool = True) -> None:
     docstring), then JAX's float64 mode (`x64=False` for float32 work)."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", OPENBLAS_THREADS)
     flags = os.environ.get("XLA_FLAGS", "")
-    if XLA_SCHEDULER_FLAG not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {XLA_SCHEDULER_FLAG}".strip()
+    for flag in XLA_CPU_FLAGS:
+        if flag.split("=")[0] not in flags:
+            flags = f"{flags} {flag}".strip()
+    os.environ["XLA_FLAGS"] = flags
     import jax
 
     jax.config.update("jax_enable_x64", x64)

@@ -171,4 +171,4 @@ def test_configure_sets_up_the_process():
     script = "import os, lgnn; lgnn.configure(); import jax; print(os.environ['OPENBLAS_NUM_THREADS'], os.environ['XLA_FLAGS'], jax.config.jax_enable_x64)"
     env = {key: value for key, value in os.environ.items() if key not in ("XLA_FLAGS", "OPENBLAS_NUM_THREADS")}
     out = subprocess.run([sys.executable, "-c", script], env=env, cwd=PACKAGE.parent, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["1", "--xla_cpu_enable_concurrency_optimized_scheduler=false", "True"]
+    assert out.stdout.split() == ["1", "--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_parallel_codegen_split_count=1", "True"]

@@ -272,8 +272,11 @@ class LinkGram:
             by_node.setdefault(int(node), []).append((k, sign))
         pairs = [(a, b, sa * sb) for incident in by_node.values() for x, (a, sa) in enumerate(incident) for b, sb in incident[x + 1 :]]
         pairs = [(min(a, b), max(a, b), sign) for a, b, sign in pairs]
-        self.first, self.second, self.sign = (np.asarray(c, dtype) for c, dtype in zip(zip(*pairs), (np.int64, np.int64, np.float64))) if pairs else (
-            np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        # int32 indices: the same dtype whether or not the caller traces with 64-bit
+        # types (the projection runs in full precision inside a float32 rollout, and
+        # int64 indices there met int32 ones in JAX's index arithmetic).
+        self.first, self.second, self.sign = (np.asarray(c, dtype) for c, dtype in zip(zip(*pairs), (np.int32, np.int32, np.float64))) if pairs else (
+            np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0))
         self.tridiagonal = bool(np.all(self.second - self.first == 1))
         self.border = self._border() if not self.tridiagonal else None
         self.bordered = self.border is not None
