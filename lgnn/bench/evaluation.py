@@ -53,13 +53,12 @@ CPU_CHUNK = 8
 REFERENCES = ("lagrangian", "mujoco")
 
 
-def score(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference_q: np.ndarray, reference_qd: np.ndarray,
-          model: str, reference: str) -> Scored:
-    """`Scored` of predictions `q`, `qd` (C, F, N, D) at times `t` (F,) against reference
-    states (C, F, N, D) with every registered metric (`lgnn.metrics.METRICS`); the
-    reference's energies are the scene's true `H` of its states."""
-    reference_energy = metrics.true_energies(scene, reference_q, reference_qd)
-    return metrics.score_rollouts(scene, t, q, qd, reference_q, reference_energy, model, reference)
+def score(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference: Trajectory, model: str, reference_name: str) -> Scored:
+    """`Scored` of predictions `q`, `qd` (C, F, N, D) at times `t` (F,) against a
+    reference trajectory (C, F, N, D) with every registered metric
+    (`lgnn.metrics.METRICS`). The reference's energies are the ones it carries: every
+    engine's `Trajectory` holds the scene's true `H` of its states."""
+    return metrics.score_rollouts(scene, t, q, qd, reference.q, reference.energy, model, reference_name)
 
 
 def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config: SimulationConfig, states: State,
@@ -82,7 +81,7 @@ def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config
     references = {name: when_done() for name, when_done in references_when_done.items()}
     q, qd = runs.q, runs.qd
     t = references["lagrangian"].t
-    scored = [score(scene, t, q, qd, truth.q, truth.qd, model.name, name) for name, truth in references.items()]
+    scored = [score(scene, t, q, qd, truth, model.name, name) for name, truth in references.items()]
     metadata = {**references["lagrangian"].metadata, "model": model.to_dict()}
     predicted = Trajectory(t, q[0], qd[0], metrics.true_energies(scene, q[0], qd[0]), metadata)
     return scored, {"model": predicted, **{name: truth.member(0) for name, truth in references.items()}}
@@ -126,10 +125,23 @@ def compare_trajectories(paths) -> tuple[Scored, list[str]]:
         notes.append(f"compared over the {frames} frames both files have ({len(reference.t)} and {len(other.t)})")
     if "scene" in other.metadata and other.metadata["scene"] != reference.metadata["scene"]:
         notes.append(f"the files' scenes differ; energies are {scene.name}'s (from {paths[0]})")
-    take = lambda a: np.asarray(a[:frames], np.float64)[None]  # noqa: E731
-    scored = score(scene, reference.t[:frames], take(other.q), take(other.qd), take(reference.q), take(reference.qd),
+    scored = score(scene, reference.t[:frames], *as_batch(other, frames), file_reference(scene, reference, frames),
                    Path(paths[1]).name, Path(paths[0]).name)
     return scored, notes
+
+
+def as_batch(trajectory: Trajectory, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """A trajectory file's first `frames` positions and velocities in float64, as a batch
+    of one initial condition (1, F, N, D)."""
+    return tuple(np.asarray(a[:frames], np.float64)[None] for a in (trajectory.q, trajectory.qd))
+
+
+def file_reference(scene: Scene, trajectory: Trajectory, frames: int) -> Trajectory:
+    """A trajectory file's first `frames` frames as a reference batch of one, its energies
+    recomputed as `scene`'s true `H`: a file may come from another program, whose
+    energies need not be this scene's."""
+    q, qd = as_batch(trajectory, frames)
+    return Trajectory(trajectory.t[:frames], q, qd, metrics.true_energies(scene, q, qd), trajectory.metadata)
 
 
 def frame_table(scored: list[Scored]):

@@ -21,8 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from lgnn import metrics
-from lgnn.bench.evaluation import load_trajectories, score
+from lgnn.bench.evaluation import file_reference, load_trajectories, score
 from lgnn.engines.base import Trajectory
 from lgnn.errors import ConfigError
 from lgnn.files import atomic_path, check_writable
@@ -150,14 +149,14 @@ def plot(paths, out: str | os.PathLike) -> None:
     t = reference.t[:frames]
     figure, (error_axes, energy_axes) = plt.subplots(2, 1, figsize=(6, 6), sharex=True, dpi=100)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    take = lambda a: np.asarray(a[:frames], np.float64)[None]  # noqa: E731
     for k, (path, trajectory) in enumerate(zip(paths, trajectories)):
         colour, name = colours[k % len(colours)], label(path, trajectory)
-        energy = metrics.true_energies(scene, trajectory.q[:frames], trajectory.qd[:frames])
-        energy_axes.plot(t, energy, color=colour, label=name, linewidth=3 if k == 0 else 1.5, alpha=0.5 if k == 0 else 1.0)
+        batch = file_reference(scene, trajectory, frames)
+        energy_axes.plot(t, batch.energy[0], color=colour, label=name, linewidth=3 if k == 0 else 1.5, alpha=0.5 if k == 0 else 1.0)
         if k == 0:
+            truth = batch
             continue
-        scored = score(scene, t, take(trajectory.q), take(trajectory.qd), take(reference.q), take(reference.qd), name, Path(paths[0]).name)
+        scored = score(scene, t, batch.q, batch.qd, truth, name, Path(paths[0]).name)
         error_axes.semilogy(scored.t, scored.errors["node_rms_error"][0], color=colour, label=name)
         if scored.diverged[0] >= 0:
             error_axes.axvline(t[scored.diverged[0]], color=colour, linestyle=":", label=f"{Path(path).name} diverged")
