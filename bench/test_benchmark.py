@@ -24,6 +24,7 @@ from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.bench.stages import train as train_stage
 from lgnn.learn import data, train
+from lgnn.learn.checkpoints import load_model
 from lgnn.scene import get_scene
 
 QUICK, FULL = grid.PROFILES["quick"], grid.PROFILES["full"]
@@ -92,7 +93,7 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
     # Training learns: far below the untrained model (same initial parameters) on the
     # same validation states. (Below its own first epoch would hold by construction.)
-    scene, (model, _) = get_scene(job.scene), train.load_model(path)
+    scene, (model, _) = get_scene(job.scene), load_model(path)
     dataset = data.load_or_generate(profile.training.data_for(job.scene), store.Layout(out).datasets)
     val = tuple(a[dataset.val] for a in (dataset.q, dataset.qd, dataset.qdd))
     untrained = train.initial_state(model, dataclasses.replace(profile.training.train, seed=job.seed)).params
@@ -211,7 +212,7 @@ def test_mass_matrix(profile, out, mass_scene):
     # The learned matrix is banded: nodes farther apart in the graph than one link plus
     # two message-passing hops from each end share no energy term (LGNN's default,
     # no message passing: linked pairs only), so their block is zero to round-off.
-    model, _ = train.load_model(store.Layout(out).checkpoint(grid.lgnn_job(profile, mass_scene)))
+    model, _ = load_model(store.Layout(out).checkpoint(grid.lgnn_job(profile, mass_scene)))
     hops = np.full((scene.n_nodes, scene.n_nodes), scene.n_nodes)
     np.fill_diagonal(hops, 0)
     for i, j in np.asarray(scene.edge_index):

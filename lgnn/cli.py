@@ -482,7 +482,7 @@ def _cmd_evaluate(args) -> None:
     from lgnn.engines.base import Integration
     from lgnn.files import check_writable
     from lgnn.learn.models import check_compatible
-    from lgnn.learn.train import load_model
+    from lgnn.learn.checkpoints import load_model
     from lgnn.scene import get_scene
 
     config = _simulation_config(args)

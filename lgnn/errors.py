@@ -33,3 +33,18 @@ class SimulationError(LgnnError):
 
 class CheckpointError(LgnnError):
     """A model checkpoint is missing, corrupt, or does not match what it is used for."""
+
+
+def check_number(label: str, value, *, above: float = 0.0, whole: bool = False) -> None:
+    """`ConfigError` "LABEL must be ..., got VALUE" unless `value` is a real, finite
+    number above `above` (`whole`: a whole number >= 1 instead). A bool is not a number
+    here: `True` in a settings file is a mistake, not 1."""
+    import math
+
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if whole:
+        if not (isinstance(value, int) and number and value >= 1):
+            raise ConfigError(f"{label} must be a whole number >= 1, got {value!r}")
+    elif not (number and math.isfinite(value) and value > above):
+        kind = "a positive number" if above == 0 else "a finite number" if above == -math.inf else f"a finite number > {above:g}"
+        raise ConfigError(f"{label} must be {kind}, got {value!r}")

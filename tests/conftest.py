@@ -11,3 +11,24 @@ import pytest
 @pytest.fixture(scope="session")
 def x64():
     assert jax.config.jax_enable_x64
+
+
+@pytest.fixture
+def tiny_benchmark_config(tmp_path):
+    """`tiny_benchmark_config(model, epochs, data_duration=0.1, train_settings="")`: the
+    path of a benchmark config (in `tmp_path`) that trains `model` (a registered name or
+    `module:SPEC`) on a few short chain4 trajectories for `epochs` epochs and evaluates it
+    on chain4 from 2 initial conditions over 0.02 s: a whole benchmark in seconds."""
+
+    def write(model: str, epochs: int, data_duration: float = 0.1, train_settings: str = ""):
+        path = tmp_path / "tiny.toml"
+        path.write_text(
+            'stages = ["train", "evaluate"]\n'
+            f'[[grid]]\nmodel = "{model}"\ntrain_scene = "chain4"\neval_scenes = ["chain4"]\n'
+            f"[training.data]\nn_trajectories = 3\nduration = {data_duration}\nsample_dt = 0.02\n"
+            f"[training.train]\nepochs = {epochs}\n{train_settings}"
+            "[evaluate]\ninitial_conditions = 2\nduration = 0.02\n"
+        )
+        return path
+
+    return write

@@ -16,6 +16,7 @@ from lgnn import records
 from lgnn.engines.base import SimulationConfig
 from lgnn.errors import CheckpointError
 from lgnn.learn import checkpoints, data, models, train
+from lgnn.learn.checkpoints import load_model
 from lgnn.learn.models import ModelSpec
 from lgnn.scene import get_scene
 
@@ -50,14 +51,14 @@ def test_a_renamed_params_key_is_a_mismatch_naming_its_path(tmp_path, monkeypatc
     model = models.ModelConfig(RENAMED.name)
     path = tmp_path / "renamed.npz"
     _save_initial(path, model)
-    _, best = train.load_model(path)
+    _, best = load_model(path)
     assert sorted(best) == ["a_first", "b_second"]
     np.testing.assert_array_equal(best["a_first"], [1.0, 2.0, 3.0])
     # Renamed so that it sorts after the other key: by position its values would
     # land under "b_second".
     monkeypatch.setitem(KEY_NAMES, "first", "c_first")
     with pytest.raises(CheckpointError, match=r"does not match its model settings \(best/\['a_first'\] is not in the model\)"):
-        train.load_model(path)
+        load_model(path)
     with pytest.raises(CheckpointError, match=r"params/\['a_first'\] is not in the model"):
         train.load_checkpoint(path)
     monkeypatch.setitem(KEY_NAMES, "first", "a_first")
@@ -65,7 +66,7 @@ def test_a_renamed_params_key_is_a_mismatch_naming_its_path(tmp_path, monkeypatc
     arrays["best/['a_first']"] = arrays["best/['a_first']"][:2]
     records.save(tmp_path / "short.npz", arrays, meta)
     with pytest.raises(CheckpointError, match=r"best/\['a_first'\] has shape \(2,\), the model \(3,\)"):
-        train.load_model(tmp_path / "short.npz")
+        load_model(tmp_path / "short.npz")
 
 
 def _with_meta(path, target, **changes):
@@ -81,7 +82,7 @@ def test_load_model_needs_neither_the_optimiser_nor_the_training_settings(tmp_pa
     path = tmp_path / "lgnn.npz"
     _save_initial(path, model)
     odd = _with_meta(path, tmp_path / "odd.npz", train_config={"optimiser_of_the_future": 1})
-    loaded, best = train.load_model(odd)
+    loaded, best = load_model(odd)
     assert loaded == model
     for a, b in zip(jax.tree.leaves(best), jax.tree.leaves(train.initial_state(model, train.TrainConfig()).best_params)):
         np.testing.assert_array_equal(a, b)
@@ -102,13 +103,13 @@ def test_a_model_outside_the_registry_loads_with_its_spec(tmp_path, monkeypatch)
     _save_initial(path, models.ModelConfig(spec.name))
     monkeypatch.delitem(models._REGISTRY, spec.name)  # a fresh process: the model's code not imported
     with pytest.raises(CheckpointError, match="'checkpoint-test-own' is defined outside lgnn.*pass its spec to load_model"):
-        train.load_model(path)
-    config, params = train.load_model(path, spec)
+        load_model(path)
+    config, params = load_model(path, spec)
     assert config.name == spec.name and config.spec is spec
     np.testing.assert_array_equal(params["s"], [0.5, -0.5])
     other = ModelSpec("checkpoint-test-other", init=spec.init, acceleration=_zero_acceleration)
     with pytest.raises(CheckpointError, match="a checkpoint of model 'checkpoint-test-own', not of 'checkpoint-test-other'"):
-        train.load_model(path, other)
+        load_model(path, other)
 
 
 def test_checkpoints_are_compressed_with_the_history_as_an_array(tmp_path):
@@ -162,7 +163,7 @@ def test_converted_checkpoints_roll_out_bit_identically(tmp_path):
     assert new[1]["environment"] == {"commit": "format-1"} and new[0].history == old[0].history == state.history
     for a, b in zip(jax.tree.leaves(old[0]), jax.tree.leaves(new[0])):
         np.testing.assert_array_equal(a, b)
-    runs = [models.rollout(*train.load_model(path), scene, SHORT) for path in (source / "lgnn.npz", target / "lgnn.npz")]
+    runs = [models.rollout(*load_model(path), scene, SHORT) for path in (source / "lgnn.npz", target / "lgnn.npz")]
     np.testing.assert_array_equal(runs[0].q, runs[1].q)
     np.testing.assert_array_equal(runs[0].qd, runs[1].qd)
     # Never into the source folder.
@@ -172,7 +173,7 @@ def test_converted_checkpoints_roll_out_bit_identically(tmp_path):
 
 def test_committed_format_1_checkpoints_load_their_leaves_in_flatten_order():
     path = COMMITTED / "lgnn-notebook-chain4-s0.npz"
-    model, best = train.load_model(path)
+    model, best = load_model(path)
     with np.load(path) as stored:
         for k, leaf in enumerate(jax.tree.leaves(best)):
             np.testing.assert_array_equal(leaf, stored[f"best/{k}"])
@@ -193,4 +194,4 @@ def test_a_damaged_compressed_checkpoint_is_one_line(tmp_path):
         damaged[offset] ^= 0xFF
         (tmp_path / "damaged.npz").write_bytes(bytes(damaged))
         with pytest.raises(CheckpointError, match="damaged.npz: (not a readable lgnn checkpoint|corrupt checkpoint)"):
-            train.load_model(tmp_path / "damaged.npz")
+            load_model(tmp_path / "damaged.npz")

@@ -10,6 +10,7 @@ import optax
 import pytest
 
 from lgnn.learn import data, graphs, models, train
+from lgnn.learn.checkpoints import load_model
 from lgnn import physics, records
 from lgnn.cli import main
 from lgnn.errors import CheckpointError, ConfigError
@@ -509,14 +510,14 @@ def test_corrupt_or_mismatched_checkpoint_is_one_clear_error(tmp_path):
     train.save_checkpoint(path, train.initial_state(model, config), model, config)
     (tmp_path / "short.npz").write_bytes(path.read_bytes()[:200])
     with pytest.raises(CheckpointError, match="not a readable"):
-        train.load_model(tmp_path / "short.npz")
+        load_model(tmp_path / "short.npz")
     with np.load(path) as stored:
         arrays = dict(stored)
     first = next(name for name in arrays if name.startswith("best/"))
     arrays[first] = arrays[first] + 1.0
     np.savez(tmp_path / "tampered.npz", **arrays)
     with pytest.raises(CheckpointError, match="checksum"):
-        train.load_model(tmp_path / "tampered.npz")
+        load_model(tmp_path / "tampered.npz")
     meta = json.loads(str(arrays["meta"]))
     meta["model"]["message_passing"] = 1  # arrays of an L = 0 model under L = 1 settings
     arrays[first] = arrays[first] - 1.0
@@ -524,9 +525,9 @@ def test_corrupt_or_mismatched_checkpoint_is_one_clear_error(tmp_path):
     arrays["checksum"] = records.checksum({k: v for k, v in arrays.items() if k not in ("meta", "checksum")}, str(arrays["meta"]))
     np.savez(tmp_path / "mismatch.npz", **arrays)
     with pytest.raises(CheckpointError, match="does not match"):
-        train.load_model(tmp_path / "mismatch.npz")
+        load_model(tmp_path / "mismatch.npz")
     with pytest.raises(CheckpointError, match="no such checkpoint"):
-        train.load_model(tmp_path / "missing.npz")
+        load_model(tmp_path / "missing.npz")
 
 
 # ---------------------------------------------------------------------------------

@@ -11,7 +11,6 @@ tail (free-3d) nested 5.7e-12, maximal 1.9e-11.
 import functools
 import json
 
-import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np

@@ -26,15 +26,9 @@ SCALED_TRUTH = ModelSpec(
 )
 
 
-def test_a_model_defined_outside_the_package_runs_through_the_benchmark(tmp_path):
-    config = tmp_path / "own.toml"
-    config.write_text(
-        'stages = ["train", "evaluate"]\n'
-        f'[[grid]]\nmodel = "{__name__}:SCALED_TRUTH"\ntrain_scene = "chain4"\neval_scenes = ["chain4"]\n'
-        "[training.data]\nn_trajectories = 3\nduration = 0.2\nsample_dt = 0.02\n"
-        "[training.train]\nepochs = 15\nlearning_rate = 0.05\nwarmup_steps = 1\n"
-        "[evaluate]\ninitial_conditions = 2\nduration = 0.02\n"
-    )
+def test_a_model_defined_outside_the_package_runs_through_the_benchmark(tmp_path, tiny_benchmark_config):
+    config = tiny_benchmark_config(f"{__name__}:SCALED_TRUTH", epochs=15, data_duration=0.2,
+                                   train_settings="learning_rate = 0.05\nwarmup_steps = 1\n")
     profile = grid.load_profile(config)
     out = run(profile, tmp_path / "out", progress=False)
     (job,) = grid.training_jobs(profile)

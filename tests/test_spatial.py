@@ -154,7 +154,7 @@ def maximal_coordinate_accelerations(scene, q, qd):
     n_rods = len(edges)
     size = 6 * n_rods  # (c, e) per rod
     i, j = edges.T
-    c, e = (q[i] + q[j]) / 2, (q[i] - q[j]) / lengths[:, None]
+    e = (q[i] - q[j]) / lengths[:, None]
     c_dot, e_dot = (qd[i] + qd[j]) / 2, (qd[i] - qd[j]) / lengths[:, None]
     mass = np.diag(np.repeat(np.stack([scene.masses, scene.inertias], 1), 3))  # (rod, c or e, xyz) flattened
     force = np.zeros((n_rods, 2, 3))

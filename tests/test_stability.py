@@ -32,7 +32,7 @@ from lgnn.engines.base import Trajectory
 from lgnn.cli import main
 from lgnn.errors import SceneError, SimulationError
 from lgnn.scene import scene_from_dict, scene_to_dict
-from lgnn.scene import chain, get_scene, taut_chain
+from lgnn.scene import get_scene, taut_chain
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.lagrangian import rollout_fn, simulate
 from lgnn.metrics import EXPLOSION_FACTOR, ExplosionBounds

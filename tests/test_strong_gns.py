@@ -142,18 +142,10 @@ def test_statistics_of_another_shape_than_inits_placeholders_are_refused():
         models.with_statistics(params, {"velocity_mean": jnp.zeros(3)})
 
 
-def test_a_config_grid_entry_trains_and_evaluates_the_strong_gns(tmp_path):
+def test_a_config_grid_entry_trains_and_evaluates_the_strong_gns(tmp_path, tiny_benchmark_config):
     """Not in the built-in grid yet (no committed record): a config's `[[grid]]` names it."""
     assert "gns-10-128" not in {entry.model for entry in grid.GRID}
-    config = tmp_path / "strong.toml"
-    config.write_text(
-        'stages = ["train", "evaluate"]\n'
-        '[[grid]]\nmodel = "gns-10-128"\ntrain_scene = "chain4"\neval_scenes = ["chain4"]\n'
-        "[training.data]\nn_trajectories = 3\nduration = 0.1\nsample_dt = 0.02\n"
-        "[training.train]\nepochs = 2\n"
-        "[evaluate]\ninitial_conditions = 2\nduration = 0.02\n"
-    )
-    profile = grid.load_profile(config)
+    profile = grid.load_profile(tiny_benchmark_config("gns-10-128", epochs=2))
     out = run(profile, tmp_path / "out", progress=False)
     (job,) = grid.training_jobs(profile)
     model, params = checkpoints.load_model(out / "benchmark" / "checkpoints" / f"{job.name}.npz")

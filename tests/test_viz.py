@@ -8,7 +8,7 @@ from PIL import Image
 
 from lgnn.bench import viz
 from lgnn.cli import main
-from lgnn.engines.base import SimulationConfig, Trajectory
+from lgnn.engines.base import SimulationConfig
 from lgnn.engines.lagrangian import simulate
 from lgnn.errors import ConfigError
 from lgnn.scene import get_scene

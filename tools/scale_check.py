@@ -43,7 +43,7 @@ def lgnn_t3(seconds=1.0):
     from lgnn.engines.lagrangian import simulate
     from lgnn.errors import SimulationError
     from lgnn.learn import models
-    from lgnn.learn.train import load_model
+    from lgnn.learn.checkpoints import load_model
     from lgnn.metrics import relative_error
     from lgnn.scene import get_scene
 

@@ -174,7 +174,7 @@ def rigidity(scene: Scene) -> Rigidity:
     pinned = set(scene.pinned)
     free = np.flatnonzero(np.repeat([k not in pinned for k in range(n)], d))
     links = [(int(i), int(j)) for i, j in scene.edge_index if not (i in pinned and j in pinned)]
-    jac, stress_basis = np.zeros((len(links), n * d)), []
+    jac = np.zeros((len(links), n * d))
     for row, (i, j) in enumerate(links):
         unit = (q[i] - q[j]) / np.linalg.norm(q[i] - q[j])
         jac[row, i * d:(i + 1) * d] += unit

@@ -29,7 +29,7 @@ import tomllib
 from importlib import resources
 from pathlib import Path
 
-from lgnn.errors import ConfigError, SceneError
+from lgnn.errors import ConfigError, SceneError, check_number
 from lgnn.engines import ENGINES
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.learn.data import DataConfig
@@ -80,13 +80,7 @@ def _check_numbers(group: str, settings, low: float = 0.0, **names: bool) -> Non
     for name, whole in names.items():
         value = getattr(settings, name)
         for item in value if isinstance(value, tuple) else (value,):
-            if whole:
-                good = isinstance(item, int) and not isinstance(item, bool) and item >= 1
-            else:
-                good = isinstance(item, (int, float)) and not isinstance(item, bool) and math.isfinite(item) and item > low
-            if not good:
-                kind = "a whole number >= 1" if whole else f"a finite number > {low:g}"
-                raise ConfigError(f"setting '{group}.{name}' must be {kind}, got {value!r}")
+            check_number(f"setting '{group}.{name}'", item, above=low, whole=whole)
 
 
 # ---------------------------------------------------------------------------------

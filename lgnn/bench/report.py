@@ -36,8 +36,6 @@ pandas and matplotlib are imported here only (the library's numerics do not need
 from __future__ import annotations
 
 import csv
-import io
-import json
 import math
 from pathlib import Path
 

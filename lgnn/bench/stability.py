@@ -183,11 +183,12 @@ def bad_model_checkpoint(path: str | Path, scene: Scene, scale: float) -> Path:
 def _trajectory(case: Case, scene: Scene) -> Trajectory:
     config = case.simulation
     if case.engine in ("gns-untrained", "gns-bad"):
-        from lgnn.learn import models, train
+        from lgnn.learn import models
+        from lgnn.learn.checkpoints import load_model
 
         with tempfile.TemporaryDirectory() as tmp:
             path = bad_model_checkpoint(Path(tmp) / "gns.npz", scene, 1.0 if case.engine == "gns-untrained" else BAD_MODEL_SCALE)
-            model, params = train.load_model(path)
+            model, params = load_model(path)
         return models.rollout(model, params, scene, config, integration=case.integration)
     # The default integration is every engine's own; another is the Lagrangian engine's
     # (a MuJoCo engine refuses it).

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import zipfile
 from typing import ClassVar
@@ -36,7 +35,7 @@ from typing import ClassVar
 import numpy as np
 
 from lgnn import physics
-from lgnn.errors import ConfigError
+from lgnn.errors import ConfigError, check_number
 from lgnn.files import atomic_path, check_regular_input
 from lgnn.integrate import INTEGRATORS, Integrator, Projection
 from lgnn.scene import Scene, State
@@ -68,9 +67,7 @@ class SimulationConfig:
 
     def __post_init__(self):
         for name in ("dt", "frame_dt", "duration"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"{name.replace('_', '-')} must be a positive number, got {value}")
+            check_number(name.replace("_", "-"), getattr(self, name))
         # Ratios first: a duration of 1e308 or a dt of 5e-324 overflows a count of frames.
         if not self.frame_dt / self.dt <= MAX_STEPS or not self.duration / self.frame_dt * (self.frame_dt / self.dt) <= MAX_STEPS:
             raise ConfigError(f"duration {self.duration:g} at dt {self.dt:g} is more than {MAX_STEPS:.0e} steps")

@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
-import math
 import os
 import sys
 from pathlib import Path
@@ -31,7 +29,7 @@ import numpy as np
 
 from lgnn import physics, sharding
 from lgnn import records
-from lgnn.errors import ConfigError
+from lgnn.errors import ConfigError, check_number
 from lgnn.files import user_cache_dir
 from lgnn.runtime import in_float64
 from lgnn.scene import Scene, scene_to_dict
@@ -69,9 +67,7 @@ class DataConfig:
 
     def __post_init__(self):
         for name in ("duration", "sample_dt", "dt"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"training data {name} must be a positive number, got {value}")
+            check_number(f"training data {name}", getattr(self, name))
         if self.chunk < 1:
             raise ConfigError(f"training data chunk must be >= 1, got {self.chunk}")
         if not self.duration / self.sample_dt <= MAX_STATES_PER_TRAJECTORY:

@@ -40,7 +40,7 @@ Checkpoints (`lgnn.learn.checkpoints`: leaves by pytree path, compressed) hold t
 whole training state; `load_checkpoint` rebuilds it from the model config and the
 optimiser's template, for resuming, and refuses, with one `CheckpointError` line, a
 file that is unreadable, corrupt or of another shape. Inference reads only the best
-parameters, without the optimiser (`load_model`, also importable from here).
+parameters, without the optimiser (`lgnn.learn.checkpoints.load_model`).
 """
 
 from __future__ import annotations
@@ -58,7 +58,6 @@ import numpy as np
 import optax
 
 from lgnn.learn import checkpoints, models
-from lgnn.learn.checkpoints import load_model  # noqa: F401  (callers' `train.load_model`)
 from lgnn import records
 from lgnn.learn.data import DataConfig, Dataset
 from lgnn.errors import CheckpointError, ConfigError

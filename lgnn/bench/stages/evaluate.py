@@ -57,7 +57,8 @@ from lgnn.engines.base import SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, batched_rollouts
 from lgnn.runtime import in_background
 from lgnn.errors import ConfigError, SimulationError
-from lgnn.learn import models, train
+from lgnn.learn import models
+from lgnn.learn.checkpoints import load_model
 from lgnn.scene import OWN_STATE, Scene, State, get_scene, initial_state_policy, scene_to_dict
 
 # The reference a metric is scored against unless it names an engine: the Lagrangian
@@ -380,7 +381,7 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
         # The base's models are not this run's: a pair of one without a record (there or here) is not evaluated here.
         from_base = not layout.checkpoint(pair.job).exists()
         if not from_base and not _has(layout.load(path, key), _pair_needs(profile)):
-            model, params = train.load_model(checkpoint)
+            model, params = load_model(checkpoint)
             shared = (pair.scene, pair.projected, records.digest(model.to_dict()))
             todo.setdefault(shared, []).append((pair, path, key, model, params))
     for group in todo.values():
@@ -476,7 +477,7 @@ def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
     chunk = min(profile.evaluate.chunk, len(states.q))
     first = State(states.q[:chunk], states.qd[:chunk])
     layout = store.layout(profile, out)
-    model, params = train.load_model(layout.found(layout.checkpoint(pair.job)))
+    model, params = load_model(layout.found(layout.checkpoint(pair.job)))
     config = profile.evaluate.simulation(pair.scene)
     steps = chunk * config.n_frames * config.steps_per_frame
     integration = profile.evaluate.integration

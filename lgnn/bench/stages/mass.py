@@ -23,7 +23,8 @@ from lgnn.bench.grid import Profile, TrainingJob, lgnn_job, settings_key
 from lgnn.bench.stages.evaluate import load_truth, truth_key
 from lgnn.bench.store import log
 from lgnn.errors import ConfigError
-from lgnn.learn import models, train
+from lgnn.learn import models
+from lgnn.learn.checkpoints import load_model
 from lgnn.scene import get_scene
 
 
@@ -52,7 +53,7 @@ def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob
     if truth is None:
         raise ConfigError(f"mass matrix on {scene_name}: run its evaluation stage first (the state comes from its ground truth)")
     q, qd = (jnp.asarray(a) for a in truth[0]["mid_state"])
-    model, params = train.load_model(checkpoint)
+    model, params = load_model(checkpoint)
     free = np.setdiff1d(np.arange(scene.n_nodes), scene.pinned)
     coords = (free[:, None] * scene.dim + np.arange(scene.dim)).reshape(-1)
     true_m = np.asarray(jax.jit(physics.mass_matrix_fn(physics.lagrangian_fn(scene)))(q, qd))[np.ix_(coords, coords)]

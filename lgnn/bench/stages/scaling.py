@@ -22,7 +22,8 @@ from lgnn.bench.store import log
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, timed_rollouts
 from lgnn.errors import ConfigError, SceneError, SimulationError
-from lgnn.learn import models, train
+from lgnn.learn import models
+from lgnn.learn.checkpoints import load_model
 from lgnn.scene import State, chain, get_scene, sample_initial_states, spatial_chain
 
 # Chains of n links per dimension: the planar chain and the 3D one (`spatial_chain`).
@@ -72,7 +73,7 @@ def scaling(profile: Profile, out: Path) -> Path:
     rows = []
     for dim, lengths in _lengths(profile).items():
         checkpoint, digest = _checkpoint(profile, out, dim) if lengths else (None, None)
-        model_params = train.load_model(checkpoint) if digest else None
+        model_params = load_model(checkpoint) if digest else None
         for n in lengths:
             rows += _size_rows(CHAINS[dim](n), config, profile.evaluate.integration, ic_seed, model_params)
     for name in settings.throughput_scenes:

@@ -22,7 +22,8 @@ from lgnn.bench.stages.evaluate import evaluation_initial_states
 from lgnn.bench.store import log
 from lgnn.engines.base import SimulationConfig
 from lgnn.engines.rollouts import timed_rollouts
-from lgnn.learn import models, train
+from lgnn.learn import models
+from lgnn.learn.checkpoints import load_model
 from lgnn.scene import State, get_scene, scene_to_dict
 
 
@@ -107,7 +108,7 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
         if job.name not in checkpoints:
             row(job.label, "learned", config.dt, note="no checkpoint")
             continue
-        model, params = train.load_model(layout.found(layout.checkpoint(job)))
+        model, params = load_model(layout.found(layout.checkpoint(job)))
         compile_s, run_s, runs = timed_rollouts(scene, config, models.AccelerationFactory(model), single, params,
                                                 integration=profile.evaluate.integration, repeats=settings.repeats)
         row(job.label, "learned", config.dt, run_s=run_s, compile_s=compile_s, rollout_error=metrics.gmean_error(runs.q[0], reference))
