@@ -129,6 +129,25 @@ def test_state_maps_round_trip(name, form):
         np.testing.assert_allclose(np.cos(np.asarray(qpos2) - np.asarray(qpos)), 1.0, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize(("name", "form"), [("tree", "nested"), ("free", "maximal"), ("chain4-3d", "nested"), ("chain4-3d", "maximal")])
+def test_node_velocities_are_the_sites_jacobians_times_qvel(name, form):
+    """`node_states` takes velocities from the bodies' `cvel`; MuJoCo's definition is
+    `mj_jacSite @ qvel`, per site: both at random qpos and qvel, over 3 frames."""
+    s = get_scene(name) if name == "chain4-3d" else scene(name)
+    compiled, rng = lm.compile_scene(s, 1e-4, form), np.random.default_rng(2)
+    model, data = compiled.model, mujoco.MjData(compiled.model)
+    qpos = np.stack([model.qpos0 + 0.3 * rng.normal(size=model.nq) for _ in range(3)])
+    qvel = rng.normal(size=(3, model.nv))
+    nodes, jac = lm.node_states(compiled, qpos, qvel), np.empty((3, model.nv))
+    for f in range(3):
+        data.qpos[:] = qpos[f]
+        mujoco.mj_kinematics(model, data), mujoco.mj_comPos(model, data)
+        for k, site in enumerate(compiled.node_site):
+            mujoco.mj_jacSite(model, data, jac, None, site)
+            np.testing.assert_allclose(nodes.qd[f, k], (jac @ qvel[f])[:s.dim], rtol=0, atol=1e-12)
+            np.testing.assert_array_equal(nodes.q[f, k], data.site_xpos[site, :s.dim])
+
+
 @pytest.mark.parametrize(("name", "form"), [(name, "nested") for name in ["chain4-varied", "tree", "free", "loop6", "T1"]]
                          + [(name, "maximal") for name in ["chain4-varied", "free", "T1"]])
 def test_mass_matrix_matches_kinetic_energy(name, form):

@@ -273,20 +273,28 @@ def _posed(compiled: Compiled, qpos: np.ndarray, data: mujoco.MjData | None = No
 
 def node_states(compiled: Compiled, qpos: np.ndarray, qvel: np.ndarray, data: mujoco.MjData | None = None) -> State:
     """MuJoCo states `qpos, qvel` (F, nq) -> node `q, qd` (F, N, dim), by MuJoCo's own
-    kinematics: node positions are the sites' `site_xpos`, velocities `J_site qvel`."""
+    kinematics: node positions are the sites' `site_xpos`; velocities are the sites'
+    linear velocities from their bodies' `cvel` (what `mj_objectVelocity` computes,
+    `J_site qvel`): `v + w x (site - subtree_com[root])`.
+
+    MuJoCo runs per frame (positions, then the body velocities, in C); the per-site
+    arithmetic runs once over all frames: one `mj_jacSite` call and product per node and
+    frame cost 20 s of Python on 100 x 1000 frames of a 16-link chain."""
     model = compiled.model
     data = mujoco.MjData(model) if data is None else data
     qpos, qvel = np.atleast_2d(qpos), np.atleast_2d(qvel)
-    frames, n, dim = len(qpos), compiled.scene.n_nodes, compiled.scene.dim
-    q, qd = np.empty((frames, n, dim)), np.empty((frames, n, dim))
-    jac = np.empty((3, model.nv))
+    frames, dim, sites = len(qpos), compiled.scene.dim, compiled.node_site
+    bodies = model.site_bodyid[sites]
+    roots = model.body_rootid[bodies]
+    site_x, cvel, root_com = np.empty((frames, len(sites), 3)), np.empty((frames, len(sites), 6)), np.empty((frames, len(sites), 3))
     for f in range(frames):
-        _posed(compiled, qpos[f], data)
-        q[f] = data.site_xpos[compiled.node_site, :dim]
-        for k, site in enumerate(compiled.node_site):
-            mujoco.mj_jacSite(model, data, jac, None, site)
-            qd[f, k] = jac[:dim] @ qvel[f]
-    return State(q, qd)
+        data.qpos[:], data.qvel[:] = qpos[f], qvel[f]
+        _kinematics(model, data)
+        mujoco.mj_comVel(model, data)
+        site_x[f], cvel[f], root_com[f] = data.site_xpos[sites], data.cvel[bodies], data.subtree_com[roots]
+    # cvel: (angular, linear) velocity of each body at its root's subtree centre of mass.
+    velocity = cvel[..., 3:] + np.cross(cvel[..., :3], site_x - root_com)
+    return State(site_x[..., :dim], velocity[..., :dim])
 
 
 def mass_matrix(compiled: Compiled, qpos: np.ndarray) -> np.ndarray:
