@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lgnn.physics.constraints import take_rows
 from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
 from lgnn.physics.solvers import chain_kkt_solve, regularised_spd_solve, solve_kkt, spd_solve
 from lgnn.physics.system import System, prepare
@@ -187,9 +188,9 @@ def _schur_acceleration_fn(system: System) -> AccelerationFn:
         if constraints.n_rows == 0:
             return accel_free
         u = constraints.link_directions(q)
-        rhs = jnp.sum(u * (accel_free[i] - accel_free[j]), -1) + constraints.link_speed_terms(qd)
+        rhs = jnp.sum(u * (take_rows(accel_free, i) - take_rows(accel_free, j)), -1) + constraints.link_speed_terms(qd)
         minv_at = jnp.einsum("ndke,ke->ndk", jnp.asarray(inverse_at_links, dtype), u)
-        schur = jnp.einsum("ke,kel->kl", u, minv_at[i] - minv_at[j])
+        schur = jnp.einsum("ke,kel->kl", u, take_rows(minv_at, i) - take_rows(minv_at, j))
         lam = solve(schur, rhs)
         return accel_free - jnp.einsum("ndk,k->nd", minv_at, lam)
 

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.integrate import compensated_add
+from lgnn.physics.constraints import add_rows, take_rows
 from lgnn.physics.energies import Array
 from lgnn.physics.solvers import refine
 from lgnn.physics.system import prepare
@@ -67,10 +68,10 @@ def projection_fn(scene: Scene, iterations: int = 4) -> Callable[..., tuple[Arra
 
     def transpose_times(u, lam):
         force = u * lam[:, None]
-        return jnp.zeros(constraints.shape, u.dtype).at[i].add(force).at[j].add(-force) * jnp.asarray(free_nodes, u.dtype)
+        return add_rows(add_rows(jnp.zeros(constraints.shape, u.dtype), i, force), j, -force) * jnp.asarray(free_nodes, u.dtype)
 
     def times(u, v):
-        return jnp.sum(u * (v[i] - v[j]), -1)
+        return jnp.sum(u * (take_rows(v, i) - take_rows(v, j)), -1)
 
     def project(q, qd, q_low=None):
         low = None if q_low is None else q_low * jnp.asarray(free_nodes, q.dtype)

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn.physics.constraints import Constraints
+from lgnn.physics.constraints import Constraints, add_rows, take_rows
 
 Array = jax.Array
 
@@ -311,9 +311,9 @@ class LinkGram:
     def solve_fn(self, u: Array, shift: float) -> Callable[[Array], Array]:
         """`r -> (G + shift I)^-1 r` (K,) at link directions `u` (K, D), factored once."""
         diag = jnp.asarray(self.free_ends, u.dtype) * jnp.sum(u * u, -1) + shift
-        off = jnp.asarray(self.sign, u.dtype) * jnp.sum(u[self.first] * u[self.second], -1)
+        off = jnp.asarray(self.sign, u.dtype) * jnp.sum(take_rows(u, self.first) * take_rows(u, self.second), -1)
         if self.tridiagonal:
-            upper = jnp.zeros_like(diag).at[self.first].add(off)
+            upper = add_rows(jnp.zeros_like(diag), self.first, off)
             lower = jnp.roll(upper, 1)
             return lambda r: spd_tridiagonal_solve(lower, diag, upper, r[:, None])[:, 0]
         gram = jnp.diag(diag).at[self.first, self.second].add(off).at[self.second, self.first].add(off)
