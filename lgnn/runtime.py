@@ -21,8 +21,9 @@ appended to whatever `XLA_FLAGS` holds.
 
 `enable_compilation_cache()`, called by the command line only (never on import, never
 by the tests unless one asks), keeps JAX's compiled programs on disk
-(`compilation_cache_dir`: `$LGNN_JAX_CACHE`, else `$XDG_CACHE_HOME/lgnn/jax`, else
-`~/.cache/lgnn/jax`; `LGNN_JAX_CACHE=off` for none), so a second `lgnn simulate` of a
+(`compilation_cache_dir`: `$LGNN_JAX_CACHE`, else `jax/` in lgnn's cache directory,
+`lgnn.files.user_cache_dir`: `$LGNN_CACHE`, else `$XDG_CACHE_HOME/lgnn`, else
+`~/.cache/lgnn`; `LGNN_JAX_CACHE=off` for none), so a second `lgnn simulate` of a
 scene skips its seconds of compilation. JAX keys an entry on the program, its dtypes and
 matmul precision, the XLA flags and the jaxlib version, so another precision or flag
 setting compiles its own. A directory that cannot be created or written (a read-only
@@ -90,8 +91,9 @@ def compilation_cache_dir() -> str | None:
     value = os.environ.get(COMPILATION_CACHE_ENV)
     if value is not None:
         return None if value.strip().lower() in ("", "0", "off", "none") else os.path.expanduser(value)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "lgnn", "jax")
+    from lgnn.files import user_cache_dir
+
+    return os.path.join(user_cache_dir(), "jax")
 
 
 def enable_compilation_cache() -> str | None:

@@ -15,6 +15,7 @@ def test_cache_directory_from_the_environment(monkeypatch, tmp_path):
         monkeypatch.setenv(COMPILATION_CACHE_ENV, off)
         assert compilation_cache_dir() is None and enable_compilation_cache() is None
     monkeypatch.delenv(COMPILATION_CACHE_ENV)
+    monkeypatch.delenv("LGNN_CACHE", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     assert compilation_cache_dir() == os.path.join(str(tmp_path), "lgnn", "jax")
 
