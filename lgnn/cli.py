@@ -869,9 +869,13 @@ def _interrupt_main_later() -> None:
 
 
 def _run(argv: list[str] | None) -> int:
-    from lgnn.runtime import accept_interrupts_if_child, configure
+    from lgnn.runtime import accept_interrupts_if_child, configure, enable_compilation_cache
 
     configure()  # first: before numpy and JAX load (thread counts, XLA flags, float64)
+    if argv is None:
+        # The process's own command (not a caller's `main([...])`, e.g. a test): compiled
+        # programs kept on disk (`lgnn.runtime.compilation_cache_dir`).
+        enable_compilation_cache()
     accept_interrupts_if_child()
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]

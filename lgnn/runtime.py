@@ -19,6 +19,16 @@ before they compute anything (docs/engines.md, "Precision"):
 A setting the user made in the environment wins over the thread count; the XLA flag is
 appended to whatever `XLA_FLAGS` holds.
 
+`enable_compilation_cache()`, called by the command line only (never on import, never
+by the tests unless one asks), keeps JAX's compiled programs on disk
+(`compilation_cache_dir`: `$LGNN_JAX_CACHE`, else `jax/` in lgnn's cache directory,
+`lgnn.files.user_cache_dir`: `$LGNN_CACHE`, else `$XDG_CACHE_HOME/lgnn`, else
+`~/.cache/lgnn`; `LGNN_JAX_CACHE=off` for none), so a second `lgnn simulate` of a
+scene skips its seconds of compilation. JAX keys an entry on the program, its dtypes and
+matmul precision, the XLA flags and the jaxlib version, so another precision or flag
+setting compiles its own. A directory that cannot be created or written (a read-only
+home) means no cache, said in one debug log line.
+
 Precision is not left to that process-wide switch: `import lgnn` must change nothing
 outside the package, yet a script that never calls `configure()` must not get float32
 ground truth silently (JAX's default; a 4-link chain then drifts its energy by 7.8e-5
@@ -67,6 +77,46 @@ def configure(*, x64: bool = True) -> None:
     import jax
 
     jax.config.update("jax_enable_x64", x64)
+
+
+COMPILATION_CACHE_ENV = "LGNN_JAX_CACHE"
+# Programs that compile faster than this are not written to the cache (JAX's default,
+# 1 s, would leave out a small scene's start program).
+CACHE_MIN_COMPILE_S = 0.2
+
+
+def compilation_cache_dir() -> str | None:
+    """Where `enable_compilation_cache` keeps compiled programs (module docstring), or
+    None where `LGNN_JAX_CACHE` turns it off ("off", "0", "none" or empty)."""
+    value = os.environ.get(COMPILATION_CACHE_ENV)
+    if value is not None:
+        return None if value.strip().lower() in ("", "0", "off", "none") else os.path.expanduser(value)
+    from lgnn.files import user_cache_dir
+
+    return os.path.join(user_cache_dir(), "jax")
+
+
+def enable_compilation_cache() -> str | None:
+    """Turn JAX's persistent compilation cache on at `compilation_cache_dir()`; returns
+    the directory, or None where it is off or cannot be written (then silently off)."""
+    import logging
+
+    directory = compilation_cache_dir()
+    if directory is None:
+        return None
+    try:
+        os.makedirs(directory, exist_ok=True)
+        writable = os.access(directory, os.W_OK | os.X_OK)
+    except OSError:
+        writable = False
+    if not writable:
+        logging.getLogger(__name__).debug("no compilation cache: %s cannot be written", directory)
+        return None
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", directory)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_S)
+    return directory
 
 
 def accept_interrupts_if_child() -> None:

@@ -38,6 +38,40 @@ Array = jax.Array
 RANK_TOLERANCE = 1e-9
 
 
+def _span(index: np.ndarray) -> tuple[int, int] | None:
+    """`(start, stop)` where the static `index` is the contiguous range start..stop-1
+    (a chain's links and ends, its free coordinates), else None."""
+    index = np.asarray(index)
+    if index.ndim != 1 or len(index) == 0 or not np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return None
+    return int(index[0]), int(index[0]) + len(index)
+
+
+# Static indices as slices where they are contiguous: on a small scene XLA's gathers
+# and scatters cost more than the arithmetic around them (chain12 on a CPU), and a
+# slice or a pad is exactly the same values.
+def take_rows(x: Array, index: np.ndarray) -> Array:
+    """`x[index]` along the first axis, for a static `index`."""
+    span = _span(index)
+    return x[index] if span is None else x[span[0] : span[1]]
+
+
+def add_rows(x: Array, index: np.ndarray, values: Array) -> Array:
+    """`x.at[index].add(values)` for a static `index` (repeated indices accumulate)."""
+    span = _span(index)
+    if span is None:
+        return x.at[index].add(values)
+    return x + jnp.pad(values, [(span[0], x.shape[0] - span[1])] + [(0, 0)] * (x.ndim - 1))
+
+
+def set_rows(x: Array, index: np.ndarray, values: Array) -> Array:
+    """`x.at[index].set(values)` for a static `index` without repeats."""
+    span = _span(index)
+    if span is None:
+        return x.at[index].set(values)
+    return jnp.concatenate([x[: span[0]], values, x[span[1] :]])
+
+
 class Constraints:
     """The scene's independent link-length constraints over the free coordinates.
 
@@ -105,16 +139,16 @@ class Constraints:
 
     def embed(self, x: Array) -> Array:
         """Free coordinates (F,) -> positions (N, D) with pinned nodes at their pins."""
-        full = jnp.asarray(self.pin_positions, x.dtype).ravel().at[self.free].set(x)
+        full = set_rows(jnp.asarray(self.pin_positions, x.dtype).ravel(), self.free, x)
         return full.reshape(self.shape)
 
     def embed_velocity(self, v: Array) -> Array:
         """Free velocities (F,) -> node velocities (N, D), zero at the pins."""
-        return jnp.zeros(self.shape[0] * self.shape[1], v.dtype).at[self.free].set(v).reshape(self.shape)
+        return set_rows(jnp.zeros(self.shape[0] * self.shape[1], v.dtype), self.free, v).reshape(self.shape)
 
     def restrict(self, full: Array) -> Array:
         """(N, D) -> free coordinates (F,)."""
-        return full.reshape(-1)[self.free]
+        return take_rows(full.reshape(-1), self.free)
 
     def link_vectors(self, q: Array, q_low: Array | None = None) -> Array:
         """(K, D) `q_i - q_j` of the kept links at positions `q` (N, D), plus the
@@ -122,8 +156,8 @@ class Constraints:
         (`integrate.compensated_add`): a link's vector is then as accurate as its own
         length allows, not only as the positions' larger scale does."""
         i, j = self.edge_index[self.links].T
-        dq = q[i] - q[j]
-        return dq if q_low is None else dq + (q_low[i] - q_low[j])
+        dq = take_rows(q, i) - take_rows(q, j)
+        return dq if q_low is None else dq + (take_rows(q_low, i) - take_rows(q_low, j))
 
     def link_residual(self, q: Array, q_low: Array | None = None) -> Array:
         """Phi (K,) at node positions `q` (N, D) (plus `q_low`, see `link_vectors`):
@@ -135,7 +169,7 @@ class Constraints:
     def link_speed_terms(self, qd: Array) -> Array:
         """`Adot v` at node velocities `qd` (N, D): `|dv|^2 / l` per kept link."""
         i, j = self.edge_index[self.links].T
-        dv = qd[i] - qd[j]
+        dv = take_rows(qd, i) - take_rows(qd, j)
         return jnp.sum(dv * dv, -1) / jnp.asarray(self.lengths_all[self.links], qd.dtype)
 
     def link_directions(self, q: Array, q_low: Array | None = None) -> Array:

@@ -45,8 +45,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lgnn.physics.constraints import take_rows
 from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
-from lgnn.physics.solvers import chain_kkt_solve, regularised_spd_solve, solve_kkt
+from lgnn.physics.solvers import chain_kkt_solve, regularised_spd_solve, solve_kkt, spd_solve
 from lgnn.physics.system import System, prepare
 from lgnn.runtime import full_precision_matmuls
 from lgnn.scene import Scene
@@ -169,8 +170,11 @@ def _schur_acceleration_fn(system: System) -> AccelerationFn:
     """The "schur" solver of `true_acceleration_fn`: `a = M^-1 (f - A^T lam)` with
     `(A M^-1 A^T) lam = A M^-1 f + Adot v`, `M` constant (inverted once, in NumPy).
     `A M^-1 A^T` is assembled from `M^-1`'s columns at each link's two nodes, so a call
-    costs O(K N D^2) for the products plus the K x K Cholesky."""
+    costs O(K N D^2) for the products plus the K x K Cholesky. A pinned chain's
+    rows are always independent, so its Schur complement is solved as it is
+    (`solvers.spd_solve`), any other scene's regularised and refined."""
     constraints = system.constraints
+    solve = spd_solve if system.is_pinned_chain else regularised_spd_solve
     inverse = system.schur_inverse
     forces = _node_forces_fn(system)
     i, j = constraints.edge_index[constraints.links].T
@@ -184,10 +188,10 @@ def _schur_acceleration_fn(system: System) -> AccelerationFn:
         if constraints.n_rows == 0:
             return accel_free
         u = constraints.link_directions(q)
-        rhs = jnp.sum(u * (accel_free[i] - accel_free[j]), -1) + constraints.link_speed_terms(qd)
+        rhs = jnp.sum(u * (take_rows(accel_free, i) - take_rows(accel_free, j)), -1) + constraints.link_speed_terms(qd)
         minv_at = jnp.einsum("ndke,ke->ndk", jnp.asarray(inverse_at_links, dtype), u)
-        schur = jnp.einsum("ke,kel->kl", u, minv_at[i] - minv_at[j])
-        lam = regularised_spd_solve(schur, rhs)
+        schur = jnp.einsum("ke,kel->kl", u, take_rows(minv_at, i) - take_rows(minv_at, j))
+        lam = solve(schur, rhs)
         return accel_free - jnp.einsum("ndk,k->nd", minv_at, lam)
 
     return accel

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.integrate import compensated_add
+from lgnn.physics.constraints import add_rows, take_rows
 from lgnn.physics.energies import Array
 from lgnn.physics.solvers import refine
 from lgnn.physics.system import prepare
@@ -50,7 +51,7 @@ def projection_fn(scene: Scene, iterations: int = 4) -> Callable[..., tuple[Arra
     along a self-stress diverges). Pins are exact by construction.
 
     With `q_low` the link vectors include it and the corrections are added to it with
-    compensation, so the projection works at the accuracy of the links' own lengths:
+    compensation (without it, plainly: float64 rollouts carry none), so the projection works at the accuracy of the links' own lengths:
     from positions rounded to their scale (float32 at 12 m: ulp 1e-6) it would move
     the structure by that much each step (chain16, 100 RK4 steps in float32: 3.3e-6
     from float64 with compensated RK4 sums alone, 8.3e-7 with this).
@@ -67,13 +68,13 @@ def projection_fn(scene: Scene, iterations: int = 4) -> Callable[..., tuple[Arra
 
     def transpose_times(u, lam):
         force = u * lam[:, None]
-        return jnp.zeros(constraints.shape, u.dtype).at[i].add(force).at[j].add(-force) * jnp.asarray(free_nodes, u.dtype)
+        return add_rows(add_rows(jnp.zeros(constraints.shape, u.dtype), i, force), j, -force) * jnp.asarray(free_nodes, u.dtype)
 
     def times(u, v):
-        return jnp.sum(u * (v[i] - v[j]), -1)
+        return jnp.sum(u * (take_rows(v, i) - take_rows(v, j)), -1)
 
     def project(q, qd, q_low=None):
-        low = jnp.zeros_like(q) if q_low is None else q_low * jnp.asarray(free_nodes, q.dtype)
+        low = None if q_low is None else q_low * jnp.asarray(free_nodes, q.dtype)
         if constraints.n_rows == 0:
             q, qd = constraints.embed(constraints.restrict(q)), constraints.embed_velocity(constraints.restrict(qd))
             return (q, qd) if q_low is None else (q, qd, low)
@@ -82,7 +83,11 @@ def projection_fn(scene: Scene, iterations: int = 4) -> Callable[..., tuple[Arra
         qd = qd * jnp.asarray(free_nodes, qd.dtype)
         for _ in range(iterations):
             u = constraints.link_directions(q, low)
-            q, low = compensated_add(q, low, -transpose_times(u, gram.solve_fn(u, shift)(constraints.link_residual(q, low))))
+            correction = -transpose_times(u, gram.solve_fn(u, shift)(constraints.link_residual(q, low)))
+            if low is None:
+                q = q + correction
+            else:
+                q, low = compensated_add(q, low, correction)
         u = constraints.link_directions(q, low)
         solve = gram.solve_fn(u, shift)
         # The velocity's defect is `A qd`; its correction the minimum-norm `-A^T G^-1 A qd`.

@@ -1,0 +1,33 @@
+"""The persistent compilation cache: where it lives, how it is turned off, and that an
+unwritable place means no cache rather than an error (`lgnn.runtime`)."""
+
+import os
+
+import jax
+
+from lgnn.runtime import COMPILATION_CACHE_ENV, compilation_cache_dir, enable_compilation_cache
+
+
+def test_cache_directory_from_the_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv(COMPILATION_CACHE_ENV, str(tmp_path / "mine"))
+    assert compilation_cache_dir() == str(tmp_path / "mine")
+    for off in ("off", "0", "", "none"):
+        monkeypatch.setenv(COMPILATION_CACHE_ENV, off)
+        assert compilation_cache_dir() is None and enable_compilation_cache() is None
+    monkeypatch.delenv(COMPILATION_CACHE_ENV)
+    monkeypatch.delenv("LGNN_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert compilation_cache_dir() == os.path.join(str(tmp_path), "lgnn", "jax")
+
+
+def test_unwritable_cache_directory_means_no_cache(monkeypatch):
+    monkeypatch.setenv(COMPILATION_CACHE_ENV, "/proc/lgnn-cannot-be-here/jax")
+    before = jax.config.jax_compilation_cache_dir
+    assert enable_compilation_cache() is None
+    assert jax.config.jax_compilation_cache_dir == before
+
+
+def test_tests_run_without_a_cache():
+    # tests/conftest.py turns it off for the tests and the processes they start.
+    assert os.environ[COMPILATION_CACHE_ENV] == "off"
+    assert not jax.config.jax_compilation_cache_dir
