@@ -624,7 +624,7 @@ def _cmd_benchmark(args) -> None:
                     + [arg for value in args.add_model or () for arg in ("--add-model", value)]
                     + (["--with-results", args.with_results] if args.with_results else []))
     out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet,
-              workers=args.workers, profile_argv=profile_argv, command="lgnn " + " ".join(args.argv))
+              workers=args.workers, profile_argv=profile_argv, command="lgnn " + " ".join(args.argv), executor=args.executor, address=args.address)
     if "report" in (stages or profile.stages or STAGES):
         print((out / "README.md").read_text())
     print(f"wrote {out}/")
@@ -632,7 +632,7 @@ def _cmd_benchmark(args) -> None:
 
 def _add_benchmark_parser(commands) -> None:
     from lgnn.bench import grid
-    from lgnn.bench.run import STAGES
+    from lgnn.bench.run import EXECUTORS, STAGES
 
     parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
     parser.add_argument("--full", action="store_true", help="the full profile (default: the quick one, minutes on a laptop)")
@@ -658,6 +658,11 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--workers", type=_positive_int, default=1,
                         help="train each model group and evaluate each (scene, model) in this many processes at once (a GPU or a "
                              "many-core CPU; logs under OUT/benchmark/logs/)")
+    parser.add_argument("--executor", choices=EXECUTORS, default="local",
+                        help="where training groups and evaluation parts run: local (child processes of this machine, with --workers > 1) "
+                             "or ray (tasks of a Ray cluster, --workers at once; needs pip install 'lgnn[ray]'; docs/cluster.md)")
+    parser.add_argument("--address", default=None,
+                        help="with --executor ray: the Ray cluster, auto (this node's) or HOST:PORT (default: start Ray on this machine)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_benchmark)
 

@@ -46,6 +46,7 @@ from __future__ import annotations
 import functools
 import os
 import signal
+import sys
 import threading
 from typing import Callable, ContextManager
 
@@ -55,6 +56,12 @@ OPENBLAS_THREADS = "1"
 # Set in the environment of `lgnn benchmark --workers`' child processes
 # (`lgnn.bench.parallel`), which their parent stops with SIGINT.
 BENCHMARK_CHILD = "LGNN_BENCHMARK_CHILD"
+# The pid of a benchmark child's parent that must not outlive it: set by a Ray task
+# (`lgnn.bench.ray_executor`) for its child, so that a task whose worker dies (Ray then
+# retries it) leaves no orphan computing on.
+STOP_WITH_PARENT = "LGNN_STOP_WITH_PARENT"
+# prctl's option that signals a process when its parent dies (Linux).
+PR_SET_PDEATHSIG = 1
 XLA_SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 # XLA:CPU compiles a program's LLVM module in parallel parts by default. Test workers
 # compiling the batched rollout programs (`lgnn.engines.rollouts`) were aborted inside
@@ -128,6 +135,15 @@ def accept_interrupts_if_child() -> None:
     minute later without saving its checkpoint."""
     if os.environ.get(BENCHMARK_CHILD) == "1":
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        parent = os.environ.get(STOP_WITH_PARENT)
+        if parent and sys.platform.startswith("linux"):
+            # Stopped as by its parent (SIGINT: a training child saves its checkpoint and
+            # releases its claims) when the parent dies; already orphaned: stopped now.
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGINT)
+            if os.getppid() != int(parent):
+                raise KeyboardInterrupt
 
 
 def precision(dtype: str = "float64") -> ContextManager:

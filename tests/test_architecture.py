@@ -172,3 +172,12 @@ def test_configure_sets_up_the_process():
     env = {key: value for key, value in os.environ.items() if key not in ("XLA_FLAGS", "OPENBLAS_NUM_THREADS")}
     out = subprocess.run([sys.executable, "-c", script], env=env, cwd=PACKAGE.parent, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["1", "--xla_cpu_enable_concurrency_optimized_scheduler=false", "--xla_cpu_parallel_codegen_split_count=1", "True"]
+
+
+def test_ray_is_imported_only_to_run_on_ray():
+    """The command line, the benchmark's runner and even the Ray executor's module load
+    no Ray: only a run with `--executor ray` imports it (`ray_executor.connected`)."""
+    script = ("import sys, lgnn, lgnn.cli; lgnn.cli.build_parser(); import lgnn.bench.run, lgnn.bench.ray_executor; "
+              "print('ray' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", script], cwd=PACKAGE.parent, capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "False"

@@ -222,6 +222,18 @@ def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_on
     assert "unknown training job 'no-such-job'" in (bench / "logs" / "train-nonsense.log").read_text()
 
 
+def test_benchmark_on_ray_without_ray_installed_is_one_line(capsys, tmp_path, monkeypatch):
+    """`--executor ray` without Ray fails at once, one line saying how to install it;
+    `--address` without `--executor ray` is refused likewise."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
+    code, _, err = run(capsys, "benchmark", "--executor", "ray", "--stage", "train", "--out-dir", tmp_path, "--quiet")
+    assert code == 2 and err.count("\n") == 1 and "pip install 'lgnn[ray]'" in err, err
+    code, _, err = run(capsys, "benchmark", "--address", "auto", "--stage", "train", "--out-dir", tmp_path, "--quiet")
+    assert code == 2 and err.count("\n") == 1 and "--executor ray" in err, err
+
+
 def test_workers_share_a_gpu_through_a_private_mps_daemon_stopped_afterwards(tmp_path, monkeypatch, capsys):
     """`gpu_sharing` (a stand-in `nvidia-cuda-mps-control` on the PATH records its
     calls): a daemon is started with a private pipe directory that the children's

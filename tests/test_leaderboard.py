@@ -63,7 +63,7 @@ def test_a_researchers_model_is_ranked_beside_committed_results_read_in_place(tm
     assert _files(base) == before
     # The researcher's outputs only in their folder: their checkpoint and pair record; the
     # committed checkpoint, pair record and ground-truth record (same key) reused in place.
-    mine = [name for name in _files(out) if not name.endswith(".lock")]  # parallel workers' locks (`store.exclusive`), no records
+    mine = _files(out)  # no claim left (`lgnn.bench.claims`: removed as their blocks end)
     assert "benchmark/checkpoints/scaled-leaderboard-chain4-s0.npz" in mine
     assert "benchmark/runs/scaled-leaderboard-chain4-s0/chain4.npz" in mine
     assert not any(name.startswith(("benchmark/checkpoints/cheat", "benchmark/runs/cheat", "benchmark/runs/ground-truth")) for name in mine)

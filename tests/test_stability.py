@@ -26,6 +26,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from lgnn.learn import data, models, train
+from lgnn.learn.checkpoints import load_model
 from lgnn import physics, records
 from lgnn.bench import stability
 from lgnn.engines.base import Trajectory
@@ -489,7 +490,7 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     resumed, _ = train.load_checkpoint(ckpt)
     assert resumed.epoch == killed.epoch + 5 and len(resumed.history) == resumed.epoch
     assert resumed.history[0][1] == -1.0 and resumed.history[1 : killed.epoch] == killed.history[1:]
-    train.load_model(ckpt)
+    load_model(ckpt)
 
 
 def test_killed_benchmark_keeps_its_finished_records_and_resumes(tmp_path):

@@ -45,12 +45,30 @@ STOP_GRACE_S = 60.0
 def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int) -> None:
     """Run `lgnn benchmark PROFILE_ARGV --stage STAGE --out-dir OUT ARGS` for each part
     (`{name: ARGS}`, e.g. `["--job", "gns-chain4-s0", ...]`), `workers` at a time."""
+    logs = logs_folder(out)
+    with gpu_sharing(child_environment(os.environ), enabled=workers > 1 and len(parts) > 1) as env:
+        _run_parts(stage, parts, profile_argv, out, workers, env, logs)
+
+
+def logs_folder(out: Path) -> Path:
+    """Where the parts' logs go (`<stage>-<part>.log`), created."""
     logs = Layout(out).bench / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "false"), BENCHMARK_CHILD: "1"}
+    return logs
+
+
+def child_arguments(stage: str, profile_argv: list[str], out: Path, args: list[str]) -> list[str]:
+    """The arguments of `python -m lgnn.cli` that run one part of `stage` (`args`:
+    its `--job`s and `--scene`)."""
+    return ["benchmark", *profile_argv, "--stage", stage, "--out-dir", str(out), "--quiet", *args]
+
+
+def child_environment(environ) -> dict:
+    """A part's process environment: `environ`, marked a benchmark child, without
+    preallocating GPU memory (parts share the device)."""
+    env = {**environ, "XLA_PYTHON_CLIENT_PREALLOCATE": environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "false"), BENCHMARK_CHILD: "1"}
     env.pop("XLA_PYTHON_CLIENT_MEM_FRACTION", None)  # a fraction each would over-commit the device
-    with gpu_sharing(env, enabled=workers > 1 and len(parts) > 1) as env:
-        _run_parts(stage, parts, profile_argv, out, workers, env, logs)
+    return env
 
 
 def _run_parts(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int, env: dict, logs: Path) -> None:
@@ -81,7 +99,7 @@ def _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, run
     while waiting or running:
         while waiting and len(running) < workers:
             name, args = waiting.pop(0)
-            command = [sys.executable, "-m", "lgnn.cli", "benchmark", *profile_argv, "--stage", stage, "--out-dir", str(out), "--quiet", *args]
+            command = [sys.executable, "-m", "lgnn.cli", *child_arguments(stage, profile_argv, out, args)]
             path = logs / f"{stage}-{file_name(name)}.log"
             handle = path.open("w")
             running[name] = (subprocess.Popen(command, stdout=handle, stderr=subprocess.STDOUT, env=env), handle, path)

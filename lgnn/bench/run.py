@@ -9,7 +9,8 @@ built-in). Stages are resumable: each output is a record written atomically, reu
 when the settings it was made with match, redone otherwise; so stages may run apart,
 on several machines, and be assembled by the report. With `workers` > 1 the training
 groups and the evaluation (scene, model) parts run in that many child processes at
-once (`lgnn.bench.parallel`).
+once (`lgnn.bench.parallel`), or, with the "ray" executor, as tasks of a Ray cluster
+(`lgnn.bench.ray_executor`).
 
 With a profile's `base` (a results folder read in place, `lgnn.bench.store.layout`),
 `run` runs `BASE_STAGES` unless told otherwise: what puts a model beside the base's
@@ -18,6 +19,7 @@ rows; the base's speed, scaling and mass records are read, not remade.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from pathlib import Path
 from typing import Any, Callable
@@ -52,6 +54,23 @@ class StageRun:
     # The command that asked for this run, as the report's header names it (None: a
     # call of `run` from Python).
     command: str | None = None
+    # Where split parts run: "local" (child processes, `lgnn.bench.parallel`) or "ray"
+    # (Ray tasks, `lgnn.bench.ray_executor`; parts split even with one worker).
+    executor: str = "local"
+
+    @property
+    def split(self) -> bool:
+        """Whether training and evaluation run as parts (child processes or Ray tasks)."""
+        return self.workers > 1 or self.executor == "ray"
+
+    def run_split(self, stage: str, parts: dict[str, list[str]]) -> None:
+        """Run `parts` of `stage` on this run's executor."""
+        if self.executor == "ray":
+            from lgnn.bench import ray_executor
+
+            ray_executor.run_split(stage, parts, self.profile_argv, self.out, self.workers)
+        else:
+            run_split(stage, parts, self.profile_argv, self.out, self.workers)
 
     def keeps(self, scene: str) -> bool:
         """Whether a stage's scene is selected (every scene unless `--scene` named some)."""
@@ -75,13 +94,12 @@ class Stage:
 
 def _train(request: StageRun) -> None:
     profile, out = request.profile, request.out
-    if request.workers > 1:
+    if request.split:
         groups: dict[str, list[str]] = {}
         for job in request.jobs:
             groups.setdefault(f"{job.model}-{job.scene}", []).append(job.name)
         prepare_datasets(profile, request.jobs, out, request.progress)
-        run_split("train", {name: [a for j in names for a in ("--job", j)] for name, names in groups.items()}, request.profile_argv, out,
-                  request.workers)
+        request.run_split("train", {name: [a for j in names for a in ("--job", j)] for name, names in groups.items()})
     else:
         train_jobs(profile, request.jobs, out, request.progress)
 
@@ -89,7 +107,7 @@ def _train(request: StageRun) -> None:
 def _evaluate(request: StageRun) -> None:
     profile, out = request.profile, request.out
     by_scene = {scene: _seed_groups(profile, scene, request.jobs) for scene in request.scenes}
-    if request.workers > 1:
+    if request.split:
         # One part per (scene, model's seeds); scenes interleaved, so the first parts
         # to start compute different scenes' ground truths (`ground_truth`: one
         # process computes a scene's, the others wait and read it).
@@ -99,7 +117,7 @@ def _evaluate(request: StageRun) -> None:
                 if rank < len(groups):
                     name, pairs = groups[rank]
                     parts[f"{scene}-{name}"] = ["--scene", scene, *(a for j in dict.fromkeys(p.job.name for p in pairs) for a in ("--job", j))]
-        run_split("evaluate", parts, request.profile_argv, out, request.workers)
+        request.run_split("evaluate", parts)
     else:
         for scene, groups in by_scene.items():
             # The models first: their rollouts run while the scene's ground truth is
@@ -144,6 +162,9 @@ STAGES: dict[str, Stage] = {
 }
 
 
+# Where split parts run (`lgnn benchmark --executor`): child processes of this machine, or Ray tasks.
+EXECUTORS = ("local", "ray")
+
 # The stages a run with a `base` folder runs unless told otherwise.
 BASE_STAGES = ("train", "evaluate", "report")
 
@@ -159,15 +180,22 @@ def register_stage(stage: Stage) -> None:
 
 
 def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] | None = None, scenes: list[str] | None = None,
-        progress: bool = True, workers: int = 1, profile_argv: list[str] | None = None, command: str | None = None) -> Path:
+        progress: bool = True, workers: int = 1, profile_argv: list[str] | None = None, command: str | None = None,
+        executor: str = "local", address: str | None = None) -> Path:
     """Run the chosen stages of the benchmark (default: the profile's `stages`, else
     `BASE_STAGES` with a `base` folder, else all of `STAGES`), in registry order,
     restricted to the named training jobs and evaluation scenes when given; returns the
     output directory. With `workers` > 1, training (one part per model and training
     scene) and evaluation (one part per scene and model's seeds) run in child `lgnn
     benchmark` processes given `profile_argv`, the arguments that select this profile.
+    `executor` "ray": those processes run as Ray tasks (`lgnn.bench.ray_executor`; on
+    the cluster at `address`, else a Ray started for the run), whatever `workers`.
     `command`: what the report's header says wrote it."""
-    if workers > 1 and profile_argv is None:
+    if executor not in EXECUTORS:
+        raise ConfigError(f"unknown executor {executor!r} (choose from {', '.join(EXECUTORS)})")
+    if address is not None and executor != "ray":
+        raise ConfigError("--address names a Ray cluster: give it with --executor ray")
+    if (workers > 1 or executor == "ray") and profile_argv is None:
         raise ConfigError("parallel workers need the profile's command-line arguments (profile_argv)")
     stages = stages or profile.stages or (BASE_STAGES if profile.base is not None else tuple(STAGES))
     out = Path(out) if out is not None else default_out(profile)
@@ -184,12 +212,23 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
         if name not in evaluation_scenes(profile):
             raise ConfigError(f"scene {name!r} is not evaluated in the {profile.name} profile (choose from {', '.join(evaluation_scenes(profile))})")
     request = StageRun(profile, out, [j for j in all_jobs if not jobs or j.name in jobs],
-                       [s for s in evaluation_scenes(profile) if not scenes or s in scenes], bool(scenes), progress, workers, profile_argv, command)
+                       [s for s in evaluation_scenes(profile) if not scenes or s in scenes], bool(scenes), progress, workers, profile_argv, command,
+                       executor)
     out.mkdir(parents=True, exist_ok=True)
-    for stage in list(STAGES.values()):
-        if stage.name in stages:
-            stage.run(request)
+    with _executor_session(executor, address):
+        for stage in list(STAGES.values()):
+            if stage.name in stages:
+                stage.run(request)
     return out
+
+
+def _executor_session(executor: str, address: str | None):
+    """For the whole run: connected to Ray (`ray_executor.connected`) with "ray"."""
+    if executor == "ray":
+        from lgnn.bench import ray_executor
+
+        return ray_executor.connected(address)
+    return contextlib.nullcontext()
 
 
 def _seed_groups(profile: Profile, scene: str, jobs: list[TrainingJob]) -> list[tuple[str, list[Pair]]]:

@@ -5,8 +5,8 @@ the stage records; datasets under `<out>/datasets/`. Every record is an `lgnn.re
 record (arrays) or JSON record whose meta holds the settings `key` it was made with
 (`lgnn.bench.stages`). `load` and `load_json` return a record only if it is whole and
 has the wanted key: an absent or stale one is None (recomputed), a damaged one too,
-with a warning on stderr. Progress goes to stderr (`log`). `exclusive` lets parallel
-workers compute a record they share once.
+with a warning on stderr. Progress goes to stderr (`log`). Processes that share the
+folder claim a record before computing it (`lgnn.bench.claims`), so each is computed once.
 
 A profile's `base` (e.g. the committed `results/`) is a second folder of the same
 layout, read in place and never written (`layout(profile, out)`): every path a
@@ -18,9 +18,7 @@ other settings is made under `out`.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import fcntl
 import sys
 from pathlib import Path
 
@@ -137,20 +135,6 @@ def default_out(profile: Profile) -> Path:
     resumes and updates them) unless it reads a `base` folder; any other profile, and a
     profile with a base, writes under `lgnn.files.DEFAULT_OUT`."""
     return Path("results") if profile.name == "full" and profile.base is None else DEFAULT_OUT / profile.name
-
-
-@contextlib.contextmanager
-def exclusive(path: Path):
-    """Hold an exclusive lock on `path` (a `.lock` file beside it, git-ignored) for the block: parallel
-    workers (`lgnn.bench.parallel`) that need the same record compute it once, the
-    others wait and then read it. Released when the block ends or the process dies."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path.with_name(path.name + ".lock"), "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def save(path: Path, key: str, arrays: dict, meta: dict) -> None:

@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import metrics, physics, records
-from lgnn.bench import store
+from lgnn.bench import claims, store
 from lgnn.bench.grid import Pair, Profile, evaluation_pairs, evaluation_scenes, settings_key
 from lgnn.bench.store import Layout, log
 from lgnn.engines import get_engine
@@ -186,7 +186,7 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     layout = store.layout(profile, out)
     path, key = layout.truth_trajectories(scene_name), truth_key(profile, scene_name)
     trajectories, timings = truth_trajectories(profile.evaluate.references), truth_timings(profile.evaluate.references)
-    with store.exclusive(path):  # parallel workers on one scene: the first computes, the others read
+    with claims.once(path):  # processes on one scene: the first computes, the others read
         stored = layout.load(path, key)
         # Files written before their reference was fixed, or before references' energies
         # were kept, lack a version or trajectory: computed again.
@@ -312,7 +312,7 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
     """The ground-truth record of a scene: chaos floor, rest baseline and the ground
     truth against each reference engine (module docstring)."""
     path = store.layout(profile, out).truth_record(scene_name)
-    with store.exclusive(path):  # parallel workers on one scene: the first writes it
+    with claims.once(path):  # processes on one scene: the first writes it
         return _evaluated_scene(profile, scene_name, out, progress, path)
 
 
@@ -367,7 +367,7 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
     (`Profile.base`) is never evaluated here: its record is the base's, or there is none
     (one made with other settings is named on stderr: `unmatched_base_pairs`)."""
     layout = store.layout(profile, out)
-    paths, todo = [], {}
+    paths, todo = [], []
     unmatched = unmatched_base_pairs(profile, out, pairs)
     if unmatched:
         log(f"evaluate: {len(unmatched)} pair(s) of the base folder's checkpoints were evaluated there with other settings "
@@ -381,12 +381,25 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
         # The base's models are not this run's: a pair of one without a record (there or here) is not evaluated here.
         from_base = not layout.checkpoint(pair.job).exists()
         if not from_base and not _has(layout.load(path, key), _pair_needs(profile)):
+            todo.append((pair, path, key, checkpoint))
+    # Each pair claimed (`lgnn.bench.claims`): one evaluated by another process is waited
+    # for and read, or evaluated here if that process failed.
+    claims.each_once(todo, lambda item: item[1], lambda claimed: _evaluate_claimed(profile, layout, claimed, progress, out), "evaluate")
+    return paths
+
+
+def _evaluate_claimed(profile: Profile, layout: Layout, claimed: list, progress: bool, out: Path) -> None:
+    """Evaluate the claimed `(pair, path, key, checkpoint)` whose records are not whole
+    (another process may have written them meanwhile), those sharing a scene, model
+    configuration and projection stacked in one program."""
+    stacks = {}
+    for pair, path, key, checkpoint in claimed:
+        if not _has(layout.load(path, key), _pair_needs(profile)):
             model, params = load_model(checkpoint)
             shared = (pair.scene, pair.projected, records.digest(model.to_dict()))
-            todo.setdefault(shared, []).append((pair, path, key, model, params))
-    for group in todo.values():
+            stacks.setdefault(shared, []).append((pair, path, key, model, params))
+    for group in stacks.values():
         _evaluate_stacked(profile, group, progress, out)
-    return paths
 
 
 def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) -> None:

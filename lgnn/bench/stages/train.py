@@ -5,7 +5,9 @@ program (`lgnn.learn.train.train_seeds`), resuming interrupted runs from their
 checkpoints (written every `checkpoint_every` epochs, so a run cut off by a 10-minute
 limit goes on where it stopped); a finished checkpoint whose model, optimisation (`train.training_key`) and data settings
 match the profile's `TrainSettings` is reused, one made with other settings or
-unreadable is replaced. `load_checkpoints` gives the report the finished ones.
+unreadable is replaced. Each job is claimed before it trains (`lgnn.bench.claims`), so
+processes sharing the output folder train it once. `load_checkpoints` gives the
+report the finished ones.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 
 from lgnn.bench.grid import LGNN_VARIANTS, TRAINING_SCENE, Profile, TrainingJob, training_jobs
 from lgnn.bench.grid import train_config as train_config_of
-from lgnn.bench import store
+from lgnn.bench import claims, store
 from lgnn.bench.store import Layout, log
 from lgnn.errors import CheckpointError
 from lgnn.learn import data, models, train
@@ -76,31 +78,39 @@ def train_jobs(profile: Profile, jobs: list[TrainingJob], out: Path, progress: b
             continue
         groups.setdefault((job.model, job.scene), []).append(job)
     for group in groups.values():
-        paths = [layout.checkpoint(job) for job in group]
-        for path in paths:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        settings = [job_settings(profile, job) for job in group]
-        plans = [_resumable(job, path, setting) for job, path, setting in zip(group, paths, settings)]
-        todo = [(job, path, plan, setting) for job, path, plan, setting in zip(group, paths, plans, settings) if plan is not None]
-        if not todo:
-            continue
-        fresh = [job for job, _, plan, _ in todo if not plan]
-        for job, path, plan, _ in todo:
-            if not plan and path.exists():
-                path.unlink()  # replaced: other settings or unreadable
-        # The seeds of a group share everything but the seed: the first one's scene,
-        # model and data serve them all.
-        scene, model, data_config, train_config = todo[0][3]
-        dataset = data.load_or_generate(data_config, layout.datasets, progress=progress)
-        if fresh:
-            log(f"train {', '.join(j.name for j in fresh)}: {len(dataset.train)} training states, budget {train_config.epochs} epochs"
-                + (f", plateau: no {train_config.min_improvement:.0%} gain in {train_config.patience} epochs" if train_config.min_improvement else "")
-                + (f" / {train_config.minutes:g} min" if train_config.minutes else ""))
-        configs = [setting[3] for _, _, _, setting in todo]
-        states = train.train_seeds(model, configs, dataset, scene, outs=[path for _, path, _, _ in todo], data_config=data_config, resume=True, progress=progress)
-        for (job, _, _, _), state in zip(todo, states):
-            log(f"train {job.name}: {state.epoch} epochs in {state.elapsed_s / 60:.1f} min, best validation MSE {state.best_val:.3g} (epoch {state.best_epoch})")
+        # Each job claimed (`lgnn.bench.claims`): one trained by another process (a second
+        # `lgnn benchmark` on this folder) is waited for, then reused or resumed.
+        claims.each_once(group, layout.checkpoint, lambda claimed: _train_group(layout, profile, claimed, progress), "train")
     return [layout.found(layout.checkpoint(job)) for job in jobs]
+
+
+def _train_group(layout: Layout, profile: Profile, group: list[TrainingJob], progress: bool) -> None:
+    """Train (or resume) the jobs of one (model, training scene) group that lack a
+    finished checkpoint, their seeds together."""
+    paths = [layout.checkpoint(job) for job in group]
+    for path in paths:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    settings = [job_settings(profile, job) for job in group]
+    plans = [_resumable(job, path, setting) for job, path, setting in zip(group, paths, settings)]
+    todo = [(job, path, plan, setting) for job, path, plan, setting in zip(group, paths, plans, settings) if plan is not None]
+    if not todo:
+        return
+    fresh = [job for job, _, plan, _ in todo if not plan]
+    for job, path, plan, _ in todo:
+        if not plan and path.exists():
+            path.unlink()  # replaced: other settings or unreadable
+    # The seeds of a group share everything but the seed: the first one's scene,
+    # model and data serve them all.
+    scene, model, data_config, train_config = todo[0][3]
+    dataset = data.load_or_generate(data_config, layout.datasets, progress=progress)
+    if fresh:
+        log(f"train {', '.join(j.name for j in fresh)}: {len(dataset.train)} training states, budget {train_config.epochs} epochs"
+            + (f", plateau: no {train_config.min_improvement:.0%} gain in {train_config.patience} epochs" if train_config.min_improvement else "")
+            + (f" / {train_config.minutes:g} min" if train_config.minutes else ""))
+    configs = [setting[3] for _, _, _, setting in todo]
+    states = train.train_seeds(model, configs, dataset, scene, outs=[path for _, path, _, _ in todo], data_config=data_config, resume=True, progress=progress)
+    for (job, _, _, _), state in zip(todo, states):
+        log(f"train {job.name}: {state.epoch} epochs in {state.elapsed_s / 60:.1f} min, best validation MSE {state.best_val:.3g} (epoch {state.best_epoch})")
 
 
 def prepare_datasets(profile: Profile, jobs: list[TrainingJob], out: Path, progress: bool = True) -> None:
@@ -110,7 +120,9 @@ def prepare_datasets(profile: Profile, jobs: list[TrainingJob], out: Path, progr
     full grid spent 10 minutes generating the four training scenes' data before their
     first epoch, 2026-11-24)."""
     for scene in dict.fromkeys(job.scene for job in jobs):
-        data.load_or_generate(profile.training.data_for(scene), Layout(out).datasets, progress=progress)
+        config = profile.training.data_for(scene)
+        with claims.once(data.cache_path(config, Layout(out).datasets)):  # a second driver on this folder reads it
+            data.load_or_generate(config, Layout(out).datasets, progress=progress)
 
 
 def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, train.TrainState]]:

@@ -1,0 +1,125 @@
+"""`lgnn benchmark --executor ray` (`lgnn.bench.ray_executor`) on a local Ray cluster of
+2 CPUs: two drivers sharing an output folder compute each part once, and their records
+and `summary.csv` are the local executor's; a task whose worker is killed mid-training
+is retried and its checkpoint is whole. A reduced selection (one model, one seed, one
+scene, one epoch) keeps it near a minute per run on 2 cores."""
+
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ray = pytest.importorskip("ray")
+
+from lgnn.bench import claims, grid  # noqa: E402
+from lgnn.bench.stages import evaluate  # noqa: E402
+from lgnn.cli import main  # noqa: E402
+from lgnn.learn import train  # noqa: E402
+
+# One model (GNS: projected and unprojected pairs), one seed, chain4 only, one epoch of
+# 15 states: what costs is each child's imports and compiles.
+PROFILE_ARGV = ["--set", 'models=["gns"]', "--set", 'scenes=["chain4"]', "--set", "training.train.epochs=1",
+                "--set", "training.data.n_trajectories=4", "--set", "training.data.duration=0.1", "--set", "training.data.sample_dt=0.02",
+                "--set", "training.data.dt=1e-3"]
+STAGES = ["--set", 'stages=["train","evaluate","report"]']
+TIMINGS = {"compile_s", "run_s", "steps_per_s", "mujoco_s", "elapsed_s"}
+
+
+@pytest.fixture
+def cluster():
+    """A Ray of 2 CPUs started for the test (no dashboard) and stopped after it; its address."""
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        yield ray.get_runtime_context().gcs_address
+    finally:
+        ray.shutdown()
+
+
+def _profile():
+    return grid.load_profile("quick", PROFILE_ARGV[1::2])
+
+
+def _driver(out: Path, address: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "lgnn.cli", "benchmark", *PROFILE_ARGV, *STAGES, "--executor", "ray", "--address", address,
+                             "--workers", "2", "--out-dir", str(out), "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_executor_does(cluster, tmp_path, capsys):
+    """Two drivers started at once on one output folder: each training job, model
+    evaluation and ground truth is computed by one of them (the other's task waits for
+    its claim, then reads the record); the records' arrays, the checkpoint's parameters
+    and `summary.csv` are the local executor's exactly (timings apart, and a pair's key,
+    which digests its checkpoint file and so its training time, is valid in each
+    folder); no claim is left."""
+    local, shared = tmp_path / "local", tmp_path / "ray"
+    assert main(["benchmark", *PROFILE_ARGV, *STAGES, "--out-dir", str(local), "--quiet"]) == 0, capsys.readouterr().err
+    drivers = [_driver(shared, cluster) for _ in range(2)]
+    for driver in drivers:
+        assert driver.wait(timeout=600) == 0, driver.stderr.read()
+    logs = shared / "benchmark" / "logs"
+    train_log = (logs / "train-gns-chain4.log").read_text()
+    evaluate_log = (logs / "evaluate-chain4-gns-chain4.log").read_text()
+    assert train_log.count("# lgnn benchmark") == 2 and evaluate_log.count("# lgnn benchmark") == 2  # a task of each driver
+    assert train_log.count("train gns-chain4-s0: 1 epochs in") == 1
+    assert evaluate_log.count("evaluate gns s0 on chain4: rollout error") == 1
+    assert evaluate_log.count("evaluate gns (unprojected) s0 on chain4: rollout error") == 1
+    assert evaluate_log.count("ground truth chain4: 3 initial conditions") == 1
+    assert not list(shared.rglob("*.claim*"))
+
+    assert (shared / "benchmark" / "summary.csv").read_bytes() == (local / "benchmark" / "summary.csv").read_bytes()
+    profile = _profile()
+    ours, theirs = dict(evaluate.load_pairs(profile, shared)), dict(evaluate.load_pairs(profile, local))
+    assert len(ours) == len(theirs) == 2
+    for pair, (arrays, meta) in ours.items():
+        _assert_same(arrays, meta, *theirs[pair], ignore=TIMINGS | {"key", "folder"})
+    _assert_same(*evaluate.load_truth(profile, "chain4", shared), *evaluate.load_truth(profile, "chain4", local), ignore=TIMINGS | {"folder"})
+    (state, meta), (reference, reference_meta) = (train.load_checkpoint(out / "benchmark" / "checkpoints" / "gns-chain4-s0.npz") for out in (shared, local))
+    for ours_leaf, theirs_leaf in zip(*(train.jax.tree.leaves(s.params) for s in (state, reference))):
+        assert np.array_equal(ours_leaf, theirs_leaf)
+    assert {k: v for k, v in meta.items() if k not in TIMINGS} == {k: v for k, v in reference_meta.items() if k not in TIMINGS}
+
+
+def _assert_same(arrays, meta, reference_arrays, reference_meta, ignore):
+    assert sorted(arrays) == sorted(reference_arrays)
+    for name in arrays:
+        assert np.array_equal(arrays[name], reference_arrays[name], equal_nan=True), name
+    assert {k: v for k, v in meta.items() if k not in ignore} == {k: v for k, v in reference_meta.items() if k not in ignore}
+
+
+def test_a_training_task_whose_worker_is_killed_is_retried_and_its_checkpoint_is_whole(cluster, tmp_path, capsys):
+    """The Ray worker running the training task is killed (SIGKILL) once the child has
+    claimed its job: the child stops with it (its claim released), Ray runs the task
+    again, the run completes with one whole, finished checkpoint and no claim left."""
+    out = tmp_path / "out"
+    checkpoint = out / "benchmark" / "checkpoints" / "gns-chain4-s0.npz"
+    killed = []
+
+    def kill_the_worker():
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            holder = claims.holder(checkpoint)
+            if holder is not None:
+                worker = int(Path(f"/proc/{holder['pid']}/stat").read_text().rsplit(")", 1)[1].split()[1])  # its parent
+                os.kill(worker, 9)
+                killed.append(worker)
+                return
+            time.sleep(0.05)
+
+    killer = threading.Thread(target=kill_the_worker)
+    killer.start()
+    try:
+        code = main(["benchmark", *PROFILE_ARGV, "--stage", "train", "--executor", "ray", "--out-dir", str(out), "--quiet"])
+    finally:
+        killer.join()
+    assert code == 0, capsys.readouterr().err
+    assert killed
+    log = (out / "benchmark" / "logs" / "train-gns-chain4.log").read_text()
+    assert log.count("# lgnn benchmark") == 2, log  # the task, then its retry
+    state, _ = train.load_checkpoint(checkpoint)
+    assert state.epoch == 1
+    assert not list(out.rglob("*.claim*")) and not list(out.rglob("*.tmp*"))
