@@ -11,7 +11,7 @@ import pytest
 
 from lgnn import physics
 from lgnn.engines.base import Integration, SimulationConfig
-from lgnn.learn import cgnode, chgn, data, models, train
+from lgnn.learn import cgnode, checkpoints, chgn, data, models, train
 from lgnn.scene import get_scene
 
 TINY_DATA = data.DataConfig(n_trajectories=6, duration=0.2, sample_dt=0.01, dt=1e-3)
@@ -33,7 +33,7 @@ def _training_arrays(dataset):
 def _moving_states(scene, count=2, seed=0):
     """States on the constraint manifold with non-zero velocities, (B, N, D) each."""
     q = jnp.broadcast_to(jnp.asarray(scene.nodes), (count, *scene.nodes.shape))
-    return jax.vmap(physics.projection_fn(scene))(q, jax.random.normal(jax.random.PRNGKey(seed), q.shape))
+    return jax.jit(jax.vmap(physics.projection_fn(scene)))(q, jax.random.normal(jax.random.PRNGKey(seed), q.shape))
 
 
 def _model(name, dataset, seed=1):
@@ -97,15 +97,16 @@ def test_the_linear_time_chain_solve_equals_the_dense_one():
 
 
 def test_chgn_mass_is_positive_definite_and_the_solve_keeps_the_constraints(tiny_dataset):
-    """On T1 (ropes, braces, loops): CHGN's learned rod form is positive for any seed,
+    """On T1 (ropes, braces, loops): CHGN's learned rod form is positive for any seed (five here),
     so its node mass is positive definite on the free nodes, and the solve both models
     share gives accelerations with `A qdd + Adot qd = 0` on every link for any force
     (the models' own accelerations: the unprojected rollouts below)."""
     scene = get_scene("T1")
     free = np.asarray(scene.free_nodes)
-    for seed in range(3):
-        config, params = _model("chgn", tiny_dataset, seed)
-        masses, inertias = chgn.rod_form(config, params, scene)
+    config, params = _model("chgn", tiny_dataset)
+    statistics = params[models.STATISTICS]
+    forms = jax.jit(jax.vmap(lambda key: chgn.rod_form(config, models.with_statistics(models.init(key, config), statistics), scene)))
+    for masses, inertias in zip(*forms(jax.random.split(jax.random.PRNGKey(0), 5))):
         assert np.all(masses > 0) and np.all(inertias > 0)
         eigenvalues = np.linalg.eigvalsh(np.asarray(cgnode.node_mass(scene, masses, inertias))[np.ix_(free, free)])
         assert eigenvalues[0] > 1e-3 * eigenvalues[-1]
@@ -181,12 +182,15 @@ def test_chgn_conserves_its_learned_hamiltonian(tiny_dataset, unprojected_rollou
 
 
 @pytest.mark.parametrize("name", ZOO)
-def test_training_lowers_the_loss(tiny_dataset, name):
+def test_training_lowers_the_loss_and_the_checkpoint_predicts_alone(tiny_dataset, tmp_path, name):
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene(name, scene, **SIZES[name])
     config = train.TrainConfig(learning_rate=3e-3, epochs=4, warmup_steps=5)
     statistics = models.training_statistics(model, scene, *_training_arrays(tiny_dataset))
     val = tuple(a[tiny_dataset.val] for a in (tiny_dataset.q, tiny_dataset.qd, tiny_dataset.qdd))
     before = train.evaluate_fn(model, scene)(train.initial_state(model, config, statistics).params, *val)
-    state = train.train(model, config, tiny_dataset, scene)
+    state = train.train(model, config, tiny_dataset, scene, out=tmp_path / f"{name}.npz")
     assert state.best_val < before / 2, (before, state.best_val)
+    loaded_model, loaded = checkpoints.load_model(tmp_path / f"{name}.npz")
+    assert loaded_model == model
+    assert train.evaluate_fn(loaded_model, scene)(loaded, *val) == pytest.approx(state.best_val, rel=1e-12)
