@@ -1,4 +1,4 @@
-"""Learned dynamics: LGNN and the baselines GNS, LGN, CLNN and the strong GNS, in a registry of models.
+"""Learned dynamics: LGNN and the baselines GNS, LGN, CLNN, the strong GNS, CGNODE and CHGN, in a registry of models.
 
 A model is a `ModelConfig` (its registered name, architecture, the edge-type vocabulary
 and, for CLNN, the system size; stored in checkpoints) and a params pytree (nested
@@ -52,6 +52,12 @@ Architectures (paper section 3 and appendix):
 - `gns-10-128` (`strong_gns`): the GNS-10-128 recipe (10 unshared message-passing
   steps with residuals, latent 128, LayerNorm, inputs normalised by training-set
   statistics, a node-type embedding, rod features).
+- `cgnode` (`cgnode`): the strong GNS's network, its accelerations made to satisfy the
+  link constraints at the acceleration level in the rods' mass metric (the engine's
+  KKT solves).
+- `chgn` (`chgn`): a Hamiltonian of node positions and momenta, its kinetic term from
+  a learned positive per-rod mass and inertia (the ground truth's regular on-manifold
+  node mass), its potential a graph network; the constrained Hamiltonian equations.
 - LGN: the same graph network, read out as one global Lagrangian `MLP(sum_i h_i ||
   sum_ij h_ij)`.
 - CLNN: MLP with 2 hidden layers of 128 on the concatenated `(q, qd)` of a fixed-size
@@ -78,7 +84,7 @@ from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
 from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
 from lgnn.errors import ConfigError
-from lgnn.learn import strong_gns
+from lgnn.learn import cgnode, chgn, strong_gns
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
 from lgnn.scene import Scene, State
 
@@ -592,6 +598,19 @@ register(ModelSpec("clnn", _init_clnn, lagrangian=_clnn_lagrangian, hidden=128, 
 register(ModelSpec(
     "gns-10-128", strong_gns.init, acceleration=strong_gns.acceleration, statistics=strong_gns.statistics,
     latent=128, hidden=128, message_passing=10, weight_decay=1e-8, velocity_noise=5e-4,
+))
+# The constrained graph neural ODE (`cgnode`): the strong GNS's network and recipe,
+# its accelerations made to satisfy the constraints in the rods' mass metric.
+register(ModelSpec(
+    "cgnode", cgnode.init, acceleration=cgnode.acceleration, statistics=cgnode.statistics,
+    latent=128, hidden=128, message_passing=10, weight_decay=1e-8, velocity_noise=5e-4,
+))
+# The constrained Hamiltonian graph network (`chgn`): LGNN's sizes (the paper's appendix)
+# and recipe for the energy model it parallels; an acceleration model to the library,
+# since its dynamics are the constrained Hamiltonian equations, not the Euler-Lagrange solve.
+register(ModelSpec(
+    "chgn", chgn.init, acceleration=chgn.acceleration, statistics=chgn.statistics,
+    latent=5, hidden=10, message_passing=0,
 ))
 
 
