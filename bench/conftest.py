@@ -7,16 +7,7 @@
 
 import time
 
-import os
-
-from lgnn.runtime import COMPILATION_CACHE_ENV, configure
-
-configure()  # first: thread counts and XLA flags before numpy and JAX load; float64
-# No persistent compilation cache, in-process or in the `lgnn` processes tests start,
-# unless a test asks for one (`lgnn.runtime.enable_compilation_cache`).
-os.environ[COMPILATION_CACHE_ENV] = "off"
-
-import pytest  # noqa: E402
+import pytest
 
 
 def pytest_addoption(parser):
