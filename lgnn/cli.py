@@ -615,6 +615,8 @@ def _cmd_benchmark(args) -> None:
     added = tuple(f"{Path(code).resolve()}:{name}" if code.endswith(".py") else model
                   for model in args.add_model or () for code, _, name in (model.rpartition(":"),))
     profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides, added)
+    # Predictions files relative to here; the child processes of --workers never score them (the parent does).
+    profile = dataclasses.replace(profile, predictions=(*profile.predictions, *(str(Path(p).resolve()) for p in args.add_predictions or ())))
     stages = None if args.stage is None else tuple(STAGES) if args.stage == "all" else (args.stage,)
     print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     # What selects this profile, for the child processes of --workers.
@@ -644,6 +646,9 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--add-model", action="append", metavar="FILE.py:ATTR",
                         help="add a model to the grid (its spec as file.py:attribute or module:attribute, or a registered name), trained "
                              "on chain4 and evaluated on the planar transfer scenes as the built-in models are (repeatable)")
+    parser.add_argument("--add-predictions", action="append", metavar="FILE.npz",
+                        help="score predictions made outside lgnn from the exported initial conditions (lgnn dataset export) against the "
+                             "same ground truth, as a row 'MODEL (external)' (file format: docs/formats.md, 'Predictions'; repeatable)")
     parser.add_argument("--with-results", metavar="DIR",
                         help="rank beside the results in DIR (e.g. the committed results/), read in place, never copied or written: "
                              "its checkpoints are not retrained, its records are reused where their settings match; runs the train, "

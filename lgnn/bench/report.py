@@ -43,12 +43,13 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
-from lgnn.bench.grid import (GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs,
+from lgnn.bench.grid import (EXTERNAL, GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs,
                              evaluation_scenes, model_order, settings_key, train_config, training_jobs)
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.stages.evaluate import scene_level_prefix, scene_level_scores, truth_against, unmatched_base_pairs
+from lgnn.bench.stages.external import load_externals
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
@@ -67,6 +68,8 @@ COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5", "
 SPARE_COLORS = ("C8", "C9", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#5254a3", "#8ca252", "#bd9e39", "#ad494a", "#a55194")
 # The rest baseline's model name in the tables (the initial state held).
 REST = "rest"
+# How tables mark predictions made outside lgnn (`grid.external_pair`): `my-sim (external)`.
+EXTERNAL_MARK = f" ({EXTERNAL})"
 # The drag scenes' exact physics without drag, as the tables name it.
 EXACT_NO_DRAG = "exact, no drag"
 # The reference engines the benchmark scores against unless its settings say otherwise.
@@ -296,8 +299,9 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
             if scene in (unrankable or {}) and (len(match) or (scene, model) in expected):
                 cells.append("not rankable")
                 continue
-            # A trained model's cell says how many seeds it holds, one included (the baselines are not trained).
-            trained = model not in (REST, EXACT_NO_DRAG)
+            # A trained model's cell says how many seeds it holds, one included (the baselines
+            # and predictions made outside lgnn are not trained here).
+            trained = model not in (REST, EXACT_NO_DRAG) and not model.endswith(EXTERNAL_MARK)
             row = {**match.iloc[0].to_dict(), **({"seeds": 1} if trained and match.iloc[0]["seed"] != ALL_SEEDS else {})} if len(match) else None
             cells.append(_interval(row) if row is not None else "not computed" if record
                          else "not evaluated" if (scene, model) in expected else "")
@@ -581,7 +585,7 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
     for scene, (_, meta) in truths.items():
         add(meta, f"ground truth {scene}")
     for pair, (_, meta) in pairs:
-        add(meta, f"{pair.label} s{pair.job.seed} on {pair.scene}")
+        add(meta, f"{pair.label}{'' if pair.job.external else f' s{pair.job.seed}'} on {pair.scene}")
     for scene, device, commit, folder in dict.fromkeys((r["scene"], r["device"], r["commit"], r.get("folder", str(out))) for r in speed_rows):
         add({"device": device, "commit": commit, "folder": folder}, f"speed {scene}")
     for _, meta in mass_records:
@@ -672,6 +676,28 @@ def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> 
     return lines
 
 
+def _external_lines(pairs: list) -> list[str]:
+    """The predictions made outside lgnn among the records (`lgnn.bench.stages.external`):
+    what each is and which scenes it answers; none: no lines."""
+    found: dict[str, list] = {}
+    for pair, (_, meta) in pairs:
+        if pair.job.external:
+            found.setdefault(pair.label, []).append(meta)
+    if not found:
+        return []
+    lines = ["## External predictions", "",
+             f"Rows marked `{EXTERNAL_MARK.strip()}` are predictions made outside lgnn from the same exported initial conditions "
+             "(`lgnn dataset export`), scored here against the same ground truth with the same metrics and divergence rule "
+             "(`lgnn benchmark --add-predictions`; docs/formats.md, \"Predictions\"). They have no checkpoint, parameters or "
+             "training time here, and are not in the training table.", "",
+             "| model | scenes | file | about |", "|---|---|---|---|"]
+    for label, metas in found.items():
+        files = ", ".join(dict.fromkeys(f"`{m['file']}`" for m in metas))
+        about = escape_markdown_cell("; ".join(dict.fromkeys(m["about"] for m in metas if m.get("about")))) or "—"
+        lines.append(f"| {label} | {', '.join(m['scene'] for m in metas)} | {files} | {about} |")
+    return [*lines, ""]
+
+
 def _initial_states_text(profile: Profile) -> str:
     """Which of the profile's evaluation scenes start how (`lgnn.scene.initial_state_policy`)."""
     by_policy: dict[str, list[str]] = {}
@@ -739,6 +765,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "",
         *_training_lines(p, out),
         "",
+        *_external_lines(records[1]),
         *_summary_sections(p, summary, unrankable),
     ]
     if mass_records:
@@ -1033,8 +1060,8 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
     # files would otherwise mark the report's own header "+dirty".
     env = environment()
     out = Path(out)
-    truths, pairs = load_truths(profile, out), load_pairs(profile, out)
-    summary, curves = tables(truths, pairs, profile.evaluate.references)
+    truths, pairs, externals = load_truths(profile, out), load_pairs(profile, out), load_externals(profile, out)
+    summary, curves = tables(truths, pairs + externals, profile.evaluate.references)
     bench_dir = out / "benchmark"
     bench_dir.mkdir(parents=True, exist_ok=True)
     write_csv(summary, bench_dir / "summary.csv")
@@ -1052,7 +1079,7 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
     figures = []
     # Every model's colour, fixed for the whole report: the profile's grid in order, then
     # any other model recorded (from an earlier grid), by name.
-    recorded = sorted({pair.job.model for pair, _ in pairs} | {r["solver"].split()[0] for r in speed_rows if r["kind"] != "engine"})
+    recorded = sorted({pair.job.model for pair, _ in pairs + externals} | {r["solver"].split()[0] for r in speed_rows if r["kind"] != "engine"})
     colors = model_colors([*model_order(profile), *recorded])
     plots = [
         *((group.file, lambda p, group=group: _plot_error_vs_time(curves, list(group.scenes), p, group.trained_on, colors))
@@ -1067,6 +1094,6 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
             if plot(figures_dir / name):
                 figures.append(name)
     path = out / "README.md"
-    write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures, env,
+    write_text_atomic(path, readme(profile, out, (truths, pairs + externals), summary, speed_rows, mass_records, figures, env,
                                    stage_sections(profile, out, sections), command))
     return path
