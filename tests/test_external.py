@@ -91,9 +91,23 @@ def test_exported_initial_conditions_rolled_out_elsewhere_are_scored_against_the
     assert len(training) == 2 and "exact-sim" not in training[0]
     assert "| exact-sim (external) | chain4 | `exact.npz` | lgnn's Lagrangian engine |" in training[1]
     assert "no checkpoint, parameters or training time" in training[1]
-    # A later report keeps the submitted rows without the files (they are records).
-    assert main(["benchmark", "--config", config, "--out-dir", out, "--stage", "report", "--quiet"]) == 0
-    assert "exact-sim (external)" in (out / "README.md").read_text()
+    # The leaderboard: README.md's cells (the same records), a rank on each scene and overall.
+    board = (out / "LEADERBOARD.md").read_text()
+    for model in ("cheat-external", "exact-sim (external)", "heavier-sim (external)"):
+        line = next(line for line in board.splitlines() if line.startswith("| ") and f" | {model} | " in line)
+        assert f"| {cells[f' {model} '].strip()} (rank " in line, (line, cells)
+    ranked = [line.split(" | ")[1] for line in board.splitlines() if line[:4] in ("| 1 ", "| 2 ", "| 3 ")]
+    assert ranked[2] == "heavier-sim (external)" and set(ranked[:2]) == {"cheat-external", "exact-sim (external)"}, board
+    external_row = next(line for line in board.splitlines() if " | exact-sim (external) | " in line)
+    assert " | — | — (external) | " in external_row
+    cheat_row = next(line for line in board.splitlines() if " | cheat-external | " in line)
+    assert " | 1 | not recorded | " in cheat_row  # one parameter; an untrained checkpoint holds no training time
+    # A later report keeps the submitted rows without the files (they are records), and
+    # the leaderboard command alone writes the same file from them.
+    (out / "LEADERBOARD.md").unlink()
+    assert main(["leaderboard", "--config", config, "--out-dir", out]) == 0
+    assert (out / "LEADERBOARD.md").read_text().split("\n", 3)[3] == board.split("\n", 3)[3]
+    assert "Written by `lgnn leaderboard --config" in (out / "LEADERBOARD.md").read_text()
 
 
 @pytest.mark.parametrize("change, words", [
