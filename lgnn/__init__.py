@@ -21,7 +21,8 @@ The public interface, by lifecycle stage (layers from the bottom; see ARCHITECTU
 - records (`lgnn.records`): the one on-disk format of datasets, checkpoints and
   benchmark records (arrays, JSON meta, checksum, provenance);
 - the benchmark (`lgnn.bench`: grid, stages, report, crosscheck, stability), the
-  command line (`lgnn.cli`).
+  command line (`lgnn.cli`); for notebooks `train`, `evaluate`, `benchmark` and
+  `load_results` (pandas DataFrames), as the commands do (`lgnn.bench.api`).
 
 `import lgnn` loads nothing heavy and changes nothing outside the package (no
 environment variable, no JAX setting): the names below are imported on first use, and
@@ -59,6 +60,10 @@ _PUBLIC = {
     "batch_of_one": "lgnn.engines",
     "precision": "lgnn.runtime",
     "energy_drift": "lgnn.metrics",
+    "train": "lgnn.bench.api",
+    "evaluate": "lgnn.bench.api",
+    "benchmark": "lgnn.bench.api",
+    "load_results": "lgnn.bench.api",
 }
 
 __all__ = sorted(_PUBLIC)

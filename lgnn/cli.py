@@ -386,6 +386,27 @@ def _add_convergence_parser(commands) -> None:
     parser.set_defaults(run=_cmd_convergence)
 
 
+def train_recipe():
+    """The training settings `lgnn train` starts from: the full profile's
+    (`lgnn.bench.grid.PROFILES["full"].training`: data, batch, learning rate and its
+    schedule, plateau rule), so its checkpoint is trained as the committed ones are."""
+    from lgnn.bench.grid import PROFILES
+
+    return PROFILES["full"].training
+
+
+def train_settings(args):
+    """`(DataConfig, TrainConfig)` of `lgnn train`'s arguments: the full profile's
+    recipe (`train_recipe`) with the options given. The data are the profile's for the
+    scene (seed 0 whatever `--seed`, as the benchmark's); `--seed` seeds the parameters
+    and shuffles; the checkpoint is written every epoch."""
+    recipe = train_recipe()
+    data_config = dataclasses.replace(recipe.data_for(args.scene), n_trajectories=args.trajectories)
+    config = dataclasses.replace(recipe.train, learning_rate=args.lr, batch_size=args.batch_size, epochs=args.epochs, minutes=args.minutes,
+                                 patience=args.patience, seed=args.seed, checkpoint_every=1)
+    return data_config, config
+
+
 def _cmd_train(args) -> None:
     from pathlib import Path
 
@@ -396,11 +417,10 @@ def _cmd_train(args) -> None:
     check_writable(args.out)
     if Path(args.out).exists() and not (args.resume or args.overwrite):
         raise ConfigError(f"{args.out} exists: --resume to continue training it, --overwrite to start over, or choose another --out")
-    data_config = data.DataConfig(args.scene, n_trajectories=args.trajectories, seed=args.seed)
+    data_config, config = train_settings(args)
     scene = get_scene(args.scene)
     name = models.load_spec(args.model).name if ":" in args.model else args.model
     model = models.ModelConfig.for_scene(name, scene, message_passing=args.message_passing)
-    config = train.TrainConfig(args.lr, args.batch_size, args.epochs, args.minutes, args.patience, args.seed, warmup_steps=train.WARMUP_STEPS)
     if args.resume and Path(args.out).exists():
         train.check_resumable(args.out, model, config)  # before minutes of data generation
     cache = args.cache_dir or data.default_cache_dir()
@@ -433,24 +453,27 @@ def _cmd_rollout(args) -> None:
 
 def _add_train_parser(commands) -> None:
     from lgnn.learn.models import model_names
-    from lgnn.learn.train import PAPER_LEARNING_RATE, TrainConfig
 
-    default = TrainConfig()
+    recipe = train_recipe()
+    default = recipe.train
     parser = commands.add_parser("train", help="train a learned model on ground-truth data")
     parser.add_argument("--model", required=True, type=_model_reference, metavar="{" + ",".join(model_names()) + "}|MODULE:ATTR",
                         help=f"a built-in model ({', '.join(model_names())}) or your own ModelSpec as module:attribute "
                              "or file.py:attribute (docs/models.md)")
     parser.add_argument("--scene", default="chain4", help="training scene (built-in name or JSON file)")
-    parser.add_argument("--epochs", type=_positive_int, default=default.epochs, help="epoch budget (paper: 10000)")
+    parser.add_argument("--epochs", type=_positive_int, default=default.epochs, help=f"epoch budget (default {default.epochs}, the full profile's and the paper's)")
     parser.add_argument("--minutes", type=_positive_float, default=None, help="optional wall-clock cap (checked after each epoch); the budget is --epochs")
-    parser.add_argument("--patience", type=_positive_int, default=default.patience, help="early stopping: epochs without improvement")
-    # `lgnn train` keeps the paper's rate and the full warm-up whatever the budget (the
-    # benchmark's profiles follow `train.scheduled`'s short-budget rule instead).
-    parser.add_argument("--lr", type=_positive_float, default=PAPER_LEARNING_RATE, help=f"peak learning rate (paper: {PAPER_LEARNING_RATE:g})")
-    parser.add_argument("--batch-size", type=_positive_int, default=default.batch_size)
+    parser.add_argument("--patience", type=_positive_int, default=default.patience,
+                        help=f"plateau rule: stop when the best validation MSE has not improved by {default.min_improvement:.0%}% "
+                             f"in this many epochs (default {default.patience}, the full profile's)")
+    # The full profile's recipe whatever the budget, as the benchmark's `[[add]]` entries
+    # with a budget of their own (`grid.train_config`): a checkpoint comparable with its.
+    parser.add_argument("--lr", type=_positive_float, default=default.learning_rate, help=f"peak learning rate (default {default.learning_rate:g}, the full profile's)")
+    parser.add_argument("--batch-size", type=_positive_int, default=default.batch_size, help=f"default {default.batch_size}, the full profile's")
     parser.add_argument("--message-passing", type=_nonnegative_int, default=None, help="message-passing layers (default: the model's)")
-    parser.add_argument("--trajectories", type=_positive_int, default=100, help="training trajectories (paper: 100)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--trajectories", type=_positive_int, default=recipe.data.n_trajectories,
+                        help=f"training trajectories (default {recipe.data.n_trajectories}, the full profile's and the paper's)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the initial parameters and shuffles (the data are the full profile's, as the benchmark's)")
     parser.add_argument("--cache-dir", default=None, help="training data cache (default: datasets/ in $LGNN_CACHE, else $XDG_CACHE_HOME/lgnn, else ~/.cache/lgnn)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
     parser.add_argument("--overwrite", action="store_true", help="start over even if --out exists (default: refuse)")
@@ -615,6 +638,8 @@ def _cmd_benchmark(args) -> None:
     added = tuple(f"{Path(code).resolve()}:{name}" if code.endswith(".py") else model
                   for model in args.add_model or () for code, _, name in (model.rpartition(":"),))
     profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides, added)
+    # Predictions files relative to here; the child processes of --workers never score them (the parent does).
+    profile = dataclasses.replace(profile, predictions=(*profile.predictions, *(str(Path(p).resolve()) for p in args.add_predictions or ())))
     stages = None if args.stage is None else tuple(STAGES) if args.stage == "all" else (args.stage,)
     print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     # What selects this profile, for the child processes of --workers.
@@ -644,6 +669,9 @@ def _add_benchmark_parser(commands) -> None:
     parser.add_argument("--add-model", action="append", metavar="FILE.py:ATTR",
                         help="add a model to the grid (its spec as file.py:attribute or module:attribute, or a registered name), trained "
                              "on chain4 and evaluated on the planar transfer scenes as the built-in models are (repeatable)")
+    parser.add_argument("--add-predictions", action="append", metavar="FILE.npz",
+                        help="score predictions made outside lgnn from the exported initial conditions (lgnn dataset export) against the "
+                             "same ground truth, as a row 'MODEL (external)' (file format: docs/formats.md, 'Predictions'; repeatable)")
     parser.add_argument("--with-results", metavar="DIR",
                         help="rank beside the results in DIR (e.g. the committed results/), read in place, never copied or written: "
                              "its checkpoints are not retrained, its records are reused where their settings match; runs the train, "
@@ -665,6 +693,38 @@ def _add_benchmark_parser(commands) -> None:
                         help="with --executor ray: the Ray cluster, auto (this node's) or HOST:PORT (default: start Ray on this machine)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_benchmark)
+
+
+def _cmd_leaderboard(args) -> None:
+    import json
+    from pathlib import Path
+
+    from lgnn.bench import grid, report
+    from lgnn.bench.store import default_out, layout
+
+    if sum(map(bool, (args.full, args.profile, args.config))) > 1:
+        raise ConfigError("give one of --config, --profile and --full")
+    overrides = list(args.set or ()) + ([f"base={json.dumps(str(Path(args.with_results).resolve()))}"] if args.with_results else [])
+    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
+    out = Path(args.out_dir) if args.out_dir else default_out(profile)
+    if not out.is_dir():
+        raise ConfigError(f"results folder {out} does not exist (lgnn benchmark writes it)")
+    layout(profile, out)
+    path = report.write_leaderboard(profile, out, "lgnn " + " ".join(args.argv))
+    print(f"wrote {path}")
+
+
+def _add_leaderboard_parser(commands) -> None:
+    from lgnn.bench import grid
+
+    parser = commands.add_parser("leaderboard", help="write LEADERBOARD.md of a results folder from its records (ranks, parameters, training time)")
+    parser.add_argument("--full", action="store_true", help="the full profile's results (default folder: results/)")
+    parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
+    parser.add_argument("--config", help="a benchmark config file (TOML), as lgnn benchmark's")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config value, as lgnn benchmark's (repeatable)")
+    parser.add_argument("--with-results", metavar="DIR", help="also read the records of DIR in place, as lgnn benchmark --with-results")
+    parser.add_argument("--out-dir", default=None, help="the results folder, read and written into (default: as lgnn benchmark's)")
+    parser.set_defaults(run=_cmd_leaderboard)
 
 
 def _cmd_dataset_export(args) -> None:
@@ -805,6 +865,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train_parser(commands)
     _add_evaluation_parsers(commands)
     _add_benchmark_parser(commands)
+    _add_leaderboard_parser(commands)
     _add_dataset_parser(commands)
     _add_stability_parser(commands)
     _add_convergence_parser(commands)

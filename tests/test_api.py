@@ -49,3 +49,22 @@ def test_caches_go_to_the_user_cache_not_the_working_directory(monkeypatch, tmp_
     monkeypatch.delenv("LGNN_CACHE")
     monkeypatch.delenv("XDG_CACHE_HOME")
     assert user_cache_dir() == Path.home() / ".cache" / "lgnn"
+
+
+def test_the_notebook_api_reads_results_as_frames_and_runs_the_benchmark(tmp_path):
+    """`lgnn.load_results` gives the committed summary as a DataFrame (the README's
+    headline cell in it), `lgnn.benchmark` runs a stage as `lgnn benchmark` does, and
+    bad input is one `ConfigError`."""
+    import pytest
+
+    summary = lgnn.load_results(README.parent / "results")
+    cell = summary[(summary.scene == "chain4") & (summary.model == "lgnn-notebook") & (summary.seed == -1)
+                   & (summary.metric == "rollout_error") & (summary.statistic == "gmean")]
+    assert f"{cell.value.item():.2e}" in README.read_text()
+    with pytest.raises(lgnn.ConfigError, match="no such results table"):
+        lgnn.load_results(tmp_path)
+    with pytest.raises(lgnn.ConfigError, match="unknown results table"):
+        lgnn.load_results(tmp_path, "everything")
+    out = lgnn.benchmark("quick", tmp_path / "quick", stages=["report"], settings=["seeds=[0]"])
+    assert (out / "README.md").exists() and (out / "LEADERBOARD.md").exists()
+    assert lgnn.load_results(out).empty

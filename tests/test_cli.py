@@ -410,3 +410,23 @@ def test_scenes_says_which_the_benchmark_evaluates(capsys):
     for name in ("T2", "folded4", "pendulum"):
         assert "evaluated" not in lines[name], lines[name]
     assert "own state" in lines["T1"] and "chain sampler" in lines["chain4"]
+
+
+def test_lgnn_train_defaults_are_the_full_profiles_recipe():
+    """`lgnn train` trains as the full profile trains every model (batch, rate and its
+    schedule, plateau rule, data), read from the profile: its checkpoint is comparable
+    with the committed ones, and the report's banner names no other training."""
+    from lgnn.bench import grid
+    from lgnn.cli import build_parser, train_settings
+    from lgnn.learn import train
+
+    full = grid.PROFILES["full"].training
+    data_config, config = train_settings(build_parser().parse_args(["train", "--model", "lgnn", "--out", "x.npz"]))
+    assert data_config == full.data_for("chain4")
+    assert train.training_key(config) == train.training_key(full.train)
+    assert (config.epochs, config.patience, config.min_improvement, config.minutes) == (
+        full.train.epochs, full.train.patience, full.train.min_improvement, full.train.minutes)
+    data_config, config = train_settings(build_parser().parse_args(["train", "--model", "gns", "--scene", "chain8", "--seed", "2",
+                                                                     "--epochs", "20", "--out", "x.npz"]))
+    assert data_config == full.data_for("chain8") and config.seed == 2 and config.epochs == 20
+    assert train.training_key(config) | {"seed": 0} == train.training_key(full.train)

@@ -1,5 +1,6 @@
 """`lgnn dataset export`: a profile's training data of a scene and its evaluation
-initial conditions in one documented file (`lgnn.learn.export`)."""
+initial conditions in one documented file (`lgnn.learn.export`), with what a file of
+predictions from them must name to be scored (`lgnn.bench.stages.external`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import os
 import numpy as np
 
 from lgnn.bench.grid import Profile
-from lgnn.bench.stages.evaluate import evaluation_initial_states
+from lgnn.bench.stages.evaluate import evaluation_initial_states, truth_key
 from lgnn.learn import data, export
 from lgnn.scene import get_scene, scene_to_dict
 
@@ -32,7 +33,10 @@ def export_scene(profile: Profile, scene_name: str, out: str | os.PathLike, cach
         "scene": scene_to_dict(scene),
         "data": dataclasses.asdict(config),
         "profile": profile.name,
-        "evaluation": {**dataclasses.asdict(simulation), **dataclasses.asdict(profile.evaluate.integration), "seed": profile.evaluate.ic_seed},
+        # What a predictions file answering these initial conditions names (`lgnn.bench.stages.external`):
+        # the scene as the benchmark names it and the key of its ground truth; `frames` it holds.
+        "evaluation": {**dataclasses.asdict(simulation), **dataclasses.asdict(profile.evaluate.integration), "seed": profile.evaluate.ic_seed,
+                       "scene": scene_name, "key": truth_key(profile, scene_name), "frames": simulation.n_frames + 1},
     }
     export.export_dataset(out, arrays, meta)
     return {name: value.shape for name, value in arrays.items()}

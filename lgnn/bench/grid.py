@@ -53,6 +53,9 @@ SPATIAL_TRANSFER_SCENES = ("chain4-3d", "chain8-3d", "chain16-3d", "chain100-3d"
 # The main training scene of each dimension's grid (a scene's `dim`): the models a
 # scene's snapshots and mass matrix are read from.
 TRAINING_SCENES = {2: TRAINING_SCENE, 3: SPATIAL_TRAINING_SCENE}
+# The training scene a job of predictions made outside lgnn stands on: they have no
+# training scene, checkpoint or seeds (`external_pair`); tables name them `MODEL (external)`.
+EXTERNAL = "external"
 # Field metadata of a setting that does not change what a record holds.
 NOT_IN_KEY = {"in_key": False}
 # Field metadata of a setting added after records were made: in the key only when it
@@ -178,8 +181,14 @@ class TrainingJob:
 
     @property
     def label(self) -> str:
-        """The model as tables name it: `lgnn`, or `lgnn (chain4-varied)` off the main training scene."""
+        """The model as tables name it: `lgnn`, or `lgnn (chain4-varied)` off the main
+        training scene, or `my-sim (external)` for predictions made outside lgnn."""
         return self.model if self.scene == TRAINING_SCENE else f"{self.model} ({self.scene})"
+
+    @property
+    def external(self) -> bool:
+        """Predictions made outside lgnn (`external_pair`): no checkpoint, parameters or training."""
+        return self.scene == EXTERNAL
 
 
 @dataclasses.dataclass(frozen=True)
@@ -368,6 +377,10 @@ class Profile:
     stages: tuple[str, ...] | None = None
     # Models kept from the grid (None: all of them).
     models: tuple[str, ...] | None = None
+    # Files of predictions made outside lgnn (docs/formats.md, "Predictions"), each
+    # scored by the evaluate stage against its scene's ground truth and reported as
+    # `MODEL (external)` (`lgnn.bench.stages.external`). Not in any record key.
+    predictions: tuple[str, ...] = ()
     # A results folder (e.g. the committed `results/`) read in place beside this run's
     # output folder, never written: its checkpoints are never retrained, its records are
     # reused where their settings key matches, the report merges both
@@ -492,8 +505,9 @@ def _resolved(profile: Profile, base: Path | None) -> Profile:
     entries = tuple(dataclasses.replace(e, model=model(e.model), train_scene=scene(e.train_scene), eval_scenes=scenes(e.eval_scenes)) for e in profile.grid)
     models = None if profile.models is None else tuple(dict.fromkeys(map(model, profile.models)))
     results = None if profile.base is None else str(Path(base or ".", profile.base))
+    predictions = tuple(str(Path(base or ".", path)) for path in profile.predictions)
     return dataclasses.replace(profile, grid=entries, train_scenes=scenes(profile.train_scenes), scenes=scenes(profile.scenes), models=models,
-                               base=results)
+                               base=results, predictions=predictions)
 
 
 PROFILES = {name: load_profile(name) for name in PROFILE_NAMES}
@@ -538,6 +552,12 @@ def evaluation_pairs(profile: Profile) -> list[Pair]:
                     if entry.unprojected:
                         pairs.append(Pair(TrainingJob(entry.model, entry.train_scene, seed), scene, projected=False))
     return pairs
+
+
+def external_pair(model: str, scene: str) -> Pair:
+    """The pair that tables and records give predictions of `model` made outside lgnn on
+    `scene`: a job on no training scene (`EXTERNAL`), seed 0, labelled `MODEL (external)`."""
+    return Pair(TrainingJob(model, EXTERNAL, 0), scene)
 
 
 def evaluation_scenes(profile: Profile) -> list[str]:

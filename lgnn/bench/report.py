@@ -43,16 +43,18 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
-from lgnn.bench.grid import (GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs,
+from lgnn.bench.grid import (EXTERNAL, GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs,
                              evaluation_scenes, model_order, settings_key, train_config, training_jobs)
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.stages.evaluate import scene_level_prefix, scene_level_scores, truth_against, unmatched_base_pairs
+from lgnn.bench.stages.external import load_externals
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
 from lgnn.bench.stages.train import default_lgnn, load_checkpoints
+from lgnn.bench import store
 from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.learn.train import stop_reason, training_key
@@ -67,6 +69,8 @@ COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5", "
 SPARE_COLORS = ("C8", "C9", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#5254a3", "#8ca252", "#bd9e39", "#ad494a", "#a55194")
 # The rest baseline's model name in the tables (the initial state held).
 REST = "rest"
+# How tables mark predictions made outside lgnn (`grid.external_pair`): `my-sim (external)`.
+EXTERNAL_MARK = f" ({EXTERNAL})"
 # The drag scenes' exact physics without drag, as the tables name it.
 EXACT_NO_DRAG = "exact, no drag"
 # The reference engines the benchmark scores against unless its settings say otherwise.
@@ -296,8 +300,9 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
             if scene in (unrankable or {}) and (len(match) or (scene, model) in expected):
                 cells.append("not rankable")
                 continue
-            # A trained model's cell says how many seeds it holds, one included (the baselines are not trained).
-            trained = model not in (REST, EXACT_NO_DRAG)
+            # A trained model's cell says how many seeds it holds, one included (the baselines
+            # and predictions made outside lgnn are not trained here).
+            trained = model not in (REST, EXACT_NO_DRAG) and not model.endswith(EXTERNAL_MARK)
             row = {**match.iloc[0].to_dict(), **({"seeds": 1} if trained and match.iloc[0]["seed"] != ALL_SEEDS else {})} if len(match) else None
             cells.append(_interval(row) if row is not None else "not computed" if record
                          else "not evaluated" if (scene, model) in expected else "")
@@ -581,7 +586,7 @@ def _provenance_lines(truths: dict, pairs: list, speed_rows: list[dict], mass_re
     for scene, (_, meta) in truths.items():
         add(meta, f"ground truth {scene}")
     for pair, (_, meta) in pairs:
-        add(meta, f"{pair.label} s{pair.job.seed} on {pair.scene}")
+        add(meta, f"{pair.label}{'' if pair.job.external else f' s{pair.job.seed}'} on {pair.scene}")
     for scene, device, commit, folder in dict.fromkeys((r["scene"], r["device"], r["commit"], r.get("folder", str(out))) for r in speed_rows):
         add({"device": device, "commit": commit, "folder": folder}, f"speed {scene}")
     for _, meta in mass_records:
@@ -672,6 +677,28 @@ def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> 
     return lines
 
 
+def _external_lines(pairs: list) -> list[str]:
+    """The predictions made outside lgnn among the records (`lgnn.bench.stages.external`):
+    what each is and which scenes it answers; none: no lines."""
+    found: dict[str, list] = {}
+    for pair, (_, meta) in pairs:
+        if pair.job.external:
+            found.setdefault(pair.label, []).append(meta)
+    if not found:
+        return []
+    lines = ["## External predictions", "",
+             f"Rows marked `{EXTERNAL_MARK.strip()}` are predictions made outside lgnn from the same exported initial conditions "
+             "(`lgnn dataset export`), scored here against the same ground truth with the same metrics and divergence rule "
+             "(`lgnn benchmark --add-predictions`; docs/formats.md, \"Predictions\"). They have no checkpoint, parameters or "
+             "training time here, and are not in the training table.", "",
+             "| model | scenes | file | about |", "|---|---|---|---|"]
+    for label, metas in found.items():
+        files = ", ".join(dict.fromkeys(f"`{m['file']}`" for m in metas))
+        about = escape_markdown_cell("; ".join(dict.fromkeys(m["about"] for m in metas if m.get("about")))) or "—"
+        lines.append(f"| {label} | {', '.join(m['scene'] for m in metas)} | {files} | {about} |")
+    return [*lines, ""]
+
+
 def _initial_states_text(profile: Profile) -> str:
     """Which of the profile's evaluation scenes start how (`lgnn.scene.initial_state_policy`)."""
     by_policy: dict[str, list[str]] = {}
@@ -739,6 +766,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "",
         *_training_lines(p, out),
         "",
+        *_external_lines(records[1]),
         *_summary_sections(p, summary, unrankable),
     ]
     if mass_records:
@@ -1033,8 +1061,8 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
     # files would otherwise mark the report's own header "+dirty".
     env = environment()
     out = Path(out)
-    truths, pairs = load_truths(profile, out), load_pairs(profile, out)
-    summary, curves = tables(truths, pairs, profile.evaluate.references)
+    truths, pairs, externals = load_truths(profile, out), load_pairs(profile, out), load_externals(profile, out)
+    summary, curves = tables(truths, pairs + externals, profile.evaluate.references)
     bench_dir = out / "benchmark"
     bench_dir.mkdir(parents=True, exist_ok=True)
     write_csv(summary, bench_dir / "summary.csv")
@@ -1052,7 +1080,7 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
     figures = []
     # Every model's colour, fixed for the whole report: the profile's grid in order, then
     # any other model recorded (from an earlier grid), by name.
-    recorded = sorted({pair.job.model for pair, _ in pairs} | {r["solver"].split()[0] for r in speed_rows if r["kind"] != "engine"})
+    recorded = sorted({pair.job.model for pair, _ in pairs + externals} | {r["solver"].split()[0] for r in speed_rows if r["kind"] != "engine"})
     colors = model_colors([*model_order(profile), *recorded])
     plots = [
         *((group.file, lambda p, group=group: _plot_error_vs_time(curves, list(group.scenes), p, group.trained_on, colors))
@@ -1067,6 +1095,154 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
             if plot(figures_dir / name):
                 figures.append(name)
     path = out / "README.md"
-    write_text_atomic(path, readme(profile, out, (truths, pairs), summary, speed_rows, mass_records, figures, env,
+    write_text_atomic(path, readme(profile, out, (truths, pairs + externals), summary, speed_rows, mass_records, figures, env,
                                    stage_sections(profile, out, sections), command))
+    write_text_atomic(out / LEADERBOARD, leaderboard_markdown(profile, out, summary, env, command))
     return path
+
+
+# ---------------------------------------------------------------------------------
+# Leaderboard
+# ---------------------------------------------------------------------------------
+
+# The leaderboard's file under the output folder, beside README.md.
+LEADERBOARD = "LEADERBOARD.md"
+# The metric the leaderboard ranks by.
+RANKED_METRIC = "rollout_error"
+
+
+def write_leaderboard(profile: Profile, out: Path, command: str | None = None) -> Path:
+    """Write `LEADERBOARD.md` under `out` alone, from the records there and in the
+    profile's base (the statistics `tables` gives README.md's tables); its path."""
+    from lgnn.provenance import environment
+
+    env = environment()
+    out = Path(out)
+    summary, _ = tables(load_truths(profile, out), load_pairs(profile, out) + load_externals(profile, out), profile.evaluate.references)
+    path = out / LEADERBOARD
+    write_text_atomic(path, leaderboard_markdown(profile, out, summary, env, command))
+    return path
+
+
+def _cell_row(wide, scene: str, model: str) -> dict | None:
+    """The summary row a table cell shows (`summary_markdown`): over every seed where
+    several, else the one seed's, with its seed count (a trained model's)."""
+    match = wide[(wide.scene == scene) & (wide.model == model) & (wide.metric == RANKED_METRIC)]
+    if (match.seed == ALL_SEEDS).any():
+        match = match[match.seed == ALL_SEEDS]
+    if not len(match):
+        return None
+    row = match.iloc[0].to_dict()
+    trained = model not in (REST, EXACT_NO_DRAG) and not model.endswith(EXTERNAL_MARK)
+    return {**row, **({"seeds": 1} if trained and row["seed"] != ALL_SEEDS else {})}
+
+
+def _ranks(values: dict[str, float]) -> dict[str, int]:
+    """Competition ranks ("1, 2, 2, 4") of `{model: value}`, lower first; equal values share the better rank."""
+    ordered = sorted(values.values())
+    return {model: 1 + ordered.index(value) for model, value in values.items()}
+
+
+def _trained(profile: Profile, out: Path) -> dict[str, tuple[str, str]]:
+    """`{job label: (parameters, training)}` of the profile's trained models with checkpoints:
+    learned parameters of the best epoch (training-set statistics apart) and the median
+    over seeds of the recorded training minutes, with the device (GPU-minutes only on a
+    GPU); "not recorded" where a checkpoint holds no time."""
+    from lgnn.learn import checkpoints as checkpoint_files
+
+    layout = store.layout(profile, out)
+    found: dict[str, list] = {}
+    for job, state in load_checkpoints(profile, out):
+        meta, _ = checkpoint_files.read(layout.found(layout.checkpoint(job)))
+        found.setdefault(job.label, []).append((job, state, meta))
+    result = {}
+    for model, runs in found.items():
+        learned = {k: v for k, v in runs[0][1].best_params.items() if k != "statistics"} if isinstance(runs[0][1].best_params, dict) else runs[0][1].best_params
+        count = sum(int(np.size(leaf)) for leaf in _leaves(learned))
+        times = [state.elapsed_s for _, state, _ in runs if state.elapsed_s > 0]
+        devices = sorted({meta.get("environment", {}).get("device", "unknown device").split(";")[0] for _, _, meta in runs})
+        unit = "GPU-minutes" if all("(gpu)" in device for device in devices) else "minutes"
+        training = (f"{np.median(times) / 60:.3g} {unit} ({len(times)} seed{'s' if len(times) != 1 else ''}, median; {', '.join(devices)})"
+                    if times else "not recorded")
+        result[model] = (f"{count:,}", training)
+    return result
+
+
+def _leaves(tree) -> list:
+    import jax
+
+    return jax.tree_util.tree_leaves(tree)
+
+
+def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, command: str | None = None) -> str:
+    """`LEADERBOARD.md`: per dimension's grid, one row per model trained on its main
+    training scene (`TRAINING_SCENES`) and per external prediction, the rollout error
+    cell of README.md's table on each scene of the grid with its rank there, parameters,
+    training minutes, and the overall rank (module's rule, stated in the file)."""
+    unrankable = _unrankable(out)
+    wide = (summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
+            if not summary.empty else None)
+    trained = _trained(profile, out)
+    shown = "lgnn leaderboard" + (" --full" if profile.name == "full" else f" (profile {profile.name})")
+    lines = [f"# Leaderboard ({profile.name} profile)", "",
+             f"Written by `{command or shown}` from the benchmark's records (`benchmark/runs/` of this folder"
+             + (f" and of `{profile.base}`" if profile.base else "") + "); nothing here is edited by hand. "
+             f"Written at commit {env['commit']}. Every cell is the one of `README.md`'s table \"{metrics.METRICS[RANKED_METRIC].heading}\" "
+             "(the same records and statistics, `benchmark/summary.csv`): geometric mean over frames and initial conditions "
+             "[bootstrap 95% interval], over every training seed where several; lower is better.", "",
+             "**Ranks.** On each scene the models with a number are ranked by that geometric mean, lowest first; equal values share "
+             "the better rank. A scene that cannot rank models (the reference does not converge in dt) ranks none. The overall rank "
+             "orders the models with a number on every ranked scene of the table by the mean of their scene ranks; ties are broken by "
+             "the geometric mean of their cells over those scenes, then by name. A model without a number on every scene has no "
+             "overall rank and follows, by name. `rest` (the initial state held) is the bar any model must clear, never ranked.", "",
+             "**Parameters and training** come from the checkpoints: the learned parameters of the best epoch (training-set "
+             "statistics apart) and the training minutes recorded in them (median over seeds; seeds trained together in one "
+             "program share one wall time), with the device; GPU-minutes only where every seed trained on a GPU. Rows marked "
+             f"`{EXTERNAL_MARK.strip()}` are predictions made outside lgnn from the same initial conditions (no checkpoint, "
+             "parameters or training time here).", "",
+             "**Add a row.** A model of your own (`docs/models.md`), trained with the full profile's recipe and ranked beside these "
+             "results, read in place:", "", "```bash", "lgnn benchmark --full --add-model my_model.py:SPEC --with-results results", "```", "",
+             "or predictions made in another framework from the exported initial conditions (`docs/benchmark.md`, \"Predictions made "
+             "elsewhere\"):", "", "```bash", "lgnn benchmark --full --add-predictions chain8-mine.npz --with-results results", "```", "",
+             "Then open a pull request adding what the command wrote under its output folder: the checkpoint "
+             "(`benchmark/checkpoints/JOB.npz`) and records (`benchmark/runs/JOB/`) of a model, with its file and an `[[add]]` "
+             "entry of the full profile, or the records `benchmark/runs/external/MODEL/` of predictions. This file is then "
+             f"regenerated from the records: `{shown}`.", ""]
+    if wide is None:
+        return "\n".join([*lines, "(no results)", ""])
+    pairs = evaluation_pairs(profile)
+    for dim, main in TRAINING_SCENES.items():
+        scenes = [s for s in scene_groups([p.scene for p in pairs if p.job.scene == main]).get(dim, [])]
+        if not scenes:
+            continue
+        labels = list(dict.fromkeys(p.label for p in pairs if p.job.scene == main and p.scene in scenes))
+        labels += sorted({m for m in wide.model.unique() if m.endswith(EXTERNAL_MARK) and m not in labels
+                          and (wide[wide.model == m].scene.isin(scenes)).any()})
+        cells = {label: {scene: _cell_row(wide, scene, label) for scene in scenes} for label in labels}
+        ranked = [scene for scene in scenes if scene not in unrankable]
+        ranks = {scene: _ranks({label: cells[label][scene]["gmean"] for label in labels if cells[label][scene] is not None
+                                and math.isfinite(cells[label][scene].get("gmean", math.nan))}) for scene in ranked}
+        complete = [label for label in labels if all(label in ranks[scene] for scene in ranked)]
+        mean_rank = {label: float(np.mean([ranks[scene][label] for scene in ranked])) for label in complete}
+        log_mean = {label: float(np.mean([math.log(cells[label][scene]["gmean"]) for scene in ranked])) for label in complete}
+        order = sorted(complete, key=lambda label: (mean_rank[label], log_mean[label], label))
+        order += sorted(label for label in labels if label not in complete)
+        lines += [f"## {DIMENSION_NAMES.get(dim, f'{dim}D')}: trained on {main}", "",
+                  "| rank | model | parameters | training | " + " | ".join(
+                      f"{scene}{' (not rankable)' if scene in unrankable else ''}" for scene in scenes) + " | mean scene rank |",
+                  "|---" * (len(scenes) + 5) + "|"]
+        for k, label in enumerate(order):
+            model = _without_training_scene(label, main)
+            parameters, training = (("—", "— (external)") if label.endswith(EXTERNAL_MARK) else
+                                    trained.get(label.removesuffix(" (unprojected)"), ("not recorded", "not recorded")))
+            row = [str(k + 1) if label in mean_rank else "—", model, parameters, training]
+            for scene in scenes:
+                cell = cells[label][scene]
+                row.append("not evaluated" if cell is None else "not rankable" if scene in unrankable
+                           else f"{_interval(cell)} (rank {ranks[scene][label]})" if label in ranks[scene] else _interval(cell))
+            row.append(f"{mean_rank[label]:.2f}" if label in mean_rank else f"— ({sum(label in ranks[s] for s in ranked)} of {len(ranked)} scenes)")
+            lines.append("| " + " | ".join(row) + " |")
+        rest = [_cell_row(wide, scene, REST) for scene in scenes]
+        lines.append("| — | rest (baseline) | — | — | " + " | ".join("" if r is None else _interval(r) for r in rest) + " | — |")
+        lines.append("")
+    return "\n".join(lines)

@@ -29,6 +29,7 @@ from lgnn.bench.grid import Pair, Profile, TrainingJob, evaluation_pairs, evalua
 from lgnn.bench import store
 from lgnn.bench.parallel import run_split
 from lgnn.bench.stages.evaluate import evaluate_group, evaluate_scene
+from lgnn.bench.stages.external import check_predictions, evaluate_external, read_predictions
 from lgnn.bench.stages.mass import mass_matrices
 from lgnn.bench.stages.scaling import scaling
 from lgnn.bench.stages.speed import speed_error
@@ -125,6 +126,11 @@ def _evaluate(request: StageRun) -> None:
             for _, pairs in groups:
                 evaluate_group(profile, pairs, out, request.progress)
             evaluate_scene(profile, scene, out, request.progress)
+    # Predictions made outside lgnn (`--add-predictions`), here: no model to roll out, a
+    # scoring against the ground truth the scene's parts computed or read.
+    for path in profile.predictions:
+        if read_predictions(profile, path).scene in request.scenes:
+            evaluate_external(profile, path, out, request.progress)
 
 
 def _speed(request: StageRun) -> None:
@@ -200,6 +206,7 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
     stages = stages or profile.stages or (BASE_STAGES if profile.base is not None else tuple(STAGES))
     out = Path(out) if out is not None else default_out(profile)
     store.layout(profile, out)  # a base that is no folder, or is `out`, fails before any stage
+    check_predictions(profile)  # likewise a predictions file that answers another evaluation
     unknown = sorted(set(stages) - set(STAGES))
     if unknown:
         raise ConfigError(f"unknown benchmark stage {unknown[0]!r} (choose from {', '.join(STAGES)})")

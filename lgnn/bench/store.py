@@ -54,6 +54,20 @@ class Layout:
         stem = file_name(pair.scene) + ("" if pair.projected else "-unprojected")
         return self.bench / "runs" / file_name(pair.job.name) / f"{stem}.npz"
 
+    def external_record(self, model: str, scene: str) -> Path:
+        """The record of predictions made outside lgnn (`lgnn.bench.stages.external`)."""
+        return self.bench / "runs" / "external" / file_name(model) / f"{file_name(scene)}.npz"
+
+    def external_records(self, scene: str) -> list[Path]:
+        """Every external record of `scene` under `out` and the base, as paths under
+        `out` (`load` reads `out`'s, else the base's), by model."""
+        found = {}
+        for folder in (self.out, self.base):
+            if folder is not None:
+                for path in (folder / "benchmark" / "runs" / "external").glob(f"*/{file_name(scene)}.npz"):
+                    found.setdefault(path.parent.name, self.external_record(path.parent.name, scene))
+        return [found[name] for name in sorted(found)]
+
     def truth_record(self, scene: str) -> Path:
         return self.bench / "runs" / "ground-truth" / f"{file_name(scene)}.npz"
 

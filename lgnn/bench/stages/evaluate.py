@@ -243,7 +243,7 @@ def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, r
     return found
 
 
-def _snapshot(profile: Profile, trajectory: np.ndarray) -> np.ndarray:
+def snapshot(profile: Profile, trajectory: np.ndarray) -> np.ndarray:
     """IC 0 of a trajectory at every SNAPSHOT_DT s (figures), float32."""
     stride = max(1, round(SNAPSHOT_DT / profile.evaluate.frame_dt))
     return np.asarray(trajectory[0, ::stride], np.float32)
@@ -264,7 +264,7 @@ def _statistics_arrays(prefix: str, errors: np.ndarray) -> dict:
     return {f"{prefix}/{k}": v for k, v in metrics.error_statistics(errors).items()}
 
 
-def _scores(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth: dict) -> list[metrics.Scored]:
+def score_against_truth(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth: dict) -> list[metrics.Scored]:
     """Trajectories `q`, `qd` (C, F, N, D) scored (`lgnn.metrics.score_rollouts`) against
     the scene's ground truth with every registered metric, then against each reference
     engine's trajectory with those `against_references`."""
@@ -276,7 +276,7 @@ def _scores(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth
     return scored
 
 
-def _record_arrays(prefix: str, scored: list[metrics.Scored], frame_dt: float) -> dict:
+def record_arrays(prefix: str, scored: list[metrics.Scored], frame_dt: float) -> dict:
     """The arrays of a model's (or a baseline's, under `prefix`) scores: statistics of
     every recorded metric (`recorded_name`) and `diverged_at` (s, NaN for none)."""
     arrays = {k: v for item in scored for metric, errors in item.errors.items()
@@ -290,7 +290,7 @@ def _scene_level_arrays(group: str, scored: metrics.Scored) -> dict:
     return {k: v for name, errors in scored.errors.items() for k, v in _statistics_arrays(scene_level_prefix(group, name), errors).items()}
 
 
-def _has(record: tuple[dict, dict] | None, names: tuple[str, ...]) -> bool:
+def has_arrays(record: tuple[dict, dict] | None, names: tuple[str, ...]) -> bool:
     return record is not None and all(name in record[0] for name in names)
 
 
@@ -303,7 +303,7 @@ def _truth_needs(profile: Profile, scene: Scene) -> tuple[str, ...]:
             *(f"{scene_level_prefix(group, name)}/per_ic_log" for group, name in scene_level_scores(profile.evaluate.references)))
 
 
-def _pair_needs(profile: Profile) -> tuple[str, ...]:
+def pair_needs(profile: Profile) -> tuple[str, ...]:
     """The arrays a pair record of the current metrics holds."""
     return tuple(f"{m.name}/per_ic_log" for m in recorded_metrics(profile.evaluate.references))
 
@@ -319,7 +319,7 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
 def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: bool, path: Path) -> Path:
     key = truth_key(profile, scene_name)
     scene = get_scene(scene_name)
-    if _has(store.layout(profile, out).load(path, key), _truth_needs(profile, scene)):
+    if has_arrays(store.layout(profile, out).load(path, key), _truth_needs(profile, scene)):
         return path
     truth = ground_truth(profile, scene_name, progress, out)
     references = profile.evaluate.references
@@ -330,8 +330,8 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
         "t": t[1:],
         **_scene_level_arrays(FLOOR, floor),
         f"{FLOOR}/diverged_at": np.where(floor.diverged >= 0, floor.diverged * frame_dt, np.nan),
-        **_record_arrays(f"{REST}/", _scores(profile, scene, *metrics.rest_rollouts(truth["q"], truth["qd"]), truth), frame_dt),
-        "snapshot/truth": _snapshot(profile, truth["q"]),
+        **record_arrays(f"{REST}/", score_against_truth(profile, scene, *metrics.rest_rollouts(truth["q"], truth["qd"]), truth), frame_dt),
+        "snapshot/truth": snapshot(profile, truth["q"]),
         "mid_state": np.stack([truth["q"][0, truth["q"].shape[1] // 2], truth["qd"][0, truth["qd"].shape[1] // 2]]),
     }
     for engine in references:
@@ -339,13 +339,13 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
         # errors are capped.
         versus = metrics.score_rollouts(scene, t, truth["q"], truth["qd"], truth[f"q_{engine}"], truth[f"energy_{engine}"], names=_against_references())
         arrays.update(_scene_level_arrays(truth_against(engine), versus))
-        arrays[f"snapshot/{engine}"] = _snapshot(profile, truth[f"q_{engine}"])
+        arrays[f"snapshot/{engine}"] = snapshot(profile, truth[f"q_{engine}"])
     if scene.drag > 0:
         no_drag = scene.replace(drag=0.0)
         runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth["states"],
                                 integration=profile.evaluate.integration, chunk=profile.evaluate.chunk, label=f"{scene_name} without drag",
                                 progress=progress)
-        arrays.update(_record_arrays(f"{NO_DRAG}/", _scores(profile, scene, runs.q, runs.qd, truth), frame_dt))
+        arrays.update(record_arrays(f"{NO_DRAG}/", score_against_truth(profile, scene, runs.q, runs.qd, truth), frame_dt))
     meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=REFERENCE_VERSION,
                 **{name: truth[name] for name in truth_timings(references)})
     store.save(path, key, arrays, meta)
@@ -380,7 +380,7 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
         paths.append(path)
         # The base's models are not this run's: a pair of one without a record (there or here) is not evaluated here.
         from_base = not layout.checkpoint(pair.job).exists()
-        if not from_base and not _has(layout.load(path, key), _pair_needs(profile)):
+        if not from_base and not has_arrays(layout.load(path, key), pair_needs(profile)):
             todo.append((pair, path, key, checkpoint))
     # Each pair claimed (`lgnn.bench.claims`): one evaluated by another process is waited
     # for and read, or evaluated here if that process failed.
@@ -394,7 +394,7 @@ def _evaluate_claimed(profile: Profile, layout: Layout, claimed: list, progress:
     configuration and projection stacked in one program."""
     stacks = {}
     for pair, path, key, checkpoint in claimed:
-        if not _has(layout.load(path, key), _pair_needs(profile)):
+        if not has_arrays(layout.load(path, key), pair_needs(profile)):
             model, params = load_model(checkpoint)
             shared = (pair.scene, pair.projected, records.digest(model.to_dict()))
             stacks.setdefault(shared, []).append((pair, path, key, model, params))
@@ -427,9 +427,9 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
                               f"remove {Layout(out).truth_trajectories(pair.scene)} to recompute it")
     steps = len(group) * len(states.q) * config.n_frames * config.steps_per_frame
     for (pair, path, key, _, _), q, qd in zip(group, q_all, qd_all):
-        scored = _scores(profile, scene, q, qd, truth)
+        scored = score_against_truth(profile, scene, q, qd, truth)
         diverged = scored[0].diverged
-        arrays = {"t": np.arange(1, q.shape[1]) * profile.evaluate.frame_dt, **_record_arrays("", scored, profile.evaluate.frame_dt), "snapshot/model": _snapshot(profile, q)}
+        arrays = {"t": np.arange(1, q.shape[1]) * profile.evaluate.frame_dt, **record_arrays("", scored, profile.evaluate.frame_dt), "snapshot/model": snapshot(profile, q)}
         # Compile and run times are the group's (`stacked` models rolled out together).
         meta = dict(job=pair.job.name, model=pair.job.model, label=pair.label, projected=pair.projected, train_scene=pair.job.scene, seed=pair.job.seed,
                     scene=pair.scene, initial_conditions=len(q), mujoco_reference=REFERENCE_VERSION, compile_s=compile_s, run_s=run_s,
@@ -449,8 +449,8 @@ def unmatched_base_pairs(profile: Profile, out: Path, pairs: list[Pair] | None =
     return [pair for pair in (evaluation_pairs(profile) if pairs is None else pairs)
             if not layout.checkpoint(pair.job).exists() and layout.in_base(layout.checkpoint(pair.job)) is not None
             and layout.in_base(layout.pair_record(pair)) is not None
-            and not _has(layout.load(layout.pair_record(pair), pair_key(profile, pair, layout.found(layout.checkpoint(pair.job)))),
-                         _pair_needs(profile))]
+            and not has_arrays(layout.load(layout.pair_record(pair), pair_key(profile, pair, layout.found(layout.checkpoint(pair.job)))),
+                         pair_needs(profile))]
 
 
 def load_truth(profile: Profile, scene_name: str, out: Path) -> tuple[dict, dict] | None:

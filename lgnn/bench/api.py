@@ -1,0 +1,101 @@
+"""The benchmark from Python (a notebook's way in): `train`, `evaluate`, `benchmark` and
+`load_results`, exported as `lgnn.train`, `lgnn.evaluate`, `lgnn.benchmark` and
+`lgnn.load_results` (imported on first use: `import lgnn` stays light).
+
+Each does what its command does, with the same defaults and checks (bad input is an
+`lgnn.ConfigError` of one line), and returns what a notebook wants: a path, a
+training state, or pandas DataFrames (tidy: one row per scene, model, metric, ...).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+from lgnn.errors import ConfigError
+
+# `load_results`' tables: name -> file under the results folder's `benchmark/`.
+RESULT_TABLES = {"summary": "summary.csv", "curves": "curves.csv.gz", "speed": "speed_error.csv", "mass": "mass_matrix.csv"}
+
+
+def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: int | None = None, seed: int = 0,
+          minutes: float | None = None, trajectories: int | None = None, resume: bool = False, cache_dir: str | os.PathLike | None = None,
+          progress: bool = False):
+    """Train `model` (a built-in name or `file.py:ATTR` / `module:ATTR`) on `scene` with
+    the full profile's recipe (as `lgnn train`), writing the checkpoint `out` after every
+    epoch; `epochs`, `minutes`, `trajectories` override the recipe's budget and data
+    size. Returns the final training state (`best_val`, `best_epoch`, `epoch`, ...)."""
+    from lgnn.bench.grid import PROFILES
+    from lgnn.learn import data, models
+    from lgnn.learn import train as training
+    from lgnn.scene import get_scene
+
+    recipe = PROFILES["full"].training
+    if Path(out).exists() and not resume:
+        raise ConfigError(f"{out} exists: resume=True to continue training it, or choose another out")
+    data_config = dataclasses.replace(recipe.data_for(scene), **({"n_trajectories": trajectories} if trajectories else {}))
+    config = dataclasses.replace(recipe.train, seed=seed, minutes=minutes, checkpoint_every=1, **({"epochs": epochs} if epochs else {}))
+    structure = get_scene(scene)
+    name = models.load_spec(model).name if ":" in model else model
+    model_config = models.ModelConfig.for_scene(name, structure)
+    dataset = data.load_or_generate(data_config, cache_dir or data.default_cache_dir(), progress=progress)
+    return training.train(model_config, config, dataset, structure, out=out, data_config=data_config, resume=resume, progress=progress)
+
+
+def evaluate(checkpoint: str | os.PathLike, scenes, *, initial_conditions: int = 1, seed: int = 0, duration: float = 1.0,
+             model_code: str | None = None, progress: bool = False):
+    """Score a checkpoint on `scenes` (a name or several) against the Lagrangian engine
+    and MuJoCo C, as `lgnn evaluate`: a DataFrame of its summary rows (`scene, model,
+    reference, metric, unit, initial_conditions, gmean, low, high, final, diverged`)."""
+    import pandas as pd
+
+    from lgnn import physics
+    from lgnn.bench import evaluation
+    from lgnn.engines.base import SimulationConfig
+    from lgnn.learn.checkpoints import load_model
+    from lgnn.learn.models import load_spec
+    from lgnn.scene import get_scene
+
+    if model_code:
+        load_spec(model_code)
+    model, params = load_model(checkpoint)
+    config = SimulationConfig(duration=duration)
+    scored = []
+    for scene in [get_scene(name) for name in ([scenes] if isinstance(scenes, str) else scenes)]:
+        states = physics.own_or_sampled_states(scene, initial_conditions, seed)
+        scored += evaluation.evaluate_model(model, params, scene, config, states, progress=progress)[0]
+    return pd.DataFrame(evaluation.summary_rows(scored), columns=evaluation.SUMMARY_COLUMNS)
+
+
+def benchmark(profile: str | os.PathLike = "quick", out: str | os.PathLike | None = None, *, stages=None, settings=(), add_models=(),
+              predictions=(), with_results: str | os.PathLike | None = None, progress: bool = False) -> Path:
+    """Run the benchmark as `lgnn benchmark` does: `profile` a shipped name or a config
+    file, `settings` its `KEY=VALUE` overrides, `add_models` (`--add-model`),
+    `predictions` (`--add-predictions`), `with_results` (`--with-results`); the output
+    folder (default the profile's). `load_results(that folder)` reads its tables."""
+    import json
+
+    from lgnn.bench import grid
+    from lgnn.bench.run import run
+
+    overrides = [*settings, *([f"base={json.dumps(str(Path(with_results).resolve()))}"] if with_results else [])]
+    chosen = grid.load_profile(profile, overrides, tuple(add_models))
+    chosen = dataclasses.replace(chosen, predictions=(*chosen.predictions, *(str(Path(p).resolve()) for p in predictions)))
+    return run(chosen, out, tuple(stages) if stages else None, progress=progress)
+
+
+def load_results(folder: str | os.PathLike = "results", table: str = "summary"):
+    """A results folder's table as a DataFrame: `summary` (`benchmark/summary.csv`: scene,
+    model, seed, metric, statistic, value and provenance), `curves`, `speed` or `mass`."""
+    import pandas as pd
+
+    if table not in RESULT_TABLES:
+        raise ConfigError(f"unknown results table {table!r} (choose from {', '.join(RESULT_TABLES)})")
+    path = Path(folder) / "benchmark" / RESULT_TABLES[table]
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such results table (lgnn benchmark writes it)")
+    try:
+        return pd.read_csv(path, comment="#")
+    except pd.errors.EmptyDataError:  # a report of no records yet
+        return pd.DataFrame()
