@@ -159,8 +159,8 @@ def arrays_by_path(path: str | os.PathLike, meta: dict, arrays: dict, templates:
 
 
 def restore(path: str | os.PathLike, template, arrays: dict, prefix: str):
-    """`template`'s tree with each leaf replaced by the array `prefix/<its path>` (in
-    the template leaf's dtype); `CheckpointError` naming the first path that is
+    """`template`'s tree (arrays, or their `jax.ShapeDtypeStruct`s) with each leaf
+    replaced by the array `prefix/<its path>` (in the template leaf's dtype); `CheckpointError` naming the first path that is
     missing, of another shape, or stored but not in the template."""
     flat, treedef = jax.tree_util.tree_flatten_with_path(template)
     names = [f"{prefix}/{jax.tree_util.keystr(key)}" for key, _ in flat]
@@ -172,9 +172,10 @@ def restore(path: str | os.PathLike, template, arrays: dict, prefix: str):
         stored = arrays.get(name)
         if stored is None:
             raise CheckpointError(f"{path}: checkpoint does not match its model settings (no {name})")
-        if stored.shape != np.shape(leaf):
-            raise CheckpointError(f"{path}: checkpoint does not match its model settings ({name} has shape {stored.shape}, the model {np.shape(leaf)})")
-        restored.append(jnp.asarray(stored, dtype=jnp.asarray(leaf).dtype))
+        shape, dtype = (leaf.shape, leaf.dtype) if isinstance(leaf, jax.ShapeDtypeStruct) else (np.shape(leaf), jnp.asarray(leaf).dtype)
+        if stored.shape != shape:
+            raise CheckpointError(f"{path}: checkpoint does not match its model settings ({name} has shape {stored.shape}, the model {shape})")
+        restored.append(jnp.asarray(stored, dtype=dtype))
     return jax.tree_util.tree_unflatten(treedef, restored)
 
 
@@ -194,5 +195,7 @@ def load_model(path: str | os.PathLike, spec: models.ModelSpec | None = None) ->
     `model_config`). `CheckpointError` (one line) if the file is unusable."""
     meta, arrays = read(path)
     model = model_config(path, meta, spec)
-    template = models.init(jax.random.PRNGKey(0), model)
+    # The tree's shapes and dtypes alone: running `init` would compile each of its
+    # random draws (1.5 s of a CPU, 7 s of a GPU's `lgnn evaluate`), only to be replaced.
+    template = jax.eval_shape(lambda key: models.init(key, model), jax.random.PRNGKey(0))
     return model, restore(path, template, arrays_by_path(path, meta, arrays, {"best": template}), "best")

@@ -121,10 +121,14 @@ def _chain_sampler_states(scene: Scene, count: int, seed: int) -> State:
 
 def own_or_sampled_states(scene: Scene, count: int, seed: int) -> State:
     """The scene's own state (count 1) or `count` sampled initial conditions
-    (`sample_states` with `seed`), (count, N, D) float64: `lgnn evaluate`'s rule."""
+    (`sample_states` with `seed`), (count, N, D) float64: `lgnn evaluate`'s rule.
+    Sampled on the CPU whatever the default device: the same states on every machine
+    (an accelerator's sin and cos may differ in the last bit), and a few small
+    operations that an accelerator would first compile one by one (7 s of an H100)."""
     if count == 1:
         return State(np.asarray(scene.nodes, np.float64)[None], np.asarray(scene.velocities, np.float64)[None])
-    return sample_states(scene, count, seed)
+    with jax.default_device(jax.devices("cpu")[0]):
+        return sample_states(scene, count, seed)
 
 
 def benchmark_initial_states(scene: Scene, count: int, seed: int) -> State:
