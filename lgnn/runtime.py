@@ -126,6 +126,36 @@ def enable_compilation_cache() -> str | None:
     return directory
 
 
+# Every compiled XLA:CPU program holds a few memory mappings until JAX's caches let it
+# go, and a process may hold at most `vm.max_map_count` of them (65530 by default on
+# Linux). Past that, LLVM fails ("Cannot allocate memory") and the process dies inside
+# XLA's compile (SIGSEGV or SIGABRT): seen in test workers at 65 386 mappings, after
+# thousands of compiles. Long runs release their compiled programs between parts of
+# their work once above this many (`release_compiled_programs`).
+MAPPINGS_KEPT = 20_000
+
+
+def memory_mappings() -> int:
+    """The process's memory mappings (0 where /proc is not there to say)."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return maps.read().count(b"\n")
+    except OSError:
+        return 0
+
+
+def release_compiled_programs(above: int = MAPPINGS_KEPT) -> bool:
+    """Drop every compiled JAX program (`jax.clear_caches`: 300 small programs, 970
+    mappings, all returned) if the process holds more than `above` memory mappings;
+    whether it did. What is needed again compiles again."""
+    if memory_mappings() <= above:
+        return False
+    import jax
+
+    jax.clear_caches()
+    return True
+
+
 def accept_interrupts_if_child() -> None:
     """In a benchmark child (`BENCHMARK_CHILD` set), take SIGINT as Ctrl-C even where it
     was inherited ignored: a parent started in the background of a non-interactive shell

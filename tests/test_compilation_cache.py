@@ -1,5 +1,6 @@
-"""The persistent compilation cache: where it lives, how it is turned off, and that an
-unwritable place means no cache rather than an error (`lgnn.runtime`)."""
+"""Compiled programs (`lgnn.runtime`): the persistent compilation cache (where it lives,
+how it is turned off, and that an unwritable place means no cache rather than an
+error), and their release once a process holds too many memory mappings."""
 
 import os
 
@@ -31,3 +32,21 @@ def test_tests_run_without_a_cache():
     # tests/conftest.py turns it off for the tests and the processes they start.
     assert os.environ[COMPILATION_CACHE_ENV] == "off"
     assert not jax.config.jax_compilation_cache_dir
+
+
+def test_compiled_programs_are_released_only_above_the_mapping_limit():
+    """Each compiled program holds memory mappings until released; a process above
+    `above` mappings drops them all (`release_compiled_programs`), one below keeps them."""
+    import jax.numpy as jnp
+
+    from lgnn.runtime import memory_mappings, release_compiled_programs
+
+    programs = [jax.jit(lambda x, k=k: jnp.sin(x) * k + jnp.cos(x) ** 2) for k in range(60)]
+    for program in programs:
+        program(jnp.ones(3)).block_until_ready()
+    before = memory_mappings()
+    assert not release_compiled_programs(above=before + 10_000)
+    assert all(program._cache_size() == 1 for program in programs)
+    assert release_compiled_programs(above=0)
+    assert all(program._cache_size() == 0 for program in programs)
+    assert memory_mappings() < before - len(programs)  # at least one mapping each returned

@@ -28,6 +28,7 @@ from lgnn.bench import report
 from lgnn.bench.grid import Pair, Profile, TrainingJob, evaluation_pairs, evaluation_scenes, training_jobs
 from lgnn.bench import store
 from lgnn.bench.parallel import run_split
+from lgnn.runtime import release_compiled_programs
 from lgnn.bench.stages.evaluate import evaluate_group, evaluate_scene
 from lgnn.bench.stages.external import check_predictions, evaluate_external, read_predictions
 from lgnn.bench.stages.mass import mass_matrices
@@ -226,6 +227,7 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
         for stage in list(STAGES.values()):
             if stage.name in stages:
                 stage.run(request)
+                release_compiled_programs()  # a long run's compiles (`lgnn.runtime.MAPPINGS_KEPT`)
     return out
 
 
