@@ -461,7 +461,7 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     # compiles quickest; the resumed process reads the first one's compiled programs
     # from JAX's persistent cache instead of compiling them again.
     argv = [sys.executable, "-m", "lgnn.cli", "train", "--model", "gns", "--trajectories", "2", "--epochs", str(epochs),
-            "--patience", str(epochs), "--lr", "1e-2", "--cache-dir", str(cache), "--out", str(ckpt), "--quiet"]
+            "--patience", str(epochs), "--lr", "1e-2", "--batch-size", "10", "--cache-dir", str(cache), "--out", str(ckpt), "--quiet"]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax-cache")}
     process = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:

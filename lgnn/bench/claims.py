@@ -8,8 +8,8 @@ The claim holds the claimant's host, pid, start time and a heartbeat timestamp t
 thread of the claimant rewrites every `HEARTBEAT_S` while it works. Another process
 finding the claim leaves the record to it, unless the claim is stale: its heartbeat
 older than `STALE_AFTER_S` (the claimant's machine died or it froze), or its pid dead on
-this same host. A stale claim is taken over atomically: renamed aside (of several
-processes renaming it, one succeeds), then created afresh. The claim is removed when
+this same host. A stale claim is taken over: removed by one taker at a time (a lock file
+beside it), then created afresh with O_EXCL, which one process wins. The claim is removed when
 its block ends, the record written (atomically: `lgnn.records`) or the work failed.
 
 `claim(path)` tries once; `once(path)` waits while a live claim elsewhere holds the
@@ -38,6 +38,9 @@ HEARTBEAT_S = 10.0
 # A claim whose heartbeat is older than this is stale: 18 missed heartbeats, and room
 # for the clocks of a cluster's nodes to disagree (heartbeats are wall-clock times).
 STALE_AFTER_S = 180.0
+# A takeover lock (`_take_over`) older than this was left by a taker that died.
+TAKEOVER_LOCK_S = 30.0
+TAKEOVER_SUFFIX = ".takeover"
 # How often a process waiting for a claim held elsewhere looks again.
 POLL_S = 2.0
 # The claim's content is padded to this size, so a heartbeat rewrites it in place
@@ -103,7 +106,7 @@ def claim(record: Path, stale_after: float = STALE_AFTER_S) -> Claim | None:
                 continue  # released meanwhile: try again
             if not _stale(*seen, stale_after):
                 return None
-            if _take_over(path, seen):
+            if _take_over(path, seen, stale_after):
                 log(f"taking over the stale claim {path} ({describe(seen[0])})")
             continue
         os.write(fd, _encoded({**content, "heartbeat": time.time()}))
@@ -230,18 +233,30 @@ def _stale(content: dict | None, stat: os.stat_result, stale_after: float) -> bo
     return False
 
 
-def _take_over(path: Path, seen: tuple[dict | None, os.stat_result]) -> bool:
-    """Remove the stale claim `seen` at `path`, atomically: renamed aside first, so of
-    several processes taking it over one removes it. If what was renamed is not the
-    claim judged stale (a fresh claim replaced it meanwhile), it is put back."""
-    aside = path.with_name(f"{path.name}.{uuid.uuid4().hex}.stale")
+def _take_over(path: Path, seen: tuple[dict | None, os.stat_result], stale_after: float) -> bool:
+    """Remove the stale claim `seen` at `path`; whether this process removed it.
+
+    Takers go one at a time, through a lock file created with O_EXCL beside the claim
+    (a lock older than `TAKEOVER_LOCK_S` was left by a taker that died, and is
+    removed). Under it, the claim is looked at again and removed only if it is still
+    the one judged stale and still stale (its claimant may have beaten its heartbeat
+    meanwhile, in place). Without the lock, a taker that saw the stale claim could move
+    aside the fresh claim another taker had just made, and two would hold the record."""
+    lock = path.with_name(path.name + TAKEOVER_SUFFIX)
     try:
-        os.rename(path, aside)
-    except FileNotFoundError:
-        return False  # another process moved it first
-    same = os.stat(aside).st_ino == seen[1].st_ino
-    if not same:
-        with contextlib.suppress(FileExistsError):
-            os.link(aside, path)  # back in place, unless a newer claim is there already
-    os.unlink(aside)
-    return same
+        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:
+        with contextlib.suppress(FileNotFoundError):
+            if time.time() - os.stat(lock).st_mtime > TAKEOVER_LOCK_S:
+                os.unlink(lock)
+        time.sleep(0.01)  # another taker is at it: look again shortly
+        return False
+    try:
+        now = _inspect(path)
+        if now is None or now[1].st_ino != seen[1].st_ino or not _stale(*now, stale_after):
+            return False
+        os.unlink(path)
+        return True
+    finally:
+        os.close(fd)
+        os.unlink(lock)
