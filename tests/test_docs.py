@@ -233,3 +233,26 @@ def test_user_pages_hold_no_history_or_machine_paths(page):
     assert not commits, f"{page.name} names commits {commits}"
     assert not re.search(r"\bissues? #?\d+|(?<![\w/])#\d+\b", text, re.I), f"{page.name} names an issue"
     assert not re.search(r"(?<![\w.])/(work|home|Users|tmp)/", text), f"{page.name} names a machine path"
+
+
+def test_the_notebook_takes_a_model_file_to_its_leaderboard_row(tmp_path, monkeypatch, capsys):
+    """docs/notebooks/your_model_on_the_leaderboard.ipynb, its code cells run in order
+    (as a kernel would, without Jupyter): the model written to its own file trains and
+    is ranked beside the built-in GNS, and its rows are in the run's tables."""
+    import json
+    import sys
+
+    notebook = json.loads((ROOT / "docs" / "notebooks" / "your_model_on_the_leaderboard.ipynb").read_text())
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))  # the model file, imported by `my_model.py:SPEC`
+    namespace = {"__name__": "__notebook__"}
+    for cell in notebook["cells"]:
+        if cell["cell_type"] == "code":
+            exec(compile("".join(cell["source"]), "notebook", "exec"), namespace)
+    sys.modules.pop("my_model", None)
+    printed = capsys.readouterr().out
+    assert "my-notebook-model" in printed and "gns" in printed
+    summary = namespace["summary"]
+    assert {"my-notebook-model", "gns"} <= set(summary[summary["metric"] == "rollout_error"]["model"])
+    leaderboard = (tmp_path / "tiny-out" / "LEADERBOARD.md").read_text()
+    assert "my-notebook-model" in leaderboard and "| gns" in leaderboard
