@@ -152,3 +152,20 @@ def test_a_heartbeat_keeps_a_long_claim_live(tmp_path, monkeypatch):
         assert claims.claim(record, stale_after=0.3) is None
     finally:
         mine.release()
+
+
+def test_two_benchmark_processes_on_one_folder_run_each_task_once(tmp_path, tiny_benchmark_config):
+    """Two `lgnn benchmark` processes started at once on one output folder (the local
+    executor): the training job, the ground truth and each evaluation are computed by
+    one of them (their logs say so once between them), both exit 0, and no claim is
+    left."""
+    config, out = tiny_benchmark_config("gns", epochs=2), tmp_path / "out"
+    command = [sys.executable, "-m", "lgnn.cli", "benchmark", "--config", str(config), "--out-dir", str(out), "--quiet"]
+    processes = [subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    logs = [process.communicate(timeout=600)[1] for process in processes]
+    assert [process.returncode for process in processes] == [0, 0], logs
+    both = "".join(logs)
+    assert both.count("train gns-chain4-s0: 2 epochs in") == 1, both
+    assert both.count("ground truth chain4:") == 1, both
+    assert both.count("evaluate gns s0 on chain4: rollout error") == 1, both
+    assert not list(out.rglob("*.claim*"))

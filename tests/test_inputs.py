@@ -498,8 +498,14 @@ def test_a_simulation_config_is_bounded_or_refused(dt, frame_dt, duration):
     assert 1 <= config.n_frames <= MAX_FRAMES and config.n_frames * config.steps_per_frame <= MAX_STEPS
 
 
+INTERRUPTS = 50
+# Processes interrupted at once: the moments stay random (each process's own clock),
+# the test's wall time a fifth of one after another.
+INTERRUPTED_AT_ONCE = 5
+
+
 def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
-    """Ctrl-C at 12 moments spread over `lgnn simulate` (imports, compilation, the run):
+    """Ctrl-C at 50 random moments over `lgnn simulate` (imports, compilation, the run):
     exit 130 with the one line `lgnn: interrupted`, or, when the signal comes after the
     run, exit 0; an output is whole or absent. Never a traceback or a crash. A signal
     that lands while the interpreter starts or after `main` has returned, before or after
@@ -510,18 +516,27 @@ def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
     from lgnn.engines.base import Trajectory
 
     generator = random.Random(34)
-    for trial in range(12):
-        out = tmp_path / f"o{trial}.npz"
-        child = subprocess.Popen([sys.executable, "-m", "lgnn.cli", "simulate", "chain4", "--duration", "0.2", "--out", str(out), "--quiet"],
-                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        time.sleep(0.3 + 4.7 * (trial + generator.random()) / 12)
-        child.send_signal(signal.SIGINT)
-        err = child.communicate(timeout=TIMEOUT_S)[1]
-        assert "Traceback" not in err and child.returncode in (0, 130, -signal.SIGINT), (trial, child.returncode, err)
-        if child.returncode == -signal.SIGINT:
-            assert err == "", err
-        if child.returncode == 130:
-            assert err.strip() == "lgnn: interrupted", err
-        if child.returncode == 0 or out.exists():  # interrupted after the (atomic) save: a whole file
-            assert Trajectory.load(out).q.shape[1:] == (5, 2)
-        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "a temporary file was left"
+    moments = sorted(0.05 + 5.0 * generator.random() for _ in range(INTERRUPTS))
+    seen = {}
+    for batch in range(0, INTERRUPTS, INTERRUPTED_AT_ONCE):
+        started = time.monotonic()
+        children = {}
+        for trial in range(batch, min(batch + INTERRUPTED_AT_ONCE, INTERRUPTS)):
+            out = tmp_path / f"o{trial}.npz"
+            children[trial] = (out, subprocess.Popen([sys.executable, "-m", "lgnn.cli", "simulate", "chain4", "--duration", "0.2", "--out", str(out),
+                                                      "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
+        for trial, (out, child) in children.items():
+            time.sleep(max(0.0, started + moments[trial] - time.monotonic()))
+            child.send_signal(signal.SIGINT)
+        for trial, (out, child) in children.items():
+            err = child.communicate(timeout=TIMEOUT_S)[1]
+            seen[child.returncode] = seen.get(child.returncode, 0) + 1
+            assert "Traceback" not in err and child.returncode in (0, 130, -signal.SIGINT), (trial, moments[trial], child.returncode, err)
+            if child.returncode == -signal.SIGINT:
+                assert err == "", err
+            if child.returncode == 130:
+                assert err.strip() == "lgnn: interrupted", err
+            if child.returncode == 0 or out.exists():  # interrupted after the (atomic) save: a whole file
+                assert Trajectory.load(out).q.shape[1:] == (5, 2)
+    assert seen.get(130, 0) >= INTERRUPTS // 2, seen  # most moments fall inside the command, not before or after it
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "a temporary file was left"
