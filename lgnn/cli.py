@@ -498,20 +498,19 @@ def _add_train_parser(commands) -> None:
 
 
 def _cmd_evaluate(args) -> None:
-    from pathlib import Path
-
     from lgnn import physics
     from lgnn.bench import evaluation
     from lgnn.engines.base import Integration
-    from lgnn.files import check_writable
+    from lgnn.files import DEFAULT_OUT, check_out_dir, check_writable
     from lgnn.learn.models import check_compatible
     from lgnn.learn.checkpoints import load_model
     from lgnn.scene import get_scene
 
     config = _simulation_config(args)
     integration = _integration(args) or Integration()
-    out = Path(args.out_dir)
-    check_writable(out / "evaluate_summary.md")
+    out = check_out_dir(args.out_dir or DEFAULT_OUT)  # created once every scene has run
+    if out.is_dir():
+        check_writable(out / "evaluate_summary.md")
     _import_model_code(args)
     model, params = load_model(args.model)
     scenes = [get_scene(name) for name in args.scenes]  # every scene checked before any rollout
@@ -524,6 +523,7 @@ def _cmd_evaluate(args) -> None:
         scored += scene_scores
         kept.update({out / f"{scene.name}_{engine}.npz": trajectory for engine, trajectory in trajectories.items()})
     # Written together once every scene has run: a failed command leaves nothing.
+    out.mkdir(parents=True, exist_ok=True)
     for path, trajectory in kept.items():
         trajectory.save(path)
     written = list(kept)
@@ -537,16 +537,21 @@ def _cmd_evaluate(args) -> None:
 
 
 def _cmd_compare(args) -> None:
+    from pathlib import Path
+
     from lgnn.bench import evaluation
-    from lgnn.files import check_writable
+    from lgnn.files import check_out_dir, check_writable
 
     if args.out_dir:
-        check_writable(f"{args.out_dir}/compare_summary.md")
+        check_out_dir(args.out_dir)  # created once the files are scored
+        if Path(args.out_dir).is_dir():
+            check_writable(f"{args.out_dir}/compare_summary.md")
     scored, notes = evaluation.compare_trajectories([args.reference, args.other])
     for note in notes:
         print(f"note: {note}")
     print(evaluation.format_summary(evaluation.summary_rows([scored])))
     if args.out_dir:
+        Path(args.out_dir).mkdir(parents=True, exist_ok=True)
         written = evaluation.write_outputs([scored], args.out_dir, "compare", f"{args.other} against {args.reference}",
                                            ["lgnn " + " ".join(args.argv)], notes)
         print(f"wrote {', '.join(map(str, written))}")
@@ -575,14 +580,15 @@ def _add_evaluation_parsers(commands) -> None:
                           help="1: the scene's own state (default); N: N sampled ones (the paper's chain sampler, else projected perturbations)")
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the sampled initial conditions")
     _add_simulation_options(evaluate)
-    evaluate.add_argument("--out-dir", required=True, help="writes evaluate_frames.csv, evaluate_summary.csv/.md and SCENE_{model,lagrangian,mujoco}.npz")
+    evaluate.add_argument("--out-dir", default=None, help="writes evaluate_frames.csv, evaluate_summary.csv/.md and SCENE_{model,lagrangian,mujoco}.npz "
+                          "here, created if absent (default: ./lgnn-out)")
     evaluate.add_argument("--quiet", action="store_true", help="no progress bars")
     evaluate.set_defaults(run=_cmd_evaluate)
 
     compare = commands.add_parser("compare", help="the benchmark's metrics of one trajectory file against another")
     compare.add_argument("reference", help="reference trajectory .npz (lgnn simulate / rollout / evaluate)")
     compare.add_argument("other", help="trajectory .npz scored against the reference")
-    compare.add_argument("--out-dir", help="also write compare_frames.csv and compare_summary.csv/.md here")
+    compare.add_argument("--out-dir", help="also write compare_frames.csv and compare_summary.csv/.md here (created if absent)")
     compare.set_defaults(run=_cmd_compare)
 
     animate = commands.add_parser("animate", help="animate trajectory files over each other (the first underneath)")

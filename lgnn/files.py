@@ -64,12 +64,14 @@ def check_writable(path: str | os.PathLike) -> Path:
 
 def check_out_dir(path: str | os.PathLike) -> Path:
     """An output directory a command creates on demand: `path` itself, if it exists, and
-    else its nearest existing parent must be a directory (one line otherwise)."""
+    else its nearest existing parent must be a writable directory (one line otherwise)."""
     path = Path(path)
     for folder in (path, *path.parents):
         if folder.exists() or folder.is_symlink():
             if not folder.is_dir():
                 raise ConfigError(f"output directory {path}: {folder} is not a directory")
+            if not os.access(folder, os.W_OK):
+                raise ConfigError(f"output directory {path}: {folder} is not writable")
             return path
     return path
 

@@ -143,3 +143,21 @@ def test_a_registered_metric_appears_in_the_evaluate_summary(capsys, tmp_path, m
     assert float(summary["lagrangian", "absolute_energy_error"]["gmean"]) < 1e-9
     assert ("mujoco", "absolute_energy_error") in summary
     assert {r["metric"] for r in read_csv(tmp_path / "evaluate_frames.csv")} == set(metrics.METRICS)
+
+
+def test_evaluate_and_compare_create_their_output_folder_only_once_they_succeed(tmp_path, capsys):
+    """A folder that does not exist yet is made, with its parents, once the scores are
+    in; a command that fails leaves none; a folder under a file is refused in one line."""
+    checkpoint, out = _cheat_checkpoint(tmp_path), tmp_path / "new" / "eval"
+    code, _, err = run(capsys, "evaluate", "chain4", "--model", str(checkpoint), "--duration", "0.01", "--out-dir", str(out), "--quiet")
+    assert code == 0, err
+    assert (out / "evaluate_summary.md").is_file() and (out / "chain4_model.npz").is_file()
+    failed = tmp_path / "never"
+    code, _, err = run(capsys, "evaluate", "chain4", str(tmp_path / "missing.json"), "--model", str(checkpoint), "--duration", "0.01",
+                       "--out-dir", str(failed), "--quiet")
+    assert code != 0 and not failed.exists() and err.count("\n") == 1, err
+    (tmp_path / "file").write_text("")
+    code, _, err = run(capsys, "compare", str(out / "chain4_lagrangian.npz"), str(out / "chain4_model.npz"), "--out-dir", str(tmp_path / "file" / "x"))
+    assert code == 2 and "is not a directory" in err, err
+    code, _, err = run(capsys, "compare", str(out / "chain4_lagrangian.npz"), str(out / "chain4_model.npz"), "--out-dir", str(tmp_path / "cmp" / "x"))
+    assert code == 0 and (tmp_path / "cmp" / "x" / "compare_summary.md").is_file(), err
