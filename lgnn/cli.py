@@ -661,17 +661,23 @@ def _cmd_benchmark(args) -> None:
     print(f"wrote {out}/")
 
 
-def _add_benchmark_parser(commands) -> None:
+def _add_profile_options(parser, full_help: str, set_help: str) -> None:
+    """The options that choose a benchmark profile: --full, --profile, --config, --set."""
     from lgnn.bench import grid
+
+    parser.add_argument("--full", action="store_true", help=full_help)
+    parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
+    parser.add_argument("--config", help="a benchmark config file (TOML; docs/benchmark.md, 'Configs')")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE", help=set_help)
+
+
+def _add_benchmark_parser(commands) -> None:
     from lgnn.bench.run import EXECUTORS, STAGES
 
     parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
-    parser.add_argument("--full", action="store_true", help="the full profile (default: the quick one, minutes on a laptop)")
-    parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
-    parser.add_argument("--config", help="a benchmark config file (TOML; docs/benchmark.md, 'Configs')")
-    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2]; add.KEY=VALUE sets KEY of every "
-                             "added model's grid entry, e.g. add.epochs=20, add.seeds=[0], add.eval_scenes=[chain4,chain8] (repeatable)")
+    _add_profile_options(parser, "the full profile (default: the quick one, minutes on a laptop)",
+                         "override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2]; add.KEY=VALUE sets KEY of every "
+                         "added model's grid entry, e.g. add.epochs=20, add.seeds=[0], add.eval_scenes=[chain4,chain8] (repeatable)")
     parser.add_argument("--add-model", action="append", metavar="FILE.py:ATTR",
                         help="add a model to the grid (its spec as file.py:attribute or module:attribute, or a registered name), trained "
                              "on chain4 and evaluated on the planar transfer scenes as the built-in models are (repeatable)")
@@ -721,13 +727,8 @@ def _cmd_leaderboard(args) -> None:
 
 
 def _add_leaderboard_parser(commands) -> None:
-    from lgnn.bench import grid
-
     parser = commands.add_parser("leaderboard", help="write LEADERBOARD.md of a results folder from its records (ranks, parameters, training time)")
-    parser.add_argument("--full", action="store_true", help="the full profile's results (default folder: results/)")
-    parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
-    parser.add_argument("--config", help="a benchmark config file (TOML), as lgnn benchmark's")
-    parser.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config value, as lgnn benchmark's (repeatable)")
+    _add_profile_options(parser, "the full profile's results (default folder: results/)", "override a config value, as lgnn benchmark's (repeatable)")
     parser.add_argument("--with-results", metavar="DIR", help="also read the records of DIR in place, as lgnn benchmark --with-results")
     parser.add_argument("--out-dir", default=None, help="the results folder, read and written into (default: as lgnn benchmark's)")
     parser.set_defaults(run=_cmd_leaderboard)

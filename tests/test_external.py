@@ -15,7 +15,7 @@ from lgnn.bench import grid, store
 from lgnn.bench.stages import evaluate, external
 from lgnn.cli import main
 from lgnn.engines import get_engine
-from lgnn.learn import models, train
+from lgnn.learn import models
 from lgnn.learn.export import load_exported
 from lgnn.scene import State, get_scene
 
@@ -27,17 +27,13 @@ CONFIG = (f'stages = ["evaluate", "report"]\n[[grid]]\nmodel = "{__name__}:CHEAT
           "[evaluate]\ninitial_conditions = 2\nduration = 0.02\nmujoco_dt = 1e-3\n")
 
 
-def _setup(tmp_path):
+def _setup(tmp_path, untrained_checkpoint):
     """`(config path, profile, output folder)`: the cheating model's checkpoint in place, untrained."""
     config = tmp_path / "tiny.toml"
     config.write_text(CONFIG)
     profile = grid.load_profile(config)
     out = tmp_path / "out"
-    (job,) = grid.training_jobs(profile)
-    model, train_config = models.ModelConfig(CHEAT.name), train.TrainConfig(learning_rate=1e-3, warmup_steps=1)
-    path = store.Layout(out).checkpoint(job)
-    path.parent.mkdir(parents=True)
-    train.save_checkpoint(path, train.initial_state(model, train_config), model, train_config)
+    untrained_checkpoint(profile, out, CHEAT.name)
     return config, profile, out
 
 
@@ -46,8 +42,8 @@ def _save(path, q, qd, evaluation, model, **extra):
     return path
 
 
-def test_exported_initial_conditions_rolled_out_elsewhere_are_scored_against_the_same_ground_truth(tmp_path, capsys):
-    config, profile, out = _setup(tmp_path)
+def test_exported_initial_conditions_rolled_out_elsewhere_are_scored_against_the_same_ground_truth(tmp_path, capsys, untrained_checkpoint):
+    config, profile, out = _setup(tmp_path, untrained_checkpoint)
     exported = tmp_path / "chain4-ic.npz"
     assert main(["dataset", "export", "--scene", "chain4", "--config", config, "--out", exported, "--cache-dir", tmp_path, "--quiet"]) == 0
     arrays, meta = load_exported(exported)
@@ -119,8 +115,8 @@ def test_exported_initial_conditions_rolled_out_elsewhere_are_scored_against_the
     ({"model": "my sim"}, "'model' must be 1-64 letters"),
     ({"model": None}, "missing model"),
 ])
-def test_bad_predictions_are_one_line_before_any_stage(change, words, tmp_path, capsys):
-    config, profile, out = _setup(tmp_path)
+def test_bad_predictions_are_one_line_before_any_stage(change, words, tmp_path, capsys, untrained_checkpoint):
+    config, profile, out = _setup(tmp_path, untrained_checkpoint)
     states = evaluate.evaluation_initial_states(profile, get_scene("chain4"))
     frames = profile.evaluate.simulation("chain4").n_frames + 1
     arrays = dict(q=np.repeat(states.q[:, None], frames, 1), qd=np.repeat(states.qd[:, None], frames, 1), scene="chain4",

@@ -8,12 +8,12 @@ import jax.numpy as jnp
 import pytest
 
 from lgnn import physics
-from lgnn.bench import grid, report, store
+from lgnn.bench import grid, report
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate
 from lgnn.cli import main
 from lgnn.errors import ConfigError
-from lgnn.learn import models, train
+from lgnn.learn import models
 
 # The "committed" model: the true accelerations (LagrangeBench's cheating model), with a
 # parameter it does not use (the evaluate stage stacks a model's seeds' parameters).
@@ -34,24 +34,20 @@ def _files(folder):
     return {path.relative_to(folder).as_posix(): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
 
 
-def _committed(tmp_path):
+def _committed(tmp_path, untrained_checkpoint):
     """A committed-like results folder: the cheating model's checkpoint, its evaluation
     and ground-truth records on chain4, and its report; `(config text, folder)`."""
     text = f'[[grid]]\nmodel = "{__name__}:COMMITTED"\ntrain_scene = "chain4"\neval_scenes = ["chain4"]\n' + SETTINGS
     (tmp_path / "committed.toml").write_text(text)
     profile = grid.load_profile(tmp_path / "committed.toml")
     base = tmp_path / "results"
-    (job,) = grid.training_jobs(profile)
-    config, train_config = models.ModelConfig(COMMITTED.name), train.TrainConfig(learning_rate=1e-3, warmup_steps=1)
-    checkpoint = store.Layout(base).checkpoint(job)
-    checkpoint.parent.mkdir(parents=True)
-    train.save_checkpoint(checkpoint, train.initial_state(config, train_config), config, train_config)
+    untrained_checkpoint(profile, base, COMMITTED.name)
     run(profile, base, stages=("evaluate", "report"), progress=False)
     return text, base
 
 
-def test_a_researchers_model_is_ranked_beside_committed_results_read_in_place(tmp_path, capsys):
-    text, base = _committed(tmp_path)
+def test_a_researchers_model_is_ranked_beside_committed_results_read_in_place(tmp_path, capsys, untrained_checkpoint):
+    text, base = _committed(tmp_path, untrained_checkpoint)
     before = _files(base)
     config = tmp_path / "mine.toml"
     config.write_text(text)
@@ -121,16 +117,16 @@ def test_the_base_folder_is_never_the_output_folder(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["results"]  # nothing written
 
 
-def test_records_read_from_the_base_say_so(tmp_path):
-    _, base = _committed(tmp_path)
+def test_records_read_from_the_base_say_so(tmp_path, untrained_checkpoint):
+    _, base = _committed(tmp_path, untrained_checkpoint)
     profile = grid.load_profile(tmp_path / "committed.toml", [f'base="{base}"'])
     ((pair, (_, meta)),) = evaluate.load_pairs(profile, tmp_path / "elsewhere")
     assert meta["folder"] == str(base) and pair.job.model == COMMITTED.name
     assert evaluate.unmatched_base_pairs(profile, tmp_path / "elsewhere") == []
 
 
-def test_base_results_made_with_other_evaluation_settings_are_named_never_mixed_or_recomputed(tmp_path):
-    _, base = _committed(tmp_path)
+def test_base_results_made_with_other_evaluation_settings_are_named_never_mixed_or_recomputed(tmp_path, untrained_checkpoint):
+    _, base = _committed(tmp_path, untrained_checkpoint)
     longer = grid.load_profile(tmp_path / "committed.toml", [f'base="{base}"', "evaluate.duration=0.03"])
     out = tmp_path / "mine"
     assert evaluate.unmatched_base_pairs(longer, out) == grid.evaluation_pairs(longer)
