@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import _thread
 import argparse
+import contextlib
 import dataclasses
 import math
 import os
@@ -901,21 +902,35 @@ def main(argv: list[str] | None = None) -> int:
         else:
             default_hook(unraisable)
 
-    received = []
+    received, loading = [], []
 
     def on_interrupt(signum, frame):
         received.append(signum)
-        raise KeyboardInterrupt
+        if not loading:
+            raise KeyboardInterrupt
+
+    @contextlib.contextmanager
+    def interrupts_after_loading():
+        # numpy's and jaxlib's C initialisation print the traceback of an exception
+        # raised inside it before failing the import: a Ctrl-C while they load is held
+        # until they have (a second or two), then raised.
+        loading.append(True)
+        try:
+            yield
+        finally:
+            loading.clear()
+        if received:
+            raise KeyboardInterrupt
 
     # Ctrl-C as Python takes it, but remembered: one inside a C extension's
-    # initialisation (numpy, jaxlib) comes out as the ImportError it caused. A SIGINT
-    # handler someone else set (or SIG_IGN, inherited) is left alone.
+    # initialisation comes out as the ImportError it caused. A SIGINT handler someone
+    # else set (or SIG_IGN, inherited) is left alone.
     own_handler = threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.default_int_handler
     if own_handler:
         signal.signal(signal.SIGINT, on_interrupt)
     sys.unraisablehook = redeliver_interrupts
     try:
-        return _run(argv)
+        return _run(argv, interrupts_after_loading)
     except KeyboardInterrupt:
         return _interrupted(argv)
     except Exception:
@@ -941,10 +956,11 @@ def _interrupt_main_later() -> None:
     _thread.interrupt_main()
 
 
-def _run(argv: list[str] | None) -> int:
+def _run(argv: list[str] | None, interrupts_after_loading=contextlib.nullcontext) -> int:
     from lgnn.runtime import accept_interrupts_if_child, configure, enable_compilation_cache
 
-    configure()  # first: before numpy and JAX load (thread counts, XLA flags, float64)
+    with interrupts_after_loading():
+        configure()  # first: before numpy and JAX load (thread counts, XLA flags, float64)
     if argv is None:
         # The process's own command (not a caller's `main([...])`, e.g. a test): compiled
         # programs kept on disk (`lgnn.runtime.compilation_cache_dir`).

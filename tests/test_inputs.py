@@ -540,3 +540,26 @@ def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
                 assert Trajectory.load(out).q.shape[1:] == (5, 2)
     assert seen.get(130, 0) >= INTERRUPTS // 2, seen  # most moments fall inside the command, not before or after it
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "a temporary file was left"
+
+
+def test_a_ctrl_c_while_numpy_and_jax_load_is_held_until_they_have(monkeypatch, capsys):
+    """Ctrl-C during `configure()` (where numpy and jaxlib run their C initialisation,
+    which prints the traceback of an exception raised inside it) does not interrupt it:
+    the load completes, then the command stops with exit 130 and one line."""
+    import lgnn.runtime
+
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("the test runner owns SIGINT here")
+    loaded = []
+    configure = lgnn.runtime.configure
+
+    def interrupted_configure(**kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)  # the signal is handled by now
+        configure(**kwargs)
+        loaded.append(True)
+
+    monkeypatch.setattr(lgnn.runtime, "configure", interrupted_configure)
+    assert main(["scenes"]) == 130
+    assert loaded == [True]
+    assert capsys.readouterr().err == "lgnn: interrupted\n"
