@@ -15,6 +15,7 @@ from lgnn import metrics
 from lgnn.bench import grid, store
 from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.engines.rollouts import Rollouts
+from lgnn.learn import checkpoints, models, train
 from lgnn.scene import get_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,6 +23,13 @@ QUICK = grid.PROFILES["quick"]
 SCENE = "chain4"
 # Values for fields a generic change would not reach (a step for another scene).
 CHANGED = {"scene_dts": ((SCENE, 5e-4),), "references": ("mujoco", "lagrangian")}
+
+
+def _checkpoint(path: Path, seed: int = 0, **train_settings) -> Path:
+    """An untrained true-physics checkpoint at `path` (parameters drawn from `seed`)."""
+    model, config = models.ModelConfig("lgnn"), train.TrainConfig(seed=seed, **train_settings)
+    train.save_checkpoint(path, train.initial_state(model, config), model, config)
+    return path
 
 
 def _changed(name, value):
@@ -65,8 +73,7 @@ READS = {
 
 @pytest.mark.parametrize("group", sorted(READS))
 def test_every_setting_a_stage_reads_is_in_its_key(tmp_path, group):
-    checkpoint = tmp_path / "checkpoint.npz"
-    checkpoint.write_bytes(b"weights")
+    checkpoint = _checkpoint(tmp_path / "checkpoint.npz")
     before = _keys(QUICK, tmp_path, checkpoint)
     settings = getattr(QUICK, group)
     for field in dataclasses.fields(settings):
@@ -78,13 +85,21 @@ def test_every_setting_a_stage_reads_is_in_its_key(tmp_path, group):
         assert changed == expected, f"{group}.{field.name}: keys changed {sorted(changed)}, expected {sorted(expected)}"
 
 
-def test_a_stage_key_follows_the_checkpoint_content(tmp_path):
-    checkpoint = tmp_path / "checkpoint.npz"
-    checkpoint.write_bytes(b"weights")
+def test_a_stage_key_follows_the_checkpoint_content_not_its_file(tmp_path):
+    checkpoint = _checkpoint(tmp_path / "checkpoint.npz", seed=0)
     before = _keys(QUICK, tmp_path, checkpoint)
-    checkpoint.write_bytes(b"other weights")
+    # Other parameters: the records made from the checkpoint are stale.
+    _checkpoint(checkpoint, seed=1)
     after = _keys(QUICK, tmp_path, checkpoint)
     assert {stage for stage in before if before[stage] != after[stage]} == {"pair", "mass"}
+    # The same parameters in another file (other optimiser settings, so other bytes,
+    # and converted): every record still holds.
+    _checkpoint(checkpoint, seed=1, learning_rate=1e-4)
+    converted = tmp_path / "converted" / "checkpoint.npz"
+    converted.parent.mkdir()
+    train.convert_checkpoint(checkpoint, converted)
+    assert converted.read_bytes() != checkpoint.read_bytes()
+    assert _keys(QUICK, tmp_path, checkpoint) == _keys(QUICK, tmp_path, converted) == after
 
 
 def test_committed_full_records_match_the_current_settings():
@@ -140,7 +155,7 @@ def test_the_3d_lgnn_enters_the_scaling_key_only_with_3d_lengths(tmp_path):
     planar = dataclasses.replace(QUICK, scaling=dataclasses.replace(QUICK.scaling, spatial_lengths=()))
     assert QUICK.scaling.spatial_lengths
     before = scaling.scaling_key(QUICK, tmp_path), scaling.scaling_key(planar, tmp_path)
-    checkpoint.write_bytes(b"3d weights")
+    _checkpoint(checkpoint)
     after = scaling.scaling_key(QUICK, tmp_path), scaling.scaling_key(planar, tmp_path)
     assert before[0] != after[0] and before[1] == after[1]
 

@@ -14,7 +14,8 @@ made with, its fields, and the environment.
 
 `digest(value)` is the sha256 of a JSON-able value (sorted keys): the key of a record is
 the digest of the settings it depends on. `file_digest(path)` is the sha256 of a file's
-bytes (a record depending on a checkpoint keys on its content, not its name).
+bytes (a record depending on an input file keys on its content, not its name; on a
+checkpoint, on `lgnn.learn.checkpoints.content_digest`).
 
 The checksum is the algorithm every earlier record used, so committed checkpoints and
 benchmark records stay readable and their checksums valid.

@@ -163,6 +163,8 @@ def test_converted_checkpoints_roll_out_bit_identically(tmp_path):
     assert new[1]["environment"] == {"commit": "format-1"} and new[0].history == old[0].history == state.history
     for a, b in zip(jax.tree.leaves(old[0]), jax.tree.leaves(new[0])):
         np.testing.assert_array_equal(a, b)
+    # What records made from the checkpoint key on: unchanged by the conversion.
+    assert checkpoints.content_digest(source / "lgnn.npz") == checkpoints.content_digest(target / "lgnn.npz")
     runs = [models.rollout(*load_model(path), scene, SHORT) for path in (source / "lgnn.npz", target / "lgnn.npz")]
     np.testing.assert_array_equal(runs[0].q, runs[1].q)
     np.testing.assert_array_equal(runs[0].qd, runs[1].qd)

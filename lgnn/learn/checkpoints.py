@@ -16,17 +16,22 @@ deflated (`np.savez_compressed`). Format 2 (`FORMAT`) holds:
 
 `load_model(path)` needs only the model's config and its spec's `init` (the tree the
 leaves go into): no optimiser, no training settings. The optimiser state is read by
-`lgnn.learn.train` for resuming, from its optimiser's template.
+`lgnn.learn.train` for resuming, from its optimiser's template. `content_digest(path)`
+is what a record made from a checkpoint keys on: the model settings and the best
+parameters, the same for a file converted, re-saved or trained again to them.
 
 Format 1 (leaves `prefix/k` in flatten order, the history in the meta, arrays stored
-uncompressed: the committed benchmark checkpoints) is still read: `arrays_by_path`
-names its leaves by the template's paths. It is never written.
+uncompressed) is still read: `arrays_by_path` names its leaves by the template's paths.
+It is never written; `tools/convert_checkpoints.py` converts such files.
 """
 
 from __future__ import annotations
 
+import functools
+import json
 import math
 import os
+from pathlib import Path
 from typing import Mapping
 
 import jax
@@ -186,6 +191,30 @@ def history(meta: dict, arrays: dict) -> list[tuple]:
     rows = arrays.get("history", np.zeros((0, len(HISTORY_FIELDS))))
     return [(int(epoch), float(train_loss), float(val_loss)) + (() if math.isnan(elapsed) else (float(elapsed),))
             for epoch, train_loss, val_loss, elapsed in rows]
+
+
+def content_digest(path: str | os.PathLike) -> str:
+    """sha256 (hex) of what a checkpoint's rollouts depend on: its model settings (the
+    meta's `model`) and its best parameters, each leaf by pytree path, dtype, shape and
+    bytes. Independent of the file's format, compression, optimiser state, history and
+    environment, so records keyed on it (the benchmark's evaluation, mass, speed and
+    scaling records) follow a converted checkpoint. `CheckpointError` if unusable."""
+    try:
+        stat = os.stat(path)
+    except OSError as err:
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({err.strerror})") from None
+    return _content_digest(str(Path(path).resolve()), (stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns))
+
+
+@functools.lru_cache(maxsize=1024)  # keyed on the file's identity: a rewritten file is read again
+def _content_digest(path: str, identity: tuple) -> str:
+    meta, arrays = read(path)
+    if meta["format"] == LEGACY_FORMAT:
+        model = model_config(path, meta)
+        template = jax.eval_shape(lambda key: models.init(key, model), jax.random.PRNGKey(0))
+        arrays = arrays_by_path(path, meta, arrays, {"best": template})
+    best = {name: value for name, value in arrays.items() if name.startswith("best/")}
+    return records.checksum(best, json.dumps(meta["model"], sort_keys=True))
 
 
 @in_float64  # parameters restored in the precision they were trained in

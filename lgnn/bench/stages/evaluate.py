@@ -58,7 +58,7 @@ from lgnn.engines.rollouts import Unparametrised, batched_rollouts
 from lgnn.runtime import in_background
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models
-from lgnn.learn.checkpoints import load_model
+from lgnn.learn.checkpoints import content_digest, load_model
 from lgnn.scene import OWN_STATE, Scene, State, get_scene, initial_state_policy, scene_to_dict
 
 # The reference a metric is scored against unless it names an engine: the Lagrangian
@@ -151,7 +151,7 @@ def pair_key(profile: Profile, pair: Pair, checkpoint: Path) -> str:
     """Settings a pair's record depends on: its scene's ground truth, the checkpoint's
     content and, for an unprojected pair only (projected keys stay as they were), that."""
     unprojected = {} if pair.projected else {"projected": False}
-    return records.digest({"truth": truth_key(profile, pair.scene), "checkpoint": records.file_digest(checkpoint), **unprojected})
+    return records.digest({"truth": truth_key(profile, pair.scene), "checkpoint": content_digest(checkpoint), **unprojected})
 
 
 def truth_trajectories(references: tuple[str, ...]) -> tuple[str, ...]:

@@ -24,13 +24,13 @@ from lgnn.bench.stages.evaluate import load_truth, truth_key
 from lgnn.bench.store import log
 from lgnn.errors import ConfigError
 from lgnn.learn import models
-from lgnn.learn.checkpoints import load_model
+from lgnn.learn.checkpoints import content_digest, load_model
 from lgnn.scene import get_scene
 
 
 def mass_key(profile: Profile, scene_name: str, checkpoint: Path) -> str:
     """Settings a mass-matrix record depends on (module docstring)."""
-    return records.digest({"mass": settings_key(profile.mass), "truth": truth_key(profile, scene_name), "checkpoint": records.file_digest(checkpoint)})
+    return records.digest({"mass": settings_key(profile.mass), "truth": truth_key(profile, scene_name), "checkpoint": content_digest(checkpoint)})
 
 
 def mass_matrices(profile: Profile, scene_name: str, out: Path, job: TrainingJob | None = None) -> Path:

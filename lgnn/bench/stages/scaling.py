@@ -23,7 +23,7 @@ from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, timed_rollouts
 from lgnn.errors import ConfigError, SceneError, SimulationError
 from lgnn.learn import models
-from lgnn.learn.checkpoints import load_model
+from lgnn.learn.checkpoints import content_digest, load_model
 from lgnn.scene import State, chain, get_scene, sample_initial_states, spatial_chain
 
 # Chains of n links per dimension: the planar chain and the 3D one (`spatial_chain`).
@@ -33,7 +33,7 @@ CHAINS = {2: chain, 3: spatial_chain}
 def _checkpoint(profile: Profile, out: Path, dim: int = 2) -> tuple[Path, str | None]:
     layout = store.layout(profile, out)
     checkpoint = layout.found(layout.checkpoint(lgnn_job(profile, TRAINING_SCENES[dim])))
-    return checkpoint, records.file_digest(checkpoint) if checkpoint.exists() else None
+    return checkpoint, content_digest(checkpoint) if checkpoint.exists() else None
 
 
 def _lengths(profile: Profile) -> dict[int, tuple[int, ...]]:

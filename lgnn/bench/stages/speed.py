@@ -23,7 +23,7 @@ from lgnn.bench.store import log
 from lgnn.engines.base import SimulationConfig
 from lgnn.engines.rollouts import timed_rollouts
 from lgnn.learn import models
-from lgnn.learn.checkpoints import load_model
+from lgnn.learn.checkpoints import content_digest, load_model
 from lgnn.scene import State, get_scene, scene_to_dict
 
 
@@ -39,7 +39,7 @@ def timed_jobs(profile: Profile, scene_name: str, jobs: list[TrainingJob] | None
 
 def _checkpoint_digests(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> dict[str, str]:
     layout = store.layout(profile, out)
-    return {j.name: records.file_digest(layout.found(layout.checkpoint(j))) for j in timed_jobs(profile, scene_name, jobs)
+    return {j.name: content_digest(layout.found(layout.checkpoint(j))) for j in timed_jobs(profile, scene_name, jobs)
             if layout.found(layout.checkpoint(j)).exists()}
 
 
