@@ -499,30 +499,20 @@ def _add_train_parser(commands) -> None:
 
 
 def _cmd_evaluate(args) -> None:
-    from lgnn import physics
     from lgnn.bench import evaluation
     from lgnn.engines.base import Integration
-    from lgnn.files import DEFAULT_OUT, check_out_dir, check_writable
-    from lgnn.learn.models import check_compatible
+    from lgnn.files import DEFAULT_OUT, check_out_dir
     from lgnn.learn.checkpoints import load_model
     from lgnn.scene import get_scene
 
     config = _simulation_config(args)
     integration = _integration(args) or Integration()
-    out = check_out_dir(args.out_dir or DEFAULT_OUT)  # created once every scene has run
-    if out.is_dir():
-        check_writable(out / "evaluate_summary.md")
+    out = check_out_dir(args.out_dir or DEFAULT_OUT, "evaluate_summary.md")  # created once every scene has run
     _import_model_code(args)
     model, params = load_model(args.model)
-    scenes = [get_scene(name) for name in args.scenes]  # every scene checked before any rollout
-    for scene in scenes:
-        check_compatible(model, scene)
-    scored, kept = [], {}
-    for scene in scenes:
-        states = physics.own_or_sampled_states(scene, args.initial_conditions, args.seed)
-        scene_scores, trajectories = evaluation.evaluate_model(model, params, scene, config, states, integration, progress=not args.quiet)
-        scored += scene_scores
-        kept.update({out / f"{scene.name}_{engine}.npz": trajectory for engine, trajectory in trajectories.items()})
+    scored, trajectories = evaluation.evaluate_on_scenes(model, params, [get_scene(name) for name in args.scenes], config, args.initial_conditions,
+                                                         args.seed, integration, progress=not args.quiet)
+    kept = {out / f"{scene}_{engine}.npz": trajectory for (scene, engine), trajectory in trajectories.items()}
     # Written together once every scene has run: a failed command leaves nothing.
     out.mkdir(parents=True, exist_ok=True)
     for path, trajectory in kept.items():
@@ -541,12 +531,10 @@ def _cmd_compare(args) -> None:
     from pathlib import Path
 
     from lgnn.bench import evaluation
-    from lgnn.files import check_out_dir, check_writable
+    from lgnn.files import check_out_dir
 
     if args.out_dir:
-        check_out_dir(args.out_dir)  # created once the files are scored
-        if Path(args.out_dir).is_dir():
-            check_writable(f"{args.out_dir}/compare_summary.md")
+        check_out_dir(args.out_dir, "compare_summary.md")  # created once the files are scored
     scored, notes = evaluation.compare_trajectories([args.reference, args.other])
     for note in notes:
         print(f"note: {note}")

@@ -62,10 +62,13 @@ def check_writable(path: str | os.PathLike) -> Path:
     return path
 
 
-def check_out_dir(path: str | os.PathLike) -> Path:
+def check_out_dir(path: str | os.PathLike, writes: str | None = None) -> Path:
     """An output directory a command creates on demand: `path` itself, if it exists, and
-    else its nearest existing parent must be a writable directory (one line otherwise)."""
+    else its nearest existing parent must be a writable directory (one line otherwise);
+    `writes`: a file the command will write in it, checked too if the folder exists."""
     path = Path(path)
+    if writes is not None and path.is_dir():
+        check_writable(path / writes)
     for folder in (path, *path.parents):
         if folder.exists() or folder.is_symlink():
             if not folder.is_dir():

@@ -50,7 +50,6 @@ def evaluate(checkpoint: str | os.PathLike, scenes, *, initial_conditions: int =
     reference, metric, unit, initial_conditions, gmean, low, high, final, diverged`)."""
     import pandas as pd
 
-    from lgnn import physics
     from lgnn.bench import evaluation
     from lgnn.engines.base import SimulationConfig
     from lgnn.learn.checkpoints import load_model
@@ -60,11 +59,8 @@ def evaluate(checkpoint: str | os.PathLike, scenes, *, initial_conditions: int =
     if model_code:
         load_spec(model_code)
     model, params = load_model(checkpoint)
-    config = SimulationConfig(duration=duration)
-    scored = []
-    for scene in [get_scene(name) for name in ([scenes] if isinstance(scenes, str) else scenes)]:
-        states = physics.own_or_sampled_states(scene, initial_conditions, seed)
-        scored += evaluation.evaluate_model(model, params, scene, config, states, progress=progress)[0]
+    scenes = [get_scene(name) for name in ([scenes] if isinstance(scenes, str) else scenes)]
+    scored, _ = evaluation.evaluate_on_scenes(model, params, scenes, SimulationConfig(duration=duration), initial_conditions, seed, progress=progress)
     return pd.DataFrame(evaluation.summary_rows(scored), columns=evaluation.SUMMARY_COLUMNS)
 
 

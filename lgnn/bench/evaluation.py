@@ -87,6 +87,26 @@ def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config
     return scored, {"model": predicted, **{name: truth.member(0) for name, truth in references.items()}}
 
 
+def evaluate_on_scenes(model: models.ModelConfig, params: dict, scenes: list[Scene], config: SimulationConfig, initial_conditions: int = 1,
+                       seed: int = 0, integration: Integration = Integration(), progress: bool = False) -> tuple[list[Scored], dict[tuple[str, str], Trajectory]]:
+    """`evaluate_model` on each scene from its initial states
+    (`physics.own_or_sampled_states`: its own for 1, else `initial_conditions` sampled
+    by `seed`), every scene checked against the model before any rollout: the scores,
+    and the trajectories of initial condition 0 by `(scene name, engine)` (`lgnn
+    evaluate`, `lgnn.evaluate`)."""
+    from lgnn import physics
+
+    for scene in scenes:
+        models.check_compatible(model, scene)
+    scored, trajectories = [], {}
+    for scene in scenes:
+        states = physics.own_or_sampled_states(scene, initial_conditions, seed)
+        scene_scores, kept = evaluate_model(model, params, scene, config, states, integration, progress=progress)
+        scored += scene_scores
+        trajectories.update({(scene.name, engine): trajectory for engine, trajectory in kept.items()})
+    return scored, trajectories
+
+
 def _reference(name: str, scene: Scene, config: SimulationConfig, states: State, integration: Integration, progress: bool) -> Trajectory:
     """Engine `name`'s rollouts, with `integration` where the engine takes one."""
     return get_engine(name, progress=progress, integration=integration if ENGINES[name].integrates else None).rollout(scene, config, states)
