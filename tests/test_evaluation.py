@@ -161,3 +161,27 @@ def test_evaluate_and_compare_create_their_output_folder_only_once_they_succeed(
     assert code == 2 and "is not a directory" in err, err
     code, _, err = run(capsys, "compare", str(out / "chain4_lagrangian.npz"), str(out / "chain4_model.npz"), "--out-dir", str(tmp_path / "cmp" / "x"))
     assert code == 0 and (tmp_path / "cmp" / "x" / "compare_summary.md").is_file(), err
+
+
+def test_the_frame_table_is_one_row_per_frame_metric_and_initial_condition_from_divergence_on_flagged(tmp_path):
+    """`frame_csv` (written by hand, for speed) as pandas reads it: every column, the
+    values at 6 significant digits, the divergence flag from the diverged frame on, and
+    a scene name with a comma quoted."""
+    import pandas as pd
+
+    from lgnn.metrics import METRICS, Scored
+
+    rng = np.random.default_rng(0)
+    t = np.arange(1, 6) * 0.1
+    errors = {metric: rng.random((3, 5)) * 1e-3 for metric in METRICS}
+    scored = [Scored("rope, long", "my-model", "lagrangian", t, errors, np.array([-1, 2, 5]))]
+    (tmp_path / "frames.csv").write_text(evaluation.frame_csv(scored))
+    table = pd.read_csv(tmp_path / "frames.csv")
+    assert tuple(table.columns) == evaluation.FRAME_COLUMNS and len(table) == len(METRICS) * 3 * 5
+    assert set(table["scene"]) == {"rope, long"} and set(table["metric"]) == set(METRICS)
+    first = table[table["metric"] == "rollout_error"]
+    np.testing.assert_allclose(first["value"], errors["rollout_error"].ravel(), rtol=1e-5)
+    np.testing.assert_allclose(first["t"], np.tile(t, 3))
+    # Initial condition 1 diverged at frame 2 (t = 0.2), 2 at its last frame, 0 never.
+    assert first["diverged"].tolist() == [False] * 5 + [False, True, True, True, True] + [False] * 4 + [True]
+    assert set(table["unit"][table["metric"] == "node_rms_error"]) == {METRICS["node_rms_error"].unit}

@@ -15,7 +15,7 @@ evaluate` and `lgnn compare` commands.
 - `compare_trajectories(reference, other)`: one trajectory file against another (the
   scene from the reference's metadata).
 - `score`: a prediction against one reference, every registered metric, as a
-  `lgnn.metrics.Scored` (the evaluate stage's type too); `frame_table`
+  `lgnn.metrics.Scored` (the evaluate stage's type too); `frame_csv`
   (tidy: `scene, model, reference, initial_condition, t, metric, value`) and
   `summary_rows` turn a list of them into tables; `write_outputs` writes them.
 
@@ -33,21 +33,24 @@ import jax
 import numpy as np
 
 from lgnn import metrics
-from lgnn.bench.tables import write_csv, write_table
+from lgnn.bench.grid import ROLLOUTS_PER_CALL
+from lgnn.bench.tables import write_table
 from lgnn.engines import ENGINES, get_engine
 from lgnn.engines.base import Integration, SimulationConfig, Trajectory
 from lgnn.engines.rollouts import batched_rollouts
 from lgnn.errors import ConfigError
+from lgnn.files import write_text_atomic
 from lgnn.learn import models
 from lgnn.metrics import Scored
 from lgnn.runtime import in_background
 from lgnn.scene import Scene, State, scene_from_dict
 
-# Initial conditions per compiled model rollout (`batched_rollouts`) on a CPU: a
-# handful per call keeps the compile small there. On an accelerator the whole batch is
-# one program: a rollout there is latency-bound, so 8 per call took 13x the calls
-# (chain16 x 100 on an H100: 43 s of a 78 s `lgnn evaluate`).
-CPU_CHUNK = 8
+# Initial conditions per compiled model rollout (`batched_rollouts`) on a CPU: the
+# benchmark's evaluate stage's (8 cost 1.4x the stage's time per initial condition on
+# chain8, 2 cores). On an accelerator the whole batch is one program: a rollout there is
+# latency-bound, so 8 per call took 13x the calls (chain16 x 100 on an H100: 43 s of a
+# 78 s `lgnn evaluate`).
+CPU_CHUNK = ROLLOUTS_PER_CALL
 # What `lgnn evaluate` scores a model against: the exact Lagrangian engine and MuJoCo C,
 # run with the model's settings.
 REFERENCES = ("lagrangian", "mujoco")
@@ -164,23 +167,32 @@ def file_reference(scene: Scene, trajectory: Trajectory, frames: int) -> Traject
     return Trajectory(trajectory.t[:frames], q, qd, metrics.true_energies(scene, q, qd), trajectory.metadata)
 
 
-def frame_table(scored: list[Scored]):
-    """Tidy per-frame table (pandas): `scene, model, reference, initial_condition, t,
-    metric, unit, value, diverged` (diverged: the frame is at or after the prediction's
-    divergence, so `value` is the metric's maximum)."""
-    import pandas as pd
+FRAME_COLUMNS = ("scene", "model", "reference", "initial_condition", "t", "metric", "unit", "value", "diverged")
 
-    parts = []
+
+def frame_csv(scored: list[Scored]) -> str:
+    """Tidy per-frame table as CSV text, floats `%.6g`: `FRAME_COLUMNS`, one row per
+    scored frame of each initial condition and metric (diverged: the frame is at or
+    after the prediction's divergence, so `value` is the metric's maximum). Written by
+    hand, not by pandas: 100 initial conditions of 1000 frames are 800 000 rows, which
+    pandas' `float_format` formats at a third of the speed."""
+    import csv
+    import io
+
+    head = io.StringIO()
+    csv.writer(head, lineterminator="\n").writerow(FRAME_COLUMNS)
+    lines = [head.getvalue()]
     for item in scored:
+        times = [f"{t:.6g}" for t in np.asarray(item.t).tolist()]
         for metric, errors in item.errors.items():
-            count, frames = errors.shape
-            ic = np.repeat(np.arange(count), frames)
-            frame = np.tile(np.arange(1, frames + 1), count)
-            after = (item.diverged[ic] >= 0) & (frame >= item.diverged[ic])
-            parts.append(pd.DataFrame({"scene": item.scene, "model": item.model, "reference": item.reference, "initial_condition": ic,
-                                       "t": np.tile(item.t, count), "metric": metric, "unit": metrics.METRICS[metric].unit,
-                                       "value": errors.ravel(), "diverged": after}))
-    return pd.concat(parts, ignore_index=True)
+            fixed = io.StringIO()  # the constant columns, quoted where a name needs it
+            csv.writer(fixed, lineterminator="").writerow([item.scene, item.model, item.reference])
+            unit = metrics.METRICS[metric].unit
+            for ic, row in enumerate(np.asarray(errors, np.float64).tolist()):
+                start = int(item.diverged[ic])
+                lines += [f"{fixed.getvalue()},{ic},{t},{metric},{unit},{value:.6g},{start >= 0 and frame >= start}\n"
+                          for frame, (t, value) in enumerate(zip(times, row), start=1)]
+    return "".join(lines)
 
 
 SUMMARY_COLUMNS = ("scene", "model", "reference", "metric", "unit", "initial_conditions", "gmean", "low", "high", "final", "diverged")
@@ -213,11 +225,11 @@ def format_summary(rows: list[dict]) -> str:
 
 
 def write_outputs(scored: list[Scored], out_dir: str | os.PathLike, stem: str, title: str, header=(), notes=()) -> list[Path]:
-    """Write `STEM_frames.csv` (`frame_table`) and `STEM_summary.csv` / `.md`
+    """Write `STEM_frames.csv` (`frame_csv`) and `STEM_summary.csv` / `.md`
     (`summary_rows`) into `out_dir`, atomically; the paths written."""
     out = Path(out_dir)
     frames, summary_csv, summary_md = out / f"{stem}_frames.csv", out / f"{stem}_summary.csv", out / f"{stem}_summary.md"
-    write_csv(frame_table(scored), frames)
+    write_text_atomic(frames, frame_csv(scored))
     notes = ("gmean: geometric mean over frames t > 0 and initial conditions; low, high: bootstrap 95% interval over initial "
              "conditions (empty for one); final: geometric mean at the last frame; from a diverged frame on, an error counts "
              "as its maximum (1, or for node_rms_error the divergence rule's reach)", *notes)

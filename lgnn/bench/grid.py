@@ -230,6 +230,11 @@ class TrainSettings:
         return dataclasses.replace(self.data, scene=scene_name)
 
 
+# Initial conditions per compiled rollout call by default: `EvaluateSettings.chunk`, and
+# `lgnn evaluate` on a CPU.
+ROLLOUTS_PER_CALL = 25
+
+
 @dataclasses.dataclass(frozen=True)
 class EvaluateSettings:
     """Rollouts of models and ground truths from the evaluation initial conditions."""
@@ -252,7 +257,7 @@ class EvaluateSettings:
     # Step (RK4) of the reference engines (`references`; the name is MuJoCo C's, the default).
     mujoco_dt: float = 1e-4
     # Initial conditions per compiled, vmapped rollout call (memory and progress).
-    chunk: int = dataclasses.field(default=25, metadata=NOT_IN_KEY)
+    chunk: int = dataclasses.field(default=ROLLOUTS_PER_CALL, metadata=NOT_IN_KEY)
     # Reference engines (names in `lgnn.engines.ENGINES`) run from the same initial
     # conditions beside the Lagrangian ground truth: the ground truth and every model
     # are also scored against each (`rollout_error_vs_<engine>`). MuJoCo C, the
