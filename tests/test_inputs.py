@@ -67,14 +67,16 @@ def trajectory(**changes):
     return write
 
 
-def checkpoint(edit):
-    """The committed LGNN chain4 checkpoint with its meta edited by `edit(meta)` and a
-    valid checksum (a hand edit that the checksum cannot catch)."""
+def checkpoint(edit=lambda meta: None, edit_arrays=lambda arrays: None):
+    """The committed LGNN chain4 checkpoint with its meta edited by `edit(meta)`, its
+    arrays by `edit_arrays(arrays)`, and a valid checksum (a hand edit that the checksum
+    cannot catch)."""
 
     def write(path: Path):
         arrays, meta = records.read(CHECKPOINT, "checkpoint")
         environment = meta.pop("environment", None)
         edit(meta)
+        edit_arrays(arrays)
         records.save(path, arrays, meta, environment=environment)
 
     return write
@@ -112,6 +114,15 @@ def set_key(dotted: str, value):
 
 def drop_key(key: str):
     return lambda meta: meta.pop(key)
+
+
+def as_format_1(history):
+    """A format-1 meta (the history a list in the meta) holding `history`."""
+
+    def edit(meta):
+        meta.update(format=1, history=history)
+
+    return edit
 
 
 @dataclasses.dataclass
@@ -253,9 +264,14 @@ CASES = [
     Case("checkpoint-npy", ["checkpoint", "{tmp}/k.npy"], 2, "not a readable lgnn checkpoint", {"k.npy": lambda p: np.save(p, np.zeros(3))}),
     Case("checkpoint-fifo", ["checkpoint", "{tmp}/k.npz"], 2, "k.npz", {"k.npz": fifo}),
     Case("checkpoint-no-epoch", ["checkpoint", "{tmp}/k.npz"], 2, "epoch", {"k.npz": checkpoint(drop_key("epoch"))}),
-    Case("checkpoint-no-history", ["checkpoint", "{tmp}/k.npz"], 2, "history", {"k.npz": checkpoint(drop_key("history"))}),
-    Case("checkpoint-history-number", ["checkpoint", "{tmp}/k.npz"], 2, "history", {"k.npz": checkpoint(set_key("history", 5))}),
-    Case("checkpoint-history-strings", ["checkpoint", "{tmp}/k.npz"], 2, "history", {"k.npz": checkpoint(set_key("history", [["a", "b", "c"]]))}),
+    Case("checkpoint-no-history", ["checkpoint", "{tmp}/k.npz"], 2, "history", {"k.npz": checkpoint(edit_arrays=lambda a: a.pop("history"))}),
+    Case("checkpoint-history-number", ["checkpoint", "{tmp}/k.npz"], 2, "history",
+         {"k.npz": checkpoint(edit_arrays=lambda a: a.update(history=np.float64(5)))}),
+    Case("checkpoint-history-strings", ["checkpoint", "{tmp}/k.npz"], 2, "history",
+         {"k.npz": checkpoint(edit_arrays=lambda a: a.update(history=np.array([["a", "b", "c", "d"]])))}),
+    Case("checkpoint-format-1-no-history", ["checkpoint", "{tmp}/k.npz"], 2, "history", {"k.npz": checkpoint(as_format_1(None))}),
+    Case("checkpoint-format-1-history-number", ["checkpoint", "{tmp}/k.npz"], 2, "history", {"k.npz": checkpoint(as_format_1(5))}),
+    Case("checkpoint-format-1-history-strings", ["checkpoint", "{tmp}/k.npz"], 2, "history", {"k.npz": checkpoint(as_format_1([["a", "b", "c"]]))}),
     Case("checkpoint-elapsed-string", ["checkpoint", "{tmp}/k.npz"], 2, "elapsed_s", {"k.npz": checkpoint(set_key("elapsed_s", "x"))}),
     Case("checkpoint-epoch-string", ["checkpoint", "{tmp}/k.npz"], 2, "epoch", {"k.npz": checkpoint(set_key("epoch", "x"))}),
     Case("checkpoint-best-epoch-string", ["checkpoint", "{tmp}/k.npz"], 2, "best_epoch", {"k.npz": checkpoint(set_key("best_epoch", "x"))}),
