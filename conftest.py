@@ -1,8 +1,9 @@
 """Test setup shared by `tests/` and `bench/`: lgnn's process settings before anything
-loads JAX, no persistent compilation cache, and compiled programs released once a
-worker holds too many."""
+loads JAX, no persistent compilation cache, a dataset cache of each test's own, and
+compiled programs released once a worker holds too many."""
 
 import os
+import tempfile
 
 from lgnn.runtime import COMPILATION_CACHE_ENV, configure, release_compiled_programs
 
@@ -10,8 +11,19 @@ configure()  # first: thread counts and XLA flags before numpy and JAX load; flo
 # No persistent compilation cache, in-process or in the `lgnn` processes tests start,
 # unless a test asks for one (`lgnn.runtime.enable_compilation_cache`).
 os.environ[COMPILATION_CACHE_ENV] = "off"
+# Datasets of module- and session-scoped fixtures: a folder of this worker's, never the
+# user's cache (each test then gets one of its own, `_own_dataset_cache`).
+os.environ["LGNN_CACHE"] = tempfile.mkdtemp(prefix="lgnn-test-cache-")
 
 import pytest  # noqa: E402
+
+
+# Each test (and the `lgnn` processes it starts) caches datasets in a folder of its own,
+# as every test has its own output folder: no test reads another's data, and none
+# writes to the user's cache.
+@pytest.fixture(autouse=True)
+def _own_dataset_cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("LGNN_CACHE", str(tmp_path_factory.mktemp("lgnn-cache")))
 
 
 # A test worker compiles thousands of programs, each holding memory mappings until

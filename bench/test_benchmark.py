@@ -120,11 +120,14 @@ def test_ground_truth(profile, out, eval_scene):
         assert arrays[f"{evaluate.REST}/{metric}/per_ic_log"].shape == (count,), f"rest baseline's {metric}"
     if profile is QUICK:  # (the full profile's ground truth takes minutes to redo)
         # The rest baseline's errors are the truth's own displacement from its start,
-        # computed here independently of lgnn.metrics.
+        # computed here independently of lgnn.metrics, from a truth computed again. The
+        # record's may come from the dataset cache, made by another program of the same
+        # settings (another chunk size): positions equal to round-off, whose 1e-16
+        # become 3e-11 of the first frames' displacements of 3e-6.
         q = evaluate.ground_truth(profile, eval_scene, True)["q"]
         logs = np.log(np.sqrt(np.mean(np.sum((q[:, 1:] - q[:, :1]) ** 2, axis=-1), axis=-1)))  # (C, F - 1)
-        np.testing.assert_allclose(arrays[f"{evaluate.REST}/node_rms_error/per_ic_log"], logs.mean(axis=1), rtol=1e-12)
-        np.testing.assert_allclose(arrays[f"{evaluate.REST}/node_rms_error/gmean"], np.exp(logs.mean(axis=0)), rtol=1e-12)
+        np.testing.assert_allclose(arrays[f"{evaluate.REST}/node_rms_error/per_ic_log"], logs.mean(axis=1), rtol=1e-9)
+        np.testing.assert_allclose(arrays[f"{evaluate.REST}/node_rms_error/gmean"], np.exp(logs.mean(axis=0)), rtol=1e-9)
 
 
 def test_evaluation(profile, out, pair):

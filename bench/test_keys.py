@@ -132,14 +132,16 @@ def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_
     # one computed (chain100-3d's MuJoCo C reference takes 15 minutes on 16 cores).
     evaluate.ground_truth.cache_clear()
     computed = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
-    assert store.Layout(tmp_path).truth_trajectories(SCENE).exists()
+    assert store.Layout(tmp_path).truth_trajectories(SCENE, evaluate.truth_key(QUICK, SCENE)).exists()
+    assert not (tmp_path / "datasets").exists()  # in the dataset cache, not the output folder
     evaluate.ground_truth.cache_clear()
 
     def recompute(*args):
         raise AssertionError("recomputed")
 
     monkeypatch.setattr(evaluate, "_computed_ground_truth", recompute)
-    read = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
+    # Read back by a process of any output folder.
+    read = evaluate.ground_truth(QUICK, SCENE, False, tmp_path / "another-output-folder")
     for name in evaluate.truth_trajectories(QUICK.evaluate.references):
         assert read[name].dtype == computed[name].dtype and (read[name] == computed[name]).all(), name
     assert (read["states"].q == computed["states"].q).all() and read["mujoco_s"] == computed["mujoco_s"]

@@ -195,11 +195,12 @@ def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_on
     from lgnn.bench import run as bench_run
     from lgnn.bench.parallel import run_split
     from lgnn.errors import LgnnError
+    from lgnn.learn import data
 
     data_before_children = []
 
     def spy(*args, **kwargs):
-        data_before_children.append(sorted(p.name.split("-")[1] for p in (tmp_path / "datasets").glob("data-*.npz")))
+        data_before_children.append(sorted(p.name.split("-")[1] for p in data.default_cache_dir().glob("data-*.npz")))
         return run_split(*args, **kwargs)
 
     monkeypatch.setattr(bench_run, "run_split", spy)
@@ -430,3 +431,17 @@ def test_lgnn_train_defaults_are_the_full_profiles_recipe():
                                                                      "--epochs", "20", "--out", "x.npz"]))
     assert data_config == full.data_for("chain8") and config.seed == 2 and config.epochs == 20
     assert train.training_key(config) | {"seed": 0} == train.training_key(full.train)
+
+
+def test_lgnn_train_and_the_full_benchmark_read_one_copy_of_the_training_data(tmp_path):
+    """One dataset cache: `lgnn train`'s default data (the full profile's recipe, in the
+    user's cache) are the file the full benchmark's train stage reads, whatever its
+    output folder, never a second copy under it."""
+    from lgnn.bench import grid, store
+    from lgnn.cli import build_parser, train_settings
+    from lgnn.learn import data
+
+    data_config, _ = train_settings(build_parser().parse_args(["train", "--model", "gns", "--out", str(tmp_path / "model.npz")]))
+    benchmark_data = grid.PROFILES["full"].training.data_for("chain4")
+    assert store.Layout(tmp_path / "out").datasets == data.default_cache_dir()
+    assert data.cache_path(data_config, data.default_cache_dir()) == data.cache_path(benchmark_data, store.Layout(tmp_path / "out").datasets)

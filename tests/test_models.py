@@ -570,12 +570,14 @@ def test_lgnn_structured_solve_matches_the_dense_solve(name):
 
 
 def test_physics_differences_from_the_training_scene():
-    """A rollout on a scene with other gravity, drag or link masses is flagged; a longer
-    chain of the same links (generalisation) is not."""
+    """A rollout on a scene with other gravity, drag, link masses or lengths is flagged;
+    a longer chain of the same links (generalisation) is not."""
     meta = {"data": {"scene": "chain4"}}
     assert train.physics_differences(meta, get_scene("chain8")) == []
     assert any(d.startswith("drag") for d in train.physics_differences(meta, get_scene("chain4-drag")))
     assert any(d.startswith("link masses") for d in train.physics_differences(meta, get_scene("chain4-varied")))
+    # T1's shortest links are 5x shorter than any the model saw.
+    assert any(d.startswith("link lengths {0.2, ") and d.endswith("(trained on {1})") for d in train.physics_differences(meta, get_scene("T1")))
     assert train.physics_differences({"data": None}, get_scene("chain4-varied")) == []
 
 

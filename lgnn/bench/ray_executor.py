@@ -39,6 +39,7 @@ from pathlib import Path
 from lgnn.bench.parallel import STOP_GRACE_S, child_arguments, child_environment, logs_folder
 from lgnn.bench.store import file_name, log
 from lgnn.errors import ConfigError, LgnnError
+from lgnn.files import user_cache_dir
 from lgnn.runtime import STOP_WITH_PARENT
 
 # Retries of a task whose worker process or node died (not of a child that failed).
@@ -95,6 +96,7 @@ def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], 
     ray = _ray()
     logs = logs_folder(out)
     out, cwd = Path(out).resolve(), os.getcwd()
+    cache = str(user_cache_dir().resolve())  # every task uses the driver's dataset cache
     task = ray.remote(max_retries=MAX_RETRIES, retry_exceptions=False)(run_part).options(**task_resources(workers))
     waiting, running, failed, done = list(parts.items()), {}, [], 0
     started = last = time.monotonic()
@@ -103,7 +105,7 @@ def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], 
             while waiting and len(running) < workers:
                 name, args = waiting.pop(0)
                 path = logs / f"{stage}-{file_name(name)}.log"
-                running[task.remote(child_arguments(stage, profile_argv, out, args), cwd, str(path))] = (name, path)
+                running[task.remote(child_arguments(stage, profile_argv, out, args), cwd, str(path), cache)] = (name, path)
                 log(f"{stage} {name}: submitted (log {path})")
             ended, _ = ray.wait(list(running), num_returns=1, timeout=PROGRESS_EVERY_S)
             for ref in ended:
@@ -128,12 +130,13 @@ def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], 
         raise LgnnError(f"benchmark {stage}: {len(failed)} of {len(parts)} parts failed; see {failed[0][1]}")
 
 
-def run_part(arguments: list[str], cwd: str, log_path: str) -> tuple[int, str]:
-    """A Ray task: `python -m lgnn.cli ARGUMENTS` in `cwd`, with this node's Python, its
-    output appended to `log_path`; `(exit status, "host pid N")`. Cancelled (the driver
-    stopping), the child is stopped as on Ctrl-C, killed after `STOP_GRACE_S`."""
+def run_part(arguments: list[str], cwd: str, log_path: str, cache: str) -> tuple[int, str]:
+    """A Ray task: `python -m lgnn.cli ARGUMENTS` in `cwd`, with this node's Python and
+    lgnn's cache at `cache` (`$LGNN_CACHE`), its output appended to `log_path`; `(exit
+    status, "host pid N")`. Cancelled (the driver stopping), the child is stopped as on
+    Ctrl-C, killed after `STOP_GRACE_S`."""
     where = f"{socket.gethostname()} pid {os.getpid()}"
-    env = {**child_environment(os.environ), STOP_WITH_PARENT: str(os.getpid())}
+    env = {**child_environment(os.environ), STOP_WITH_PARENT: str(os.getpid()), "LGNN_CACHE": cache}
     with open(log_path, "a") as handle:
         handle.write(f"# lgnn {' '.join(arguments)} ({where}, {time.strftime('%Y-%m-%d %H:%M:%S')})\n")
         handle.flush()

@@ -1,7 +1,10 @@
 """Where the benchmark's records live, and how a stage reuses them.
 
 Under `<out>/benchmark/`: `checkpoints/<job>.npz` (`lgnn.learn.train`) and `runs/`,
-the stage records; datasets under `<out>/datasets/`. Every record is an `lgnn.records`
+the stage records. Datasets (training data and each scene's ground-truth trajectories)
+go to lgnn's one dataset cache (`lgnn.learn.data.default_cache_dir`: `datasets/` in
+`$LGNN_CACHE`, else `$XDG_CACHE_HOME/lgnn`, else `~/.cache/lgnn`), which `lgnn train`
+and `lgnn dataset export` use too, each file named by the digest of its settings. Every record is an `lgnn.records`
 record (arrays) or JSON record whose meta holds the settings `key` it was made with
 (`lgnn.bench.stages`). `load` and `load_json` return a record only if it is whole and
 has the wanted key: an absent or stale one is None (recomputed), a damaged one too,
@@ -26,6 +29,7 @@ from lgnn import records
 from lgnn.errors import ConfigError
 from lgnn.files import DEFAULT_OUT
 from lgnn.bench.grid import Pair, Profile, TrainingJob
+from lgnn.learn.data import default_cache_dir
 
 # Layout of a stage record's meta; records of another format are recomputed.
 RECORD_FORMAT = 1
@@ -71,9 +75,10 @@ class Layout:
     def truth_record(self, scene: str) -> Path:
         return self.bench / "runs" / "ground-truth" / f"{file_name(scene)}.npz"
 
-    def truth_trajectories(self, scene: str) -> Path:
-        """A scene's ground-truth trajectories (`evaluate.ground_truth`): large, not a result."""
-        return self.datasets / "ground-truth" / f"{file_name(scene)}.npz"
+    def truth_trajectories(self, scene: str, key: str) -> Path:
+        """A scene's ground-truth trajectories under the settings `key`
+        (`evaluate.ground_truth`): large, not a result, in the dataset cache."""
+        return self.datasets / "ground-truth" / f"{file_name(scene)}-{key[:16]}.npz"
 
     @property
     def scaling_record(self) -> Path:
@@ -87,7 +92,8 @@ class Layout:
 
     @property
     def datasets(self) -> Path:
-        return self.out / "datasets"
+        """lgnn's dataset cache (module docstring), shared by every output folder."""
+        return default_cache_dir()
 
     def in_base(self, path: Path) -> Path | None:
         """The file of the base folder at `path`'s place under `out`, if the base has it."""

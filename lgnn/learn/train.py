@@ -523,8 +523,9 @@ def seconds_to_reach(state: TrainState, target: float) -> float | None:
 
 def physics_differences(meta: dict, scene: Scene) -> list[str]:
     """How `scene`'s physical parameters differ from the scene a checkpoint was trained
-    on (gravity, drag, the link masses and inertias; the number and shape of links may
-    differ, that is generalisation): one phrase each, empty when they agree or when the
+    on (gravity, drag, the link masses, inertias and lengths: values the model never
+    saw; the number of links and how they connect may differ, that is the zero-shot
+    generalisation the benchmark measures): one phrase each, empty when they agree or when the
     training scene is unknown or no longer loadable (a moved scene file)."""
     from lgnn.errors import SceneError
     from lgnn.scene import get_scene
@@ -541,7 +542,7 @@ def physics_differences(meta: dict, scene: Scene) -> list[str]:
         differences.append(f"gravity {np.asarray(scene.gravity).tolist()} (trained on {np.asarray(trained.gravity).tolist()})")
     if not np.isclose(trained.drag, scene.drag):
         differences.append(f"drag {scene.drag:g} (trained on {trained.drag:g})")
-    for name in ("masses", "inertias"):
+    for name in ("masses", "inertias", "lengths"):
         values, trained_values = (np.unique(np.round(getattr(s, name), 12)) for s in (scene, trained))
         if values.shape != trained_values.shape or not np.allclose(values, trained_values):
             differences.append(f"link {name} {_values(values)} (trained on {_values(trained_values)})")

@@ -175,25 +175,26 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     `q_<engine>` and `energy_<engine>`, the initial `states` and timings
     (`truth_trajectories`, `truth_timings`).
 
-    With `out`, the trajectories are kept in `Layout(out).truth_trajectories` (key
-    `truth_key`) and read back by every later process: MuJoCo C's reference alone takes
+    With `out`, the trajectories are kept in the dataset cache
+    (`Layout.truth_trajectories`, named and keyed by `truth_key`), and read back by every
+    later process, of any output folder: MuJoCo C's reference alone takes
     15 minutes on 16 cores for chain100-3d (a serial chain's joint-space mass matrix is
     dense: O(nv^3) per step), which each process evaluating one of the scene's pairs
     would otherwise redo. Float64 as computed (the reference agrees with MuJoCo to
-    1e-10 and better); about 1.2 GB for chain100-3d, in the git-ignored datasets folder."""
+    1e-10 and better); about 1.2 GB for chain100-3d."""
     if out is None:
         return _computed_ground_truth(profile, scene_name, progress)
-    layout = store.layout(profile, out)
-    path, key = layout.truth_trajectories(scene_name), truth_key(profile, scene_name)
+    key = truth_key(profile, scene_name)
+    path = store.layout(profile, out).truth_trajectories(scene_name, key)
     trajectories, timings = truth_trajectories(profile.evaluate.references), truth_timings(profile.evaluate.references)
     with claims.once(path):  # processes on one scene: the first computes, the others read
-        stored = layout.load(path, key)
+        stored = store.load(path, key)
         # Files written before their reference was fixed, or before references' energies
         # were kept, lack a version or trajectory: computed again.
         if (stored is not None and stored[1].get("mujoco_reference") == REFERENCE_VERSION
                 and all(name in stored[0] for name in trajectories)):
             arrays, meta = stored
-            log(f"ground truth {scene_name}: read from {meta['folder']}")
+            log(f"ground truth {scene_name}: read from {path}")
             return dict(**{name: arrays[name] for name in trajectories}, states=State(arrays["states/q"], arrays["states/qd"]),
                         **{name: meta[name] for name in timings})
         truth = _computed_ground_truth(profile, scene_name, progress)
@@ -424,7 +425,7 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     truth = truth_when_done()
     if not np.allclose(truth["states"].q, states.q, rtol=1e-9, atol=1e-12):
         raise SimulationError(f"{pair.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
-                              f"remove {Layout(out).truth_trajectories(pair.scene)} to recompute it")
+                              f"remove {Layout(out).truth_trajectories(pair.scene, truth_key(profile, pair.scene))} to recompute it")
     steps = len(group) * len(states.q) * config.n_frames * config.steps_per_frame
     for (pair, path, key, _, _), q, qd in zip(group, q_all, qd_all):
         scored = score_against_truth(profile, scene, q, qd, truth)
