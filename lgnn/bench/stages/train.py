@@ -121,7 +121,7 @@ def prepare_datasets(profile: Profile, jobs: list[TrainingJob], out: Path, progr
     first epoch, 2026-11-24)."""
     for scene in dict.fromkeys(job.scene for job in jobs):
         config = profile.training.data_for(scene)
-        with claims.once(data.cache_path(config, Layout(out).datasets)):  # a second driver on this folder reads it
+        with claims.once(data.cache_path(config, Layout(out).datasets)):  # a second driver reads it from the cache
             data.load_or_generate(config, Layout(out).datasets, progress=progress)
 
 
