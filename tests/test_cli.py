@@ -99,6 +99,29 @@ def test_diverged_simulation_keeps_its_frames_flagged_and_exits_3(capsys, tmp_pa
     assert kept.metadata["diverged"]["time"] == pytest.approx(0.4)
 
 
+def test_a_mujoco_run_flagged_unstable_keeps_the_frames_before_it(capsys, tmp_path):
+    """MuJoCo C resets a state it finds unstable (here a 3D net with one link of mass
+    1e12): the run exits 3 in one line and keeps MuJoCo's own frames before the
+    instability, flagged, as the Lagrangian engine keeps its frames before a divergence."""
+    import json
+
+    from lgnn.engines import mujoco as lm
+    from lgnn.engines.base import SimulationConfig
+    from lgnn.scene import get_scene, scene_from_dict, scene_to_dict
+
+    described = scene_to_dict(get_scene("net4x4-3d"))
+    described["links"][0]["mass"] = 1e12
+    (tmp_path / "heavy.json").write_text(json.dumps(described))
+    out = tmp_path / "heavy.npz"
+    code, _, err = run(capsys, "simulate", str(tmp_path / "heavy.json"), "--engine", "mujoco", "--duration", "0.2", "--out", str(out), "--quiet")
+    assert code == 3 and len(err.strip().splitlines()) == 1 and "MuJoCo found a non-finite or huge qacc" in err and "kept the" in err, err
+    kept = Trajectory.load(out)
+    assert 1 < len(kept.t) and kept.t[-1] < kept.metadata["diverged"]["time"] and np.isfinite(kept.q).all()
+    settings = kept.metadata["config"]
+    config = SimulationConfig(dt=settings["dt"], frame_dt=settings["frame_dt"], duration=kept.t[-1])
+    np.testing.assert_array_equal(kept.q, lm.rollout(scene_from_dict(described), config, form=kept.metadata["engine"]["form"]).q[0])
+
+
 @pytest.mark.parametrize(
     ("argv", "words"),
     [

@@ -509,6 +509,26 @@ def checked_trajectory(scene: Scene, config: SimulationConfig, states: State, me
     return Trajectory(t, q, qd, energy, metadata)
 
 
+def frames_before(err: SimulationError, scene: Scene, config: SimulationConfig, states: State, form: Form, metadata: dict) -> SimulationError:
+    """`err` (MuJoCo's instability, or a non-finite state, by `err.time`) carrying the
+    first initial state's frames before that time, rolled out again to just before it
+    (MuJoCo C is deterministic; MuJoCo itself resets an unstable state, so the frames it
+    stepped past it are not kept). An error that carries frames, or no time, is
+    returned as it is."""
+    if err.trajectory is not None or err.time is None:
+        return err
+    kept = max(1, int(round(err.time / config.frame_dt)))  # frames at t < err.time
+    first = State(np.asarray(states.q)[:1], np.asarray(states.qd)[:1])
+    if kept > 1:
+        nodes = rollout(scene, dataclasses.replace(config, duration=(kept - 1) * config.frame_dt), first, form=form)
+        q, qd = nodes.q[0], nodes.qd[0]
+    else:
+        q, qd = first.q, first.qd
+    with precision("float64"):
+        energy = np.asarray(true_energies(scene, q, qd))
+    return SimulationError(str(err), time=err.time, trajectory=Trajectory(np.arange(kept) * config.frame_dt, q, qd, energy, metadata))
+
+
 def engine_metadata(scene: Scene, config: SimulationConfig, engine: str, dtype: str, wall_s: float, form: Form = "nested",
                     step: float | None = None, accuracy: float | None = None) -> dict:
     """A MuJoCo engine's `Trajectory.metadata`: the scene, the settings, and the engine
@@ -555,13 +575,18 @@ class MujocoEngine(Engine):
         return form_error(scene, self.form_of(scene), config.dt, config.duration)
 
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
-        """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1)."""
+        """`Trajectory` of initial states (B, N, dim): q, qd (B, F+1, N, dim), energy (B, F+1).
+        A run MuJoCo flags as unstable raises `SimulationError` carrying the first
+        initial state's frames before it (`frames_before`), as the JAX engines do."""
         form = self.form_of(scene)
         start = time.perf_counter()
-        nodes = rollout(scene, config, states, threads=self.threads, form=form)
-        metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form,
-                                   accuracy=self.accuracy(scene, config))
-        return checked_trajectory(scene, config, nodes, metadata, self.name)
+        metadata = lambda: engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form,  # noqa: E731
+                                           accuracy=self.accuracy(scene, config))
+        try:
+            nodes = rollout(scene, config, states, threads=self.threads, form=form)
+        except SimulationError as err:
+            raise frames_before(err, scene, config, states, form, metadata()) from None
+        return checked_trajectory(scene, config, nodes, metadata(), self.name)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, dim))`. Compile: a one-step warm-up run, which
