@@ -580,13 +580,14 @@ class MujocoEngine(Engine):
         initial state's frames before it (`frames_before`), as the JAX engines do."""
         form = self.form_of(scene)
         start = time.perf_counter()
-        metadata = lambda: engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form,  # noqa: E731
-                                           accuracy=self.accuracy(scene, config))
         try:
             nodes = rollout(scene, config, states, threads=self.threads, form=form)
         except SimulationError as err:
-            raise frames_before(err, scene, config, states, form, metadata()) from None
-        return checked_trajectory(scene, config, nodes, metadata(), self.name)
+            raise frames_before(err, scene, config, states, form, self._metadata(scene, config, form, start)) from None
+        return checked_trajectory(scene, config, nodes, self._metadata(scene, config, form, start), self.name)
+
+    def _metadata(self, scene: Scene, config: SimulationConfig, form: Form, start: float) -> dict:
+        return engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form, accuracy=self.accuracy(scene, config))
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, dim))`. Compile: a one-step warm-up run, which
