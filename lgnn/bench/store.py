@@ -4,16 +4,16 @@ Under `<out>/benchmark/`: `checkpoints/<job>.npz` (`lgnn.learn.train`) and `runs
 the stage records. Datasets (training data and each scene's ground-truth trajectories)
 go to lgnn's one dataset cache (`lgnn.learn.data.default_cache_dir`: `datasets/` in
 `$LGNN_CACHE`, else `$XDG_CACHE_HOME/lgnn`, else `~/.cache/lgnn`), which `lgnn train`
-and `lgnn dataset export` use too, each file named by the digest of its settings. Every record is an `lgnn.records`
-record (arrays) or JSON record whose meta holds the settings `key` it was made with
-(`lgnn.bench.stages`). `load` and `load_json` return a record only if it is whole and
+and `lgnn dataset export` use too, each file named by the digest of its settings.
+Every record is an `lgnn.records` record (arrays) or JSON record whose meta holds the
+settings `key` it was made with (`lgnn.bench.stages`). `load` and `load_json` return a record only if it is whole and
 has the wanted key: an absent or stale one is None (recomputed), a damaged one too,
 with a warning on stderr. Progress goes to stderr (`log`). Processes that share the
 folder claim a record before computing it (`lgnn.bench.claims`), so each is computed once.
 
 A profile's `base` (e.g. the committed `results/`) is a second folder of the same
-layout, read in place and never written (`layout(profile, out)`): every path a
-`Layout` gives is under `out`, where records are written; `Layout.found` and
+layout, read in place and never written (`layout(profile, out)`): every record and
+checkpoint path a `Layout` gives is under `out`, where records are written; `Layout.found` and
 `Layout.load` read a file from `out`, else from `base`, so a record or checkpoint the
 base holds with the wanted key is reused as it is, and one it lacks or holds with
 other settings is made under `out`.
