@@ -132,7 +132,7 @@ def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_
     # one computed (chain100-3d's MuJoCo C reference takes 15 minutes on 16 cores).
     evaluate.ground_truth.cache_clear()
     computed = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
-    assert store.Layout(tmp_path).truth_trajectories(SCENE, evaluate.truth_key(QUICK, SCENE)).exists()
+    assert evaluate.truth_file(QUICK, SCENE).exists()
     assert not (tmp_path / "datasets").exists()  # in the dataset cache, not the output folder
     evaluate.ground_truth.cache_clear()
 

@@ -58,8 +58,7 @@ def _rekey_arrays(path: Path, old: str, new: str, dry_run: bool) -> str:
     if what is None:
         return "STALE: neither key (left alone)"
     if not dry_run:
-        environment = meta.pop("environment")
-        records.save(path, arrays, {**meta, "key": new}, environment=environment, compressed=True)
+        _rewrite(path, arrays, {**meta, "key": new})
     return what
 
 
@@ -118,10 +117,15 @@ def _deflate(path: Path, dry_run: bool) -> str:
         if all(entry.compress_type == zipfile.ZIP_DEFLATED for entry in archive.infolist()):
             return "deflated already"
     if not dry_run:
-        arrays, meta = records.read(path)
-        environment = meta.pop("environment")
-        records.save(path, arrays, meta, environment=environment, compressed=True)
+        _rewrite(path, *records.read(path))
     return "deflated"
+
+
+def _rewrite(path: Path, arrays: dict, meta: dict) -> None:
+    """The array record at `path` written again, deflated: `arrays`, `meta` and the
+    environment that made it (the checksum recomputed)."""
+    environment = meta.pop("environment")
+    records.save(path, arrays, meta, environment=environment, compressed=True)
 
 
 def main(argv: list[str] | None = None) -> int:

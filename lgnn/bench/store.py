@@ -6,17 +6,18 @@ go to lgnn's one dataset cache (`lgnn.learn.data.default_cache_dir`: `datasets/`
 `$LGNN_CACHE`, else `$XDG_CACHE_HOME/lgnn`, else `~/.cache/lgnn`), which `lgnn train`
 and `lgnn dataset export` use too, each file named by the digest of its settings.
 Every record is an `lgnn.records` record (arrays) or JSON record whose meta holds the
-settings `key` it was made with (`lgnn.bench.stages`). `load` and `load_json` return a record only if it is whole and
-has the wanted key: an absent or stale one is None (recomputed), a damaged one too,
-with a warning on stderr. Progress goes to stderr (`log`). Processes that share the
-folder claim a record before computing it (`lgnn.bench.claims`), so each is computed once.
+settings `key` it was made with (`lgnn.bench.stages`). `load` and `load_json` return a
+record only if it is whole and has the wanted key: an absent or stale one is None
+(recomputed), a damaged one too, with a warning on stderr. Progress goes to stderr
+(`log`). Processes that share the folder claim a record before computing it
+(`lgnn.bench.claims`), so each is computed once.
 
 A profile's `base` (e.g. the committed `results/`) is a second folder of the same
 layout, read in place and never written (`layout(profile, out)`): every record and
-checkpoint path a `Layout` gives is under `out`, where records are written; `Layout.found` and
-`Layout.load` read a file from `out`, else from `base`, so a record or checkpoint the
-base holds with the wanted key is reused as it is, and one it lacks or holds with
-other settings is made under `out`.
+checkpoint path a `Layout` gives is under `out`, where records are written;
+`Layout.found` and `Layout.load` read a file from `out`, else from `base`, so a record
+or checkpoint the base holds with the wanted key is reused as it is, and one it lacks
+or holds with other settings is made under `out`.
 """
 
 from __future__ import annotations
@@ -75,11 +76,6 @@ class Layout:
     def truth_record(self, scene: str) -> Path:
         return self.bench / "runs" / "ground-truth" / f"{file_name(scene)}.npz"
 
-    def truth_trajectories(self, scene: str, key: str) -> Path:
-        """A scene's ground-truth trajectories under the settings `key`
-        (`evaluate.ground_truth`): large, not a result, in the dataset cache."""
-        return self.datasets / "ground-truth" / f"{file_name(scene)}-{key[:16]}.npz"
-
     @property
     def scaling_record(self) -> Path:
         return self.bench / "runs" / "scaling.json"
@@ -124,6 +120,13 @@ class Layout:
             if record is not None:
                 return {**record, "folder": str(where)}
         return None
+
+
+def truth_trajectories(scene: str, key: str) -> Path:
+    """A scene's ground-truth trajectories under the settings `key`
+    (`evaluate.ground_truth`): large, not a result, in the dataset cache of every output
+    folder."""
+    return default_cache_dir() / "ground-truth" / f"{file_name(scene)}-{key[:16]}.npz"
 
 
 def layout(profile: Profile, out: Path) -> Layout:

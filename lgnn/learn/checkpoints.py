@@ -193,6 +193,13 @@ def history(meta: dict, arrays: dict) -> list[tuple]:
             for epoch, train_loss, val_loss, elapsed in rows]
 
 
+def params_template(model: models.ModelConfig):
+    """The shapes and dtypes of `model`'s parameters (`jax.ShapeDtypeStruct` leaves):
+    running `init` would compile each of its random draws (1.5 s of a CPU, 7 s of a
+    GPU's `lgnn evaluate`), only for them to be replaced by the stored leaves."""
+    return jax.eval_shape(lambda key: models.init(key, model), jax.random.PRNGKey(0))
+
+
 def content_digest(path: str | os.PathLike) -> str:
     """sha256 (hex) of what a checkpoint's rollouts depend on: its model settings (the
     meta's `model`) and its best parameters, each leaf by pytree path, dtype, shape and
@@ -209,10 +216,8 @@ def content_digest(path: str | os.PathLike) -> str:
 @functools.lru_cache(maxsize=1024)  # keyed on the file's identity: a rewritten file is read again
 def _content_digest(path: str, identity: tuple) -> str:
     meta, arrays = read(path)
-    if meta["format"] == LEGACY_FORMAT:
-        model = model_config(path, meta)
-        template = jax.eval_shape(lambda key: models.init(key, model), jax.random.PRNGKey(0))
-        arrays = arrays_by_path(path, meta, arrays, {"best": template})
+    if meta["format"] == LEGACY_FORMAT:  # leaves by position: named after the model's tree
+        arrays = arrays_by_path(path, meta, arrays, {"best": params_template(model_config(path, meta))})
     best = {name: value for name, value in arrays.items() if name.startswith("best/")}
     return records.checksum(best, json.dumps(meta["model"], sort_keys=True))
 
@@ -224,7 +229,5 @@ def load_model(path: str | os.PathLike, spec: models.ModelSpec | None = None) ->
     `model_config`). `CheckpointError` (one line) if the file is unusable."""
     meta, arrays = read(path)
     model = model_config(path, meta, spec)
-    # The tree's shapes and dtypes alone: running `init` would compile each of its
-    # random draws (1.5 s of a CPU, 7 s of a GPU's `lgnn evaluate`), only to be replaced.
-    template = jax.eval_shape(lambda key: models.init(key, model), jax.random.PRNGKey(0))
+    template = params_template(model)
     return model, restore(path, template, arrays_by_path(path, meta, arrays, {"best": template}), "best")

@@ -154,6 +154,12 @@ def pair_key(profile: Profile, pair: Pair, checkpoint: Path) -> str:
     return records.digest({"truth": truth_key(profile, pair.scene), "checkpoint": content_digest(checkpoint), **unprojected})
 
 
+def truth_file(profile: Profile, scene_name: str) -> Path:
+    """Where `ground_truth` keeps a scene's trajectories: the dataset cache, named by
+    the scene and its `truth_key`."""
+    return store.truth_trajectories(scene_name, truth_key(profile, scene_name))
+
+
 def truth_trajectories(references: tuple[str, ...]) -> tuple[str, ...]:
     """The trajectories `ground_truth` keeps on disk (with `states`, its initial
     conditions): the Lagrangian ground truth's, the chaos floor's, and positions
@@ -175,8 +181,8 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     `q_<engine>` and `energy_<engine>`, the initial `states` and timings
     (`truth_trajectories`, `truth_timings`).
 
-    With `out`, the trajectories are kept in the dataset cache
-    (`Layout.truth_trajectories`, named and keyed by `truth_key`), and read back by every
+    With `out`, the trajectories are kept in the dataset cache (`truth_file`, named and
+    keyed by `truth_key`), and read back by every
     later process, of any output folder: MuJoCo C's reference alone takes
     15 minutes on 16 cores for chain100-3d (a serial chain's joint-space mass matrix is
     dense: O(nv^3) per step), which each process evaluating one of the scene's pairs
@@ -184,8 +190,7 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     1e-10 and better); about 1.2 GB for chain100-3d."""
     if out is None:
         return _computed_ground_truth(profile, scene_name, progress)
-    key = truth_key(profile, scene_name)
-    path = store.layout(profile, out).truth_trajectories(scene_name, key)
+    key, path = truth_key(profile, scene_name), truth_file(profile, scene_name)
     trajectories, timings = truth_trajectories(profile.evaluate.references), truth_timings(profile.evaluate.references)
     with claims.once(path):  # processes on one scene: the first computes, the others read
         stored = store.load(path, key)
@@ -425,7 +430,7 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     truth = truth_when_done()
     if not np.allclose(truth["states"].q, states.q, rtol=1e-9, atol=1e-12):
         raise SimulationError(f"{pair.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
-                              f"remove {Layout(out).truth_trajectories(pair.scene, truth_key(profile, pair.scene))} to recompute it")
+                              f"remove {truth_file(profile, pair.scene)} to recompute it")
     steps = len(group) * len(states.q) * config.n_frames * config.steps_per_frame
     for (pair, path, key, _, _), q, qd in zip(group, q_all, qd_all):
         scored = score_against_truth(profile, scene, q, qd, truth)

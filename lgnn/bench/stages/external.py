@@ -155,7 +155,7 @@ def evaluate_external(profile: Profile, path: str | os.PathLike, out: Path, prog
         truth = evaluate.ground_truth(profile, predictions.scene, progress, out)
         if not np.allclose(truth["states"].q, predictions.q[:, 0], rtol=1e-9, atol=1e-12):
             raise ConfigError(f"{predictions.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
-                              f"remove {store.Layout(out).truth_trajectories(predictions.scene, evaluate.truth_key(profile, predictions.scene))} to recompute it")
+                              f"remove {evaluate.truth_file(profile, predictions.scene)} to recompute it")
         scene = get_scene(predictions.scene)
         scored = evaluate.score_against_truth(profile, scene, predictions.q, predictions.qd, truth)
         frame_dt = profile.evaluate.frame_dt
