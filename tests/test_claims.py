@@ -160,7 +160,7 @@ def test_two_benchmark_processes_on_one_folder_run_each_task_once(tmp_path, tiny
     one of them (their logs say so once between them), both exit 0, and no claim is
     left."""
     config, out = tiny_benchmark_config("gns", epochs=2), tmp_path / "out"
-    command = [sys.executable, "-m", "lgnn.cli", "benchmark", "--config", str(config), "--out-dir", str(out), "--quiet"]
+    command = [sys.executable, "-m", "lgnn", "benchmark", "--config", str(config), "--out-dir", str(out), "--quiet"]
     processes = [subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for _ in range(2)]
     logs = [process.communicate(timeout=600)[1] for process in processes]
     assert [process.returncode for process in processes] == [0, 0], logs

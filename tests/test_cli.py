@@ -36,7 +36,7 @@ def test_closed_output_pipe_is_quiet():
     read_end, write_end = os.pipe()
     os.close(read_end)
     try:
-        result = subprocess.run([sys.executable, "-m", "lgnn.cli", "scenes"], stdout=write_end, stderr=subprocess.PIPE, timeout=120)
+        result = subprocess.run([sys.executable, "-m", "lgnn", "scenes"], stdout=write_end, stderr=subprocess.PIPE, timeout=120)
     finally:
         os.close(write_end)
     stderr = result.stderr.decode()

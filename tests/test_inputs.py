@@ -334,7 +334,7 @@ def run_in_process(argv, capsys) -> tuple[int, str]:
 
 def run_child(argv) -> tuple[int, str]:
     try:
-        result = subprocess.run([sys.executable, "-m", "lgnn.cli", *argv], capture_output=True, text=True, timeout=TIMEOUT_S, stdin=subprocess.DEVNULL)
+        result = subprocess.run([sys.executable, "-m", "lgnn", *argv], capture_output=True, text=True, timeout=TIMEOUT_S, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired:
         pytest.fail(f"hang: still running after {TIMEOUT_S} s: lgnn {' '.join(argv)}")
     return result.returncode, result.stderr
@@ -539,7 +539,7 @@ def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
         children = {}
         for trial in range(batch, min(batch + INTERRUPTED_AT_ONCE, INTERRUPTS)):
             out = tmp_path / f"o{trial}.npz"
-            children[trial] = (out, subprocess.Popen([sys.executable, "-m", "lgnn.cli", "simulate", "chain4", "--duration", "0.2", "--out", str(out),
+            children[trial] = (out, subprocess.Popen([sys.executable, "-m", "lgnn", "simulate", "chain4", "--duration", "0.2", "--out", str(out),
                                                       "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
         for trial, (out, child) in children.items():
             time.sleep(max(0.0, started + moments[trial] - time.monotonic()))
@@ -556,6 +556,41 @@ def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
                 assert Trajectory.load(out).q.shape[1:] == (5, 2)
     assert seen.get(130, 0) >= INTERRUPTS // 2, seen  # most moments fall inside the command, not before or after it
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "a temporary file was left"
+
+
+_INTERRUPTED_COMPILATION = """
+import os, signal, sys, threading
+from jax._src import compiler
+from lgnn.cli import main
+
+compile_and_load, returned = compiler.backend_compile_and_load, []
+
+def interrupted_compilation(*args, **kwargs):
+    threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
+    executable = compile_and_load(*args, **kwargs)
+    returned.append(True)
+    return executable
+
+compiler.backend_compile_and_load = interrupted_compilation
+code = main(sys.argv[1:])
+print("compilations that returned:", len(returned))
+sys.exit(code)
+"""
+
+
+def test_a_ctrl_c_during_an_xla_compilation_is_taken_once_the_compilation_returns(tmp_path):
+    """JAX waits for an XLA compilation interruptibly while the compilation goes on in
+    XLA's threads: leaving then crashed the process under the compiler thread (a
+    segmentation fault after "lgnn: interrupted", in about 1 of 10 interrupts). The
+    Ctrl-C is held until the compilation has returned, then the command stops: exit 130,
+    one line, and Python's normal shutdown."""
+    out = tmp_path / "o.npz"
+    child = subprocess.run([sys.executable, "-c", _INTERRUPTED_COMPILATION, "simulate", "chain4", "--duration", "0.05", "--out", str(out), "--quiet"],
+                           env=dict(os.environ, LGNN_JAX_CACHE="off"), capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert child.returncode == 130, child.stderr
+    assert child.stderr == "lgnn: interrupted\n"
+    assert child.stdout == "compilations that returned: 1\n"  # the first one, then no other
+    assert not out.exists()
 
 
 def test_a_ctrl_c_while_numpy_and_jax_load_is_held_until_they_have(monkeypatch, capsys):

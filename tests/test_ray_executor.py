@@ -46,7 +46,7 @@ def _profile():
 
 def _driver(out: Path, address: str, cache: Path) -> subprocess.Popen:
     """A driver process whose dataset cache (`$LGNN_CACHE`, which its tasks use too) is `cache`."""
-    return subprocess.Popen([sys.executable, "-m", "lgnn.cli", "benchmark", *PROFILE_ARGV, *STAGES, "--executor", "ray", "--address", address,
+    return subprocess.Popen([sys.executable, "-m", "lgnn", "benchmark", *PROFILE_ARGV, *STAGES, "--executor", "ray", "--address", address,
                              "--workers", "2", "--out-dir", str(out), "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "LGNN_CACHE": str(cache)})
 

@@ -460,7 +460,7 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     # GNS: the kill and the resume are the point, not the model, and its training
     # compiles quickest; the resumed process reads the first one's compiled programs
     # from JAX's persistent cache instead of compiling them again.
-    argv = [sys.executable, "-m", "lgnn.cli", "train", "--model", "gns", "--trajectories", "2", "--epochs", str(epochs),
+    argv = [sys.executable, "-m", "lgnn", "train", "--model", "gns", "--trajectories", "2", "--epochs", str(epochs),
             "--patience", str(epochs), "--lr", "1e-2", "--batch-size", "10", "--cache-dir", str(cache), "--out", str(ckpt), "--quiet"]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax-cache")}
     process = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -506,7 +506,7 @@ def test_killed_benchmark_keeps_its_finished_records_and_resumes(tmp_path):
     layout.checkpoint(pair.job).parent.mkdir(parents=True)
     # Evaluation needs only a checkpoint file: the committed full-profile one will do.
     layout.checkpoint(pair.job).write_bytes((ROOT / "results/benchmark/checkpoints/gns-chain4-s0.npz").read_bytes())
-    argv = [sys.executable, "-m", "lgnn.cli", "benchmark", "--stage", "evaluate", "--scene", "chain4", "--job", pair.job.name,
+    argv = [sys.executable, "-m", "lgnn", "benchmark", "--stage", "evaluate", "--scene", "chain4", "--job", pair.job.name,
             "--out-dir", str(out), "--quiet"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     truth = layout.truth_record("chain4")

@@ -99,7 +99,7 @@ def _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, run
     while waiting or running:
         while waiting and len(running) < workers:
             name, args = waiting.pop(0)
-            command = [sys.executable, "-m", "lgnn.cli", *child_arguments(stage, profile_argv, out, args)]
+            command = [sys.executable, "-m", "lgnn", *child_arguments(stage, profile_argv, out, args)]
             path = logs / f"{stage}-{file_name(name)}.log"
             handle = path.open("w")
             running[name] = (subprocess.Popen(command, stdout=handle, stderr=subprocess.STDOUT, env=env), handle, path)

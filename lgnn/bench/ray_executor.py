@@ -140,7 +140,7 @@ def run_part(arguments: list[str], cwd: str, log_path: str, cache: str) -> tuple
     with open(log_path, "a") as handle:
         handle.write(f"# lgnn {' '.join(arguments)} ({where}, {time.strftime('%Y-%m-%d %H:%M:%S')})\n")
         handle.flush()
-        process = subprocess.Popen([sys.executable, "-m", "lgnn.cli", *arguments], stdout=handle, stderr=subprocess.STDOUT, env=env, cwd=cwd)
+        process = subprocess.Popen([sys.executable, "-m", "lgnn", *arguments], stdout=handle, stderr=subprocess.STDOUT, env=env, cwd=cwd)
         try:
             return process.wait(), where
         except BaseException:
