@@ -8,6 +8,11 @@ import tempfile
 from lgnn.runtime import COMPILATION_CACHE_ENV, configure, release_compiled_programs
 
 configure()  # first: thread counts and XLA flags before numpy and JAX load; float64
+# The tests compile thousands of small programs that each run for milliseconds, so XLA's
+# optimisation passes cost more than they save (a third of a model test's time). They
+# change no arithmetic the tests check: results are IEEE either way, and every tolerance
+# holds at both levels. Set for the `lgnn` processes the tests start too.
+os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 # No persistent compilation cache, in-process or in the `lgnn` processes tests start,
 # unless a test asks for one (`lgnn.runtime.enable_compilation_cache`).
 os.environ[COMPILATION_CACHE_ENV] = "off"
