@@ -99,10 +99,12 @@ def test_diverged_simulation_keeps_its_frames_flagged_and_exits_3(capsys, tmp_pa
     assert kept.metadata["diverged"]["time"] == pytest.approx(0.4)
 
 
-def test_a_mujoco_run_flagged_unstable_keeps_the_frames_before_it(capsys, tmp_path):
+@pytest.mark.parametrize("mass", [1e12, 1e30])
+def test_a_mujoco_run_flagged_unstable_keeps_the_frames_before_it(capsys, tmp_path, mass):
     """MuJoCo C resets a state it finds unstable (here a 3D net with one link of mass
-    1e12): the run exits 3 in one line and keeps MuJoCo's own frames before the
-    instability, flagged, as the Lagrangian engine keeps its frames before a divergence."""
+    1e12, or 1e30, the largest a scene may hold, whose energies pass 1e30): the run exits
+    3 in one line and keeps MuJoCo's own frames before the instability, flagged, in a
+    file that loads, as the Lagrangian engine keeps its frames before a divergence."""
     import json
 
     from lgnn.engines import mujoco as lm
@@ -110,7 +112,7 @@ def test_a_mujoco_run_flagged_unstable_keeps_the_frames_before_it(capsys, tmp_pa
     from lgnn.scene import get_scene, scene_from_dict, scene_to_dict
 
     described = scene_to_dict(get_scene("net4x4-3d"))
-    described["links"][0]["mass"] = 1e12
+    described["links"][0]["mass"] = mass
     (tmp_path / "heavy.json").write_text(json.dumps(described))
     out = tmp_path / "heavy.npz"
     code, _, err = run(capsys, "simulate", str(tmp_path / "heavy.json"), "--engine", "mujoco", "--duration", "0.2", "--out", str(out), "--quiet")

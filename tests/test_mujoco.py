@@ -369,6 +369,24 @@ def test_mjx_float64_agrees_with_mujoco_c():
     assert np.max(np.abs(ours.qd - reference.qd)) <= 1e-7
 
 
+def test_a_diverging_mjx_run_keeps_the_frames_before_it(monkeypatch):
+    """An MJX run whose state turns non-finite (here from frame 3 of the second initial
+    state, standing in for a blow-up) raises one `SimulationError` carrying that
+    state's frames before it, as every engine does, not an error with no frames."""
+    from lgnn.engines import mjx
+
+    states, config = chain4_states(), CHAIN4_ROLLOUT
+    reference = lm.rollout(scene("chain4"), config, states)
+    q, qd = reference.q.copy(), reference.qd.copy()
+    q[1, 3:], qd[1, 3:] = np.nan, np.inf
+    monkeypatch.setattr(mjx, "runner", lambda *args, **kwargs: lambda q0, qd0: (jnp.asarray(q), jnp.asarray(qd)))
+    with pytest.raises(SimulationError, match="mjx state became non-finite at t = 0.003 s") as raised:
+        get_engine("mjx").rollout(scene("chain4"), config, states)
+    kept = raised.value.trajectory
+    np.testing.assert_array_equal(kept.q, reference.q[1, :3])
+    assert raised.value.time == pytest.approx(3 * config.frame_dt)
+
+
 def test_mjx_maximal_chain12_compiles_and_agrees():
     """MJX on a 12-link chain in the maximal form (its "auto" choice past depth 8; the
     nested form compiled for over 10 minutes on a 2-core CPU) against MuJoCo C in the

@@ -164,7 +164,8 @@ class Trajectory:
 
 def trajectory_problem(t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray, metadata) -> str | None:
     """What makes arrays and metadata read from a file not one trajectory (`Trajectory`'s
-    shapes, real finite numbers within a scene's `MAX_MAGNITUDE`, a JSON object of metadata whose
+    shapes, real finite numbers (times and states within a scene's `MAX_MAGNITUDE`), a
+    JSON object of metadata whose
     `scene`, `model` and `engine` are objects), or None."""
     if not isinstance(metadata, dict):
         return f"metadata must be a JSON object, got {type(metadata).__name__}"
@@ -174,8 +175,12 @@ def trajectory_problem(t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.
     for name, array in zip(NPZ_KEYS, (t, q, qd, energy)):
         if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
             return f"{name} must hold real numbers, got dtype {array.dtype}"
-        # Frames after a divergence are never kept (the engines stop there).
-        if not np.all(np.abs(array) <= MAX_MAGNITUDE):
+        # Frames after a divergence are never kept (the engines stop there). An energy
+        # multiplies a few of a scene's numbers (a mass of 1e30 is one), so it need only
+        # be finite.
+        if name == "energy" and not np.isfinite(array).all():
+            return "energy holds values that are not finite"
+        if name != "energy" and not np.all(np.abs(array) <= MAX_MAGNITUDE):
             return f"{name} holds values that are not finite or beyond {MAX_MAGNITUDE:g}"
     if t.ndim != 1 or len(t) < 1:
         return f"t must be (frames,), got shape {t.shape}"

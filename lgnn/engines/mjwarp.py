@@ -47,7 +47,7 @@ from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form
 from lgnn.engines.mjx import best_form
 from lgnn.engines.mujoco import checked_trajectory, compile_scene, engine_metadata, resolve_form, state_to_qpos_qvel, stepped_config
 from lgnn.engines.timing import time_runs
-from lgnn.errors import ConfigError, SimulationError
+from lgnn.errors import ConfigError
 from lgnn.scene import Scene, State
 
 INSTALL_HINT = "pip install 'lgnn[mjwarp]' (mujoco-warp, warp-lang)"
@@ -252,11 +252,7 @@ class MjwarpEngine(Engine):
         nodes = rollout(scene, stepped, states, form, self.device)
         metadata = engine_metadata(scene, config, self.name, self.dtype, time.perf_counter() - start, form, step=stepped.dt)
         metadata["engine"].update(mujoco_warp=versions())
-        if not (np.isfinite(nodes.q).all() and np.isfinite(nodes.qd).all()):
-            bad = int(np.argmin(np.isfinite(nodes.q).all(axis=(0, 2, 3)) & np.isfinite(nodes.qd).all(axis=(0, 2, 3))))
-            t = bad * config.frame_dt
-            raise SimulationError(f"{scene.name}: mjwarp state became non-finite at t = {t:.6g} s (dt = {config.dt:g}, float32)", time=t)
-        return checked_trajectory(scene, config, nodes, metadata, self.name)
+        return checked_trajectory(scene, config, nodes, metadata, self.name)  # frames before a divergence kept
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, dim))`: compile is the kernels' compilation
