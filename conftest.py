@@ -2,23 +2,26 @@
 loads JAX, no persistent compilation cache, a dataset cache of each test's own, and
 compiled programs released once a worker holds too many."""
 
+import atexit
 import os
+import shutil
 import tempfile
 
 from lgnn.runtime import COMPILATION_CACHE_ENV, configure, release_compiled_programs
 
-configure()  # first: thread counts and XLA flags before numpy and JAX load; float64
 # The tests compile thousands of small programs that each run for milliseconds, so XLA's
 # optimisation passes cost more than they save (a third of a model test's time). They
 # change no arithmetic the tests check: results are IEEE either way, and every tolerance
-# holds at both levels. Set for the `lgnn` processes the tests start too.
+# holds at both levels. Read as JAX loads, here and in the `lgnn` processes tests start.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+configure()  # then: thread counts and XLA flags before numpy and JAX load; float64
 # No persistent compilation cache, in-process or in the `lgnn` processes tests start,
 # unless a test asks for one (`lgnn.runtime.enable_compilation_cache`).
 os.environ[COMPILATION_CACHE_ENV] = "off"
 # Datasets of module- and session-scoped fixtures: a folder of this worker's, never the
 # user's cache (each test then gets one of its own, `_own_dataset_cache`).
 os.environ["LGNN_CACHE"] = tempfile.mkdtemp(prefix="lgnn-test-cache-")
+atexit.register(shutil.rmtree, os.environ["LGNN_CACHE"], ignore_errors=True)
 
 import pytest  # noqa: E402
 

@@ -50,3 +50,8 @@ def test_compiled_programs_are_released_only_above_the_mapping_limit():
     assert release_compiled_programs(above=0)
     assert all(program._cache_size() == 0 for program in programs)
     assert memory_mappings() < before - len(programs)  # at least one mapping each returned
+
+
+def test_tests_compile_with_most_optimisations_off():
+    # conftest.py sets it before JAX loads (JAX reads it once, as its compiler loads).
+    assert jax.config.values["jax_disable_most_optimizations"]
