@@ -26,6 +26,22 @@ atexit.register(shutil.rmtree, os.environ["LGNN_CACHE"], ignore_errors=True)
 import pytest  # noqa: E402
 
 
+# Tests that run their programs long (MJX's steps, thousands of them) compile them with
+# XLA's optimisations, as users do: there the optimised program pays for itself.
+@pytest.fixture(autouse=True)
+def _optimised_compiles_where_marked(request):
+    if request.node.get_closest_marker("xla_optimised") is None:
+        yield
+        return
+    import jax
+
+    jax.config.update("jax_disable_most_optimizations", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", True)
+
+
 # Each test (and the `lgnn` processes it starts) caches datasets in a folder of its own,
 # as every test has its own output folder: no test reads another's data, and none
 # writes to the user's cache.

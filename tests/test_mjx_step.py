@@ -17,6 +17,9 @@ from lgnn.errors import ConfigError
 from lgnn.scene import spatial_chain
 from lgnn.scene.catalogue import double_pinned_chain
 
+
+pytestmark = pytest.mark.xla_optimised  # MJX programs run thousands of steps (conftest.py)
+
 STEPS = 20
 
 

@@ -30,6 +30,9 @@ from lgnn.scene import chain, get_scene, sample_initial_states, scene_names
 from lgnn.engines.base import Integration, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
 
+
+pytestmark = pytest.mark.xla_optimised  # MJX programs run thousands of steps (conftest.py)
+
 # The engines' chain4 rollouts (0.25 s: MJX's CPU run of a whole second took most of a
 # 2-core CI minute; a quarter already swings every link through large angles).
 CHAIN4_ROLLOUT = SimulationConfig(dt=1e-4, frame_dt=1e-3, duration=0.25)

@@ -513,6 +513,7 @@ SCALING_CASES = [pytest.param(name, local_mass, id=f"{name}-{'local-mass' if loc
                  for name in sorted(scene_names("paper")) for local_mass in (False, True) if (name, local_mass) != ("chain100", False)]
 
 
+@pytest.mark.xla_optimised  # 500 steps of each: the optimised program pays for itself
 @pytest.mark.parametrize(("name", "local_mass"), SCALING_CASES)
 def test_accelerations_and_rollouts_are_invariant_under_scaling_the_lagrangian(name, local_mass):
     """`c L` has the dynamics of `L` (c in `LAGRANGIAN_SCALES`): no regularisation or
