@@ -601,6 +601,29 @@ def test_seeds_trained_together_equal_separate_runs(tiny_dataset, tmp_path):
         train.train_seeds(model, [configs[0], dataclasses.replace(configs[1], learning_rate=1e-2)], tiny_dataset, scene)
 
 
+@pytest.mark.parametrize("rule", [dict(patience=1, min_improvement=0.3), dict(patience=1), dict(epochs=5)])
+def test_epochs_run_several_per_call_stop_where_they_would_one_at_a_time(tiny_dataset, tmp_path, rule):
+    """Training steps `checkpoint_every` epochs per device call, with the stopping rule
+    on the device: a run that stops inside a call (by the plateau or patience rule, or
+    at a budget that is no multiple of the call) ends at the epoch, with the history and
+    parameters, of the run that returns to the host after every epoch, and the host's
+    `stop_reason` agrees that it stopped there and not one epoch earlier."""
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene("gns", scene)
+    config = train.TrainConfig(**{"learning_rate": 1e-2, "epochs": 40, "warmup_steps": 1, "patience": 500, **rule})
+    one = train.train(model, config, tiny_dataset, scene)
+    four = train.train(model, dataclasses.replace(config, checkpoint_every=4), tiny_dataset, scene, out=tmp_path / "four.npz")
+    assert 1 < four.epoch < 40 and four.epoch % 4 and four.epoch == one.epoch
+    np.testing.assert_allclose([h[1:3] for h in four.history], [h[1:3] for h in one.history], rtol=1e-9)
+    for a, b in zip(jax.tree.leaves((one.params, one.best_params)), jax.tree.leaves((four.params, four.best_params))):
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
+    assert four.best_epoch == one.best_epoch and train.load_checkpoint(tmp_path / "four.npz")[0].epoch == four.epoch
+    before = four.history[:-1]
+    best = min(before, key=lambda h: h[2])
+    earlier = four._replace(epoch=four.epoch - 1, history=before, best_epoch=best[0], best_val=best[2])
+    assert train.stop_reason(four, config) and not train.stop_reason(earlier, config)
+
+
 def test_plateau_rule_stops_when_the_best_stops_improving_by_a_fraction():
     """The gain counts over the whole window of `patience` epochs: steady progress of
     0.5 % an epoch is no plateau, though no single epoch gains 1 %."""

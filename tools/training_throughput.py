@@ -8,6 +8,11 @@ from the initial parameters, compile apart; issue 13, item 2.
 
     python tools/training_throughput.py --summarise results/gpu/training/*.jsonl   # the table
 
+    # The training loop itself (`train_seeds`: epochs, validation, stopping rule and
+    # checkpoints): epochs per second alone (1 seed) and packed (3 seeds in one program),
+    # with the device running 1 or 10 epochs per call.
+    python tools/training_throughput.py --loop --models lgnn lgn --seed-counts 1 3 --per-call 1 10
+
 One precision per process (`--dtype`): jit caches built in one precision are not
 reused in the other. Several processes started at once measure how they share a
 device; results/gpu/training/README.md has the commands and the numbers.
@@ -31,12 +36,17 @@ parser.add_argument("--dtype", choices=["float64", "float32"], default="float64"
 parser.add_argument("--epochs", type=int, default=3, help="timed epochs after the compiling one")
 parser.add_argument("--data", default="/tmp/lgnn-datasets", help="dataset cache directory")
 parser.add_argument("--summarise", nargs="+", metavar="JSONL", help="print a markdown table of these outputs instead of measuring")
+parser.add_argument("--loop", action="store_true", help="time the training loop (train_seeds), not a bare epoch")
+parser.add_argument("--seed-counts", nargs="+", type=int, default=[1, 3], help="--loop: seeds trained in one program")
+parser.add_argument("--per-call", nargs="+", type=int, default=[10], help="--loop: epochs per device call (checkpoint_every)")
 args = parser.parse_args()
 
 
 def summarise(paths):
     """One row per measurement: the file it came from (its name says which run, e.g.
     `mps4-2`: the second of 4 processes at once under MPS), and its device and commit."""
+    if any('"epochs_per_s"' in line for path in paths for line in open(path)):
+        return summarise_loop(paths)
     print("| file | model | scene | dtype | batch | Adam steps | epoch s (mean) | epoch s (min..max) | compile s | device, commit |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for path in paths:
@@ -52,6 +62,46 @@ def summarise(paths):
             print(f"| {os.path.basename(path)[:-6]} | {row['model']} | {row.get('scene', '')} | {row['dtype']} | {row['batch']} | {row.get('adam_steps', '')} | {timing} | {where} |")
 
 
+def summarise_loop(paths):
+    """One row per (model, seeds, epochs per call) of `--loop` outputs."""
+    print("| file | model | scene | seeds | epochs per call | epochs/s | seed-epochs/s | first call s | device, commit |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for path in paths:
+        env = {}
+        for line in open(path):
+            row = json.loads(line)
+            if "environment" in row:
+                env = row["environment"]
+                continue
+            where = f"{env.get('device', '?').split(';')[0]}, {env.get('commit', '?')}"
+            rate = (f"{row['epochs_per_s']} | {round(row['epochs_per_s'] * row['seeds'], 1)} | {row['first_call_s']}" if "epochs_per_s" in row
+                    else f"{row.get('error', '?')} | | ")
+            print(f"| {os.path.basename(path)[:-6]} | {row['model']} | {row['scene']} | {row['seeds']} | {row['per_call']} | {rate} | {where} |")
+
+
+def measure_loop(names):
+    """Epochs per second of `train.train_seeds` from the initial parameters: the
+    first call (compilation included) apart, then `--epochs` more epochs timed from the
+    history's clock (no early stopping: patience above the budget)."""
+    for name in names:
+        job = next(j for j in training_jobs(profile) if j.model == name and j.scene == args.scene and j.seed == 0)
+        scene, model, data_config, train_config = job_settings(profile, job)
+        dataset = data.load_or_generate(data_config, args.data)
+        for seeds in args.seed_counts:
+            for per_call in args.per_call:
+                timed = max(args.epochs, per_call)
+                config = dataclasses.replace(train_config, epochs=per_call + timed, patience=10 * (per_call + timed), min_improvement=0.0, checkpoint_every=per_call)
+                row = dict(model=name, scene=args.scene, dtype=args.dtype, seeds=seeds, per_call=per_call, batch=config.batch_size)
+                try:
+                    with runtime.precision(args.dtype):
+                        states = train.train_seeds(model, [dataclasses.replace(config, seed=s) for s in range(seeds)], dataset, scene)
+                    times = [entry[3] for entry in states[0].history]
+                    row.update(first_call_s=round(times[per_call - 1], 2), epochs_per_s=round(timed / (times[-1] - times[per_call - 1]), 2), timed_epochs=timed)
+                except Exception as err:  # noqa: BLE001 -- a measurement: report (e.g. out of memory) and go on
+                    row["error"] = str(err).splitlines()[0][:200]
+                print(json.dumps(row), flush=True)
+
+
 if args.summarise:
     summarise(args.summarise)
     raise SystemExit
@@ -64,6 +114,9 @@ from lgnn.provenance import environment  # noqa: E402
 
 profile = get_profile("full")
 print(json.dumps({"environment": environment()}), flush=True)
+if args.loop:
+    measure_loop(args.models)
+    raise SystemExit
 for name in args.models:
     job = next(j for j in training_jobs(profile) if j.model == name and j.scene == args.scene and j.seed == 0)
     scene, model, data_config, train_config = job_settings(profile, job)

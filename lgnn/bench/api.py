@@ -23,9 +23,9 @@ def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: 
           minutes: float | None = None, trajectories: int | None = None, resume: bool = False, cache_dir: str | os.PathLike | None = None,
           progress: bool = False):
     """Train `model` (a built-in name or `file.py:ATTR` / `module:ATTR`) on `scene` with
-    the full profile's recipe (as `lgnn train`), writing the checkpoint `out` after every
-    epoch; `epochs`, `minutes`, `trajectories` override the recipe's budget and data
-    size. Returns the final training state (`best_val`, `best_epoch`, `epoch`, ...)."""
+    the full profile's recipe (as `lgnn train`), writing the checkpoint `out` every
+    10 epochs (the recipe's `checkpoint_every`) and at the end; `epochs`, `minutes`,
+    `trajectories` override the recipe's budget and data size. Returns the final training state (`best_val`, `best_epoch`, `epoch`, ...)."""
     from lgnn.bench.grid import PROFILES
     from lgnn.learn import data, models
     from lgnn.learn import train as training
@@ -35,7 +35,7 @@ def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: 
     if Path(out).exists() and not resume:
         raise ConfigError(f"{out} exists: resume=True to continue training it, or choose another out")
     data_config = dataclasses.replace(recipe.data_for(scene), **({"n_trajectories": trajectories} if trajectories else {}))
-    config = dataclasses.replace(recipe.train, seed=seed, minutes=minutes, checkpoint_every=1, **({"epochs": epochs} if epochs else {}))
+    config = dataclasses.replace(recipe.train, seed=seed, minutes=minutes, **({"epochs": epochs} if epochs else {}))
     structure = get_scene(scene)
     name = models.load_spec(model).name if ":" in model else model
     model_config = models.ModelConfig.for_scene(name, structure)

@@ -3,14 +3,17 @@
 `train(model_config, train_config, dataset, out=CKPT)` fits a model to a `data.Dataset`
 (float64 under x64; the caller enables it): each epoch shuffles the training states
 with a key derived from `(seed, epoch)` and takes `len(train) // batch_size` Adam steps
-(the remainder of a shuffle is dropped), one jitted `lax.scan` per epoch; the
-validation loss is computed after every epoch in large vmapped chunks; the parameters
-with the best validation loss are kept; training stops at the epoch budget (the
-budget: it means the same on any machine), after `patience` epochs without an
-improvement by the fraction `min_improvement` over that window (the plateau rule), or at the optional
-minutes cap (a safety net, checked after each epoch). `train_seeds` trains several
-seeds of one job in one compiled program (vmapped over params and Adam states, the
-data shared), each seed's run equal to its own `train` run to round-off.
+(the remainder of a shuffle is dropped) in one `lax.scan`; the validation loss is
+computed after every epoch; the parameters with the best validation loss are kept;
+training stops at the epoch budget (the budget: it means the same on any machine),
+after `patience` epochs without an improvement by the fraction `min_improvement` over
+that window (the plateau rule), or at the optional minutes cap (a safety net). The
+device runs `checkpoint_every` epochs per call, validation, best parameters and the
+stopping rule included, with no host round trip between them; the host checks the
+minutes cap and writes checkpoints between calls, while the next call runs.
+`train_seeds` trains several seeds of one job in one compiled program (vmapped over
+params and Adam states, the data shared), each seed's run equal to its own `train` run
+to round-off.
 
 The optimiser is the paper's Adam (peak learning rate 1e-3, batch 10) with a linear
 warm-up, a per-step exponential decay and optional global-norm gradient clipping
@@ -100,7 +103,8 @@ class TrainConfig:
     batch_size: int = 10
     # Paper budget: 10 000 epochs with early stopping.
     epochs: int = 10_000
-    # Wall-clock budget in minutes (None: no limit); checked after each epoch.
+    # Wall-clock budget in minutes (None: no limit); checked between calls of
+    # `checkpoint_every` epochs, so a run may overshoot it by one call.
     minutes: float | None = None
     # Early stopping: stop after this many epochs without a better validation loss.
     patience: int = 500
@@ -108,7 +112,7 @@ class TrainConfig:
     seed: int = 0
     # States per vmapped validation chunk (memory vs. speed).
     val_chunk: int = 500
-    # Write the checkpoint every this many epochs (and at the end).
+    # Epochs per device call, and a checkpoint after each call (and at the end).
     checkpoint_every: int = 1
     # Deviations from the paper's plain Adam (issue 13: its first epochs swung over
     # orders of magnitude): a linear warm-up from 0 over this many steps, so Adam's
@@ -208,16 +212,13 @@ def plateaued(state: TrainState, config: TrainConfig) -> bool:
     times the best `patience` epochs ago. The gain is measured over the whole window,
     not epoch by epoch: a run whose best falls steadily by 0.5 % an epoch is far from a
     plateau although no single epoch gains 1 % (the per-epoch reading stopped every
-    full-batch run of the grid at epoch 202 while its loss was falling, 2026-11-24)."""
+    full-batch run of the grid at epoch 202 while its loss was falling, 2026-11-24).
+    Training applies the same rule on the device (`_chunk_fn`)."""
     start = state.epoch - config.patience
     if not config.min_improvement or start < 1 or not state.history:
         return False
-    epochs = np.array([entry[0] for entry in state.history])
-    val = np.array([entry[2] for entry in state.history], float)
-    before = val[epochs <= start]
-    if not len(before):
-        return False
-    return not np.nanmin(val) < (1 - config.min_improvement) * np.nanmin(before)
+    best = _running_best(state.history, state.epoch)
+    return not best[state.epoch] < (1 - config.min_improvement) * best[start]
 
 
 def learning_rate_schedule(config: TrainConfig) -> optax.Schedule | float:
@@ -250,12 +251,10 @@ def loss_fn(model: models.ModelConfig, scene: Scene):
     return loss
 
 
-@functools.lru_cache(maxsize=16)
-def _epoch_fn(model, scene, config: TrainConfig, vmapped: bool = False):
-    """The jitted epoch, cached per (model, scene, optimisation settings), all keyed on
-    content, so that resuming or re-running in one process does not recompile. With
-    `vmapped`, one compiled program steps several seeds at once: params, Adam states
-    and shuffle keys carry a leading seed axis, the data are shared."""
+def _epoch(model, scene, config: TrainConfig):
+    """`epoch(params, opt_state, q, qd, qdd, key) -> (params, opt_state, mean loss)`:
+    one shuffle of the training states, `len(q) // batch_size` Adam steps in one
+    `lax.scan` (unjitted; `compiled_epoch_fn` and `_chunk_fn` compile it)."""
     loss = loss_fn(model, scene)
     opt = optimizer(config, model.spec.weight_decay)
     free = np.zeros((scene.n_nodes, 1))
@@ -282,14 +281,21 @@ def _epoch_fn(model, scene, config: TrainConfig, vmapped: bool = False):
         (params, opt_state), losses = jax.lax.scan(step, (params, opt_state), (*batches, *noise))
         return params, opt_state, jnp.mean(losses)
 
+    return epoch
+
+
+@functools.lru_cache(maxsize=16)
+def _epoch_fn(model, scene, config: TrainConfig, vmapped: bool = False):
+    epoch = _epoch(model, scene, config)
     return jax.jit(jax.vmap(epoch, in_axes=(0, 0, None, None, None, 0)) if vmapped else epoch)
 
 
 def compiled_epoch_fn(model: models.ModelConfig, scene: Scene, config: TrainConfig, vmapped: bool = False):
     """`epoch(params, opt_state, q, qd, qdd, key) -> (params, opt_state, mean loss)`,
     jitted and shared by every caller with the same optimisation settings (budgets and
-    the seed do not matter): training, resuming, and the benchmark's timing of an
-    epoch. `vmapped`: params, opt_state and key with a leading seed axis (the loss too)."""
+    the seed do not matter): the benchmark's timing of an epoch and tools. `vmapped`:
+    params, opt_state and key with a leading seed axis (the loss too). Training itself
+    runs `_chunk_fn`, several of these epochs and their validation in one program."""
     return _epoch_fn(model, scene, _optimisation_only(config), vmapped)
 
 
@@ -297,17 +303,98 @@ def _optimisation_only(config: TrainConfig) -> TrainConfig:
     return dataclasses.replace(config, epochs=0, minutes=None, patience=1, min_improvement=0.0, checkpoint_every=1, seed=0)
 
 
+def _validation_sse(model: models.ModelConfig, scene: Scene, chunk: int):
+    """`sse(params, q, qd, qdd)`: the summed squared acceleration error over all states,
+    `chunk` states vmapped at a time (memory against speed)."""
+
+    def sse(params, q, qd, qdd):
+        accel = models.acceleration_fn(model, params, scene)
+        per_state = jax.lax.map(lambda s: jnp.sum((accel(s[0], s[1]) - s[2]) ** 2), (q, qd, qdd), batch_size=chunk)
+        return jnp.sum(per_state)
+
+    return sse
+
+
 @functools.lru_cache(maxsize=16)
 def evaluate_fn(model: models.ModelConfig, scene: Scene, chunk: int = 500):
-    """`evaluate(params, q, qd, qdd) -> float` mean squared error over all states, in
-    jitted chunks (the caller's arrays may be large)."""
-    batch_sse = jax.jit(lambda p, q, qd, qdd: jnp.sum((jax.vmap(models.acceleration_fn(model, p, scene))(q, qd) - qdd) ** 2))
+    """`evaluate(params, q, qd, qdd) -> float` mean squared error over all states, one
+    jitted program (`chunk` states vmapped at a time)."""
+    sse = jax.jit(_validation_sse(model, scene, chunk))
+    return lambda params, q, qd, qdd: float(sse(params, q, qd, qdd)) / q.size
 
-    def evaluate(params, q, qd, qdd) -> float:
-        total = sum(float(batch_sse(params, q[s : s + chunk], qd[s : s + chunk], qdd[s : s + chunk])) for s in range(0, len(q), chunk))
-        return total / q.size
 
-    return evaluate
+class _Seeds(NamedTuple):
+    """What a chunk of epochs carries per seed, on the device (leading seed axis)."""
+
+    params: dict
+    opt_state: tuple
+    best_params: dict
+    best_val: jax.Array
+    best_epoch: jax.Array
+    epoch: jax.Array
+    # Training has ended for this seed (budget, early stopping, or the host's minutes
+    # cap): the chunk leaves its state as it is.
+    done: jax.Array
+    # best_upto[e]: the lowest validation loss of epochs 1..e (inf before any), what the
+    # plateau rule compares (`plateaued`); as long as the epoch budget.
+    best_upto: jax.Array
+
+
+class _Budget(NamedTuple):
+    """The stopping rule's settings, as arguments (a changed budget does not recompile)."""
+
+    epochs: jax.Array
+    patience: jax.Array
+    min_improvement: jax.Array
+
+
+@functools.lru_cache(maxsize=16)
+def _chunk_fn(model, scene, config: TrainConfig, epochs_per_call: int):
+    """`chunk(seeds, budget, base_keys, train_arrays, val_arrays) -> (seeds, train_loss,
+    val_loss, ran)`: `epochs_per_call` epochs of every seed in one compiled program,
+    each with its validation loss, best parameters and the stopping rule, so the host
+    is not consulted between epochs. A seed that stops mid-call (or was done) keeps its
+    state; `ran` (S, K) says which epochs each seed ran; the losses are (S, K).
+    The stopping rule is `stop_reason`'s (the minutes cap aside, which the host
+    checks between calls)."""
+    epoch = _epoch(model, scene, config)
+    sse = _validation_sse(model, scene, config.val_chunk)
+
+    def one_seed(seed: _Seeds, budget: _Budget, base_key, train_arrays, val_arrays):
+        def one_epoch(seed: _Seeds):
+            params, opt_state, train_loss = epoch(seed.params, seed.opt_state, *train_arrays, jax.random.fold_in(base_key, seed.epoch))
+            val = sse(params, *val_arrays) / val_arrays[0].size
+            number = seed.epoch + 1
+            improved = val < seed.best_val
+            best_val = jnp.where(improved, val, seed.best_val)
+            best_epoch = jnp.where(improved, number, seed.best_epoch)
+            # NaN losses never count as a best (as `min` of the host's history skips them).
+            best_so_far = jnp.fmin(seed.best_upto[seed.epoch], val)
+            best_upto = seed.best_upto.at[number].set(best_so_far)
+            start = number - budget.patience
+            plateau = (start >= 1) & ~(best_so_far < (1 - budget.min_improvement) * best_upto[jnp.maximum(start, 0)])
+            patience = number - best_epoch > budget.patience
+            ended = (number >= budget.epochs) | jnp.where(budget.min_improvement > 0, plateau, patience)
+            best_params = jax.tree.map(lambda new, old: jnp.where(improved, new, old), params, seed.best_params)
+            return _Seeds(params, opt_state, best_params, best_val, best_epoch, number, ended, best_upto), train_loss, val
+
+        def running(carry):
+            i, seed, _ = carry
+            return (i < epochs_per_call) & ~seed.done
+
+        def step(carry):
+            i, seed, (train_losses, val_losses, ran) = carry
+            seed, train_loss, val = one_epoch(seed)
+            return i + 1, seed, (train_losses.at[i].set(train_loss), val_losses.at[i].set(val), ran.at[i].set(True))
+
+        # A while loop, not a scan: vmapped over seeds it runs while any seed runs and
+        # keeps a stopped seed's state, and a call whose seeds all stop returns early.
+        dtype = seed.best_val.dtype
+        losses = (jnp.full(epochs_per_call, jnp.nan, dtype), jnp.full(epochs_per_call, jnp.nan, dtype), jnp.zeros(epochs_per_call, bool))
+        _, seed, (train_loss, val, ran) = jax.lax.while_loop(running, step, (0, seed, losses))
+        return seed, train_loss, val, ran
+
+    return jax.jit(jax.vmap(one_seed, in_axes=(0, None, 0, None, None)))
 
 
 def initial_state(model: models.ModelConfig, config: TrainConfig, statistics: dict | None = None) -> TrainState:
@@ -351,9 +438,13 @@ def train_seeds(
     """Train several seeds of one job in one compiled program: `configs` differ in
     their seed only; each seed's run (shuffles, schedule, early stopping, checkpoint
     `outs[k]`) is the run `train` would make alone, to round-off. Params and Adam states
-    are stacked on a leading axis and stepped by the vmapped epoch (the data shared);
-    a seed that has finished keeps its state while the others go on. Seeds may resume
-    from different epochs. Each seed's `elapsed_s` counts the group's wall-clock time."""
+    are stacked on a leading axis (the data shared) and stepped `checkpoint_every`
+    epochs per call of one program (`_chunk_fn`: validation, best parameters and early
+    stopping on the device); a seed that has finished keeps its state while the others
+    go on, and seeds may resume from different epochs. The next call is queued before
+    the host writes the last one's checkpoints, so the device does not wait for the
+    disk. Each seed's `elapsed_s` counts the group's wall-clock time; the times of the
+    epochs inside one call are spread evenly over it."""
     from tqdm.auto import tqdm
 
     # The schedule rule needs the budget, known from here on (the benchmark's profiles
@@ -366,50 +457,87 @@ def train_seeds(
     models.check_compatible(model, scene)
     if len(dataset.train) < configs[0].batch_size:
         raise ConfigError(f"{len(dataset.train)} training states is fewer than one batch of {configs[0].batch_size}")
+    config = configs[0]
     outs = [None] * len(configs) if outs is None else list(outs)
     statistics = models.training_statistics(model, scene, *(a[dataset.train] for a in (dataset.q, dataset.qd, dataset.qdd)))
     states = [
-        check_resumable(out, model, config)[0] if resume and out is not None and Path(out).exists() else initial_state(model, config, statistics)
-        for config, out in zip(configs, outs)
+        check_resumable(out, model, c)[0] if resume and out is not None and Path(out).exists() else initial_state(model, c, statistics)
+        for c, out in zip(configs, outs)
     ]
-    vmapped = len(configs) > 1
-    epoch_fn = compiled_epoch_fn(model, scene, configs[0], vmapped)
-    evaluate = evaluate_fn(model, scene, configs[0].val_chunk)
     train_arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
     val_arrays = tuple(jnp.asarray(a[dataset.val]) for a in (dataset.q, dataset.qd, dataset.qdd))
-    base_keys = [jax.random.fold_in(jax.random.PRNGKey(config.seed), 1) for config in configs]
+    base_keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(c.seed), 1) for c in configs])
+    budget = _Budget(*(jnp.asarray(v) for v in (config.epochs, config.patience, config.min_improvement)))
+    chunk = _chunk_fn(model, scene, _optimisation_only(config), config.checkpoint_every)
     start, elapsed_before = time.monotonic(), [state.elapsed_s for state in states]
-    name = model.name + (f" x{len(configs)} seeds" if vmapped else "")
-    bar = tqdm(total=configs[0].epochs, initial=min(s.epoch for s in states), desc=f"train {name}", unit="epoch", disable=not progress, leave=False)
+    done = [finished(state, config) for state in states]
+    seeds = _to_device(states, done, config.epochs)
+    name = model.name + (f" x{len(configs)} seeds" if len(configs) > 1 else "")
+    bar = tqdm(total=config.epochs, initial=min(s.epoch for s in states), desc=f"train {name}", unit="epoch", disable=not progress, leave=False)
     try:
-        while not all(finished(state, config) for state, config in zip(states, configs)):
-            keys = [jax.random.fold_in(key, state.epoch) for key, state in zip(base_keys, states)]
-            if vmapped:
-                stack = lambda trees: jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)  # noqa: E731
-                params, opt_states, losses = epoch_fn(stack([s.params for s in states]), stack([s.opt_state for s in states]), *train_arrays, jnp.stack(keys))
-                stepped = [(jax.tree.map(lambda a, k=k: a[k], params), jax.tree.map(lambda a, k=k: a[k], opt_states), losses[k]) for k in range(len(states))]
-            else:
-                stepped = [epoch_fn(states[0].params, states[0].opt_state, *train_arrays, keys[0])]
-            for k, ((params, opt_state, train_loss), config, out) in enumerate(zip(stepped, configs, outs)):
-                state = states[k]
-                if finished(state, config):
-                    continue
-                val_loss = evaluate(params, *val_arrays)
-                epoch, elapsed = state.epoch + 1, elapsed_before[k] + time.monotonic() - start
-                history = state.history + [(epoch, float(train_loss), val_loss, elapsed)]
-                best = (params, val_loss, epoch) if val_loss < state.best_val else (state.best_params, state.best_val, state.best_epoch)
-                states[k] = state = TrainState(params, opt_state, *best, epoch, history, elapsed)
-                if out is not None and (epoch % config.checkpoint_every == 0 or finished(state, config)):
-                    save_checkpoint(out, state, model, config, data_config)
+        called = time.monotonic()
+        queued = None if all(done) else chunk(seeds, budget, base_keys, train_arrays, val_arrays)
+        while queued is not None:
+            seeds, train_loss, val_loss, ran = queued
+            ran = np.asarray(ran)  # waits for the call
+            now = time.monotonic()
+            elapsed = [before + now - start for before in elapsed_before]
+            ended = np.asarray(seeds.done) | np.array([c.minutes is not None and e >= 60 * c.minutes for c, e in zip(configs, elapsed)])
+            # The next call goes to the device before this one's results are written.
+            queued = None if ended.all() else chunk(seeds._replace(done=jnp.asarray(ended)), budget, base_keys, train_arrays, val_arrays)
+            states = _from_device(states, seeds, np.asarray(train_loss), np.asarray(val_loss), ran, called - start, now - start, elapsed_before)
+            called = now
+            for k, (state, out) in enumerate(zip(states, outs)):
+                if out is not None and ran[k].any():
+                    save_checkpoint(out, state, model, configs[k], data_config)
             bar.n = min(s.epoch for s in states)
             bar.set_postfix(best=" ".join(f"{s.best_val:.3e}" for s in states))
             bar.refresh()
     finally:
         bar.close()
-    for state, config, out in zip(states, configs, outs):
+    for state, c, out in zip(states, configs, outs):
         if out is not None:
-            save_checkpoint(out, state, model, config, data_config)
+            save_checkpoint(out, state, model, c, data_config)
     return states
+
+
+def _to_device(states: list[TrainState], done: list[bool], epochs: int) -> _Seeds:
+    stack = lambda trees: jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)  # noqa: E731
+    best_upto = np.full((len(states), max(epochs, max(s.epoch for s in states)) + 1), np.inf)
+    for k, state in enumerate(states):
+        best_upto[k, : state.epoch + 1] = _running_best(state.history, state.epoch)
+    return _Seeds(
+        stack([s.params for s in states]), stack([s.opt_state for s in states]), stack([s.best_params for s in states]),
+        jnp.asarray([s.best_val for s in states]), jnp.asarray([s.best_epoch for s in states]), jnp.asarray([s.epoch for s in states]),
+        jnp.asarray(done), jnp.asarray(best_upto),
+    )
+
+
+def _from_device(states: list[TrainState], seeds: _Seeds, train_loss, val_loss, ran, called_s: float, returned_s: float, elapsed_before: list[float]) -> list[TrainState]:
+    """The host's `TrainState`s after a call: each seed's new history entries (epochs it
+    ran, times spread evenly over the call) and its device state."""
+    updated = []
+    for k, state in enumerate(states):
+        if not ran[k].any():
+            updated.append(state)
+            continue
+        epochs = np.flatnonzero(ran[k])
+        times = [elapsed_before[k] + called_s + (returned_s - called_s) * (j + 1) / len(epochs) for j in range(len(epochs))]
+        history = state.history + [(state.epoch + j + 1, float(train_loss[k, i]), float(val_loss[k, i]), t) for j, (i, t) in enumerate(zip(epochs, times))]
+        pick = lambda tree, k=k: jax.tree.map(lambda a: a[k], tree)  # noqa: E731
+        updated.append(TrainState(pick(seeds.params), pick(seeds.opt_state), pick(seeds.best_params), float(seeds.best_val[k]),
+                                  int(seeds.best_epoch[k]), int(seeds.epoch[k]), history, times[-1]))
+    return updated
+
+
+def _running_best(history: list, epochs: int) -> np.ndarray:
+    """(epochs + 1,) the lowest validation loss of epochs 1..e for each e (inf before
+    any; NaN losses skipped): what the plateau rule compares."""
+    val = np.full(epochs + 1, np.inf)
+    for entry in history:
+        if 1 <= entry[0] <= epochs and not np.isnan(entry[2]):
+            val[entry[0]] = min(val[entry[0]], entry[2])
+    return np.minimum.accumulate(val)
 
 
 def _budget(config: TrainConfig) -> tuple:
