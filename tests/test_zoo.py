@@ -1,8 +1,8 @@
-"""The zoo's constrained models, CGNODE (`cgnode`) and CHGN (`chgn`): their
-formulations are the ground truth's physics when given the true forces or the true
-Hamiltonian, their gradients match finite differences, their rollouts keep the
-constraints, CHGN conserves its learned energy, they transfer to another size, and
-training lowers their loss."""
+"""The zoo's constrained models, CGNODE (`cgnode`), CHGN (`chgn`) and CHNN (`chnn`):
+their formulations are the ground truth's physics when given the true forces or the
+true Hamiltonian, their gradients match finite differences, their rollouts keep the
+constraints, CHGN and CHNN conserve their learned energy, the graph models transfer to
+another size (CHNN refuses one), and training lowers their loss."""
 
 import jax
 import jax.numpy as jnp
@@ -11,13 +11,16 @@ import pytest
 
 from lgnn import physics
 from lgnn.engines.base import Integration, SimulationConfig
-from lgnn.learn import cgnode, checkpoints, chgn, data, models, train
-from lgnn.scene import get_scene
+from lgnn.errors import ConfigError
+from lgnn.learn import cgnode, checkpoints, chgn, chnn, data, models, train
+from lgnn.scene import State, get_scene
 
 TINY_DATA = data.DataConfig(n_trajectories=6, duration=0.2, sample_dt=0.01, dt=1e-3)
-ZOO = ("cgnode", "chgn")
+ZOO = ("cgnode", "chgn", "chnn")
 # Test sizes: the code, not the default widths (cgnode's are the strong GNS's 1.6M parameters).
-SIZES = {"cgnode": dict(latent=8, hidden=8, message_passing=1), "chgn": dict(message_passing=1)}
+SIZES = {"cgnode": dict(latent=8, hidden=8, message_passing=1), "chgn": dict(message_passing=1), "chnn": dict(hidden=16)}
+# The models that learn a Hamiltonian, with their learned energy and momentum.
+HAMILTONIAN = {"chgn": chgn, "chnn": chnn}
 SHORT = SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.2)
 
 
@@ -120,6 +123,22 @@ def test_chgn_mass_is_positive_definite_and_the_solve_keeps_the_constraints(tiny
     assert np.all(np.asarray(qdd)[list(scene.pinned)] == 0)
 
 
+def test_chnn_mass_is_positive_definite_and_can_be_the_rods_node_mass(tiny_dataset):
+    """CHNN's learned constant mass is positive definite for any seed, and its
+    parametrisation holds the rods' exact on-manifold node mass (a dense matrix, not a
+    diagonal one), so with the true potential its dynamics would be the ground truth's
+    (the formulation test above)."""
+    scene = get_scene("chain4")
+    config, params = _model("chnn", tiny_dataset)
+    for key in jax.random.split(jax.random.PRNGKey(0), 5):
+        mass = np.asarray(chnn.node_mass_fn(config, {**models.init(key, config), "statistics": params["statistics"]}, scene)())
+        assert np.linalg.eigvalsh(mass)[0] > 0
+    true = np.asarray(_true_node_mass(scene))
+    lower = np.linalg.cholesky(true / float(params["statistics"]["mass_scale"]))
+    factor = np.tril(lower, -1) + np.diag(np.log(np.expm1(np.diag(lower))))  # softplus inverse on the diagonal
+    np.testing.assert_allclose(chnn.node_mass_fn(config, {**params, "mass_factor": jnp.asarray(factor)}, scene)(), true, rtol=1e-12, atol=1e-14)
+
+
 # ---------------------------------------------------------------------------------
 # Learning and rollouts
 # ---------------------------------------------------------------------------------
@@ -147,8 +166,11 @@ def test_loss_gradient_matches_finite_differences(tiny_dataset, name):
 
 @pytest.fixture(scope="module")
 def unprojected_rollouts(tiny_dataset):
-    """Each model's untrained rollout of chain4 without the per-step projection."""
-    return {name: models.rollout(*_model(name, tiny_dataset), get_scene("chain4"), SHORT, integration=Integration(project=False)) for name in ZOO}
+    """Each model's untrained rollout of chain4 without the per-step projection, from a
+    moving state (an untrained potential alone moves the chain little)."""
+    scene = get_scene("chain4")
+    start = State(*(a[0] for a in _moving_states(scene, 1, seed=4)))
+    return {name: models.rollout(*_model(name, tiny_dataset), scene, SHORT, start, integration=Integration(project=False)) for name in ZOO}
 
 
 @pytest.mark.parametrize("name", ZOO)
@@ -161,20 +183,25 @@ def test_untrained_rollouts_keep_the_constraints_and_transfer_to_a_larger_chain(
     assert max(float(physics.constraint_violation(scene, q)) for q in trajectory.q) < 1e-6
     assert np.max(np.abs(trajectory.q[-1] - trajectory.q[0])) > 1e-2  # it moved
     larger = get_scene("chain8")
+    if models.get_spec(name).fixed_size:
+        with pytest.raises(ConfigError, match="tied to its training system size"):
+            models.rollout(*_model(name, tiny_dataset), larger, SHORT)
+        return
     trajectory = models.rollout(*_model(name, tiny_dataset), larger, SimulationConfig(dt=1e-3, frame_dt=1e-2, duration=0.1))
     assert trajectory.q.shape[1:] == (9, 2) and np.all(np.isfinite(trajectory.q))
     assert max(float(physics.constraint_violation(larger, q)) for q in trajectory.q) < 1e-10
 
 
-def test_chgn_conserves_its_learned_hamiltonian(tiny_dataset, unprojected_rollouts):
-    """On a conservative scene (chain4, no drag) the untrained CHGN's rollout keeps its
+@pytest.mark.parametrize("name", HAMILTONIAN)
+def test_hamiltonian_models_conserve_their_learned_hamiltonian(tiny_dataset, unprojected_rollouts, name):
+    """On a conservative scene (chain4, no drag) the untrained model's rollout keeps its
     own Hamiltonian `H(q, M qd)`, not the scene's true energy."""
-    config, params = _model("chgn", tiny_dataset)
+    config, params = _model(name, tiny_dataset)
     scene = get_scene("chain4")
-    trajectory = unprojected_rollouts["chgn"]
+    trajectory = unprojected_rollouts[name]
     q, qd = jnp.asarray(trajectory.q), jnp.asarray(trajectory.qd)
-    energy = jax.jit(jax.vmap(chgn.energy_fn(config, params, scene)))(q, qd)
-    momentum = chgn.momentum_fn(config, params, scene)
+    energy = jax.jit(jax.vmap(HAMILTONIAN[name].energy_fn(config, params, scene)))(q, qd)
+    momentum = HAMILTONIAN[name].momentum_fn(config, params, scene)
     kinetic = jnp.max(jax.vmap(lambda v: 0.5 * jnp.vdot(v, momentum(None, v)))(qd))
     drift = float(jnp.max(jnp.abs(energy - energy[0])) / kinetic)
     assert float(kinetic) > 1e-2 and drift < 1e-8, drift

@@ -62,6 +62,9 @@ Architectures (paper section 3 and appendix):
   sum_ij h_ij)`.
 - CLNN: MLP with 2 hidden layers of 128 on the concatenated `(q, qd)` of a fixed-size
   system; refuses a scene of another size.
+- `chnn` (`chnn`): CHNN (Finzi et al. 2020), CLNN's Hamiltonian counterpart: a learned
+  constant positive definite node mass and an MLP potential of the whole system's
+  positions (fixed size), under the constrained Hamiltonian equations (CHGN's).
 """
 
 from __future__ import annotations
@@ -84,7 +87,7 @@ from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
 from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
 from lgnn.errors import ConfigError
-from lgnn.learn import cgnode, chgn, strong_gns
+from lgnn.learn import cgnode, chgn, chnn, strong_gns
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
 from lgnn.scene import Scene, State
 
@@ -611,6 +614,11 @@ register(ModelSpec(
 register(ModelSpec(
     "chgn", chgn.init, acceleration=chgn.acceleration, statistics=chgn.statistics,
     latent=5, hidden=10, message_passing=0,
+))
+# CHNN (`chnn`): CLNN's potential width (the paper's 128) for the MLP it parallels.
+register(ModelSpec(
+    "chnn", chnn.init, acceleration=chnn.acceleration, statistics=chnn.statistics,
+    hidden=128, fixed_size=True,
 ))
 
 
