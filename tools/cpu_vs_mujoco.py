@@ -2,10 +2,11 @@
 
 Usage: python tools/cpu_vs_mujoco.py [--links 12] [--seed 0] [--duration 10]
            [--rounds 4] [--stepping-duration 2] [--cache {fresh,off,default}]
+           [--scene NAME ...] [--skip {stepping,processes}]
 
 A held-out planar chain (`lgnn.scene.catalogue.chain(links, seed)`, written to a
-temporary scene file) from its own initial state, at the default dt (1e-4) and frame
-interval, both engines in float64:
+temporary scene file), or each built-in `--scene` in turn, from its own initial state,
+at the default dt (1e-4) and frame interval, both engines in float64:
 
 1. stepping alone, compilation apart, in this process: `Engine.timed_rollout` of the
    Lagrangian engine (its compiled rollout calls) and of MuJoCo C (`mujoco.rollout`),
@@ -117,23 +118,26 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--cache", choices=("fresh", "off", "default"), default="fresh")
     parser.add_argument("--skip", choices=("stepping", "processes"), help="leave one part out")
+    parser.add_argument("--scene", action="append", help="a built-in scene instead of the held-out chain (repeatable)")
     args = parser.parse_args()
 
     from lgnn.runtime import configure
 
     configure()
-    from lgnn.scene import scene_to_dict
+    from lgnn.scene import get_scene, scene_to_dict
     from lgnn.scene.catalogue import chain
 
-    scene = chain(args.links, seed=args.seed, name=f"chain{args.links}-heldout")
+    scenes = [get_scene(name) for name in args.scene] if args.scene else [chain(args.links, seed=args.seed, name=f"chain{args.links}-heldout")]
     print(machine())
-    with tempfile.TemporaryDirectory() as tmp:
-        scene_file = Path(tmp) / f"{scene.name}.json"
-        scene_file.write_text(json.dumps(scene_to_dict(scene)))
-        if args.skip != "stepping":
-            stepping(scene, args.stepping_duration, args.rounds)
-        if args.skip != "processes":
-            whole_processes(scene_file, args.duration, args.rounds, args.cache, Path(tmp))
+    for scene in scenes:
+        print(f"== {scene.name} ({scene.n_links} links, {scene.dim}D)")
+        with tempfile.TemporaryDirectory() as tmp:
+            scene_file = Path(tmp) / f"{scene.name}.json"
+            scene_file.write_text(json.dumps(scene_to_dict(scene)))
+            if args.skip != "stepping":
+                stepping(scene, args.stepping_duration, args.rounds)
+            if args.skip != "processes":
+                whole_processes(scene_file, args.duration, args.rounds, args.cache, Path(tmp))
 
 
 if __name__ == "__main__":
