@@ -42,13 +42,9 @@ parser.add_argument("--per-call", nargs="+", type=int, default=[10], help="--loo
 args = parser.parse_args()
 
 
-def summarise(paths):
-    """One row per measurement: the file it came from (its name says which run, e.g.
-    `mps4-2`: the second of 4 processes at once under MPS), and its device and commit."""
-    if any('"epochs_per_s"' in line for path in paths for line in open(path)):
-        return summarise_loop(paths)
-    print("| file | model | scene | dtype | batch | Adam steps | epoch s (mean) | epoch s (min..max) | compile s | device, commit |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+def measurements(paths):
+    """`(file label, row, "device, commit")` of each measurement line of the outputs at
+    `paths` (a file's environment line names the device and commit of the lines after it)."""
     for path in paths:
         env = {}
         for line in open(path):
@@ -56,27 +52,31 @@ def summarise(paths):
             if "environment" in row:
                 env = row["environment"]
                 continue
-            where = f"{env.get('device', '?').split(';')[0]}, {env.get('commit', '?')}"
-            timing = (f"{row['epoch_s_mean']} | {row['epoch_s_min']}..{row['epoch_s_max']} | {row['compile_s']}" if "epoch_s_mean" in row
-                      else f"{row.get('error', '?')} | | ")
-            print(f"| {os.path.basename(path)[:-6]} | {row['model']} | {row.get('scene', '')} | {row['dtype']} | {row['batch']} | {row.get('adam_steps', '')} | {timing} | {where} |")
+            yield os.path.basename(path)[:-6], row, f"{env.get('device', '?').split(';')[0]}, {env.get('commit', '?')}"
+
+
+def summarise(paths):
+    """One row per measurement: the file it came from (its name says which run, e.g.
+    `mps4-2`: the second of 4 processes at once under MPS), and its device and commit;
+    `--loop` outputs as `summarise_loop`."""
+    if any('"epochs_per_s"' in line for path in paths for line in open(path)):
+        return summarise_loop(paths)
+    print("| file | model | scene | dtype | batch | Adam steps | epoch s (mean) | epoch s (min..max) | compile s | device, commit |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for label, row, where in measurements(paths):
+        timing = (f"{row['epoch_s_mean']} | {row['epoch_s_min']}..{row['epoch_s_max']} | {row['compile_s']}" if "epoch_s_mean" in row
+                  else f"{row.get('error', '?')} | | ")
+        print(f"| {label} | {row['model']} | {row.get('scene', '')} | {row['dtype']} | {row['batch']} | {row.get('adam_steps', '')} | {timing} | {where} |")
 
 
 def summarise_loop(paths):
     """One row per (model, seeds, epochs per call) of `--loop` outputs."""
     print("| file | model | scene | seeds | epochs per call | epochs/s | seed-epochs/s | first call s | device, commit |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for path in paths:
-        env = {}
-        for line in open(path):
-            row = json.loads(line)
-            if "environment" in row:
-                env = row["environment"]
-                continue
-            where = f"{env.get('device', '?').split(';')[0]}, {env.get('commit', '?')}"
-            rate = (f"{row['epochs_per_s']} | {round(row['epochs_per_s'] * row['seeds'], 1)} | {row['first_call_s']}" if "epochs_per_s" in row
-                    else f"{row.get('error', '?')} | | ")
-            print(f"| {os.path.basename(path)[:-6]} | {row['model']} | {row['scene']} | {row['seeds']} | {row['per_call']} | {rate} | {where} |")
+    for label, row, where in measurements(paths):
+        rate = (f"{row['epochs_per_s']} | {round(row['epochs_per_s'] * row['seeds'], 1)} | {row['first_call_s']}" if "epochs_per_s" in row
+                else f"{row.get('error', '?')} | | ")
+        print(f"| {label} | {row['model']} | {row['scene']} | {row['seeds']} | {row['per_call']} | {rate} | {where} |")
 
 
 def measure_loop(names):
