@@ -52,22 +52,24 @@ def projection_fn(scene: Scene, iterations: int | None = None) -> Callable[..., 
     `integrate.compensated_add`), `project(q, qd, q_low) -> (q, qd, q_low)`.
 
     Positions: `iterations` Gauss-Newton steps `q <- q - A^T (A A^T)^-1 Phi(q)` (the
-    minimum-norm correction; quadratic convergence, so a fixed few steps reach
-    round-off from the small drift of one integration step, and larger drifts still
-    converge; None: `REGULAR_PROJECTION_ITERATIONS` for a scene regular at its initial
+    minimum-norm correction; quadratic convergence, so a fixed few steps reach round-off
+    from the small drift of one integration step, and larger drifts still converge;
+    None: `REGULAR_PROJECTION_ITERATIONS` for a scene regular at its initial
     configuration, `PROJECTION_ITERATIONS` for a self-stressed one). Velocities: the
-    orthogonal projection onto `A v = 0` at the corrected positions. All products with `A` use its per-link blocks (`solvers.LinkGram` solves
-    with `A A^T`), so a chain projects in time linear in its length. `A A^T` is SPD at
-    regular configurations; a Levenberg-Marquardt shift keeps its factorisation defined
-    at singular ones (`REGULAR_PROJECTION_SHIFT` for scenes regular at their initial
-    configuration, `PROJECTION_SHIFT` for self-stressed ones, where an unshifted step
-    along a self-stress diverges). Pins are exact by construction.
+    orthogonal projection onto `A v = 0` at the corrected positions. All products with
+    `A` use its per-link blocks (`solvers.LinkGram` solves with `A A^T`), so a chain
+    projects in time linear in its length. `A A^T` is SPD at regular configurations; a
+    Levenberg-Marquardt shift keeps its factorisation defined at singular ones
+    (`REGULAR_PROJECTION_SHIFT` for scenes regular at their initial configuration,
+    `PROJECTION_SHIFT` for self-stressed ones, where an unshifted step along a
+    self-stress diverges). Pins are exact by construction.
 
     With `q_low` the link vectors include it and the corrections are added to it with
-    compensation (without it, plainly: float64 rollouts carry none), so the projection works at the accuracy of the links' own lengths:
-    from positions rounded to their scale (float32 at 12 m: ulp 1e-6) it would move
-    the structure by that much each step (chain16, 100 RK4 steps in float32: 3.3e-6
-    from float64 with compensated RK4 sums alone, 8.3e-7 with this).
+    compensation (without it, plainly: float64 rollouts carry none), so the projection
+    works at the accuracy of the links' own lengths: from positions rounded to their
+    scale (float32 at 12 m: ulp 1e-6) it would move the structure by that much each step
+    (chain16, 100 RK4 steps in float32: 3.3e-6 from float64 with compensated RK4 sums
+    alone, 8.3e-7 with this).
     """
     system = prepare(scene)
     constraints, gram = system.constraints, system.gram
