@@ -329,8 +329,26 @@ def test_structured_solvers_match_the_generic_solve(name):
     reference = np.asarray(jax.jit(physics.true_acceleration_fn(scene, "generic"))(q, qd))
     solvers = ["auto", "schur"] + (["chain"] if is_pinned_chain(scene) else [])
     for solver in solvers:
-        qdd = np.asarray(jax.jit(physics.true_acceleration_fn(scene, solver))(q, qd))
-        np.testing.assert_allclose(qdd, reference, atol=1e-11 * (1 + np.abs(reference).max()), err_msg=solver)
+        for vectorised in (False, True):  # one trajectory's guarded solve, a batch's refined one
+            qdd = np.asarray(jax.jit(physics.true_acceleration_fn(scene, solver, vectorised=vectorised))(q, qd))
+            np.testing.assert_allclose(qdd, reference, atol=1e-11 * (1 + np.abs(reference).max()), err_msg=f"{solver}, vectorised {vectorised}")
+
+
+def test_guarded_spd_solve_is_plain_where_safe_and_refined_where_not():
+    """A well-conditioned SPD matrix is solved by one plain Cholesky solve; a singular
+    one (rank 2 short, as rows that became dependent) by the regularised, refined solve,
+    whose bounded answer the plain one does not give."""
+    from lgnn.physics.solvers import guarded_spd_solve, regularised_spd_solve, spd_solve
+
+    rng = np.random.default_rng(3)
+    basis = rng.normal(size=(12, 12))
+    safe = jnp.asarray(basis @ basis.T + 12 * np.eye(12))
+    singular = jnp.asarray(basis[:, :10] @ basis[:, :10].T)
+    rhs = jnp.asarray(rng.normal(size=12))
+    guarded, plain, refined = (jax.jit(f) for f in (guarded_spd_solve, spd_solve, regularised_spd_solve))
+    np.testing.assert_array_equal(guarded(safe, rhs), plain(safe, rhs))
+    np.testing.assert_array_equal(guarded(singular, rhs), refined(singular, rhs))
+    assert np.all(np.isfinite(guarded(singular, rhs))) and not np.allclose(plain(singular, rhs), refined(singular, rhs))
 
 
 def test_auto_solver_keeps_the_generic_solve_for_self_stressed_scenes():

@@ -47,7 +47,7 @@ import numpy as np
 
 from lgnn.physics.constraints import take_rows
 from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
-from lgnn.physics.solvers import chain_kkt_solve, regularised_spd_solve, solve_kkt, spd_solve
+from lgnn.physics.solvers import chain_kkt_solve, guarded_spd_solve, regularised_spd_solve, solve_kkt, spd_solve
 from lgnn.physics.system import System, prepare
 from lgnn.runtime import full_precision_matmuls
 from lgnn.scene import Scene
@@ -143,7 +143,7 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool
     if solver == "generic":
         return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
     # Full-precision products: a ground truth in float32 on a GPU is otherwise TF32's.
-    return full_precision_matmuls(_chain_acceleration_fn(system) if solver == "chain" else _schur_acceleration_fn(system))
+    return full_precision_matmuls(_chain_acceleration_fn(system) if solver == "chain" else _schur_acceleration_fn(system, guarded=not vectorised))
 
 
 def vectorised_true_acceleration_fn(scene: Scene) -> AccelerationFn:
@@ -166,15 +166,17 @@ def _node_forces_fn(system: System) -> Callable[[Array, Array], Array]:
     return forces
 
 
-def _schur_acceleration_fn(system: System) -> AccelerationFn:
+def _schur_acceleration_fn(system: System, guarded: bool = False) -> AccelerationFn:
     """The "schur" solver of `true_acceleration_fn`: `a = M^-1 (f - A^T lam)` with
     `(A M^-1 A^T) lam = A M^-1 f + Adot v`, `M` constant (inverted once, in NumPy).
     `A M^-1 A^T` is assembled from `M^-1`'s columns at each link's two nodes, so a call
     costs O(K N D^2) for the products plus the K x K Cholesky. A pinned chain's
     rows are always independent, so its Schur complement is solved as it is
-    (`solvers.spd_solve`), any other scene's regularised and refined."""
+    (`solvers.spd_solve`), any other scene's regularised and refined, or with `guarded`
+    (one trajectory, not vmapped) plainly where it is safely positive definite
+    (`solvers.guarded_spd_solve`)."""
     constraints = system.constraints
-    solve = spd_solve if system.is_pinned_chain else regularised_spd_solve
+    solve = spd_solve if system.is_pinned_chain else guarded_spd_solve if guarded else regularised_spd_solve
     inverse = system.schur_inverse
     forces = _node_forces_fn(system)
     i, j = constraints.edge_index[constraints.links].T
