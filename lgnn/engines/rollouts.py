@@ -116,6 +116,21 @@ def run_metadata(scene: Scene, config: SimulationConfig, integration: Integratio
     return {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config), "integration": dataclasses.asdict(integration)}
 
 
+def _over_batch(fn: Callable, in_axes: tuple, batch: int) -> Callable:
+    """`fn` mapped over a leading batch axis of the arguments `in_axes` marks: `vmap`,
+    or for a batch of one `fn` itself with the axis taken off and put back, so that
+    a `lax.cond` inside stays a branch (under `vmap` both of its branches run: one
+    trajectory's guarded Schur solve, `solvers.guarded_spd_solve`)."""
+    if batch != 1:
+        return jax.vmap(fn, in_axes=in_axes)
+
+    def one(*args):
+        args = [arg if axis is None else jax.tree.map(lambda x: x[0], arg) for arg, axis in zip(args, in_axes)]
+        return jax.tree.map(lambda x: x[None], fn(*args))
+
+    return one
+
+
 @functools.lru_cache(maxsize=64)
 def compiled_programs(scene: Scene, config: SimulationConfig, integration: Integration, accel_factory: Callable, batch: int, dtype: str,
                       frames: int, stacked: bool, signature: tuple, with_energy: bool = True) -> _Programs:
@@ -142,7 +157,7 @@ def compiled_programs(scene: Scene, config: SimulationConfig, integration: Integ
         carry, states = advance(integrator(params), carry, frames, config.steps_per_frame)
         return carry, states.q, states.qd, jax.vmap(energy)(states.q, states.qd) if with_energy else None
 
-    start, step = jax.vmap(start, in_axes=(None, 0, 0)), jax.vmap(step, in_axes=(None, 0))
+    start, step = _over_batch(start, (None, 0, 0), batch), _over_batch(step, (None, 0), batch)
     if stacked:
         start, step = jax.vmap(start, in_axes=(0, None, None)), jax.vmap(step, in_axes=(0, 0))
     whole, ics, batched = sharding.axis_sharding(None), sharding.axis_sharding(0), sharding.axis_sharding(1 if stacked else 0)
