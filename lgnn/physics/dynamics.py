@@ -143,7 +143,11 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool
     if solver == "generic":
         return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
     # Full-precision products: a ground truth in float32 on a GPU is otherwise TF32's.
-    return full_precision_matmuls(_chain_acceleration_fn(system) if solver == "chain" else _schur_acceleration_fn(system, guarded=not vectorised))
+    # The guarded Schur solve is a branch per call: on a CPU it saves a single
+    # trajectory the refinement; on an accelerator a branch reads its predicate back to
+    # the host, and under `vmap` both branches run.
+    guarded = not vectorised and jax.default_backend() == "cpu"
+    return full_precision_matmuls(_chain_acceleration_fn(system) if solver == "chain" else _schur_acceleration_fn(system, guarded=guarded))
 
 
 def vectorised_true_acceleration_fn(scene: Scene) -> AccelerationFn:

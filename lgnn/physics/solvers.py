@@ -111,7 +111,7 @@ def guarded_spd_solve(matrix: Array, rhs: Array) -> Array:
     one Cholesky factorisation at regular configurations instead of the refined four
     solves (T1 on a CPU: 96-100 us a step against 128-134); under `vmap` both branches
     run, so batched callers use `regularised_spd_solve` (`true_acceleration_fn`'s
-    `vectorised`)."""
+    `vectorised`), as do accelerators (a branch reads its predicate back to the host)."""
     factor = jax.scipy.linalg.cho_factor(matrix)
     pivots = jnp.diagonal(factor[0])
     plain = jnp.all(jnp.isfinite(pivots)) & (jnp.min(pivots) ** 2 >= SPD_PIVOT_RATIO * jnp.max(pivots) ** 2)
