@@ -55,28 +55,32 @@ def measurements(paths):
             yield os.path.basename(path)[:-6], row, f"{env.get('device', '?').split(';')[0]}, {env.get('commit', '?')}"
 
 
+def _epoch_cells(row) -> list:
+    timing = [str(row["epoch_s_mean"]), f"{row['epoch_s_min']}..{row['epoch_s_max']}", str(row["compile_s"])] if "epoch_s_mean" in row else [row.get("error", "?"), "", ""]
+    return [row["model"], row.get("scene", ""), row["dtype"], str(row["batch"]), str(row.get("adam_steps", "")), *timing]
+
+
+def _loop_cells(row) -> list:
+    rate = ([str(row["epochs_per_s"]), str(round(row["epochs_per_s"] * row["seeds"], 1)), str(row["first_call_s"])] if "epochs_per_s" in row
+            else [row.get("error", "?"), "", ""])
+    return [row["model"], row["scene"], str(row["seeds"]), str(row["per_call"]), *rate]
+
+
+# The two tables: a bare epoch's outputs, and `--loop`'s (columns between the file and the device).
+EPOCH_TABLE = (("model", "scene", "dtype", "batch", "Adam steps", "epoch s (mean)", "epoch s (min..max)", "compile s"), _epoch_cells)
+LOOP_TABLE = (("model", "scene", "seeds", "epochs per call", "epochs/s", "seed-epochs/s", "first call s"), _loop_cells)
+
+
 def summarise(paths):
-    """One row per measurement: the file it came from (its name says which run, e.g.
-    `mps4-2`: the second of 4 processes at once under MPS), and its device and commit;
-    `--loop` outputs as `summarise_loop`."""
-    if any('"epochs_per_s"' in line for path in paths for line in open(path)):
-        return summarise_loop(paths)
-    print("| file | model | scene | dtype | batch | Adam steps | epoch s (mean) | epoch s (min..max) | compile s | device, commit |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    """A markdown table, one row per measurement: the file it came from (its name says
+    which run, e.g. `mps4-2`: the second of 4 processes at once under MPS), its device
+    and commit; `--loop` outputs get the loop's columns."""
+    loop = any('"epochs_per_s"' in line for path in paths for line in open(path))
+    columns, cells = LOOP_TABLE if loop else EPOCH_TABLE
+    print("| " + " | ".join(["file", *columns, "device, commit"]) + " |")
+    print("|" + "---|" * (len(columns) + 2))
     for label, row, where in measurements(paths):
-        timing = (f"{row['epoch_s_mean']} | {row['epoch_s_min']}..{row['epoch_s_max']} | {row['compile_s']}" if "epoch_s_mean" in row
-                  else f"{row.get('error', '?')} | | ")
-        print(f"| {label} | {row['model']} | {row.get('scene', '')} | {row['dtype']} | {row['batch']} | {row.get('adam_steps', '')} | {timing} | {where} |")
-
-
-def summarise_loop(paths):
-    """One row per (model, seeds, epochs per call) of `--loop` outputs."""
-    print("| file | model | scene | seeds | epochs per call | epochs/s | seed-epochs/s | first call s | device, commit |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for label, row, where in measurements(paths):
-        rate = (f"{row['epochs_per_s']} | {round(row['epochs_per_s'] * row['seeds'], 1)} | {row['first_call_s']}" if "epochs_per_s" in row
-                else f"{row.get('error', '?')} | | ")
-        print(f"| {label} | {row['model']} | {row['scene']} | {row['seeds']} | {row['per_call']} | {rate} | {where} |")
+        print("| " + " | ".join([label, *cells(row), where]) + " |")
 
 
 def measure_loop(names):

@@ -197,9 +197,14 @@ def stop_reason(state: TrainState, config: TrainConfig) -> str | None:
             return f"plateau (best improved by under {config.min_improvement:.0%} in epochs {state.epoch - config.patience}-{state.epoch})"
     elif state.epoch - state.best_epoch > config.patience:
         return f"patience (best at epoch {state.best_epoch})"
-    if config.minutes is not None and state.elapsed_s >= 60 * config.minutes:
+    if out_of_minutes(config, state.elapsed_s):
         return "minutes cap"
     return None
+
+
+def out_of_minutes(config: TrainConfig, elapsed_s: float) -> bool:
+    """Whether `elapsed_s` seconds of training have spent `config`'s minutes cap."""
+    return config.minutes is not None and elapsed_s >= 60 * config.minutes
 
 
 def finished(state: TrainState, config: TrainConfig) -> bool:
@@ -482,7 +487,7 @@ def train_seeds(
             ran = np.asarray(ran)  # waits for the call
             now = time.monotonic()
             elapsed = [before + now - start for before in elapsed_before]
-            ended = np.asarray(seeds.done) | np.array([c.minutes is not None and e >= 60 * c.minutes for c, e in zip(configs, elapsed)])
+            ended = np.asarray(seeds.done) | np.array([out_of_minutes(c, e) for c, e in zip(configs, elapsed)])
             # The next call goes to the device before this one's results are written.
             queued = None if ended.all() else chunk(seeds._replace(done=jnp.asarray(ended)), budget, base_keys, train_arrays, val_arrays)
             states = _from_device(states, seeds, np.asarray(train_loss), np.asarray(val_loss), ran, called - start, now - start, elapsed_before)
