@@ -32,7 +32,7 @@ def _moving_state(scene, seed=0):
     """A generic state on the constraint manifold with non-zero velocities."""
     key = jax.random.PRNGKey(seed)
     q = jnp.asarray(scene.nodes)
-    return physics.projection_fn(scene)(q, jax.random.normal(key, q.shape))
+    return jax.jit(physics.projection_fn(scene))(q, jax.random.normal(key, q.shape))
 
 
 def _true_edge_energies(scene):
@@ -555,18 +555,43 @@ def test_cli_train_and_zero_shot_rollout(tmp_path, capsys, tiny_dataset):
     assert err.count("\n") == 1 and "tied to its training system size" in err
 
 
-@pytest.mark.parametrize("name", ["chain4", "chain100", "T1"])
-def test_lgnn_structured_solve_matches_the_dense_solve(name):
-    """LGNN's accelerations through the local-mass path (coloured HVPs; the chain
-    elimination on chain100) equal the dense Hessian and KKT solve at random parameters."""
-    scene = get_scene(name)
-    config = models.ModelConfig.for_scene("lgnn", scene)
+# Each kind of declared mass structure, on scenes where the solve takes it (fewer
+# products than coordinates): reach 1 (T1; on chain100 the block elimination, after a
+# message-passing layer), reach 3, and LGN's pooled one, on a chain and on T1's truss,
+# whose colourings are no chain's.
+STRUCTURED_MASS_CASES = [("lgnn", "T1"), ("lgnn-mp1", "chain100"), ("lgnn-mp2", "T1"), ("lgn", "chain16"), ("lgn", "T1")]
+
+
+@pytest.mark.parametrize(("name", "scene_name"), STRUCTURED_MASS_CASES)
+def test_declared_mass_structure_gives_the_dense_solve(name, scene_name):
+    """A model's accelerations through its declared mass structure (coloured HVPs of a
+    local mass, LGN's low-rank-plus-local one) equal the dense Hessian and KKT solve at
+    random parameters and a moving state."""
+    scene = get_scene(scene_name)
+    config = models.ModelConfig.for_scene(name, scene)
     params = models.init(jax.random.PRNGKey(5), config)
+    assert physics.uses_mass_structure(scene, config.spec.mass(config, params, scene))
     q, qd = _moving_state(scene, seed=6)
     lagrangian = models.lagrangian_fn(config, params, scene)
     dense = np.asarray(jax.jit(physics.acceleration_fn(scene, lagrangian))(q, qd))
     structured = np.asarray(jax.jit(models.acceleration_fn(config, params, scene))(q, qd))
     np.testing.assert_allclose(structured, dense, atol=1e-9 * (1 + np.abs(dense).max()))
+
+
+@pytest.mark.parametrize("message_passing", [0, 1, 2, 3])
+def test_lgnn_mass_reach_is_the_graph_networks_reach(message_passing):
+    """LGNN's dense mass matrix on a 16-link chain couples nodes exactly as far apart as
+    its declared reach (`models.graph_net_reach`): a nonzero block at that distance,
+    none beyond it. So the declared structure is neither wrong nor wasteful."""
+    scene = get_scene("chain16")
+    config = models.ModelConfig.for_scene("lgnn", scene, message_passing=message_passing)
+    params = models.init(jax.random.PRNGKey(7), config)
+    reach = config.spec.mass(config, params, scene).reach
+    mass = np.asarray(jax.jit(models.mass_matrix_fn(config, params, scene))(*_moving_state(scene, seed=8)))
+    blocks = np.abs(mass.reshape(17, 2, 17, 2)).max(axis=(1, 3))
+    distance = np.abs(np.subtract.outer(np.arange(17), np.arange(17)))
+    assert blocks[distance == reach].min() > 1e-8 * blocks.max()
+    assert blocks[distance > reach].max() == 0.0
 
 
 def test_physics_differences_from_the_training_scene():

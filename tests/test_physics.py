@@ -447,14 +447,16 @@ def test_local_mass_solve_matches_the_dense_solve(name):
     q, qd = random_state(scene, seed=8, speed=2.0)
     lagrangian, drag = physics.lagrangian_fn(scene), physics.drag_force_fn(scene)
     dense = np.asarray(jax.jit(physics.acceleration_fn(scene, lagrangian, drag))(q, qd))
-    local = np.asarray(jax.jit(physics.acceleration_fn(scene, lagrangian, drag, local_mass=True))(q, qd))
+    local = np.asarray(jax.jit(physics.acceleration_fn(scene, lagrangian, drag, mass=physics.LOCAL))(q, qd))
     np.testing.assert_allclose(local, dense, atol=1e-10 * (1 + np.abs(dense).max()))
 
 
-def test_local_mass_colouring_needs_three_colours_for_any_chain():
+def test_local_mass_colouring_needs_2_reach_plus_1_colours_for_any_chain():
     for n in (4, 40, 400):
         scene = chain(n)
-        assert physics.prepare(scene).local_mass.n_colours == 3
+        assert physics.prepare(scene).local_mass().n_colours == 3
+        for reach in (2, 3):
+            assert physics.prepare(scene).local_mass(reach).n_colours == min(2 * reach + 1, n)
 
 
 # ---------------------------------------------------------------------------------
@@ -473,7 +475,7 @@ def test_prepare_is_cached_by_scene_content():
     assert physics.prepare(chain(8)) is not system
     assert physics.prepare(first.replace(masses=2 * first.masses)) is not system
     fresh = physics.prepare(chain(7).replace(gravity=np.asarray(3.25)))
-    assert not {"constraints", "gram", "local_mass", "regular_mass", "schur_inverse"} & set(vars(fresh))
+    assert not {"constraints", "gram", "_local_masses", "regular_mass", "schur_inverse"} & set(vars(fresh))
     assert fresh.constraints is physics.prepare(chain(7).replace(gravity=np.asarray(3.25))).constraints
 
 
@@ -486,7 +488,7 @@ def test_factories_build_the_static_data_once(monkeypatch):
     scene = chain(5).replace(gravity=np.asarray(4.75))
     for solver in ("auto", "generic", "schur", "chain"):
         physics.true_acceleration_fn(scene, solver)
-    physics.acceleration_fn(chain(5).replace(gravity=np.asarray(4.75)), physics.lagrangian_fn(scene), local_mass=True)
+    physics.acceleration_fn(chain(5).replace(gravity=np.asarray(4.75)), physics.lagrangian_fn(scene), mass=physics.LOCAL)
     physics.projection_fn(scene)
     assert len(built) == 1
 
@@ -525,7 +527,7 @@ def scaled_acceleration_fn(scene, scale, *, local_mass):
     scales with L), the exact Lagrangian of `scene`; `scale` may be traced."""
     lagrangian, drag = physics.lagrangian_fn(scene), physics.drag_force_fn(scene)
     scaled_drag = None if drag is None else (lambda q, qd: scale * drag(q, qd))
-    return physics.acceleration_fn(scene, lambda q, qd: scale * lagrangian(q, qd), scaled_drag, local_mass=local_mass)
+    return physics.acceleration_fn(scene, lambda q, qd: scale * lagrangian(q, qd), scaled_drag, mass=physics.LOCAL if local_mass else None)
 
 
 # Every built-in on both solve paths, except chain100's generic (dense KKT) path: that
@@ -545,7 +547,7 @@ def test_accelerations_and_rollouts_are_invariant_under_scaling_the_lagrangian(n
     accelerations are as sensitive to round-off as to the scale (T2 and T3 moving: a
     change of L by one ulp moves them by ~1e-6 of their size, as c does), so the bound
     adds 10 times what that change does; scaling by 2 is exact in floating point and
-    must change nothing at all. `local_mass=True` on chain100 is the chain elimination."""
+    must change nothing at all. The local mass (`physics.LOCAL`) on chain100 is the chain elimination."""
     scene = get_scene(name)
     one_ulp = 1.0 + np.finfo(np.float64).eps
     scales = jnp.asarray((1.0, one_ulp, 2.0) + LAGRANGIAN_SCALES)

@@ -1015,8 +1015,8 @@ def performance_markdown(profile: Profile, rows: list[dict], scaling_record: dic
         "",
         f"Every learned model is integrated with RK4 at dt {profile.evaluate.dt:g} (4 evaluations a step), not the paper's Verlet at "
         "1e-5; its wall time per simulated second and rollout error are the `learned` rows of `benchmark/speed_error.md`. "
-        "LGNN's mass matrix couples only linked nodes, so its solve uses coloured Hessian-vector products and, on chains, "
-        "the linear-time block elimination (`physics.acceleration_fn(local_mass=True)`).",
+        "LGNN's mass matrix couples only nearby nodes, so its solve uses coloured Hessian-vector products and, on long chains, "
+        "the linear-time block elimination; LGN's is low rank plus local (`physics.MassStructure`).",
         "",
         "## GPUs",
         "",

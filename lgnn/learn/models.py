@@ -121,9 +121,11 @@ class ModelSpec:
     message_passing: int = 0
     # Tied to the training system's size (a fixed-length input): refuses other sizes.
     fixed_size: bool = False
-    # `local_mass(config) -> bool`: whether `d2L/dqd2` couples only linked nodes, so
-    # the Euler-Lagrange solve may use that structure (`physics.acceleration_fn`).
-    local_mass: Callable = lambda config: False
+    # `mass(config, params, scene) -> physics.MassStructure | None`: the structure of a
+    # Lagrangian model's `d2L/dqd2` (graph-local of some reach, or a read-out of pooled
+    # local features), so the Euler-Lagrange solve may assemble it from fewer products
+    # (`physics.acceleration_fn`); None: none declared (the dense Hessian).
+    mass: Callable | None = None
     # `statistics(config, scene, q, qd, qdd) -> {name: array}`: constants the model
     # normalises by, computed once by training from its training states and targets
     # (each (S, N, D)) and kept in `params[STATISTICS]`, where `init` puts placeholders
@@ -372,6 +374,25 @@ def _apply_graph_net(params: dict, node_x, edge_x, senders, receivers):
     return h, e
 
 
+def graph_net_reach(layers: int) -> tuple[int, int]:
+    """How far `_apply_graph_net`'s outputs see: (r, s) such that a node's final
+    embedding depends on nodes at most r links from it, and an edge's on nodes at most s
+    links from either of its ends. A layer's edge update reads its own edge and its
+    ends' node embeddings (s' = max(s, r)); its node update reads its own embedding and
+    the incident edges' embeddings of the layer before (r' = max(r, s + 1))."""
+    node, edge = 0, 0
+    for _ in range(layers):
+        node, edge = max(node, edge + 1), max(edge, node)
+    return node, edge
+
+
+def _edge_energy_reach(config: ModelConfig) -> int:
+    """The mass matrix's reach of a sum of per-edge energies read from the graph
+    network's final edge embeddings: two nodes are coupled when one edge's embedding
+    sees both, at most 2 s + 1 links apart."""
+    return 2 * graph_net_reach(config.message_passing)[1] + 1
+
+
 
 # ---------------------------------------------------------------------------------
 # The built-in models
@@ -495,14 +516,31 @@ def _gns_acceleration(config: ModelConfig, params: dict, scene: Scene) -> physic
     return accel
 
 
-def _apply_lgn(config: ModelConfig, params: dict, graph):
+def _lgn_pooled(params: dict, graph):
+    """LGN's read-out input: the summed node and summed edge embeddings (2 latent,)."""
     h, e = _graph_net_outputs(params, graph)
-    pooled = jnp.concatenate([jnp.sum(h, 0), jnp.sum(e, 0)])
-    return _apply_mlp(params["readout"], pooled)[0]
+    return jnp.concatenate([jnp.sum(h, 0), jnp.sum(e, 0)])
+
+
+def _apply_lgn(config: ModelConfig, params: dict, graph):
+    return _apply_mlp(params["readout"], _lgn_pooled(params, graph))[0]
 
 
 def _lgn_lagrangian(config: ModelConfig, params: dict, scene: Scene) -> physics.LagrangianFn:
     return lambda q, qd: _apply_lgn(config, params, graph_from_state(scene, q, qd, config.vocabulary))
+
+
+def _lgn_mass(config: ModelConfig, params: dict, scene: Scene) -> physics.MassStructure:
+    """LGN's `L` is a read-out of summed embeddings: its mass matrix is low rank (the
+    read-out's 2 latent inputs) plus local. A node's embedding couples nodes up to 2 r
+    links apart, an edge's up to 2 s + 1 (`graph_net_reach`)."""
+    node, edge = graph_net_reach(config.message_passing)
+    return physics.MassStructure(
+        max(2 * node, 2 * edge + 1),
+        features=lambda q, qd: _lgn_pooled(params, graph_from_state(scene, q, qd, config.vocabulary)),
+        readout=lambda pooled: _apply_mlp(params["readout"], pooled)[0],
+        n_features=2 * config.latent,
+    )
 
 
 def _init_clnn(key, config: ModelConfig) -> dict:
@@ -570,8 +608,9 @@ def _lgnn_spec(name: str, message_passing: int) -> ModelSpec:
         name, _init_lgnn, apply=lambda config, params, graph: _lgnn_edge_energies(params)(graph),
         lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_edge_energies(params)),
         latent=5, hidden=10, message_passing=message_passing,
-        # Without message passing a link's energy depends on its own two nodes only.
-        local_mass=lambda config: config.message_passing == 0,
+        # A link's energy sees its own two nodes only without message passing and after
+        # one layer, nodes further away after more (`_edge_energy_reach`).
+        mass=lambda config, params, scene: physics.MassStructure(_edge_energy_reach(config)),
     )
 
 
@@ -584,7 +623,7 @@ register(_lgnn_spec("lgnn-mp2", 2))
 register(ModelSpec(
     "lgnn-notebook", _init_lgnn_notebook, apply=lambda config, params, graph: _lgnn_notebook_edge_energies(params)(graph),
     lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_notebook_edge_energies(params)),
-    latent=5, hidden=10, local_mass=lambda config: True,
+    latent=5, hidden=10, mass=lambda config, params, scene: physics.LOCAL,
 ))
 register(ModelSpec(
     "gns", lambda key, config: _init_graph_model(key, config, (config.latent, config.hidden, config.dim)),
@@ -592,7 +631,7 @@ register(ModelSpec(
 ))
 register(ModelSpec(
     "lgn", _init_lgn,
-    apply=_apply_lgn, lagrangian=_lgn_lagrangian, latent=8, hidden=128, message_passing=2,
+    apply=_apply_lgn, lagrangian=_lgn_lagrangian, mass=_lgn_mass, latent=8, hidden=128, message_passing=2,
 ))
 register(ModelSpec("clnn", _init_clnn, lagrangian=_clnn_lagrangian, hidden=128, fixed_size=True))
 # The strong GNS (`strong_gns`): the GNS-10-128 recipe's sizes, LagrangeBench's AdamW
@@ -705,7 +744,8 @@ def acceleration_fn(config: ModelConfig, params: dict, scene: Scene) -> physics.
     if not spec.is_lagrangian:
         return spec.acceleration(config, params, scene)
     lagrangian = lagrangian_fn(config, params, scene)
-    return physics.acceleration_fn(scene, lagrangian, _learned_drag_fn(config, params, scene), local_mass=spec.local_mass(config))
+    mass = None if spec.mass is None else spec.mass(config, params, scene)
+    return physics.acceleration_fn(scene, lagrangian, _learned_drag_fn(config, params, scene), mass=mass)
 
 
 def mass_matrix_fn(config: ModelConfig, params: dict, scene: Scene):

@@ -13,7 +13,9 @@ One module per idea, from the bottom up:
   counted by an SVD) and the violation measures;
 - `solvers`: the regularised KKT, Schur-complement, chain-elimination and Gram solves,
   all refined by one routine, `refine`; no pseudo-inverse anywhere;
-- `local_mass`: a graph-local mass matrix from coloured Hessian-vector products;
+- `local_mass`: what a Lagrangian declares about its mass matrix (`MassStructure`:
+  graph-local of some reach, or a read-out of pooled local features) and its assembly
+  from coloured derivative products;
 - `system`: `prepare(scene) -> System`, everything static about a scene computed
   once, cached by scene content;
 - `dynamics`: the Euler-Lagrange transformer `acceleration_fn(scene, lagrangian,
@@ -32,6 +34,7 @@ from lgnn.physics.dynamics import (
     acceleration_fn,
     mass_matrix_fn,
     true_acceleration_fn,
+    uses_mass_structure,
     vectorised_true_acceleration_fn,
 )
 from lgnn.physics.energies import (
@@ -47,6 +50,7 @@ from lgnn.physics.energies import (
     lagrangian_fn,
     potential_energy_per_link,
 )
+from lgnn.physics.local_mass import LOCAL, MassStructure
 from lgnn.physics.projection import projection_fn
 from lgnn.physics.sampling import benchmark_initial_states, own_or_sampled_states, sample_initial_conditions, sample_states
 from lgnn.physics.solvers import refine
@@ -56,7 +60,9 @@ __all__ = [
     "AccelerationFn",
     "Constraints",
     "ForceFn",
+    "LOCAL",
     "LagrangianFn",
+    "MassStructure",
     "System",
     "acceleration_fn",
     "angular_speed_squared",
@@ -78,6 +84,7 @@ __all__ = [
     "sample_initial_conditions",
     "sample_states",
     "true_acceleration_fn",
+    "uses_mass_structure",
     "vectorised_true_acceleration_fn",
     "velocity_constraint_violation",
 ]

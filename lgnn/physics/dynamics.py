@@ -33,8 +33,9 @@ as the projection removes the sideways kick.
 Speed comes from structure, never from a different model: `true_acceleration_fn`
 solves the exact rods through their constant on-manifold mass matrix (a Schur
 complement, or a linear-time block elimination on chains), and
-`acceleration_fn(..., local_mass=True)` builds a graph-local mass matrix from coloured
-Hessian-vector products. Each is tested against the general path.
+`acceleration_fn(..., mass=LOCAL)` builds a graph-local mass matrix from coloured
+Hessian-vector products (`local_mass`, which also serves learned Lagrangians of a
+larger reach and LGN's pooled read-out). Each is tested against the general path.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ import numpy as np
 
 from lgnn.physics.constraints import take_rows
 from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
+from lgnn.physics.local_mass import LOCAL, MassStructure
 from lgnn.physics.solvers import chain_kkt_solve, guarded_spd_solve, regularised_spd_solve, solve_kkt, spd_solve
 from lgnn.physics.system import System, prepare
 from lgnn.runtime import full_precision_matmuls
@@ -55,31 +57,52 @@ from lgnn.scene import Scene
 AccelerationFn = Callable[[Array, Array], Array]
 
 
-def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | None = None, *, local_mass: bool = False) -> AccelerationFn:
+def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | None = None, *, mass: MassStructure | None = None) -> AccelerationFn:
     """Constrained Euler-Lagrange accelerations of *any* Lagrangian under the scene's
     constraints (module docstring). Returns `accel(q, qd) -> qdd`, all (N, D), with zero
     acceleration at pinned nodes. `force_fn(q, qd) -> (N, D)` adds generalised forces
     (drag, external); pass `None` for none.
 
-    `local_mass=True` declares that the mass matrix `d2L/dqd2` couples only nodes that
-    share a link (true of the exact rods and of LGNN's per-link energies). It is then
-    assembled from a few Hessian-vector products on a distance-2 colouring of the
-    nodes (`local_mass.LocalMass`: 3 colours x D products for any chain, instead of one
-    per coordinate), and a chain pinned at node 0 (from `CHAIN_SOLVER_MIN_LINKS` links)
-    is solved by the linear-time block elimination of `solvers.chain_kkt_solve`
-    (regularised and refined like `solvers.solve_kkt`), so a step costs time linear in
-    the chain's length. Declaring it for a Lagrangian whose mass matrix is not local
-    gives wrong accelerations (tests compare both paths).
+    `mass` declares the structure of the mass matrix `d2L/dqd2` (`local_mass.MassStructure`),
+    so it is assembled from fewer derivative products than one per coordinate, where
+    that is fewer (`uses_mass_structure`):
+    - `LOCAL` (reach 1: only nodes that share a link are coupled, true of the exact rods
+      and of LGNN's per-link energies): a few Hessian-vector products on a colouring of
+      the nodes (3 colours x D products for any chain), and a chain pinned at node 0 (from
+      `CHAIN_SOLVER_MIN_LINKS` links) is solved by the linear-time block elimination of
+      `solvers.chain_kkt_solve` (regularised and refined like `solvers.solve_kkt`), so a
+      step costs time linear in the chain's length;
+    - a larger reach: more colours, the dense KKT solve;
+    - pooled (LGN's read-out of summed embeddings): the low-rank part from the features'
+      Jacobian, the rest local.
+    Declaring a structure the Lagrangian does not have gives wrong accelerations (tests
+    compare every declared structure with the dense path).
     """
     system = prepare(scene)
     constraints = system.constraints
-    local = system.local_mass if local_mass else None
-    chain_solve = local_mass and system.long_chain
+    structured = mass is not None and uses_mass_structure(scene, mass)
+    local = system.local_mass(mass.reach) if structured else None
+    chain_solve = structured and mass == LOCAL and system.long_chain
 
-    def reduced_lagrangian(x, v):
-        return lagrangian(constraints.embed(x), constraints.embed_velocity(v))
+    def reduced(fn):
+        return lambda x, v: fn(constraints.embed(x), constraints.embed_velocity(v))
 
+    reduced_lagrangian = reduced(lagrangian)
     grad_v = jax.grad(reduced_lagrangian, argnums=1)
+
+    def mass_products(x, v):
+        """(S, F) the local part's products with the colouring's seeds, and the dense
+        low-rank part (F, F) of a pooled structure (or None)."""
+        if not mass.pooled:
+            return local.products(lambda seed: jax.jvp(lambda w: grad_v(x, w), (v,), (seed,))[1], x.dtype), None
+        features = reduced(mass.features)
+        p, pullback = jax.vjp(lambda w: features(x, w), v)
+        slope, curvature = jax.grad(mass.readout)(p), jax.hessian(mass.readout)(p)
+        jacobian = jax.vmap(lambda row: pullback(row)[0])(jnp.eye(p.shape[0], dtype=p.dtype))
+        # The local sum weighted by the read-out's slope at this state, held fixed.
+        grad_local = jax.grad(lambda w: jnp.dot(jax.lax.stop_gradient(slope), features(x, w)))
+        products = local.products(lambda seed: jax.jvp(grad_local, (v,), (seed,))[1], x.dtype)
+        return products, jacobian.T @ curvature @ jacobian
 
     def accel(q, qd):
         x, v = constraints.restrict(q), constraints.restrict(qd)
@@ -89,19 +112,29 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
         if force_fn is not None:
             rhs = rhs + constraints.restrict(force_fn(q, qd))
         if local is None:
-            mass = jax.jacfwd(grad_v, argnums=1)(x, v)
+            mass_matrix = jax.jacfwd(grad_v, argnums=1)(x, v)
         else:
-            products = local.products(lambda seed: jax.jvp(lambda w: grad_v(x, w), (v,), (seed,))[1], x.dtype)
+            products, low_rank = mass_products(x, v)
             if chain_solve:
                 diagonal, upper = local.chain_blocks(products)
                 u = constraints.link_directions(q)
                 xdd = chain_kkt_solve(diagonal, upper, u, rhs.reshape(-1, constraints.shape[1]), -constraints.jacobian_dot_v(x, v), regularised=True)
                 return constraints.embed_velocity(xdd.reshape(-1))
-            mass = local.dense(products)
-        xdd = solve_kkt(mass, constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
+            mass_matrix = local.dense(products) if low_rank is None else local.dense(products) + low_rank
+        xdd = solve_kkt(mass_matrix, constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
         return constraints.embed_velocity(xdd)
 
     return full_precision_matmuls(accel)
+
+
+def uses_mass_structure(scene: Scene, mass: MassStructure) -> bool:
+    """Whether `acceleration_fn` assembles the mass matrix from `mass`'s structure on
+    `scene`: when it takes no more products than the dense path's one per free
+    coordinate (at reach 1, always, so a long chain gets the block elimination)."""
+    system = prepare(scene)
+    if mass == LOCAL:
+        return True
+    return mass.products(system.local_mass(mass.reach), scene.dim) < len(system.constraints.free)
 
 
 def mass_matrix_fn(lagrangian: LagrangianFn) -> Callable[[Array, Array], Array]:

@@ -8,7 +8,7 @@ coordinates never pays for a QR, an SVD or a mass factorisation:
 - `constraints`: free coordinates and mask, the kept rows (pivoted QR) and the
   self-stresses at the initial configuration (SVD), see `constraints.Constraints`;
 - `gram`: the sparsity of `A A^T` for the projection (`solvers.LinkGram`);
-- `local_mass`: the distance-2 node colouring of a graph-local mass matrix;
+- `local_mass(reach)`: the node colouring of a graph-local mass matrix of that reach;
 - `regular_mass`, `schur_inverse`, `chain_mass_blocks`, `node_gravity`: the constant
   node mass of the exact rods (`energies.constant_node_mass`), whether it is regular on
   the free nodes, its inverse, its chain blocks, and the weight on the free nodes;
@@ -61,8 +61,14 @@ class System:
         return LinkGram(self.constraints)
 
     @functools.cached_property
-    def local_mass(self) -> LocalMass:
-        return LocalMass(self.scene, self.constraints)
+    def _local_masses(self) -> dict:
+        return {}
+
+    def local_mass(self, reach: int = 1) -> LocalMass:
+        """The colouring of a mass matrix coupling nodes at most `reach` links apart."""
+        if reach not in self._local_masses:
+            self._local_masses[reach] = LocalMass(self.scene, self.constraints, reach)
+        return self._local_masses[reach]
 
     @functools.cached_property
     def is_pinned_chain(self) -> bool:
