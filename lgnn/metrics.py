@@ -157,11 +157,13 @@ def max_constraint_violation(scene: Scene, q: np.ndarray) -> float:
 
 
 def relative_error(a: np.ndarray, b: np.ndarray, trailing: int) -> np.ndarray:
-    """`||a - b|| / (||a|| + ||b||)` over the last `trailing` axes."""
+    """`||a - b|| / (||a|| + ||b||)` over the last `trailing` axes. A diverged frame's
+    huge values may overflow to inf or NaN here, silently: `clean_errors` sets every
+    frame from divergence on, and every non-finite error, to the maximum."""
     axes = tuple(range(-trailing, 0))
-    diff = np.sqrt(np.sum((a - b) ** 2, axis=axes))
-    scale = np.sqrt(np.sum(a**2, axis=axes)) + np.sqrt(np.sum(b**2, axis=axes))
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        diff = np.sqrt(np.sum((a - b) ** 2, axis=axes))
+        scale = np.sqrt(np.sum(a**2, axis=axes)) + np.sqrt(np.sum(b**2, axis=axes))
         return diff / scale
 
 
