@@ -34,7 +34,7 @@ def _moving_states(scene, count=3):
     """States on the constraint manifold with non-zero velocities, (B, N, D) each."""
     q = jnp.broadcast_to(jnp.asarray(scene.nodes), (count, *scene.nodes.shape))
     kicks = jax.random.normal(jax.random.PRNGKey(0), q.shape)
-    return jax.vmap(physics.projection_fn(scene))(q, kicks)
+    return jax.jit(jax.vmap(physics.projection_fn(scene)))(q, kicks)
 
 
 def _trained_statistics_params(scene, dataset, **sizes):
