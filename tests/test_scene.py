@@ -277,12 +277,31 @@ def test_every_catalogue_entry_has_its_dimension_an_origin_and_a_policy_that_fit
         assert entry.initial_states != CHAIN_SAMPLER or is_pinned_chain(scene), name
 
 
+def test_varied_chains_follow_their_stated_rule():
+    """`varied_chain(n, seed)`: lengths, masses and paper inertias within the ranges of the
+    paper's varied 4-link chain, physical inertia `I l^4`, the same scene for the same
+    seed and another for another; the built-ins are `varied_chain(n, seed=n)`."""
+    from lgnn.scene import get_scene, varied_chain
+    from lgnn.scene.catalogue import VARIED_LENGTHS, VARIED_MASSES, VARIED_PAPER_INERTIAS
+
+    for n in (8, 16, 100):
+        scene = get_scene(f"chain{n}-varied")
+        assert scene == varied_chain(n, n) and scene.n_links == n and scene.pinned == (0,)
+        paper_inertias = scene.inertias / scene.lengths**4
+        for values, listed in ((scene.lengths, VARIED_LENGTHS), (scene.masses, VARIED_MASSES), (paper_inertias, VARIED_PAPER_INERTIAS)):
+            assert min(listed) <= values.min() and values.max() <= max(listed)
+            assert np.ptp(values) > 0.5 * np.ptp(listed)  # spread over the range, not one value
+    assert varied_chain(8, 3) == varied_chain(8, 3) and varied_chain(8, 3) != varied_chain(8, 4)
+    with pytest.raises(SceneError, match="at least one link"):
+        varied_chain(0, 1)
+
+
 def test_scene_names_select_by_tag_and_a_bad_tag_is_one_line():
     from lgnn.scene import scene_names
 
     assert scene_names("paper") == ("chain4", "chain8", "chain16", "chain100", "chain4-varied", "chain4-drag", "T1", "T2", "T3")
     assert "T2-slack" in scene_names("planar", "hard") and "T2-slack" not in scene_names("mjcf")
-    assert set(scene_names("3d")) == set(scene_names("transfer"))
+    assert set(scene_names("transfer")) == set(scene_names("3d")) | {"chain8-varied", "chain16-varied", "chain100-varied"}
     with pytest.raises(SceneError, match="unknown scene tag 'spatial'"):
         scene_names("spatial")
 

@@ -153,6 +153,24 @@ def chain4_varied(seed: int = 0) -> Scene:
     return scene_from_dict(_chain_dict("chain4-varied", VARIED_LENGTHS, VARIED_MASSES, inertias, seed))
 
 
+def varied_chain(n_links: int, seed: int, name: str | None = None) -> Scene:
+    """A planar chain of `n_links` links with varied properties, by one stated rule: each
+    link's length, mass and paper inertia parameter drawn independently and uniformly
+    between the smallest and the largest of the paper's varied 4-link chain's
+    (`VARIED_LENGTHS`, `VARIED_MASSES`, `VARIED_PAPER_INERTIAS`), from NumPy's
+    `default_rng(seed)`; physical inertia `I_k l_k^4` as the paper's varied chain's
+    (module docstring); the initial shape from the chain sampler with the same seed.
+    The built-ins `chain{8,16,100}-varied` are `varied_chain(n, seed=n)`: zero-shot
+    transfer from varied 4-link chains to longer ones whose links it never saw."""
+    if n_links < 1:
+        raise SceneError(f"varied chain: need at least one link, got {n_links}")
+    rng = np.random.default_rng(seed)
+    lengths, masses, paper_inertias = (rng.uniform(min(values), max(values), n_links)
+                                       for values in (VARIED_LENGTHS, VARIED_MASSES, VARIED_PAPER_INERTIAS))
+    inertias = paper_inertias * lengths**4
+    return scene_from_dict(_chain_dict(name or f"chain{n_links}-varied", lengths.tolist(), masses.tolist(), inertias.tolist(), seed))
+
+
 def chain4_drag(seed: int = 0) -> Scene:
     """The 4-link chain with linear drag 0.01 on each link's centre velocity."""
     return chain(4, seed, name="chain4-drag", drag=PAPER_DRAG)
@@ -508,7 +526,7 @@ TAGS = {
     "3d": "3D",
     "paper": "the paper's scenes (chains, the varied and drag chains, T1-T3)",
     "hard": "hard cases: lgnn stability, the physics tests, the stand-ins T2-slack and T3-slack, scaling",
-    "transfer": "3D scenes made for zero-shot transfer from the 3D 4-link chain",
+    "transfer": "scenes made for zero-shot transfer: 3D ones from the 3D 4-link chain, longer varied chains from varied 4-link ones",
     "mjcf": "its MJCF is committed in mjcf/ (lgnn mjcf --check)",
 }
 DIMENSION_TAGS = {2: "planar", 3: "3d"}
@@ -564,6 +582,8 @@ CATALOGUE: dict[str, CatalogueEntry] = {
                        _planar("paper", "mjcf"), OWN_STATE),
         CatalogueEntry("T2", "tensegrity: rope loop with one rod (paper fig. E)", lambda: paper_structure("T2"), _planar("paper", "mjcf"), OWN_STATE),
         CatalogueEntry("T3", "lattice of ropes pinned at six nodes (paper fig. F)", lambda: paper_structure("T3"), _planar("paper", "mjcf"), OWN_STATE),
+        *(CatalogueEntry(f"chain{n}-varied", f"{n} links of varied lengths, masses, inertias (`varied_chain`, seed {n})",
+                         functools.partial(varied_chain, n, n), _planar("transfer"), CHAIN_SAMPLER) for n in (8, 16, 100)),
         CatalogueEntry("chain1000", "1000 unit links pinned at one end (scaling)", lambda: chain(1000), _planar("hard"), CHAIN_SAMPLER),
         CatalogueEntry("taut4-0.999", "4 links hanging between two pins 0.999 x 4 apart (nearly taut)", lambda: taut_chain(4, 0.999),
                        _planar("hard"), OWN_STATE),
