@@ -413,7 +413,7 @@ def train_settings(args):
     scene (seed 0 whatever `--seed`, as the benchmark's); `--seed` seeds the parameters
     and shuffles; the checkpoint is written every `checkpoint_every` epochs, the recipe's."""
     recipe = train_recipe()
-    data_config = dataclasses.replace(recipe.data_for(args.scene), n_trajectories=args.trajectories)
+    data_config = dataclasses.replace(recipe.data_for(args.scene), n_trajectories=args.trajectories, varied_draws=args.varied_draws)
     config = dataclasses.replace(recipe.train, learning_rate=args.lr, batch_size=args.batch_size, epochs=args.epochs, minutes=args.minutes,
                                  patience=args.patience, seed=args.seed)
     return data_config, config
@@ -437,8 +437,10 @@ def _cmd_train(args) -> None:
         train.check_resumable(args.out, model, config)  # before minutes of data generation
     cache = args.cache_dir or data.default_cache_dir()
     dataset = data.load_or_generate(data_config, cache, progress=not args.quiet)
-    state = train.train(model, config, dataset, scene, out=args.out, data_config=data_config, resume=args.resume, progress=not args.quiet)
-    print(f"{name} on {scene.name}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out} (data cached in {cache})")
+    state = train.train(model, config, dataset, data.draw_scenes(data_config), out=args.out, data_config=data_config, resume=args.resume,
+                        progress=not args.quiet)
+    draws = f" ({args.varied_draws} varied draws)" if args.varied_draws else ""
+    print(f"{name} on {scene.name}{draws}: {state.epoch} epochs, best validation MSE {state.best_val:.4g} (epoch {state.best_epoch}); wrote {args.out} (data cached in {cache})")
 
 
 def _cmd_rollout(args) -> None:
@@ -485,6 +487,9 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--message-passing", type=_nonnegative_int, default=None, help="message-passing layers (default: the model's)")
     parser.add_argument("--trajectories", type=_positive_int, default=recipe.data.n_trajectories,
                         help=f"training trajectories (default {recipe.data.n_trajectories}, the full profile's and the paper's)")
+    parser.add_argument("--varied-draws", type=_nonnegative_int, default=0,
+                        help="train on K planar chains as long as the scene, each link's length, mass and inertia drawn by the varied-chain rule, "
+                             "the trajectories shared among them (the transfer track; default 0: the scene itself)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the initial parameters and shuffles (the data are the full profile's, as the benchmark's)")
     parser.add_argument("--cache-dir", default=None, help="training data cache (default: datasets/ in $LGNN_CACHE, else $XDG_CACHE_HOME/lgnn, else ~/.cache/lgnn)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")

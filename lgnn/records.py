@@ -13,7 +13,9 @@ A JSON record (`save_json`, `load_json`) is one JSON object: the settings `key` 
 made with, its fields, and the environment.
 
 `digest(value)` is the sha256 of a JSON-able value (sorted keys): the key of a record is
-the digest of the settings it depends on. `file_digest(path)` is the sha256 of a file's
+the digest of the settings it depends on, `settings_key(settings)` of a settings
+dataclass (fields marked `NOT_IN_KEY` left out, and those marked `KEY_UNLESS_DEFAULT`
+while at their default, so records made before such a field existed keep their keys). `file_digest(path)` is the sha256 of a file's
 bytes (a record depending on an input file keys on its content, not its name; on a
 checkpoint, on `lgnn.learn.checkpoints.content_digest`).
 
@@ -23,6 +25,7 @@ benchmark records stay readable and their checksums valid.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -36,6 +39,26 @@ from lgnn.files import atomic_path
 
 class RecordError(LgnnError):
     """A record file is missing, unreadable or corrupt; the message names the file."""
+
+
+# Field metadata of a setting that does not change what a record holds.
+NOT_IN_KEY = {"in_key": False}
+# Field metadata of a setting added after records were made: in the key only when it
+# differs from its default (which is what those records were made with), so they keep
+# their keys.
+KEY_UNLESS_DEFAULT = {"in_key": "unless default"}
+
+
+def settings_key(settings) -> dict:
+    """A settings dataclass as a JSON-able dict of every field not declared `NOT_IN_KEY`
+    (nor `KEY_UNLESS_DEFAULT` at its default; nested settings dataclasses likewise)."""
+    return {
+        field.name: settings_key(value) if dataclasses.is_dataclass(value) else value
+        for field in dataclasses.fields(settings)
+        if field.metadata.get("in_key", True)
+        for value in (getattr(settings, field.name),)
+        if not (field.metadata.get("in_key") == KEY_UNLESS_DEFAULT["in_key"] and value == field.default)
+    }
 
 
 def digest(value) -> str:

@@ -139,7 +139,7 @@ def _write_format_1(path, state: train.TrainState, model, config):
 def _tiny_dataset(scene, states=12, seed=0) -> data.Dataset:
     """Random states and targets: enough for Adam to move every parameter and its moments."""
     q, qd, qdd = (np.asarray(scene.nodes) + 0.1 * np.random.default_rng(seed + k).normal(size=(states, *np.shape(scene.nodes))) for k in range(3))
-    return data.Dataset(q, qd, qdd, np.zeros(states, int), np.arange(8), np.arange(8, states))
+    return data.Dataset(q, qd, qdd, np.zeros(states, int), np.arange(8), np.arange(8, states), np.zeros(states, int))
 
 
 def test_converted_checkpoints_roll_out_bit_identically(tmp_path):

@@ -30,6 +30,7 @@ from importlib import resources
 from pathlib import Path
 
 from lgnn.errors import ConfigError, SceneError, check_number
+from lgnn.records import KEY_UNLESS_DEFAULT, NOT_IN_KEY, settings_key
 from lgnn.engines import ENGINES
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.learn.data import DataConfig
@@ -56,26 +57,6 @@ TRAINING_SCENES = {2: TRAINING_SCENE, 3: SPATIAL_TRAINING_SCENE}
 # The training scene a job of predictions made outside lgnn stands on: they have no
 # training scene, checkpoint or seeds (`external_pair`); tables name them `MODEL (external)`.
 EXTERNAL = "external"
-# Field metadata of a setting that does not change what a record holds.
-NOT_IN_KEY = {"in_key": False}
-# Field metadata of a setting added after records were made: in the key only when it
-# differs from its default (which is what those records were made with), so they keep
-# their keys.
-KEY_UNLESS_DEFAULT = {"in_key": "unless default"}
-
-
-def settings_key(settings) -> dict:
-    """A settings dataclass as a JSON-able dict of every field not declared `NOT_IN_KEY`
-    (nor `KEY_UNLESS_DEFAULT` at its default; nested settings dataclasses likewise)."""
-    return {
-        field.name: settings_key(value) if dataclasses.is_dataclass(value) else value
-        for field in dataclasses.fields(settings)
-        if field.metadata.get("in_key", True)
-        for value in (getattr(settings, field.name),)
-        if not (field.metadata.get("in_key") == KEY_UNLESS_DEFAULT["in_key"] and value == field.default)
-    }
-
-
 def _check_numbers(group: str, settings, low: float = 0.0, **names: bool) -> None:
     """`ConfigError` naming `group.field` for each named field (or each item of a tuple
     field) of `settings` that is not a finite number above `low` (`True`: a whole

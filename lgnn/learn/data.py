@@ -8,6 +8,13 @@ projection onto the constraints. The targets are the exact accelerations
 `physics.true_acceleration_fn(scene)` at the saved states (the paper's code used a
 central finite difference of the positions, whose O(dt^2) error we avoid).
 
+Varied draws (`DataConfig.varied_draws = K`, the transfer track): the trajectories come
+from K planar chains as long as the named one, each link's properties drawn by the
+varied-chain rule (`lgnn.scene.varied_chain`, seeds `VARIED_DRAW_SEED + k`),
+`n_trajectories / K` from each, and `Dataset.draw` says which draw each state is of
+(`draw_scenes(config)` the draws' scenes, in order). The split stays one random split of
+all states.
+
 `load_or_generate(config, cache_dir)` returns a `Dataset`. The cache file is an
 `lgnn.records` record whose name holds a hash of the generating settings (`DataConfig`,
 the scene's full description, the lgnn version, the format) and whose meta repeats those
@@ -32,15 +39,18 @@ from lgnn import records
 from lgnn.errors import ConfigError, check_number
 from lgnn.files import user_cache_dir
 from lgnn.runtime import in_float64
-from lgnn.scene import Scene, scene_to_dict
-from lgnn.scene import get_scene
+from lgnn.scene import Scene, get_scene, is_pinned_chain, scene_to_dict, varied_chain
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.lagrangian import rollout_fn
 
 # 2: an `lgnn.records` record (1: its own layout and checksum); part of the key, so
 # caches of another format are regenerated, never misread.
 DATA_FORMAT = 2
-ARRAY_KEYS = ("q", "qd", "qdd", "trajectory", "train", "val")
+ARRAY_KEYS = ("q", "qd", "qdd", "trajectory", "train", "val", "draw")
+# Seeds of the varied draws (`varied_chain(n, VARIED_DRAW_SEED + k)`): none of the
+# built-in varied chains' seeds (their lengths, 8, 16 and 100), so no draw is a scene
+# the transfer track evaluates on.
+VARIED_DRAW_SEED = 1000
 # States kept per trajectory at most (the paper's 100; a million is already gigabytes
 # of data for the smallest scene's 100 trajectories).
 MAX_STATES_PER_TRAJECTORY = 1e6
@@ -64,6 +74,11 @@ class DataConfig:
     seed: int = 0
     # Trajectories integrated per vmapped chunk (progress granularity; not in the key).
     chunk: int = 10
+    # 0: the scene itself. K > 0: K draws of a planar chain as long as the scene, its
+    # links' properties by the varied-chain rule (module docstring), the trajectories
+    # shared equally among them. In keys only when set (caches and checkpoints made
+    # before it keep theirs).
+    varied_draws: int = dataclasses.field(default=0, metadata=records.KEY_UNLESS_DEFAULT)
 
     def __post_init__(self):
         for name in ("duration", "sample_dt", "dt"):
@@ -74,6 +89,10 @@ class DataConfig:
             raise ConfigError(f"training data duration {self.duration:g} holds more than {MAX_STATES_PER_TRAJECTORY:.0e} states at sample_dt {self.sample_dt:g}")
         if self.n_trajectories < 1:
             raise ConfigError(f"need at least one trajectory, got {self.n_trajectories}")
+        if isinstance(self.varied_draws, bool) or not isinstance(self.varied_draws, int) or self.varied_draws < 0:
+            raise ConfigError(f"varied draws must be a whole number >= 0, got {self.varied_draws!r}")
+        if self.varied_draws and self.n_trajectories % self.varied_draws:
+            raise ConfigError(f"{self.n_trajectories} trajectories cannot be shared equally among {self.varied_draws} varied draws")
         if not 0 < self.train_fraction < 1:
             raise ConfigError(f"train fraction must be in (0, 1), got {self.train_fraction}")
         if self.states_per_trajectory < 2:
@@ -95,17 +114,33 @@ class DataConfig:
         """The ground truth's integration: `integrator`, projected."""
         return Integration(self.integrator, project=True)
 
+    def to_dict(self) -> dict:
+        """The settings as checkpoints and records keep them (`records.settings_key`)."""
+        return records.settings_key(self)
+
     def key(self, scene: Scene) -> dict:
         """Everything the data depend on (the cache key)."""
         from lgnn import __version__
 
-        settings = {k: v for k, v in dataclasses.asdict(self).items() if k != "chunk"}
+        settings = {k: v for k, v in self.to_dict().items() if k != "chunk"}
         return {"format": DATA_FORMAT, "lgnn": __version__, "settings": settings, "scene": scene_to_dict(scene)}
+
+
+def draw_scenes(config: DataConfig) -> tuple[Scene, ...]:
+    """The scenes the data come from: the named scene, or its varied draws (module
+    docstring), which need a planar chain pinned at one end."""
+    scene = get_scene(config.scene)
+    if not config.varied_draws:
+        return (scene,)
+    if scene.dim != 2 or not is_pinned_chain(scene):
+        raise ConfigError(f"varied draws need a planar chain pinned at one end; {scene.name!r} is not one")
+    return tuple(varied_chain(scene.n_links, VARIED_DRAW_SEED + k, name=f"{scene.name}-draw{k}") for k in range(config.varied_draws))
 
 
 class Dataset(NamedTuple):
     """States `q, qd` and targets `qdd`, each (S, N, D); `trajectory` (S,) the source
-    trajectory of each state; `train`, `val` index arrays of the split."""
+    trajectory of each state; `train`, `val` index arrays of the split; `draw` (S,) the
+    varied draw each state is of (`draw_scenes`; zeros without draws)."""
 
     q: np.ndarray
     qd: np.ndarray
@@ -113,6 +148,7 @@ class Dataset(NamedTuple):
     trajectory: np.ndarray
     train: np.ndarray
     val: np.ndarray
+    draw: np.ndarray
 
 
 @in_float64
@@ -120,32 +156,37 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
     """Integrate the trajectories and compute exact accelerations (module docstring)."""
     from tqdm.auto import tqdm
 
-    scene = get_scene(config.scene)
-    run, targets = _compiled(scene, config.simulation, config.integration)
-    initial_q, initial_qd = physics.benchmark_initial_states(scene, config.n_trajectories, config.seed)
-    # One batch shape for every call (the last batch padded): one compile, sharded over
-    # every local device.
-    size = sharding.padded_size(min(config.chunk, config.n_trajectories))
+    scenes = draw_scenes(config)
+    per_draw = config.n_trajectories // len(scenes)
+    label = get_scene(config.scene).name + (f" ({config.varied_draws} varied draws)" if config.varied_draws else "")
     qs, qds, qdds = [], [], []
-    with tqdm(total=config.n_trajectories, desc=f"data {scene.name}", unit="traj", disable=not progress, leave=False) as bar:
-        for start in range(0, config.n_trajectories, size):
-            take = min(size, config.n_trajectories - start)
-            frames = run(*(sharding.pad_batch(a[start : start + take], size) for a in (initial_q, initial_qd)))
-            q = frames.q.reshape(-1, scene.n_nodes, scene.dim)
-            qd = frames.qd.reshape(q.shape)
-            states = take * config.states_per_trajectory
-            qs.append(np.asarray(q)[:states])
-            qds.append(np.asarray(qd)[:states])
-            qdds.append(np.asarray(targets(q, qd))[:states])
-            bar.update(take)
+    with tqdm(total=config.n_trajectories, desc=f"data {label}", unit="traj", disable=not progress, leave=False) as bar:
+        for k, scene in enumerate(scenes):
+            run, targets = _compiled(scene, config.simulation, config.integration)
+            # Draw k's initial conditions from its own seed (draw 0's are the scene's own).
+            initial_q, initial_qd = physics.benchmark_initial_states(scene, per_draw, config.seed + 1000 * k)
+            # One batch shape for every call (the last batch padded): one compile, sharded
+            # over every local device.
+            size = sharding.padded_size(min(config.chunk, per_draw))
+            for start in range(0, per_draw, size):
+                take = min(size, per_draw - start)
+                frames = run(*(sharding.pad_batch(a[start : start + take], size) for a in (initial_q, initial_qd)))
+                q = frames.q.reshape(-1, scene.n_nodes, scene.dim)
+                qd = frames.qd.reshape(q.shape)
+                states = take * config.states_per_trajectory
+                qs.append(np.asarray(q)[:states])
+                qds.append(np.asarray(qd)[:states])
+                qdds.append(np.asarray(targets(q, qd))[:states])
+                bar.update(take)
     q, qd, qdd = (np.concatenate(a) for a in (qs, qds, qdds))
     if not (np.isfinite(q).all() and np.isfinite(qd).all() and np.isfinite(qdd).all()):
-        raise ConfigError(f"data for {scene.name}: the ground truth produced non-finite states; try a smaller dt")
+        raise ConfigError(f"data for {label}: the ground truth produced non-finite states; try a smaller dt")
     count = len(q)
     order = np.random.default_rng(config.seed).permutation(count)
     n_train = round(config.train_fraction * count)
     trajectory = np.repeat(np.arange(config.n_trajectories), config.states_per_trajectory)
-    return Dataset(q, qd, qdd, trajectory, np.sort(order[:n_train]), np.sort(order[n_train:]))
+    draw = np.repeat(np.arange(len(scenes)), per_draw * config.states_per_trajectory)
+    return Dataset(q, qd, qdd, trajectory, np.sort(order[:n_train]), np.sort(order[n_train:]), draw)
 
 
 @functools.lru_cache(maxsize=8)
@@ -175,6 +216,8 @@ def load(config: DataConfig, path: str | os.PathLike) -> Dataset:
         raise ConfigError(str(err)) from None
     if records.digest(meta.get("key")) != records.digest(config.key(get_scene(config.scene))):
         raise ConfigError(f"{path}: stale data cache (generated with other settings)")
+    if "draw" not in arrays and not config.varied_draws:  # written before draws: all of the one scene
+        arrays["draw"] = np.zeros(len(arrays.get("q", ())), np.int64)
     if set(arrays) != set(ARRAY_KEYS):
         raise ConfigError(f"{path}: not a readable lgnn data cache (arrays {sorted(arrays)})")
     return Dataset(**arrays)

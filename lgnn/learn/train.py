@@ -62,7 +62,7 @@ import optax
 
 from lgnn.learn import checkpoints, models
 from lgnn import records
-from lgnn.learn.data import DataConfig, Dataset
+from lgnn.learn.data import DataConfig, Dataset, draw_scenes
 from lgnn.errors import CheckpointError, ConfigError
 from lgnn.runtime import in_float64
 from lgnn.scene import Scene
@@ -256,42 +256,65 @@ def loss_fn(model: models.ModelConfig, scene: Scene):
     return loss
 
 
-def _epoch(model, scene, config: TrainConfig):
-    """`epoch(params, opt_state, q, qd, qdd, key) -> (params, opt_state, mean loss)`:
-    one shuffle of the training states, `len(q) // batch_size` Adam steps in one
-    `lax.scan` (unjitted; `compiled_epoch_fn` and `_chunk_fn` compile it)."""
-    loss = loss_fn(model, scene)
+def _epoch(model, scenes: tuple[Scene, ...], config: TrainConfig):
+    """`epoch(params, opt_state, arrays, key) -> (params, opt_state, mean loss)`: one
+    shuffle of the training states, Adam steps in one `lax.scan` (unjitted;
+    `compiled_epoch_fn` and `_chunk_fn` compile it). `arrays` holds `(q, qd, qdd)` of
+    each of `scenes` (the varied draws of `lgnn.learn.data`, or the one scene): every
+    step's batch takes `batch_size / len(scenes)` states of each, shuffled within it, so
+    each step sees every draw; `min(len(q)) // that` steps (the remainder of a shuffle
+    is dropped). With one scene this is the paper's shuffle of all states."""
+    losses = [loss_fn(model, scene) for scene in scenes]
     opt = optimizer(config, model.spec.weight_decay)
-    free = np.zeros((scene.n_nodes, 1))
-    free[list(scene.free_nodes)] = 1.0
+    n_draws = len(scenes)
+    per_draw = config.batch_size // n_draws
+    free = np.zeros((scenes[0].n_nodes, 1))
+    free[list(scenes[0].free_nodes)] = 1.0
 
-    def step(carry, batch):
-        (params, opt_state), (q, qd, qdd, key, noise_std) = carry, batch
-        if model.spec.velocity_noise:
-            qd = qd + noise_std * free * jax.random.normal(key, qd.shape, qd.dtype)
+    def step(carry, batch, noise_std):
+        (params, opt_state), (draw_batches, key) = carry, batch
         # Only the trainable params are stepped; the statistics are constants.
         trainable, statistics = models.split_statistics(params)
-        value, grads = jax.value_and_grad(lambda p: loss(models.join_statistics(p, statistics), q, qd, qdd))(trainable)
+
+        def loss(p):
+            total = 0.0
+            for k, (q, qd, qdd) in enumerate(draw_batches):
+                if model.spec.velocity_noise:
+                    noise_key = key if n_draws == 1 else jax.random.fold_in(key, k)
+                    qd = qd + noise_std * free * jax.random.normal(noise_key, qd.shape, qd.dtype)
+                total = total + losses[k](models.join_statistics(p, statistics), q, qd, qdd)
+            return total / n_draws
+
+        value, grads = jax.value_and_grad(loss)(trainable)
         updates, opt_state = opt.update(grads, opt_state, trainable)
         return (models.join_statistics(optax.apply_updates(trainable, updates), statistics), opt_state), value
 
-    def epoch(params, opt_state, q, qd, qdd, key):
-        n_batches = q.shape[0] // config.batch_size
-        order = jax.random.permutation(key, q.shape[0])[: n_batches * config.batch_size]
-        batches = tuple(a[order].reshape(n_batches, config.batch_size, *a.shape[1:]) for a in (q, qd, qdd))
+    def epoch(params, opt_state, arrays, key):
+        n_batches = min(q.shape[0] for q, _, _ in arrays) // per_draw
+        draw_batches = []
+        for k, draw_arrays in enumerate(arrays):
+            # One scene: the key itself, as every run before draws existed.
+            draw_key = key if n_draws == 1 else jax.random.fold_in(key, 2 + k)
+            order = jax.random.permutation(draw_key, draw_arrays[0].shape[0])[: n_batches * per_draw]
+            draw_batches.append(tuple(a[order].reshape(n_batches, per_draw, *a.shape[1:]) for a in draw_arrays))
         # The recipe's input noise, per dimension a fraction of the training
         # velocities' spread over the free nodes (pinned ones are zero).
-        noise_std = model.spec.velocity_noise * jnp.std(qd[:, list(scene.free_nodes)], axis=(0, 1))
-        noise = (jax.random.split(jax.random.fold_in(key, 1), n_batches), jnp.broadcast_to(noise_std, (n_batches, *noise_std.shape)))
-        (params, opt_state), losses = jax.lax.scan(step, (params, opt_state), (*batches, *noise))
-        return params, opt_state, jnp.mean(losses)
+        velocities = jnp.concatenate([qd[:, list(scenes[0].free_nodes)] for _, qd, _ in arrays])
+        noise_std = model.spec.velocity_noise * jnp.std(velocities, axis=(0, 1))
+        keys = jax.random.split(jax.random.fold_in(key, 1), n_batches)
+        (params, opt_state), values = jax.lax.scan(lambda c, b: step(c, b, noise_std), (params, opt_state), (tuple(draw_batches), keys))
+        return params, opt_state, jnp.mean(values)
 
     return epoch
 
 
 @functools.lru_cache(maxsize=16)
 def _epoch_fn(model, scene, config: TrainConfig, vmapped: bool = False):
-    epoch = _epoch(model, scene, config)
+    draws_epoch = _epoch(model, (scene,), config)
+
+    def epoch(params, opt_state, q, qd, qdd, key):
+        return draws_epoch(params, opt_state, ((q, qd, qdd),), key)
+
     return jax.jit(jax.vmap(epoch, in_axes=(0, 0, None, None, None, 0)) if vmapped else epoch)
 
 
@@ -354,21 +377,22 @@ class _Budget(NamedTuple):
 
 
 @functools.lru_cache(maxsize=16)
-def _chunk_fn(model, scene, config: TrainConfig, epochs_per_call: int):
+def _chunk_fn(model, scenes: tuple[Scene, ...], config: TrainConfig, epochs_per_call: int):
     """`chunk(seeds, budget, base_keys, train_arrays, val_arrays) -> (seeds, train_loss,
-    val_loss, ran)`: `epochs_per_call` epochs of every seed in one compiled program,
+    val_loss, ran)`, the arrays `(q, qd, qdd)` of each of `scenes` (`_epoch`):
+    `epochs_per_call` epochs of every seed in one compiled program,
     each with its validation loss, best parameters and the stopping rule, so the host
     is not consulted between epochs. A seed that stops mid-call (or was done) keeps its
     state; `ran` (S, K) says which epochs each seed ran; the losses are (S, K).
     The stopping rule is `stop_reason`'s (the minutes cap aside, which the host
     checks between calls)."""
-    epoch = _epoch(model, scene, config)
-    sse = _validation_sse(model, scene, config.val_chunk)
+    epoch = _epoch(model, scenes, config)
+    sses = [_validation_sse(model, scene, config.val_chunk) for scene in scenes]
 
     def one_seed(seed: _Seeds, budget: _Budget, base_key, train_arrays, val_arrays):
         def one_epoch(seed: _Seeds):
-            params, opt_state, train_loss = epoch(seed.params, seed.opt_state, *train_arrays, jax.random.fold_in(base_key, seed.epoch))
-            val = sse(params, *val_arrays) / val_arrays[0].size
+            params, opt_state, train_loss = epoch(seed.params, seed.opt_state, train_arrays, jax.random.fold_in(base_key, seed.epoch))
+            val = sum(sse(params, *arrays) for sse, arrays in zip(sses, val_arrays)) / sum(arrays[0].size for arrays in val_arrays)
             number = seed.epoch + 1
             improved = val < seed.best_val
             best_val = jnp.where(improved, val, seed.best_val)
@@ -418,14 +442,15 @@ def train(
     model: models.ModelConfig,
     config: TrainConfig,
     dataset: Dataset,
-    scene: Scene,
+    scene: Scene | Sequence[Scene],
     *,
     out: str | os.PathLike | None = None,
     data_config: DataConfig | None = None,
     resume: bool = False,
     progress: bool = False,
 ) -> TrainState:
-    """Train (or resume training of) `model` on `dataset` of `scene`; module docstring."""
+    """Train (or resume training of) `model` on `dataset` of `scene` (or of its varied
+    draws' scenes, `lgnn.learn.data.draw_scenes`); module docstring."""
     return train_seeds(model, [config], dataset, scene, outs=None if out is None else [out], data_config=data_config, resume=resume, progress=progress)[0]
 
 
@@ -433,7 +458,7 @@ def train_seeds(
     model: models.ModelConfig,
     configs: Sequence[TrainConfig],
     dataset: Dataset,
-    scene: Scene,
+    scene: Scene | Sequence[Scene],
     *,
     outs: Sequence[str | os.PathLike] | None = None,
     data_config: DataConfig | None = None,
@@ -449,8 +474,16 @@ def train_seeds(
     go on, and seeds may resume from different epochs. The next call is queued before
     the host writes the last one's checkpoints, so the device does not wait for the
     disk. Each seed's `elapsed_s` counts the group's wall-clock time; the times of the
-    epochs inside one call are spread evenly over it."""
+    epochs inside one call are spread evenly over it. A dataset of varied draws trains
+    on the draws' scenes (`scene`, one per draw, in order): each step's batch takes
+    `batch_size / draws` states of every draw (`_epoch`), and the validation loss is the
+    mean over all validation states, each against its own draw's scene."""
     from tqdm.auto import tqdm
+
+    scenes = (scene,) if isinstance(scene, Scene) else tuple(scene)
+    n_draws = int(dataset.draw.max()) + 1 if len(dataset.draw) else 1
+    if len(scenes) != n_draws:
+        raise ConfigError(f"the dataset holds {n_draws} varied draws but {len(scenes)} scenes were given (lgnn.learn.data.draw_scenes)")
 
     # The schedule rule needs the budget, known from here on (the benchmark's profiles
     # arrive resolved: `lgnn.bench.grid.TrainSettings`).
@@ -459,21 +492,26 @@ def train_seeds(
         raise ConfigError("seeds trained together must share every training setting but the seed")
     if outs is not None and len(outs) != len(configs):
         raise ConfigError(f"{len(configs)} seeds but {len(outs)} checkpoint paths")
-    models.check_compatible(model, scene)
-    if len(dataset.train) < configs[0].batch_size:
+    for draw_scene in scenes:
+        models.check_compatible(model, draw_scene)
+    if configs[0].batch_size % n_draws:
+        raise ConfigError(f"a batch of {configs[0].batch_size} cannot take the same number of states from each of {n_draws} varied draws")
+    train_draws = [dataset.train[dataset.draw[dataset.train] == k] for k in range(n_draws)]
+    val_draws = [dataset.val[dataset.draw[dataset.val] == k] for k in range(n_draws)]
+    if min(len(t) for t in train_draws) < configs[0].batch_size // n_draws:
         raise ConfigError(f"{len(dataset.train)} training states is fewer than one batch of {configs[0].batch_size}")
     config = configs[0]
     outs = [None] * len(configs) if outs is None else list(outs)
-    statistics = models.training_statistics(model, scene, *(a[dataset.train] for a in (dataset.q, dataset.qd, dataset.qdd)))
+    statistics = _training_statistics(model, scenes, dataset, train_draws)
     states = [
         check_resumable(out, model, c)[0] if resume and out is not None and Path(out).exists() else initial_state(model, c, statistics)
         for c, out in zip(configs, outs)
     ]
-    train_arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
-    val_arrays = tuple(jnp.asarray(a[dataset.val]) for a in (dataset.q, dataset.qd, dataset.qdd))
+    train_arrays = tuple(tuple(jnp.asarray(a[index]) for a in (dataset.q, dataset.qd, dataset.qdd)) for index in train_draws)
+    val_arrays = tuple(tuple(jnp.asarray(a[index]) for a in (dataset.q, dataset.qd, dataset.qdd)) for index in val_draws)
     base_keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(c.seed), 1) for c in configs])
     budget = _Budget(*(jnp.asarray(v) for v in (config.epochs, config.patience, config.min_improvement)))
-    chunk = _chunk_fn(model, scene, _optimisation_only(config), config.checkpoint_every)
+    chunk = _chunk_fn(model, scenes, _optimisation_only(config), config.checkpoint_every)
     start, elapsed_before = time.monotonic(), [state.elapsed_s for state in states]
     done = [finished(state, config) for state in states]
     seeds = _to_device(states, done, config.epochs)
@@ -504,6 +542,18 @@ def train_seeds(
         if out is not None:
             save_checkpoint(out, state, model, c, data_config)
     return states
+
+
+def _training_statistics(model: models.ModelConfig, scenes: tuple[Scene, ...], dataset: Dataset, train_draws: list) -> dict | None:
+    """The statistics the model normalises by (`models.training_statistics`): of the one
+    scene's training states, or each draw's of its own, averaged weighted by their
+    numbers of training states."""
+    per_draw = [models.training_statistics(model, scene, *(a[index] for a in (dataset.q, dataset.qd, dataset.qdd)))
+                for scene, index in zip(scenes, train_draws)]
+    if per_draw[0] is None or len(per_draw) == 1:
+        return per_draw[0]
+    weights = np.asarray([len(index) for index in train_draws], np.float64) / len(dataset.train)
+    return {name: sum(w * np.asarray(draw[name]) for w, draw in zip(weights, per_draw)) for name in per_draw[0]}
 
 
 def _to_device(states: list[TrainState], done: list[bool], epochs: int) -> _Seeds:
@@ -576,7 +626,7 @@ def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: 
         "model": model.to_dict(),
         "train": training_key(config),
         "train_config": dataclasses.asdict(config),
-        "data": dataclasses.asdict(data_config) if data_config else None,
+        "data": data_config.to_dict() if data_config else None,
         "epoch": state.epoch,
         "best_epoch": state.best_epoch,
         "best_val": state.best_val if np.isfinite(state.best_val) else None,
@@ -664,9 +714,12 @@ def physics_differences(meta: dict, scene: Scene) -> list[str]:
     from lgnn.scene import get_scene
 
     source = (meta.get("data") or {}).get("scene")
+    draws = (meta.get("data") or {}).get("varied_draws", 0)
     try:
         trained = get_scene(source) if source else None
-    except SceneError:
+        if trained is not None and draws:
+            return _outside_the_draws(scene, draw_scenes(DataConfig(scene=source, n_trajectories=draws, varied_draws=draws)))
+    except (SceneError, ConfigError):
         return []
     if trained is None:
         return []
@@ -679,6 +732,24 @@ def physics_differences(meta: dict, scene: Scene) -> list[str]:
         values, trained_values = (np.unique(np.round(getattr(s, name), 12)) for s in (scene, trained))
         if values.shape != trained_values.shape or not np.allclose(values, trained_values):
             differences.append(f"link {name} {_values(values)} (trained on {_values(trained_values)})")
+    return differences
+
+
+def _outside_the_draws(scene: Scene, draws: tuple[Scene, ...]) -> list[str]:
+    """`physics_differences` of a model trained on varied draws: the gravity and drag of
+    the draws, and link values outside the range the draws spanned."""
+    trained = draws[0]
+    differences = []
+    if not np.allclose(trained.gravity, scene.gravity):
+        differences.append(f"gravity {np.asarray(scene.gravity).tolist()} (trained on {np.asarray(trained.gravity).tolist()})")
+    if not np.isclose(trained.drag, scene.drag):
+        differences.append(f"drag {scene.drag:g} (trained on {trained.drag:g})")
+    for name in ("masses", "inertias", "lengths"):
+        seen = np.concatenate([getattr(draw, name) for draw in draws])
+        values = np.asarray(getattr(scene, name))
+        low, high = seen.min() * (1 - 1e-12), seen.max() * (1 + 1e-12)
+        if values.min() < low or values.max() > high:
+            differences.append(f"link {name} from {values.min():g} to {values.max():g} (trained on {seen.min():g} to {seen.max():g})")
     return differences
 
 

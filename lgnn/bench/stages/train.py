@@ -12,7 +12,6 @@ report the finished ones.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import jax
@@ -55,7 +54,7 @@ def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
     except CheckpointError as err:
         log(f"warning: {err}; retraining {job.name}")
         return False
-    same = meta["model"] == model.to_dict() and meta["train"] == train.training_key(train_config) and meta["data"] == dataclasses.asdict(data_config)
+    same = meta["model"] == model.to_dict() and meta["train"] == train.training_key(train_config) and meta["data"] == data_config.to_dict()
     if same and train.finished(state, train_config):
         log(f"train {job.name}: reusing finished checkpoint ({state.epoch} epochs, best validation MSE {state.best_val:.3g})")
         return None
@@ -99,16 +98,17 @@ def _train_group(layout: Layout, profile: Profile, group: list[TrainingJob], pro
     for job, path, plan, _ in todo:
         if not plan and path.exists():
             path.unlink()  # replaced: other settings or unreadable
-    # The seeds of a group share everything but the seed: the first one's scene,
-    # model and data serve them all.
-    scene, model, data_config, train_config = todo[0][3]
+    # The seeds of a group share everything but the seed: the first one's model and
+    # data (and the data's scenes) serve them all.
+    _, model, data_config, train_config = todo[0][3]
     dataset = data.load_or_generate(data_config, layout.datasets, progress=progress)
     if fresh:
         log(f"train {', '.join(j.name for j in fresh)}: {len(dataset.train)} training states, budget {train_config.epochs} epochs"
             + (f", plateau: no {train_config.min_improvement:.0%} gain in {train_config.patience} epochs" if train_config.min_improvement else "")
             + (f" / {train_config.minutes:g} min" if train_config.minutes else ""))
     configs = [setting[3] for _, _, _, setting in todo]
-    states = train.train_seeds(model, configs, dataset, scene, outs=[path for _, path, _, _ in todo], data_config=data_config, resume=True, progress=progress)
+    states = train.train_seeds(model, configs, dataset, data.draw_scenes(data_config), outs=[path for _, path, _, _ in todo], data_config=data_config,
+                               resume=True, progress=progress)
     for (job, _, _, _), state in zip(todo, states):
         log(f"train {job.name}: {state.epoch} epochs in {state.elapsed_s / 60:.1f} min, best validation MSE {state.best_val:.3g} (epoch {state.best_epoch})")
 

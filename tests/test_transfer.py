@@ -1,0 +1,79 @@
+"""The transfer track's training data: varied draws of a chain (`DataConfig.varied_draws`),
+each state of its own draw's physics, and training on all draws at once."""
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from lgnn import physics
+from lgnn.errors import ConfigError
+from lgnn.learn import data, models, train
+from lgnn.scene import get_scene
+
+DRAWS = data.DataConfig(n_trajectories=4, duration=0.2, sample_dt=0.01, dt=1e-3, varied_draws=2)
+
+
+@pytest.fixture(scope="module")
+def draws_dataset(tmp_path_factory):
+    return data.load_or_generate(DRAWS, tmp_path_factory.mktemp("cache"))
+
+
+def test_varied_draws_are_chains_of_the_rule_each_state_of_its_own_draw(draws_dataset):
+    """Two draws of 4-link chains, two trajectories each: every state keeps its own draw's
+    link lengths (not the other's) and its target is its own draw's exact acceleration."""
+    scenes = data.draw_scenes(DRAWS)
+    assert [s.n_links for s in scenes] == [4, 4] and not np.allclose(scenes[0].lengths, scenes[1].lengths)
+    assert [s.name for s in scenes] == ["chain4-draw0", "chain4-draw1"]
+    np.testing.assert_array_equal(np.bincount(draws_dataset.draw), [40, 40])
+    assert set(draws_dataset.draw[draws_dataset.train]) == {0, 1} and set(draws_dataset.draw[draws_dataset.val]) == {0, 1}
+    for k, scene in enumerate(scenes):
+        mine = draws_dataset.draw == k
+        q, qd, qdd = draws_dataset.q[mine], draws_dataset.qd[mine], draws_dataset.qdd[mine]
+        violation = jax.jit(jax.vmap(lambda x, s=scene: physics.constraint_violation(s, x)))
+        assert float(violation(q).max()) < 1e-9
+        assert float(jax.vmap(lambda x, s=scenes[1 - k]: physics.constraint_violation(s, x))(q[:5]).min()) > 1e-3
+        np.testing.assert_allclose(jax.jit(jax.vmap(physics.true_acceleration_fn(scene)))(q, qd), qdd, rtol=1e-9, atol=1e-9)
+
+
+def test_varied_draws_settings_are_checked_and_keep_the_keys_of_data_without_them():
+    assert "varied_draws" not in data.DataConfig().to_dict() and DRAWS.to_dict()["varied_draws"] == 2
+    assert data.DataConfig().key(get_scene("chain4"))["settings"] == {
+        k: v for k, v in dataclasses.asdict(data.DataConfig()).items() if k not in ("chunk", "varied_draws")}
+    with pytest.raises(ConfigError, match="cannot be shared equally among 3 varied draws"):
+        data.DataConfig(n_trajectories=4, varied_draws=3)
+    with pytest.raises(ConfigError, match="varied draws must be a whole number"):
+        data.DataConfig(varied_draws=-1)
+    with pytest.raises(ConfigError, match="need a planar chain pinned at one end; 'T1'"):
+        data.draw_scenes(dataclasses.replace(DRAWS, scene="T1"))
+
+
+def test_training_on_draws_scores_each_state_against_its_own_draw(draws_dataset):
+    """An epoch's batches take half their states from each draw; the validation loss
+    training reports is the mean over both draws' validation states, each scored with its
+    own scene, and training lowers it. The wrong scenes, or a batch the draws cannot
+    share, are refused in one line."""
+    scenes = data.draw_scenes(DRAWS)
+    model = models.ModelConfig.for_scene("lgnn", scenes[0])
+    config = train.TrainConfig(learning_rate=3e-3, batch_size=10, epochs=3, warmup_steps=5)
+    state = train.train(model, config, draws_dataset, scenes)
+    val = [draws_dataset.val[draws_dataset.draw[draws_dataset.val] == k] for k in range(2)]
+    per_draw = [train.evaluate_fn(model, scene)(state.best_params, *(a[index] for a in (draws_dataset.q, draws_dataset.qd, draws_dataset.qdd)))
+                for scene, index in zip(scenes, val)]
+    expected = sum(loss * len(index) for loss, index in zip(per_draw, val)) / sum(len(index) for index in val)
+    assert state.best_val == pytest.approx(expected, rel=1e-9)
+    initial = train.initial_state(model, config).params
+    assert state.best_val < min(train.evaluate_fn(model, scene)(initial, *(a[index] for a in (draws_dataset.q, draws_dataset.qd, draws_dataset.qdd)))
+                                for scene, index in zip(scenes, val))
+    with pytest.raises(ConfigError, match="holds 2 varied draws but 1 scenes"):
+        train.train(model, config, draws_dataset, scenes[0])
+    with pytest.raises(ConfigError, match="cannot take the same number of states from each of 2 varied draws"):
+        train.train(model, dataclasses.replace(config, batch_size=9), draws_dataset, scenes)
+
+
+def test_a_model_trained_on_draws_is_warned_only_outside_the_ranges_its_draws_spanned():
+    meta = {"data": {**DRAWS.to_dict()}}
+    scenes = data.draw_scenes(DRAWS)
+    assert train.physics_differences(meta, scenes[1]) == []
+    assert any(d.startswith("link masses from 1 to 1 (trained on ") for d in train.physics_differences(meta, get_scene("chain4")))
