@@ -432,7 +432,7 @@ def _cmd_train(args) -> None:
     data_config, config = train_settings(args)
     scene = get_scene(args.scene)
     name = models.load_spec(args.model).name if ":" in args.model else args.model
-    model = models.ModelConfig.for_scene(name, scene, message_passing=args.message_passing)
+    model = models.ModelConfig.for_scene(name, scene, message_passing=args.message_passing, link_features=args.link_features)
     if args.resume and Path(args.out).exists():
         train.check_resumable(args.out, model, config)  # before minutes of data generation
     cache = args.cache_dir or data.default_cache_dir()
@@ -487,6 +487,8 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--message-passing", type=_nonnegative_int, default=None, help="message-passing layers (default: the model's)")
     parser.add_argument("--trajectories", type=_positive_int, default=recipe.data.n_trajectories,
                         help=f"training trajectories (default {recipe.data.n_trajectories}, the full profile's and the paper's)")
+    parser.add_argument("--link-features", action="store_true",
+                        help="edges also carry each link's mass, inertia ratio and length (for models that read them; with --varied-draws)")
     parser.add_argument("--varied-draws", type=_nonnegative_int, default=0,
                         help="train on K planar chains as long as the scene, each link's length, mass and inertia drawn by the varied-chain rule, "
                              "the trajectories shared among them (the transfer track; default 0: the scene itself)")

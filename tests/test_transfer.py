@@ -4,12 +4,13 @@ each state of its own draw's physics, and training on all draws at once."""
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from lgnn import physics
 from lgnn.errors import ConfigError
-from lgnn.learn import data, models, train
+from lgnn.learn import data, graphs, models, train
 from lgnn.scene import get_scene
 
 DRAWS = data.DataConfig(n_trajectories=4, duration=0.2, sample_dt=0.01, dt=1e-3, varied_draws=2)
@@ -55,7 +56,7 @@ def test_training_on_draws_scores_each_state_against_its_own_draw(draws_dataset)
     own scene, and training lowers it. The wrong scenes, or a batch the draws cannot
     share, are refused in one line."""
     scenes = data.draw_scenes(DRAWS)
-    model = models.ModelConfig.for_scene("lgnn", scenes[0])
+    model = models.ModelConfig.for_scene("lgnn", scenes[0], link_features=True)
     config = train.TrainConfig(learning_rate=3e-3, batch_size=10, epochs=3, warmup_steps=5)
     state = train.train(model, config, draws_dataset, scenes)
     val = [draws_dataset.val[draws_dataset.draw[draws_dataset.val] == k] for k in range(2)]
@@ -77,3 +78,57 @@ def test_a_model_trained_on_draws_is_warned_only_outside_the_ranges_its_draws_sp
     scenes = data.draw_scenes(DRAWS)
     assert train.physics_differences(meta, scenes[1]) == []
     assert any(d.startswith("link masses from 1 to 1 (trained on ") for d in train.physics_differences(meta, get_scene("chain4")))
+
+
+def _moving_state(scene, seed=0):
+    q = jnp.asarray(scene.nodes)
+    return jax.jit(physics.projection_fn(scene))(q, jax.random.normal(jax.random.PRNGKey(seed), q.shape))
+
+
+def test_link_features_carry_each_links_mass_inertia_and_length():
+    """LGNN's machinery with the exact per-link energies written on the link attributes
+    alone (mass, inertia ratio, length from `edges["link"]`, nothing from the scene)
+    gives the ground truth's accelerations on two varied chains it was not written for:
+    the attributes are the physics' own, in the graph's edge order."""
+
+    def energies(graph):
+        s, r = graph.senders, graph.receivers
+        mass, ratio, length = (graph.edges["link"][:, k] for k in range(graphs.LINK_FEATURES))
+        v_cm = 0.5 * (graph.nodes["qd"][s] + graph.nodes["qd"][r])
+        dq2 = jnp.sum(graph.edges["dq"] ** 2, -1)
+        inertia = ratio * mass * length**2
+        kinetic = 0.5 * mass * jnp.sum(v_cm**2, -1) + 0.5 * inertia * jnp.sum(graph.edges["w"] ** 2, -1) / dq2**2
+        return kinetic, mass * 10.0 * 0.5 * (graph.nodes["q"][s, 1] + graph.nodes["q"][r, 1])
+
+    for name in ("chain8-varied", "chain16-varied"):
+        scene = get_scene(name)
+        q, qd = _moving_state(scene, seed=2)
+        lagrangian = models.lgnn_lagrangian_fn(scene, ("link",), energies, link_features=True)
+        ours = jax.jit(physics.acceleration_fn(scene, lagrangian, mass=physics.LOCAL))(q, qd)
+        np.testing.assert_allclose(ours, physics.true_acceleration_fn(scene)(q, qd), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["lgnn", "lgnn-notebook", "gns", "lgn"])
+def test_graph_models_see_link_masses_only_with_link_features(name):
+    """Two chains of the same shape whose links differ in mass only: the paper's features
+    cannot tell them apart (the same accelerations, whatever the parameters), the link
+    features can."""
+    light = get_scene("chain4-varied")
+    heavy = light.replace(masses=light.masses * np.asarray([1.0, 3.0, 0.5, 2.0]))
+    q, qd = _moving_state(light, seed=3)
+    for link_features in (False, True):
+        config = models.ModelConfig.for_scene(name, light, link_features=link_features)
+        params = models.init(jax.random.PRNGKey(4), config)
+        a, b = (np.asarray(jax.jit(models.acceleration_fn(config, params, scene))(q, qd)) for scene in (light, heavy))
+        assert np.all(np.isfinite(a)) and np.all(np.isfinite(b))
+        assert (np.max(np.abs(a - b)) > 1e-6 * np.max(np.abs(a))) == link_features, (name, link_features)
+
+
+def test_link_features_are_a_setting_of_the_models_that_read_them():
+    config = models.ModelConfig.for_scene("lgnn", get_scene("chain4"), link_features=True)
+    assert models.ModelConfig.from_dict(config.to_dict()) == config
+    assert "link_features" not in models.ModelConfig("lgnn").to_dict()  # checkpoints made before it compare equal
+    with pytest.raises(ConfigError, match="clnn does not read link features"):
+        models.ModelConfig("clnn", link_features=True)
+    with pytest.raises(ConfigError, match="link-features must be true or false"):
+        models.ModelConfig("lgnn", link_features=1)

@@ -20,13 +20,15 @@ RESULT_TABLES = {"summary": "summary.csv", "curves": "curves.csv.gz", "speed": "
 
 
 def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: int | None = None, seed: int = 0,
-          minutes: float | None = None, trajectories: int | None = None, varied_draws: int = 0, resume: bool = False,
+          minutes: float | None = None, trajectories: int | None = None, varied_draws: int = 0, link_features: bool = False, resume: bool = False,
           cache_dir: str | os.PathLike | None = None, progress: bool = False):
     """Train `model` (a built-in name or `file.py:ATTR` / `module:ATTR`) on `scene` with
     the full profile's recipe (as `lgnn train`), writing the checkpoint `out` every
     10 epochs (the recipe's `checkpoint_every`) and at the end; `epochs`, `minutes`,
     `trajectories` override the recipe's budget and data size; `varied_draws` trains on
-    that many varied draws of the chain (`lgnn train --varied-draws`). Returns the final training state (`best_val`, `best_epoch`, `epoch`, ...)."""
+    that many varied draws of the chain (`lgnn train --varied-draws`), and
+    `link_features` gives the model each link's mass, inertia ratio and length
+    (`--link-features`). Returns the final training state (`best_val`, `best_epoch`, `epoch`, ...)."""
     from lgnn.bench.grid import PROFILES
     from lgnn.learn import data, models
     from lgnn.learn import train as training
@@ -39,7 +41,7 @@ def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: 
     config = dataclasses.replace(recipe.train, seed=seed, minutes=minutes, **({"epochs": epochs} if epochs else {}))
     structure = get_scene(scene)
     name = models.load_spec(model).name if ":" in model else model
-    model_config = models.ModelConfig.for_scene(name, structure)
+    model_config = models.ModelConfig.for_scene(name, structure, link_features=link_features)
     dataset = data.load_or_generate(data_config, cache_dir or data.default_cache_dir(), progress=progress)
     return training.train(model_config, config, dataset, data.draw_scenes(data_config), out=out, data_config=data_config, resume=resume, progress=progress)
 

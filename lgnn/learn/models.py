@@ -88,7 +88,7 @@ from lgnn.engines.lagrangian import simulate
 from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
 from lgnn.errors import ConfigError
 from lgnn.learn import cgnode, chgn, chnn, strong_gns
-from lgnn.learn.graphs import edge_type_indices, graph_from_state
+from lgnn.learn.graphs import LINK_FEATURES, edge_attributes, edge_type_indices, graph_from_state
 from lgnn.scene import Scene, State
 
 
@@ -126,6 +126,9 @@ class ModelSpec:
     # local features), so the Euler-Lagrange solve may assemble it from fewer products
     # (`physics.acceleration_fn`); None: none declared (the dense Hessian).
     mass: Callable | None = None
+    # Whether its networks read `graphs.edge_attributes`, so `ModelConfig.link_features`
+    # gives them each link's mass, inertia ratio and length (the transfer track).
+    link_features: bool = False
     # `statistics(config, scene, q, qd, qdd) -> {name: array}`: constants the model
     # normalises by, computed once by training from its training states and targets
     # (each (S, N, D)) and kept in `params[STATISTICS]`, where `init` puts placeholders
@@ -243,6 +246,10 @@ class ModelConfig:
     # System size (nodes, dimension) of the training scene; CLNN is tied to it.
     n_nodes: int = 5
     dim: int = 2
+    # Edges also carry each link's mass, inertia ratio and length (`graphs.link_attributes`):
+    # a model trained on varied draws can then tell links apart (the paper's features
+    # hold no mass). Only for models that read them (`ModelSpec.link_features`).
+    link_features: bool = False
 
     def __post_init__(self):
         if not isinstance(self.name, str):
@@ -266,6 +273,10 @@ class ModelConfig:
                 raise ConfigError(f"model {name.replace('_', '-')} must be a whole number {bounds}, got {value!r}")
         if not isinstance(self.drag, bool):
             raise ConfigError(f"model drag must be true or false, got {self.drag!r}")
+        if not isinstance(self.link_features, bool):
+            raise ConfigError(f"model link-features must be true or false, got {self.link_features!r}")
+        if self.link_features and not spec.link_features:
+            raise ConfigError(f"model {self.name} does not read link features")
 
     @property
     def spec(self) -> ModelSpec:
@@ -278,7 +289,12 @@ class ModelConfig:
         return cls(name, **{**settings, **overrides})
 
     def to_dict(self) -> dict:
-        return {**dataclasses.asdict(self), "vocabulary": list(self.vocabulary)}
+        """The config as checkpoints keep it; `link_features` only when set, so configs
+        saved before it existed compare equal."""
+        data = {**dataclasses.asdict(self), "vocabulary": list(self.vocabulary)}
+        if not self.link_features:
+            del data["link_features"]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict) -> "ModelConfig":
@@ -400,9 +416,10 @@ def _edge_energy_reach(config: ModelConfig) -> int:
 
 
 def _feature_sizes(config: ModelConfig) -> tuple[int, int, int]:
-    """(edge types K, dimension D, size W of `w = dq x dqd`: 1 in 2D, D in 3D)."""
+    """(edge attributes A: the K types and, with link features, the link's attributes
+    (`graphs.edge_attributes`); dimension D; size W of `w = dq x dqd`: 1 in 2D, D in 3D)."""
     d = config.dim
-    return len(config.vocabulary), d, 1 if d == 2 else d
+    return len(config.vocabulary) + (LINK_FEATURES if config.link_features else 0), d, 1 if d == 2 else d
 
 
 def _init_lgnn(key, config: ModelConfig) -> dict:
@@ -452,8 +469,8 @@ def _lgnn_edge_energies(params: dict):
         nodes, edges = graph.nodes, graph.edges
         out = []
         for net, node_x, edge_x in (
-            ("kinetic", nodes["qd"], jnp.concatenate([edges["type"], edges["w"]], -1)),
-            ("potential", nodes["q"], jnp.concatenate([edges["type"], edges["dq"]], -1)),
+            ("kinetic", nodes["qd"], jnp.concatenate([edge_attributes(graph), edges["w"]], -1)),
+            ("potential", nodes["q"], jnp.concatenate([edge_attributes(graph), edges["dq"]], -1)),
         ):
             _, z = _apply_graph_net(params[net], node_x, edge_x, graph.senders, graph.receivers)
             out.append(_apply_mlp(params[net]["readout"], z)[:, 0])
@@ -462,14 +479,14 @@ def _lgnn_edge_energies(params: dict):
     return energies
 
 
-def lgnn_lagrangian_fn(scene: Scene, vocabulary, edge_energies: Callable) -> physics.LagrangianFn:
+def lgnn_lagrangian_fn(scene: Scene, vocabulary, edge_energies: Callable, link_features: bool = False) -> physics.LagrangianFn:
     """LGNN's read-out as a Lagrangian: `edge_energies(graph) -> (T, V)`, each (2E,) one
     value per directed edge, is averaged over each link's two orientations and summed:
     `L = sum_links (T - V)`. The learned model plugs its networks in here; the tests plug
     in the exact per-link energies to show the pipeline is the physics pipeline."""
 
     def lagrangian(q, qd):
-        kinetic, potential = edge_energies(graph_from_state(scene, q, qd, vocabulary))
+        kinetic, potential = edge_energies(graph_from_state(scene, q, qd, vocabulary, link_features))
         return 0.5 * jnp.sum(kinetic - potential)
 
     return lagrangian
@@ -488,7 +505,7 @@ def _init_graph_model(key, config: ModelConfig, readout: tuple[int, ...]) -> dic
 def _graph_net_outputs(params: dict, graph):
     nodes, edges = graph.nodes, graph.edges
     node_x = jnp.concatenate([nodes["q"], nodes["qd"]], -1)
-    edge_x = jnp.concatenate([edges["type"], edges["dq"], edges["w"]], -1)
+    edge_x = jnp.concatenate([edge_attributes(graph), edges["dq"], edges["w"]], -1)
     return _apply_graph_net(params["net"], node_x, edge_x, graph.senders, graph.receivers)
 
 
@@ -511,7 +528,7 @@ def _gns_acceleration(config: ModelConfig, params: dict, scene: Scene) -> physic
     free[list(scene.pinned)] = 0.0
 
     def accel(q, qd):
-        return _apply_gns(config, params, graph_from_state(scene, q, qd, config.vocabulary)) * free
+        return _apply_gns(config, params, graph_from_state(scene, q, qd, config.vocabulary, config.link_features)) * free
 
     return accel
 
@@ -527,7 +544,7 @@ def _apply_lgn(config: ModelConfig, params: dict, graph):
 
 
 def _lgn_lagrangian(config: ModelConfig, params: dict, scene: Scene) -> physics.LagrangianFn:
-    return lambda q, qd: _apply_lgn(config, params, graph_from_state(scene, q, qd, config.vocabulary))
+    return lambda q, qd: _apply_lgn(config, params, graph_from_state(scene, q, qd, config.vocabulary, config.link_features))
 
 
 def _lgn_mass(config: ModelConfig, params: dict, scene: Scene) -> physics.MassStructure:
@@ -537,7 +554,7 @@ def _lgn_mass(config: ModelConfig, params: dict, scene: Scene) -> physics.MassSt
     node, edge = graph_net_reach(config.message_passing)
     return physics.MassStructure(
         max(2 * node, 2 * edge + 1),
-        features=lambda q, qd: _lgn_pooled(params, graph_from_state(scene, q, qd, config.vocabulary)),
+        features=lambda q, qd: _lgn_pooled(params, graph_from_state(scene, q, qd, config.vocabulary, config.link_features)),
         readout=lambda pooled: _apply_mlp(params["readout"], pooled)[0],
         n_features=2 * config.latent,
     )
@@ -594,7 +611,7 @@ def _positive_convex_start(mlp: list) -> list:
 
 def _lgnn_notebook_edge_energies(params: dict):
     def energies(graph):
-        s, r, kind = graph.senders, graph.receivers, graph.edges["type"]
+        s, r, kind = graph.senders, graph.receivers, edge_attributes(graph)
         v_cm = 0.5 * (graph.nodes["qd"][s] + graph.nodes["qd"][r])
         r_cm = 0.5 * (graph.nodes["q"][s] + graph.nodes["q"][r])
         kinetic = sum(jnp.sum(_apply_mlp(params[k], jnp.concatenate([kind, x], -1)) ** 2, -1) for k, x in (("v_cm", v_cm), ("w", graph.edges["w"])))
@@ -606,8 +623,8 @@ def _lgnn_notebook_edge_energies(params: dict):
 def _lgnn_spec(name: str, message_passing: int) -> ModelSpec:
     return ModelSpec(
         name, _init_lgnn, apply=lambda config, params, graph: _lgnn_edge_energies(params)(graph),
-        lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_edge_energies(params)),
-        latent=5, hidden=10, message_passing=message_passing,
+        lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_edge_energies(params), config.link_features),
+        latent=5, hidden=10, message_passing=message_passing, link_features=True,
         # A link's energy sees its own two nodes only without message passing and after
         # one layer, nodes further away after more (`_edge_energy_reach`).
         mass=lambda config, params, scene: physics.MassStructure(_edge_energy_reach(config)),
@@ -622,16 +639,16 @@ register(_lgnn_spec("lgnn-mp1", 1))
 register(_lgnn_spec("lgnn-mp2", 2))
 register(ModelSpec(
     "lgnn-notebook", _init_lgnn_notebook, apply=lambda config, params, graph: _lgnn_notebook_edge_energies(params)(graph),
-    lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_notebook_edge_energies(params)),
-    latent=5, hidden=10, mass=lambda config, params, scene: physics.LOCAL,
+    lagrangian=lambda config, params, scene: lgnn_lagrangian_fn(scene, config.vocabulary, _lgnn_notebook_edge_energies(params), config.link_features),
+    latent=5, hidden=10, mass=lambda config, params, scene: physics.LOCAL, link_features=True,
 ))
 register(ModelSpec(
     "gns", lambda key, config: _init_graph_model(key, config, (config.latent, config.hidden, config.dim)),
-    apply=_apply_gns, acceleration=_gns_acceleration, latent=8, hidden=128, message_passing=2,
+    apply=_apply_gns, acceleration=_gns_acceleration, latent=8, hidden=128, message_passing=2, link_features=True,
 ))
 register(ModelSpec(
     "lgn", _init_lgn,
-    apply=_apply_lgn, lagrangian=_lgn_lagrangian, mass=_lgn_mass, latent=8, hidden=128, message_passing=2,
+    apply=_apply_lgn, lagrangian=_lgn_lagrangian, mass=_lgn_mass, latent=8, hidden=128, message_passing=2, link_features=True,
 ))
 register(ModelSpec("clnn", _init_clnn, lagrangian=_clnn_lagrangian, hidden=128, fixed_size=True))
 # The strong GNS (`strong_gns`): the GNS-10-128 recipe's sizes, LagrangeBench's AdamW
