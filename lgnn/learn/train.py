@@ -723,11 +723,7 @@ def physics_differences(meta: dict, scene: Scene) -> list[str]:
         return []
     if trained is None:
         return []
-    differences = []
-    if not np.allclose(trained.gravity, scene.gravity):
-        differences.append(f"gravity {np.asarray(scene.gravity).tolist()} (trained on {np.asarray(trained.gravity).tolist()})")
-    if not np.isclose(trained.drag, scene.drag):
-        differences.append(f"drag {scene.drag:g} (trained on {trained.drag:g})")
+    differences = _gravity_and_drag_differences(scene, trained)
     for name in ("masses", "inertias", "lengths"):
         values, trained_values = (np.unique(np.round(getattr(s, name), 12)) for s in (scene, trained))
         if values.shape != trained_values.shape or not np.allclose(values, trained_values):
@@ -735,15 +731,19 @@ def physics_differences(meta: dict, scene: Scene) -> list[str]:
     return differences
 
 
-def _outside_the_draws(scene: Scene, draws: tuple[Scene, ...]) -> list[str]:
-    """`physics_differences` of a model trained on varied draws: the gravity and drag of
-    the draws, and link values outside the range the draws spanned."""
-    trained = draws[0]
+def _gravity_and_drag_differences(scene: Scene, trained: Scene) -> list[str]:
     differences = []
     if not np.allclose(trained.gravity, scene.gravity):
         differences.append(f"gravity {np.asarray(scene.gravity).tolist()} (trained on {np.asarray(trained.gravity).tolist()})")
     if not np.isclose(trained.drag, scene.drag):
         differences.append(f"drag {scene.drag:g} (trained on {trained.drag:g})")
+    return differences
+
+
+def _outside_the_draws(scene: Scene, draws: tuple[Scene, ...]) -> list[str]:
+    """`physics_differences` of a model trained on varied draws: the gravity and drag of
+    the draws, and link values outside the range the draws spanned."""
+    differences = _gravity_and_drag_differences(scene, draws[0])
     for name in ("masses", "inertias", "lengths"):
         seen = np.concatenate([getattr(draw, name) for draw in draws])
         values = np.asarray(getattr(scene, name))
