@@ -3,7 +3,9 @@
 `train(model_config, train_config, dataset, out=CKPT)` fits a model to a `data.Dataset`
 (float64 under x64; the caller enables it): each epoch shuffles the training states
 with a key derived from `(seed, epoch)` and takes `len(train) // batch_size` Adam steps
-(the remainder of a shuffle is dropped) in one `lax.scan`; the validation loss is
+(the remainder of a shuffle is dropped) in one `lax.scan` (a dataset of K varied draws:
+each batch takes `batch_size / K` states of every draw, each scored with its own
+draw's scene); the validation loss is
 computed after every epoch; the parameters with the best validation loss are kept;
 training stops at the epoch budget (the budget: it means the same on any machine),
 after `patience` epochs without an improvement by the fraction `min_improvement` over

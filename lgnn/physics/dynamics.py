@@ -129,8 +129,8 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
 
 def uses_mass_structure(scene: Scene, mass: MassStructure) -> bool:
     """Whether `acceleration_fn` assembles the mass matrix from `mass`'s structure on
-    `scene`: when it takes no more products than the dense path's one per free
-    coordinate (at reach 1, always, so a long chain gets the block elimination)."""
+    `scene`: when it takes fewer products than the dense path's one per free
+    coordinate, and at reach 1 always (a long chain then gets the block elimination)."""
     system = prepare(scene)
     if mass == LOCAL:
         return True
