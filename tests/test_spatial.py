@@ -136,7 +136,7 @@ def test_spatial_solvers_agree(name):
         qdd = np.asarray(jax.jit(physics.true_acceleration_fn(scene, "chain"))(q, qd))
         np.testing.assert_allclose(qdd, reference, atol=tolerance, err_msg="chain")
     lagrangian, drag = physics.lagrangian_fn(scene), physics.drag_force_fn(scene)
-    local = np.asarray(jax.jit(physics.acceleration_fn(scene, lagrangian, drag, local_mass=True))(q, qd))
+    local = np.asarray(jax.jit(physics.acceleration_fn(scene, lagrangian, drag, mass=physics.LOCAL))(q, qd))
     np.testing.assert_allclose(local, reference, atol=10 * tolerance, err_msg="local mass")
 
 

@@ -24,14 +24,15 @@ def export_scene(profile: Profile, scene_name: str, out: str | os.PathLike, cach
     dataset = data.load_or_generate(config, cache_dir, progress=progress)
     evaluation = evaluation_initial_states(profile, scene)
     simulation = profile.evaluate.simulation(scene_name)
+    # One scene's data: every state is of draw 0, which the exported format does not hold.
     arrays = {
-        **dataset._asdict(),
+        **{name: value for name, value in dataset._asdict().items() if name != "draw"},
         "t": np.tile(np.arange(config.states_per_trajectory) * config.sample_dt, config.n_trajectories),
         "eval_q0": np.asarray(evaluation.q), "eval_qd0": np.asarray(evaluation.qd),
     }
     meta = {
         "scene": scene_to_dict(scene),
-        "data": dataclasses.asdict(config),
+        "data": config.to_dict(),
         "profile": profile.name,
         # What a predictions file answering these initial conditions names (`lgnn.bench.stages.external`):
         # the scene as the benchmark names it and the key of its ground truth; `frames` it holds.
