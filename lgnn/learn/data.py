@@ -163,7 +163,7 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
     with tqdm(total=config.n_trajectories, desc=f"data {label}", unit="traj", disable=not progress, leave=False) as bar:
         for k, scene in enumerate(scenes):
             run, targets = _compiled(scene, config.simulation, config.integration)
-            # Draw k's initial conditions from its own seed (draw 0's are the scene's own).
+            # Draw k's initial conditions from seed + 1000 k: without draws, the data seed itself.
             initial_q, initial_qd = physics.benchmark_initial_states(scene, per_draw, config.seed + 1000 * k)
             # One batch shape for every call (the last batch padded): one compile, sharded
             # over every local device.

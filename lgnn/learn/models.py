@@ -82,7 +82,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn import physics
+from lgnn import physics, records
 from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
 from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
@@ -248,8 +248,9 @@ class ModelConfig:
     dim: int = 2
     # Edges also carry each link's mass, inertia ratio and length (`graphs.link_attributes`):
     # a model trained on varied draws can then tell links apart (the paper's features
-    # hold no mass). Only for models that read them (`ModelSpec.link_features`).
-    link_features: bool = False
+    # hold no mass). Only for models that read them (`ModelSpec.link_features`). In a
+    # checkpoint's config only when set, so configs saved before it compare equal.
+    link_features: bool = dataclasses.field(default=False, metadata=records.KEY_UNLESS_DEFAULT)
 
     def __post_init__(self):
         if not isinstance(self.name, str):
@@ -289,12 +290,8 @@ class ModelConfig:
         return cls(name, **{**settings, **overrides})
 
     def to_dict(self) -> dict:
-        """The config as checkpoints keep it; `link_features` only when set, so configs
-        saved before it existed compare equal."""
-        data = {**dataclasses.asdict(self), "vocabulary": list(self.vocabulary)}
-        if not self.link_features:
-            del data["link_features"]
-        return data
+        """The config as checkpoints keep it (`records.settings_key`)."""
+        return {**records.settings_key(self), "vocabulary": list(self.vocabulary)}
 
     @classmethod
     def from_dict(cls, data: dict) -> "ModelConfig":
