@@ -504,6 +504,9 @@ def _add_train_parser(commands) -> None:
     inspect.add_argument("path", help="checkpoint written by lgnn train or lgnn benchmark")
     _add_model_code_option(inspect)
     inspect.add_argument("--reference", help="another checkpoint: also print when this one reached its best validation loss")
+    inspect.add_argument("--without-parameters", metavar="OUT",
+                         help="also write the checkpoint to OUT without its parameters and optimiser state: its records and training "
+                              "history stay readable (how the repository keeps large models)")
     inspect.set_defaults(run=_cmd_checkpoint)
 
     rollout = commands.add_parser("rollout", help="roll a trained model out on a scene")
@@ -615,6 +618,14 @@ def _cmd_checkpoint(args) -> None:
     from lgnn.learn import train
 
     _import_model_code(args)
+    if args.without_parameters:
+        from pathlib import Path
+
+        from lgnn.files import check_writable
+
+        check_writable(args.without_parameters)
+        if Path(args.without_parameters).resolve() == Path(args.path).resolve():
+            raise ConfigError("--without-parameters must name another file than the checkpoint")
     state, meta = train.load_checkpoint(args.path)
     print(f"{args.path}: {meta['model']['name']}, epoch {state.epoch}, best validation loss {state.best_val:.4g} at epoch {state.best_epoch}, "
           f"{state.elapsed_s:.1f} s of training")
@@ -628,6 +639,11 @@ def _cmd_checkpoint(args) -> None:
         else:
             reached = "not reached"
         print(f"reference {args.reference}: best validation loss {reference.best_val:.4g} ({reference.elapsed_s:.1f} s of training): {reached}")
+    if args.without_parameters:
+        from lgnn.learn import checkpoints
+
+        checkpoints.without_parameters(args.path, args.without_parameters)
+        print(f"wrote {args.without_parameters} (without parameters)")
 
 
 def _cmd_benchmark(args) -> None:

@@ -174,12 +174,16 @@ def test_converted_checkpoints_roll_out_bit_identically(tmp_path):
 
 
 def test_committed_checkpoints_are_converted_and_keep_their_content():
-    """Every committed checkpoint is a format-1 file converted by tools/convert_checkpoints.py;
-    the records made from the format-1 files load under their keys (bench/test_keys.py),
-    whose `content_digest` is the converted file's: the same settings and best parameters."""
+    """Every committed checkpoint is format 2: the paper's grid's are format-1 files
+    converted by tools/convert_checkpoints.py; the records made from the format-1 files
+    load under their keys (bench/test_keys.py), whose `content_digest` is the converted
+    file's: the same settings and best parameters."""
+    paper = {"lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn"}
     for path in sorted(COMMITTED.glob("*.npz")):
         meta, _ = checkpoints.read(path)
-        assert meta["format"] == checkpoints.FORMAT and meta["converted_from"]["format"] == checkpoints.LEGACY_FORMAT, path.name
+        assert meta["format"] == checkpoints.FORMAT, path.name
+        if meta["model"]["name"] in paper:
+            assert meta["converted_from"]["format"] == checkpoints.LEGACY_FORMAT, path.name
     model, _ = load_model(COMMITTED / "lgnn-notebook-chain4-s0.npz")
     assert model.name == "lgnn-notebook" and train.load_checkpoint(COMMITTED / "lgnn-notebook-chain4-s0.npz")[0].epoch > 0
 
@@ -199,3 +203,35 @@ def test_a_damaged_compressed_checkpoint_is_one_line(tmp_path):
         (tmp_path / "damaged.npz").write_bytes(bytes(damaged))
         with pytest.raises(CheckpointError, match="damaged.npz: (not a readable lgnn checkpoint|corrupt checkpoint)"):
             load_model(tmp_path / "damaged.npz")
+
+
+def test_a_checkpoint_kept_without_parameters_keeps_its_records_and_training_only(tmp_path, capsys):
+    """`lgnn checkpoint --without-parameters`: the copy's content digest (what records
+    key on), training history and learned parameter count are the checkpoint's; rolling
+    it out or resuming it is one line; the source is only read."""
+    from lgnn import cli
+
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene("gns", scene)
+    config = train.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
+    full, slim = tmp_path / "full.npz", tmp_path / "slim.npz"
+    state = train.train(model, config, _tiny_dataset(scene), scene, out=full)
+    before = full.read_bytes()
+    assert cli.main(["checkpoint", str(full), "--without-parameters", str(slim)]) == 0
+    assert full.read_bytes() == before and slim.stat().st_size < full.stat().st_size / 2
+    assert checkpoints.content_digest(slim) == checkpoints.content_digest(full)
+    kept, meta = train.load_checkpoint(slim)
+    assert kept.params is None and kept.history == state.history and (kept.epoch, kept.best_val) == (state.epoch, state.best_val)
+    _, params = load_model(full)
+    assert meta[checkpoints.WITHOUT_PARAMETERS]["parameters"] == checkpoints.learned_parameter_count(params) > 0
+    with pytest.raises(CheckpointError, match="slim.npz: kept without its parameters .* cannot be rolled out"):
+        load_model(slim)
+    with pytest.raises(CheckpointError, match="cannot be resumed"):
+        train.train(model, config, _tiny_dataset(scene), scene, out=slim, resume=True)
+    # Again from the slim copy: the same digest and count, never its own.
+    again = tmp_path / "again.npz"
+    checkpoints.without_parameters(slim, again)
+    assert checkpoints.read(again)[0][checkpoints.WITHOUT_PARAMETERS] == meta[checkpoints.WITHOUT_PARAMETERS]
+    capsys.readouterr()
+    assert cli.main(["checkpoint", str(full), "--without-parameters", str(full)]) == 2
+    assert "another file" in capsys.readouterr().err

@@ -304,6 +304,26 @@ def test_workers_share_a_gpu_through_a_private_mps_daemon_stopped_afterwards(tmp
     assert "warning: no MPS daemon" in capsys.readouterr().err
 
 
+def test_workers_spread_over_the_visible_gpus(tmp_path, monkeypatch):
+    """On a host of several GPUs each child gets the GPU running the fewest children
+    (ties: the first), from `CUDA_VISIBLE_DEVICES` where set, else `nvidia-smi`'s list
+    (a stand-in on the PATH); a CPU host (no `nvidia-smi`) has none."""
+    from lgnn.bench.parallel import least_loaded, visible_gpus
+
+    assert least_loaded(["0", "1", "2"], []) == "0"
+    assert least_loaded(["0", "1", "2"], ["0", "1", "0"]) == "2"
+    assert least_loaded(["0", "1"], ["0", "1", "1"]) == "0"
+    assert visible_gpus({"CUDA_VISIBLE_DEVICES": "2, 3"}) == ["2", "3"]
+    smi = tmp_path / "bin" / "nvidia-smi"
+    smi.parent.mkdir()
+    smi.write_text("#!/bin/sh\nprintf '0\\n1\\n'\n")
+    smi.chmod(0o755)
+    monkeypatch.setenv("PATH", str(smi.parent))
+    assert visible_gpus({}) == ["0", "1"]
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert visible_gpus({}) == []
+
+
 def test_crosscheck_runs_a_mujoco_engine_in_both_forms(capsys, tmp_path):
     """`--engines lagrangian,mujoco:nested,mujoco:maximal` on a 3D net with one loop:
     each form gets its rows, the pair of forms its error, and a bad form or a form

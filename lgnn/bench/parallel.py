@@ -18,6 +18,11 @@ throughput of one. So `gpu_sharing` runs the children under a private MPS daemon
 their kernels then run side by side, 0.12 s per epoch each with 4 processes (2.5x the
 throughput of one) and 0.15 s with 8 (4x). Without it (no NVIDIA driver tools, a CPU,
 `LGNN_MPS=0`) the children run as before.
+
+On a host of several GPUs each child is given one (`CUDA_VISIBLE_DEVICES`), the one
+running the fewest children when it starts, so the parts spread over every GPU instead
+of all landing on the first (JAX's default device), each GPU's children sharing it
+through the same daemon.
 """
 
 from __future__ import annotations
@@ -96,14 +101,19 @@ def _run_parts(stage: str, parts: dict[str, list[str]], profile_argv: list[str],
 def _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, running, failed) -> None:
     """Start the `waiting` parts, `workers` at a time, until every one has ended."""
     started = time.monotonic()
+    gpus, on_gpu = visible_gpus(env), {}
     while waiting or running:
         while waiting and len(running) < workers:
             name, args = waiting.pop(0)
             command = [sys.executable, "-m", "lgnn", *child_arguments(stage, profile_argv, out, args)]
             path = logs / f"{stage}-{file_name(name)}.log"
             handle = path.open("w")
-            running[name] = (subprocess.Popen(command, stdout=handle, stderr=subprocess.STDOUT, env=env), handle, path)
-            log(f"{stage} {name}: started (log {path})")
+            child_env, where = env, ""
+            if len(gpus) > 1:
+                gpu = least_loaded(gpus, [on_gpu[n] for n in running])
+                on_gpu[name], child_env, where = gpu, {**env, "CUDA_VISIBLE_DEVICES": gpu}, f", GPU {gpu}"
+            running[name] = (subprocess.Popen(command, stdout=handle, stderr=subprocess.STDOUT, env=child_env), handle, path)
+            log(f"{stage} {name}: started (log {path}{where})")
         time.sleep(1.0)
         for name, (process, handle, path) in list(running.items()):
             if process.poll() is None:
@@ -114,6 +124,23 @@ def _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, run
                 failed.append((name, path))
             log(f"{stage} {name}: {'failed' if process.returncode else 'done'} after {(time.monotonic() - started) / 60:.1f} min"
                 f" ({len(parts) - len(waiting) - len(running)} of {len(parts)} parts ended)")
+
+
+def visible_gpus(env: dict) -> list[str]:
+    """The GPUs a child may be given: `CUDA_VISIBLE_DEVICES`'s entries where it is set,
+    else every GPU `nvidia-smi` lists (none without it: a CPU host)."""
+    named = env.get("CUDA_VISIBLE_DEVICES")
+    if named is not None:
+        return [gpu.strip() for gpu in named.split(",") if gpu.strip()]
+    if shutil.which("nvidia-smi") is None:
+        return []
+    listed = subprocess.run(["nvidia-smi", "--query-gpu=index", "--format=csv,noheader"], capture_output=True, text=True)
+    return [line.strip() for line in listed.stdout.splitlines() if line.strip()] if listed.returncode == 0 else []
+
+
+def least_loaded(gpus: list[str], taken: list[str]) -> str:
+    """The first of `gpus` given to the fewest running children (`taken`: one entry per child)."""
+    return min(gpus, key=lambda gpu: (taken.count(gpu), gpus.index(gpu)))
 
 
 MPS_CONTROL = "nvidia-cuda-mps-control"

@@ -1157,8 +1157,9 @@ def _trained(profile: Profile, out: Path) -> dict[str, tuple[str, str]]:
         found.setdefault(job.label, []).append((job, state, meta))
     result = {}
     for model, runs in found.items():
-        learned = {k: v for k, v in runs[0][1].best_params.items() if k != "statistics"} if isinstance(runs[0][1].best_params, dict) else runs[0][1].best_params
-        count = sum(int(np.size(leaf)) for leaf in _leaves(learned))
+        _, state, meta = runs[0]
+        count = (checkpoint_files.learned_parameter_count(state.best_params) if checkpoint_files.has_parameters(meta)
+                 else meta[checkpoint_files.WITHOUT_PARAMETERS]["parameters"])
         times = [state.elapsed_s for _, state, _ in runs if state.elapsed_s > 0]
         devices = sorted({meta.get("environment", {}).get("device", "unknown device").split(";")[0] for _, _, meta in runs})
         unit = "GPU-minutes" if all("(gpu)" in device for device in devices) else "minutes"
@@ -1166,12 +1167,6 @@ def _trained(profile: Profile, out: Path) -> dict[str, tuple[str, str]]:
                     if times else "not recorded")
         result[model] = (f"{count:,}", training)
     return result
-
-
-def _leaves(tree) -> list:
-    import jax
-
-    return jax.tree_util.tree_leaves(tree)
 
 
 def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, command: str | None = None) -> str:

@@ -20,6 +20,13 @@ leaves go into): no optimiser, no training settings. The optimiser state is read
 is what a record made from a checkpoint keys on: the model settings and the best
 parameters, the same for a file converted, re-saved or trained again to them.
 
+A checkpoint may be kept **without its parameters** (`without_parameters`): its meta and
+history, and in the meta's `without_parameters` the content digest and learned
+parameter count of the checkpoint it came from. Records keyed on that checkpoint still
+match it, and tables still read its training; it cannot be rolled out or resumed
+(`load_model` and resuming refuse it with one line). The repository keeps the strong
+graph networks' checkpoints so (1.6M parameters: about 50 MB each with Adam's state).
+
 Format 1 (leaves `prefix/k` in flatten order, the history in the meta, arrays stored
 uncompressed) is still read: `arrays_by_path` names its leaves by the template's paths.
 It is never written; `tools/convert_checkpoints.py` converts such files.
@@ -110,6 +117,9 @@ def meta_problem(meta: dict, arrays: dict) -> str | None:
         return f"'best_val' must be a number >= 0 or null, got {meta['best_val']!r}"
     if not number(meta.get("elapsed_s", 0.0)) or meta.get("elapsed_s", 0.0) < 0:
         return f"'elapsed_s' must be a number >= 0, got {meta['elapsed_s']!r}"
+    kept = meta.get(WITHOUT_PARAMETERS)
+    if kept is not None and not (isinstance(kept, dict) and isinstance(kept.get("content_digest"), str) and whole(kept.get("parameters"))):
+        return f"{WITHOUT_PARAMETERS!r} must give the 'content_digest' and 'parameters' count of the checkpoint it came from, got {kept!r}"
     if meta["format"] == FORMAT:
         table = arrays.get("history")
         if table is None or np.ndim(table) != 2 or np.shape(table)[1] != len(HISTORY_FIELDS) or not np.issubdtype(table.dtype, np.floating):
@@ -123,6 +133,45 @@ def meta_problem(meta: dict, arrays: dict) -> str | None:
         if not (isinstance(entry, list) and len(entry) in (3, 4) and whole(entry[0]) and all(real(v) for v in entry[1:])):
             return f"'history'[{k}] must be [epoch, train loss, validation loss(, seconds)], got {entry!r}"
     return None
+
+
+# The meta entry of a checkpoint kept without its parameters (`without_parameters`).
+WITHOUT_PARAMETERS = "without_parameters"
+
+
+def learned_parameter_count(params) -> int:
+    """How many numbers a model learned: its parameters' leaves, the training-set
+    statistics (`models.STATISTICS`, never trained) apart."""
+    learned = {k: v for k, v in params.items() if k != models.STATISTICS} if isinstance(params, dict) else params
+    return sum(int(np.size(leaf)) for leaf in jax.tree_util.tree_leaves(learned))
+
+
+def without_parameters(source: str | os.PathLike, target: str | os.PathLike) -> None:
+    """Write the checkpoint at `source` to `target` without its parameters and optimiser
+    state (module docstring): the meta, history and environment kept, plus
+    `without_parameters` (the source's content digest, learned parameter count and the
+    sha256 of its bytes). `source` is only read."""
+    meta, arrays = read(source)
+    if WITHOUT_PARAMETERS in meta:
+        kept = meta[WITHOUT_PARAMETERS]
+    else:
+        _, params = load_model(source)
+        kept = {"content_digest": content_digest(source), "parameters": learned_parameter_count(params), "sha256": records.file_digest(source)}
+    entries = history(meta, arrays)
+    rest = {key: value for key, value in meta.items() if key not in ("format", "history", "environment", WITHOUT_PARAMETERS)}
+    write(target, {}, {**rest, WITHOUT_PARAMETERS: kept}, entries, meta.get("environment"))
+
+
+def has_parameters(meta: dict) -> bool:
+    """Whether a checkpoint's meta (`read`) comes with its parameters."""
+    return WITHOUT_PARAMETERS not in meta
+
+
+def refuse_without_parameters(path: str | os.PathLike, meta: dict, use: str) -> None:
+    """`CheckpointError` (one line) for `use` of a checkpoint kept without its parameters."""
+    if not has_parameters(meta):
+        raise CheckpointError(f"{path}: kept without its parameters (its records and training history only), so it cannot be {use}; "
+                              f"train the model again (lgnn benchmark --stage train) for a checkpoint with them")
 
 
 def model_config(path: str | os.PathLike, meta: dict, spec: models.ModelSpec | None = None) -> models.ModelConfig:
@@ -216,6 +265,8 @@ def content_digest(path: str | os.PathLike) -> str:
 @functools.lru_cache(maxsize=1024)  # keyed on the file's identity: a rewritten file is read again
 def _content_digest(path: str, identity: tuple) -> str:
     meta, arrays = read(path)
+    if not has_parameters(meta):
+        return meta[WITHOUT_PARAMETERS]["content_digest"]
     if meta["format"] == LEGACY_FORMAT:  # leaves by position: named after the model's tree
         arrays = arrays_by_path(path, meta, arrays, {"best": params_template(model_config(path, meta))})
     best = {name: value for name, value in arrays.items() if name.startswith("best/")}
@@ -228,6 +279,7 @@ def load_model(path: str | os.PathLike, spec: models.ModelSpec | None = None) ->
     model settings and `init` alone (`spec`: a model defined outside lgnn, see
     `model_config`). `CheckpointError` (one line) if the file is unusable."""
     meta, arrays = read(path)
+    refuse_without_parameters(path, meta, "rolled out")
     model = model_config(path, meta, spec)
     template = params_template(model)
     return model, restore(path, template, arrays_by_path(path, meta, arrays, {"best": template}), "best")

@@ -643,21 +643,25 @@ def save_checkpoint(path, state: TrainState, model: models.ModelConfig, config: 
 @in_float64  # parameters restored in the precision they were trained in
 def load_checkpoint(path) -> tuple[TrainState, dict]:
     """The training state and metadata of a checkpoint of any readable format, for
-    resuming (inference needs only `load_model`); `CheckpointError` if unusable."""
+    resuming (inference needs only `load_model`); `CheckpointError` if unusable. One
+    kept without its parameters (`checkpoints.without_parameters`) gives its training
+    alone: parameters and optimiser state None."""
     meta, arrays = checkpoints.read(path)
     model = checkpoints.model_config(path, meta)
     try:
         config = TrainConfig(**{**LEGACY_OPTIMISATION, **meta["train_config"]})
     except (ConfigError, TypeError, KeyError) as err:
         raise CheckpointError(f"{path}: checkpoint settings are invalid ({err})") from None
+    best_val = meta["best_val"] if meta["best_val"] is not None else float("inf")
+    history = checkpoints.history(meta, arrays)
+    elapsed = float(meta.get("elapsed_s", 0.0))
+    if not checkpoints.has_parameters(meta):  # its training only: no parameters or optimiser state
+        return TrainState(None, None, None, best_val, meta["best_epoch"], meta["epoch"], history, elapsed), meta
     template = initial_state(model, config)
     arrays = checkpoints.arrays_by_path(path, meta, arrays, {"params": template.params, "best": template.params, "opt": template.opt_state})
     params = checkpoints.restore(path, template.params, arrays, "params")
     best = checkpoints.restore(path, template.params, arrays, "best")
     opt_state = checkpoints.restore(path, template.opt_state, arrays, "opt")
-    best_val = meta["best_val"] if meta["best_val"] is not None else float("inf")
-    history = checkpoints.history(meta, arrays)
-    elapsed = float(meta.get("elapsed_s", 0.0))
     return TrainState(params, opt_state, best, best_val, meta["best_epoch"], meta["epoch"], history, elapsed), meta
 
 
@@ -678,6 +682,7 @@ def check_resumable(path, model: models.ModelConfig, config: TrainConfig) -> tup
     `CheckpointError` (one line) if it is unusable or was written with other settings.
     Entry points call it before generating data, so a wrong `--resume` fails at once."""
     state, saved = load_checkpoint(path)
+    checkpoints.refuse_without_parameters(path, saved, "resumed")
     differences = settings_differences(saved["model"], model.to_dict(), "model") + settings_differences(saved["train"], training_key(config), "train")
     if differences:
         raise CheckpointError(f"{path}: cannot resume: it was written with other settings ({'; '.join(differences)})")

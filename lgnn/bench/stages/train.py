@@ -55,6 +55,9 @@ def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
         log(f"warning: {err}; retraining {job.name}")
         return False
     same = meta["model"] == model.to_dict() and meta["train"] == train.training_key(train_config) and meta["data"] == data_config.to_dict()
+    if same and not train.finished(state, train_config) and state.params is None:
+        log(f"train {job.name}: its unfinished checkpoint is kept without its parameters; retraining")
+        return False
     if same and train.finished(state, train_config):
         log(f"train {job.name}: reusing finished checkpoint ({state.epoch} epochs, best validation MSE {state.best_val:.3g})")
         return None
