@@ -116,24 +116,29 @@ def test_the_committed_full_records_render_with_the_new_columns_not_computed():
     assert _row(table, "T2-slack")["lgnn"].startswith("4.21e-04")
 
 
-def test_error_figures_label_their_axes_legend_every_panel_and_title_what_they_show(monkeypatch, tmp_path):
-    """Each row has a y-axis label, every panel with lines its own legend (panels may
-    hold different models), the title names the scenes drawn (not those asked for)
-    and says what an error of 1 means."""
+def test_error_figures_label_their_axes_legend_every_model_and_title_what_they_show(monkeypatch, tmp_path):
+    """Each row has a y-axis label, one legend beside the panels names every model any
+    panel draws (panels may hold different models), once each, an unprojected rollout
+    dashed in its model's colour; the title names the scenes drawn (not those asked
+    for) and says what an error of 1 means."""
     import matplotlib
 
     matplotlib.use("Agg")
     import pandas as pd
 
     rows = [dict(scene=scene, model=model, seed=0, metric=metric, statistic=stat, t=t, value=1e-3)
-            for scene, model in (("chain4", "lgnn"), ("chain4-drag", "lgnn drag"))
+            for scene, model in (("chain4", "lgnn"), ("chain4", "gns"), ("chain4", "gns (unprojected)"), ("chain4-drag", "lgnn drag"))
             for metric in ("rollout_error", "energy_error") for stat in ("gmean", "low", "high") for t in (0.1, 0.2)]
     figures = []
     monkeypatch.setattr(report, "_savefig", lambda fig, path: figures.append(fig))
     assert report._plot_error_vs_time(pd.DataFrame(rows), ["chain4", "chain8", "chain4-drag"], tmp_path / "x.png", "each")
     (fig,) = figures
     axes = fig.get_axes()
-    assert len(axes) == 4 and all(ax.get_legend() is not None for ax in axes)
+    assert len(axes) == 4 and all(ax.get_legend() is None for ax in axes)
+    (legend,) = fig.legends
+    assert [text.get_text() for text in legend.get_texts()] == ["LGNN", "GNS", "gns (unprojected)", "lgnn drag"]
+    lines = {line.get_label(): line for line in axes[0].get_lines()}
+    assert lines["gns (unprojected)"].get_color() == lines["GNS"].get_color() and lines["gns (unprojected)"].get_linestyle() == "--"
     assert [ax.get_ylabel() for ax in axes if ax.get_ylabel()] == list(report.error_axis_labels().values())
     title = fig._suptitle.get_text()
     assert "chain4, chain4-drag" in title and "chain8" not in title and "1 means diverged" in title
@@ -421,7 +426,8 @@ def test_a_model_added_to_a_profiles_grid_gets_a_colour_and_place_of_its_own():
     mine = (grid.GridEntry("mine", grid.TRAINING_SCENE, ("chain4",)), grid.GridEntry("yours", grid.TRAINING_SCENE, ("chain4",)))
     profile = dataclasses.replace(grid.get_profile("quick"), grid=(*grid.GRID, *mine), models=None)
     order = grid.model_order(profile)
-    assert order[: len(report.MODEL_ORDER)] == report.MODEL_ORDER == ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn")
+    assert order[: len(report.MODEL_ORDER)] == report.MODEL_ORDER == ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn",
+                                                                       "gns-10-128", "cgnode", "chgn", "chnn")
     assert order[len(report.MODEL_ORDER):] == ("mine", "yours")
     colors = report.model_colors(order)
     assert {model: colors[model] for model in report.COLORS} == report.COLORS

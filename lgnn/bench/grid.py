@@ -3,7 +3,8 @@
 - `GRID`: LGNN, GNS, LGN and CLNN trained on `TRAINING_SCENE` (chain4; LGNN also on
   `chain4-varied` and `chain4-drag`, as the paper's appendix), each with the scenes it
   is evaluated on (CLNN, tied to its system size, on chain4 only); the same in 3D,
-  trained on `SPATIAL_TRAINING_SCENE`. The grid's third axis is the profile's training
+  trained on `SPATIAL_TRAINING_SCENE`; and the model zoo (the strong GNS, CGNODE, CHGN
+  and CHNN) in both. The grid's third axis is the profile's training
   seeds.
 - `PROFILES["quick"]` (minutes on 2 CPU cores, part of CI: tiny data and training
   budgets, 3 initial conditions, 0.1 s rollouts, a subset of scenes) and
@@ -103,6 +104,21 @@ class GridEntry:
 # the best of them on the validation set (`lgnn.bench.stages.train.default_lgnn`).
 LGNN_VARIANTS = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook")
 
+# The model zoo (`docs/models.md`): the strong GNS (the public GNS-10-128 recipe), the
+# constrained graph neural ODE, the constrained Hamiltonian graph network, and CHNN (tied
+# to its system's size, as CLNN). Each stops at the plateau rule or after ZOO_MINUTES of
+# training, whichever comes first: the strong graph networks take about a second per
+# epoch for 3 seeds on one H200, so the whole zoo (8 groups of 3 seeds) trains in one
+# 30-minute GPU lease. The report says where each stopped.
+ZOO_MODELS = ("gns-10-128", "cgnode", "chgn", "chnn")
+ZOO_MINUTES = 10.0
+# Each zoo model in both dimensions, model by model (the benchmark's parts start in
+# this order, so on a host of several GPUs the large ones land on different GPUs).
+ZOO = tuple(GridEntry(model, train_scene, eval_scenes if model != "chnn" else (train_scene,), unprojected=model == "gns-10-128", minutes=ZOO_MINUTES)
+            for model in ZOO_MODELS
+            for train_scene, eval_scenes in ((TRAINING_SCENE, TRANSFER_SCENES), (SPATIAL_TRAINING_SCENE, SPATIAL_TRANSFER_SCENES)))
+
+
 GRID = (
     *(GridEntry(variant, TRAINING_SCENE, TRANSFER_SCENES) for variant in LGNN_VARIANTS),
     GridEntry("gns", TRAINING_SCENE, TRANSFER_SCENES, unprojected=True),
@@ -116,6 +132,7 @@ GRID = (
     GridEntry("gns", SPATIAL_TRAINING_SCENE, SPATIAL_TRANSFER_SCENES, unprojected=True),
     GridEntry("lgn", SPATIAL_TRAINING_SCENE, SPATIAL_TRANSFER_SCENES),
     GridEntry("clnn", SPATIAL_TRAINING_SCENE, (SPATIAL_TRAINING_SCENE,)),
+    *ZOO,
 )
 
 
@@ -294,8 +311,9 @@ class SpeedSettings:
     # MJX on or off (its CPU compile takes minutes beyond small trees).
     mjx: bool = True
     # Learned models timed (None: every one `speed.timed_jobs` names: those the grid
-    # evaluates on the scene, trained on its dimension's training scene).
-    models: tuple[str, ...] | None = None
+    # evaluates on the scene, trained on its dimension's training scene). Not in the key
+    # as such: the key names each timed checkpoint (`speed.speed_key`).
+    models: tuple[str, ...] | None = dataclasses.field(default=None, metadata=NOT_IN_KEY)
     # Lagrangian engine runs longer than this many link-steps are skipped (with a row
     # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
     max_link_steps: float = 5e5

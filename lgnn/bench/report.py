@@ -44,7 +44,7 @@ import numpy as np
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
 from lgnn.bench.grid import (EXTERNAL, GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs,
-                             evaluation_scenes, model_order, settings_key, train_config, training_jobs)
+                             TrainingJob, evaluation_scenes, model_order, settings_key, train_config, training_jobs)
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
@@ -63,10 +63,14 @@ from lgnn.scene import CHAIN_SAMPLER, OWN_STATE, PROJECTED, get_scene, initial_s
 # Column order of the built-in grid's models (a profile's own models follow: `grid.model_order`).
 MODEL_ORDER = tuple(dict.fromkeys(entry.model for entry in GRID))
 # The built-in models' colours and the rest baseline's (the committed figures use them).
-COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5", "lgnn-mp1": "C4", "lgnn-mp2": "C5", "lgnn-notebook": "C6"}
-# Colours no built-in has (tab10's last two, then tab20b's darker shades; not C7, a grey
-# beside the rest baseline's), given in turn to every other model (`model_colors`).
-SPARE_COLORS = ("C8", "C9", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#5254a3", "#8ca252", "#bd9e39", "#ad494a", "#a55194")
+COLORS = {"lgnn": "C0", "gns": "C1", "lgn": "C2", "clnn": "C3", "rest": "0.5", "lgnn-mp1": "C4", "lgnn-mp2": "C5", "lgnn-notebook": "C6",
+          "gns-10-128": "C8", "cgnode": "C9", "chgn": "#7b4173", "chnn": "#393b79"}
+# Colours no built-in has (tab20b's darker shades; not C7, a grey beside the rest
+# baseline's), given in turn to every other model (`model_colors`).
+SPARE_COLORS = ("#637939", "#843c39", "#8c6d31", "#5254a3", "#8ca252", "#bd9e39", "#ad494a", "#a55194")
+# How error figures draw a model rolled out without projection (`Pair.projected`): its
+# projected row's colour, dashed.
+UNPROJECTED_STYLE = "--"
 # The rest baseline's model name in the tables (the initial state held).
 REST = "rest"
 # How tables mark predictions made outside lgnn (`grid.external_pair`): `my-sim (external)`.
@@ -383,7 +387,8 @@ def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str, 
                 # line running from the last frame of a seed back to t = 0 of the next.
                 for k, (_, m) in enumerate(sub[sub.model == model].groupby("seed", sort=True)):
                     g = m[m.statistic == "gmean"]
-                    ax.plot(g.t, g.value, color=colors.get(kind), label=(name.upper() if kind == name else name) if k == 0 else None)
+                    ax.plot(g.t, g.value, UNPROJECTED_STYLE if "(unprojected)" in model else "-", color=colors.get(kind),
+                            label=(name.upper() if kind == name else name) if k == 0 else None)
                     lo, hi = m[m.statistic == "low"], m[m.statistic == "high"]
                     if np.isfinite(lo.value.to_numpy()).any():
                         ax.fill_between(lo.t, lo.value, hi.value, color=colors.get(kind), alpha=0.2, linewidth=0)
@@ -396,11 +401,16 @@ def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str, 
                 ax.set_ylabel(labels[metric])
             if row == len(labels) - 1:
                 ax.set_xlabel("t (s)")
-            if ax.get_legend_handles_labels()[0]:
-                # In every panel: the panels of one figure may hold different models.
-                ax.legend(fontsize=7)
+    # One legend beside the panels, of every model any panel draws (panels of one figure
+    # may hold different models), so no panel's curves hide under it.
+    shown = {}
+    for ax in axes.flat:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            shown.setdefault(label, handle)
+    if shown:
+        fig.legend(shown.values(), shown.keys(), loc="center right", fontsize=7)
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1 - 1.6 / fig.get_figwidth(), 1))
     _savefig(fig, path)
     return True
 
@@ -614,13 +624,19 @@ def banner(profile: Profile) -> list[str]:
     if settings_key(profile.evaluate) != settings_key(full.evaluate) or profile.training.data != full.training.data:
         return [QUICK_WARNING, ""]
     recipe = full.training.train
-    short, other = [], []
+    short_jobs: dict[tuple[str, str], list[TrainingJob]] = {}
+    other = []
     for job in training_jobs(profile):
         config = train_config(profile, job)
         if training_key(config) | {"seed": 0} != training_key(recipe) | {"seed": 0}:
             other.append(job.name)
         elif config.epochs < recipe.epochs or (config.minutes is not None and (recipe.minutes is None or config.minutes < recipe.minutes)):
-            short.append(f"{job.name} ({config.epochs} epochs" + (f" or {config.minutes:g} minutes" if config.minutes else "") + ")")
+            budget = f"{config.epochs} epochs" + (f" or {config.minutes:g} minutes" if config.minutes else "")
+            short_jobs.setdefault((job.model, budget), []).append(job)
+    # One entry per model and budget: its training scenes and seeds.
+    short = [f"{model} ({budget}; {', '.join(dict.fromkeys(j.scene for j in jobs))}; "
+             f"seed{'s' if len({j.seed for j in jobs}) > 1 else ''} {', '.join(str(s) for s in sorted({j.seed for j in jobs}))})"
+             for (model, budget), jobs in short_jobs.items()]
     lines = []
     if short:
         lines.append(f"**Full-profile evaluation, shorter training.** Trained on a smaller budget than the full profile's "

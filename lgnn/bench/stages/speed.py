@@ -45,7 +45,10 @@ def _checkpoint_digests(profile: Profile, scene_name: str, out: Path, jobs: list
 
 def speed_key(profile: Profile, scene_name: str, out: Path, jobs: list[TrainingJob] | None = None) -> str:
     """Settings a scene's speed record depends on (module docstring)."""
-    speed = settings_key(profile.speed)
+    # Which models are timed enters through the checkpoints named below; the field keeps
+    # the None the records made before it could name models hold, so a profile that lists
+    # the models its record times finds that record.
+    speed = {**settings_key(profile.speed), "models": None}
     if speed["repeats"] == 1:
         del speed["repeats"]  # single-run records made before the field keep their key
     return records.digest({"speed": speed, "evaluate": settings_key(profile.evaluate.for_scene(scene_name)),
