@@ -134,3 +134,61 @@ def test_link_features_are_a_setting_of_the_models_that_read_them():
         models.ModelConfig("clnn", link_features=True)
     with pytest.raises(ConfigError, match="link-features must be true or false"):
         models.ModelConfig("lgnn", link_features=1)
+
+
+def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
+    """The grid's transfer entries train every graph model on varied draws of chain4
+    (data with `varied_draws`, link features where the model takes them) under names
+    and labels of their own; the full profile keeps the paper's track until their
+    records are committed; a leaderboard of their own ranks them; an unknown track is
+    one line."""
+    from lgnn.bench import grid, report
+    from lgnn.bench.stages.train import job_settings
+
+    assert all(job.track == grid.PAPER_TRACK for job in grid.training_jobs(grid.PROFILES["full"]))
+    both = grid.load_profile("full", ['tracks=["paper", "transfer"]'])
+    transfer = [job for job in grid.training_jobs(both) if job.track == grid.TRANSFER_TRACK]
+    assert {job.model for job in transfer} == {*grid.LGNN_VARIANTS, "gns", "lgn", "gns-10-128", "cgnode", "chgn"}
+    lgnn = next(job for job in transfer if job.model == "lgnn" and job.seed == 0)
+    assert (lgnn.name, lgnn.label) == ("lgnn-chain4-varied-draws5-s0", "lgnn (chain4-varied, 5 draws)")
+    _, model, data_config, _ = job_settings(both, lgnn)
+    assert model.link_features and data_config.varied_draws == grid.TRANSFER_DRAWS and data_config.scene == "chain4-varied"
+    # A model whose rod features are its own inputs needs no flag (and has none).
+    assert not job_settings(both, next(job for job in transfer if job.model == "chgn"))[1].link_features
+    # The paper's appendix LGNN on the one varied chain stays its own job.
+    assert grid.TrainingJob("lgnn", "chain4-varied", 0) in grid.training_jobs(both)
+    pairs = grid.evaluation_pairs(both)
+    assert {p.scene for p in pairs if p.job.track == grid.TRANSFER_TRACK} == set(grid.TRANSFER_TRACK_SCENES)
+    boards = {heading: board for heading, _, board in report.leaderboards(pairs)}
+    assert set(boards) == {"planar: trained on chain4", "3D: trained on chain4-3d",
+                           "planar, transfer track: trained on 5 varied draws of chain4-varied"}
+    assert all(p.job.varied_draws for p in boards["planar, transfer track: trained on 5 varied draws of chain4-varied"])
+    assert not any(p.job.varied_draws for p in boards["planar: trained on chain4"])
+    with pytest.raises(ConfigError, match="setting 'tracks': unknown track 'mine'"):
+        grid.load_profile("full", ['tracks=["mine"]'])
+    with pytest.raises(ConfigError, match="'varied_draws' must be a whole number"):
+        grid.GridEntry("lgnn", "chain4", ("chain4",), varied_draws=-1)
+
+
+def test_a_transfer_entry_trains_on_its_draws_and_is_evaluated_on_other_chains(tmp_path):
+    """A profile's transfer entry (GNS, 2 draws) through the benchmark's train and
+    evaluate stages: the checkpoint's data are the draws', and the record of a varied
+    8-link chain is scored."""
+    from lgnn.bench import grid
+    from lgnn.bench.run import run
+    from lgnn.bench.stages import evaluate
+    from lgnn.learn import checkpoints
+
+    config = tmp_path / "transfer.toml"
+    config.write_text('seeds = [0]\ntrain_scenes = ["chain4-varied"]\nscenes = ["chain8-varied"]\nmodels = ["gns"]\n'
+                      '[[grid]]\nmodel = "gns"\ntrain_scene = "chain4-varied"\neval_scenes = ["chain8-varied"]\nvaried_draws = 2\n'
+                      '[training.data]\nn_trajectories = 4\nduration = 0.3\nsample_dt = 0.05\n'
+                      '[training.train]\nepochs = 2\npatience = 2\nbatch_size = 4\n'
+                      '[evaluate]\ninitial_conditions = 2\nduration = 0.05\nchunk = 2\n')
+    profile = grid.load_profile(config)
+    run(profile, tmp_path / "out", stages=("train", "evaluate"), progress=False)
+    (job,) = grid.training_jobs(profile)
+    meta, _ = checkpoints.read(tmp_path / "out" / "benchmark" / "checkpoints" / f"{job.name}.npz")
+    assert meta["data"]["varied_draws"] == 2 and meta["model"]["link_features"]
+    ((pair, (arrays, _)),) = evaluate.load_pairs(profile, tmp_path / "out")
+    assert pair.scene == "chain8-varied" and np.isfinite(arrays["rollout_error/per_ic_log"]).all()

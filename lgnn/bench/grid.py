@@ -91,13 +91,38 @@ class GridEntry:
     # profile's, so its checkpoint is trained as the profile trains every model.
     epochs: int | None = None
     minutes: float | None = None
+    # Trained on this many varied draws of its training chain (`DataConfig.varied_draws`),
+    # with link features where the model takes them: the transfer track. 0: the scene alone.
+    varied_draws: int = 0
+
+    @property
+    def track(self) -> str:
+        """The leaderboard the entry ranks on (`TRACKS`)."""
+        return TRANSFER_TRACK if self.varied_draws else PAPER_TRACK
 
     def __post_init__(self):
+        if isinstance(self.varied_draws, bool) or not isinstance(self.varied_draws, int) or self.varied_draws < 0:
+            raise ConfigError(f"grid entry {self.model}: 'varied_draws' must be a whole number >= 0, got {self.varied_draws!r}")
         if self.seeds is not None and not self.seeds:
             raise ConfigError(f"grid entry {self.model}: 'seeds' must name at least one training seed")
         _check_numbers(f"grid entry {self.model}", self, **{name: name == "epochs" for name in ("epochs", "minutes")
                                                             if getattr(self, name) is not None})
 
+
+# The leaderboards: the paper's track (models trained on one chain, `TRAINING_SCENES`)
+# and the transfer track (models trained on varied draws of a chain, evaluated on varied
+# chains of other lengths and on the trusses, where only unseen link properties separate
+# models whose prior holds the rod's energy).
+PAPER_TRACK = "paper"
+TRANSFER_TRACK = "transfer"
+TRACKS = (PAPER_TRACK, TRANSFER_TRACK)
+# The transfer track: every graph model trained on TRANSFER_DRAWS draws of varied 4-link
+# chains (`lgnn.scene.varied_chain`; 20 trajectories of the full profile's 100 each),
+# evaluated zero-shot on the built-in varied chains and the trusses. Named by the
+# paper's varied chain, the draws' length and rule.
+TRANSFER_TRAINING_SCENE = "chain4-varied"
+TRANSFER_DRAWS = 5
+TRANSFER_TRACK_SCENES = ("chain4-varied", "chain8-varied", "chain16-varied", "chain100-varied", "T1", "T2-slack", "T3-slack")
 
 # The LGNN variants (`lgnn.learn.models`): the per-edge one, the paper's equations with
 # 1 and 2 message-passing layers, the authors' notebook; the report's default LGNN is
@@ -133,6 +158,9 @@ GRID = (
     GridEntry("lgn", SPATIAL_TRAINING_SCENE, SPATIAL_TRANSFER_SCENES),
     GridEntry("clnn", SPATIAL_TRAINING_SCENE, (SPATIAL_TRAINING_SCENE,)),
     *ZOO,
+    # The transfer track (a profile's `tracks` selects it).
+    *(GridEntry(model, TRANSFER_TRAINING_SCENE, TRANSFER_TRACK_SCENES, varied_draws=TRANSFER_DRAWS, minutes=ZOO_MINUTES)
+      for model in (*LGNN_VARIANTS, "gns", "lgn", "gns-10-128", "cgnode", "chgn")),
 )
 
 
@@ -172,15 +200,30 @@ class TrainingJob:
     model: str
     scene: str
     seed: int
+    # Trained on this many varied draws of `scene` (`GridEntry.varied_draws`).
+    varied_draws: int = 0
+
+    @property
+    def group(self) -> str:
+        """The job's name but for its seed: the seeds of one group train (and evaluate)
+        in one program."""
+        return f"{self.model}-{self.scene}" + (f"-draws{self.varied_draws}" if self.varied_draws else "")
 
     @property
     def name(self) -> str:
-        return f"{self.model}-{self.scene}-s{self.seed}"
+        return f"{self.group}-s{self.seed}"
+
+    @property
+    def track(self) -> str:
+        return TRANSFER_TRACK if self.varied_draws else PAPER_TRACK
 
     @property
     def label(self) -> str:
         """The model as tables name it: `lgnn`, or `lgnn (chain4-varied)` off the main
-        training scene, or `my-sim (external)` for predictions made outside lgnn."""
+        training scene, `lgnn (chain4-varied, 5 draws)` on varied draws of it, or
+        `my-sim (external)` for predictions made outside lgnn."""
+        if self.varied_draws:
+            return f"{self.model} ({self.scene}, {self.varied_draws} draws)"
         return self.model if self.scene == TRAINING_SCENE else f"{self.model} ({self.scene})"
 
     @property
@@ -381,6 +424,8 @@ class Profile:
     stages: tuple[str, ...] | None = None
     # Models kept from the grid (None: all of them).
     models: tuple[str, ...] | None = None
+    # Tracks kept from the grid (`TRACKS`; None: all of them).
+    tracks: tuple[str, ...] | None = None
     # Files of predictions made outside lgnn (docs/formats.md, "Predictions"), each
     # scored by the evaluate stage against its scene's ground truth and reported as
     # `MODEL (external)` (`lgnn.bench.stages.external`). Not in any record key.
@@ -471,12 +516,15 @@ def _check_names(profile: Profile) -> None:
                 get_scene(name)
             except SceneError as err:
                 raise ConfigError(f"grid[{k}]: {err}") from None
+    unknown_tracks = sorted(set(profile.tracks or ()) - set(TRACKS))
+    if unknown_tracks:
+        raise ConfigError(f"setting 'tracks': unknown track {unknown_tracks[0]!r} (choose from {', '.join(TRACKS)})")
     unknown_models = sorted(set(profile.models or ()) - set(model_names()))
     if unknown_models:
         raise ConfigError(f"setting 'models': unknown model {unknown_models[0]!r} (choose from {', '.join(model_names())})")
     # A selection filters the grid (a shipped profile's may name scenes a user's grid lacks), but must keep something.
     in_grid = {"scenes": {n for e in profile.grid for n in e.eval_scenes}, "train_scenes": {e.train_scene for e in profile.grid},
-               "models": {e.model for e in profile.grid}}
+               "models": {e.model for e in profile.grid}, "tracks": {e.track for e in profile.grid}}
     for key, known in in_grid.items():
         selected = getattr(profile, key)
         if selected is not None and not set(selected) & known:
@@ -525,7 +573,11 @@ def get_profile(name: str) -> Profile:
 
 def _entries(profile: Profile) -> list[GridEntry]:
     return [e for e in profile.grid if (profile.train_scenes is None or e.train_scene in profile.train_scenes)
-            and (profile.models is None or e.model in profile.models)]
+            and (profile.models is None or e.model in profile.models) and (profile.tracks is None or e.track in profile.tracks)]
+
+
+def _job(entry: GridEntry, seed: int) -> TrainingJob:
+    return TrainingJob(entry.model, entry.train_scene, seed, entry.varied_draws)
 
 
 def entry_seeds(profile: Profile, entry: GridEntry) -> tuple[int, ...]:
@@ -534,14 +586,14 @@ def entry_seeds(profile: Profile, entry: GridEntry) -> tuple[int, ...]:
 
 
 def training_jobs(profile: Profile) -> list[TrainingJob]:
-    return list(dict.fromkeys(TrainingJob(e.model, e.train_scene, seed) for e in _entries(profile) for seed in entry_seeds(profile, e)))
+    return list(dict.fromkeys(_job(e, seed) for e in _entries(profile) for seed in entry_seeds(profile, e)))
 
 
 def train_config(profile: Profile, job: TrainingJob) -> TrainConfig:
     """The training settings of a job: the profile's `training.train` with the job's seed
     and the budget (epochs, minutes) of the first grid entry that trains it, where it
     gives one."""
-    entry = next((e for e in _entries(profile) if (e.model, e.train_scene) == (job.model, job.scene)), None)
+    entry = next((e for e in _entries(profile) if _job(e, job.seed) == job), None)
     budget = {} if entry is None else {name: getattr(entry, name) for name in ("epochs", "minutes") if getattr(entry, name) is not None}
     return dataclasses.replace(profile.training.train, seed=job.seed, **budget)
 
@@ -552,9 +604,9 @@ def evaluation_pairs(profile: Profile) -> list[Pair]:
         for seed in entry_seeds(profile, entry):
             for scene in entry.eval_scenes:
                 if profile.scenes is None or scene in profile.scenes:
-                    pairs.append(Pair(TrainingJob(entry.model, entry.train_scene, seed), scene))
+                    pairs.append(Pair(_job(entry, seed), scene))
                     if entry.unprojected:
-                        pairs.append(Pair(TrainingJob(entry.model, entry.train_scene, seed), scene, projected=False))
+                        pairs.append(Pair(_job(entry, seed), scene, projected=False))
     return pairs
 
 
@@ -572,7 +624,7 @@ def evaluated_jobs(profile: Profile, scene_name: str) -> list[TrainingJob]:
     """The jobs the grid evaluates on `scene_name` (the entries whose `eval_scenes` name
     it: the spatial entries on 3D scenes, CLNN on its own training scene only), whether
     or not the profile's `scenes` keep it, in `training_jobs` order."""
-    return [TrainingJob(e.model, e.train_scene, seed) for e in _entries(profile) if scene_name in e.eval_scenes for seed in entry_seeds(profile, e)]
+    return [_job(e, seed) for e in _entries(profile) if scene_name in e.eval_scenes for seed in entry_seeds(profile, e)]
 
 
 def lgnn_job(profile: Profile, scene_name: str | None = None) -> TrainingJob:

@@ -44,7 +44,7 @@ import numpy as np
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
 from lgnn.bench.grid import (EXTERNAL, GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs,
-                             TrainingJob, evaluation_scenes, model_order, settings_key, train_config, training_jobs)
+                             Pair, TrainingJob, evaluation_scenes, model_order, settings_key, train_config, training_jobs)
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
@@ -1185,9 +1185,26 @@ def _trained(profile: Profile, out: Path) -> dict[str, tuple[str, str]]:
     return result
 
 
+def leaderboards(pairs: list[Pair]) -> list[tuple[str, int, list[Pair]]]:
+    """`(heading, dimension, pairs)` of each leaderboard: per dimension, the paper's
+    track (models trained on its main training scene, `TRAINING_SCENES`), then the
+    transfer track's (models trained on varied draws, `grid.TRANSFER_TRACK`) per
+    dimension of the scenes they are evaluated on."""
+    boards = [(f"{DIMENSION_NAMES.get(dim, f'{dim}D')}: trained on {main}", dim, [p for p in pairs if p.job.scene == main and not p.job.varied_draws])
+              for dim, main in TRAINING_SCENES.items()]
+    transfer: dict[int, list[Pair]] = {}
+    for pair in pairs:
+        if pair.job.varied_draws:
+            transfer.setdefault(get_scene(pair.scene).dim, []).append(pair)
+    for dim, board in transfer.items():
+        sources = ", ".join(dict.fromkeys(f"{p.job.varied_draws} varied draws of {p.job.scene}" for p in board))
+        boards.append((f"{DIMENSION_NAMES.get(dim, f'{dim}D')}, transfer track: trained on {sources}", dim, board))
+    return boards
+
+
 def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, command: str | None = None) -> str:
-    """`LEADERBOARD.md`: per dimension's grid, one row per model trained on its main
-    training scene (`TRAINING_SCENES`) and per external prediction, the rollout error
+    """`LEADERBOARD.md`: per leaderboard (`leaderboards`: each dimension's paper track
+    and transfer track), one row per model it ranks and per external prediction, the rollout error
     cell of README.md's table on each scene of the grid with its rank there, parameters,
     training minutes, and the overall rank (module's rule, stated in the file)."""
     unrankable = _unrankable(out)
@@ -1221,12 +1238,12 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, comman
              f"regenerated from the records: `{shown}`.", ""]
     if wide is None:
         return "\n".join([*lines, "(no results)", ""])
-    pairs = evaluation_pairs(profile)
-    for dim, main in TRAINING_SCENES.items():
-        scenes = [s for s in scene_groups([p.scene for p in pairs if p.job.scene == main]).get(dim, [])]
+    for heading, dim, board in leaderboards(evaluation_pairs(profile)):
+        scenes = [s for s in scene_groups([p.scene for p in board]).get(dim, [])]
         if not scenes:
             continue
-        labels = list(dict.fromkeys(p.label for p in pairs if p.job.scene == main and p.scene in scenes))
+        names = {p.label: p.job.model + ("" if p.projected else " (unprojected)") for p in board if p.scene in scenes}
+        labels = list(names)
         labels += sorted({m for m in wide.model.unique() if m.endswith(EXTERNAL_MARK) and m not in labels
                           and (wide[wide.model == m].scene.isin(scenes)).any()})
         cells = {label: {scene: _cell_row(wide, scene, label) for scene in scenes} for label in labels}
@@ -1238,12 +1255,12 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, comman
         log_mean = {label: float(np.mean([math.log(cells[label][scene]["gmean"]) for scene in ranked])) for label in complete}
         order = sorted(complete, key=lambda label: (mean_rank[label], log_mean[label], label))
         order += sorted(label for label in labels if label not in complete)
-        lines += [f"## {DIMENSION_NAMES.get(dim, f'{dim}D')}: trained on {main}", "",
+        lines += [f"## {heading}", "",
                   "| rank | model | parameters | training | " + " | ".join(
                       f"{scene}{' (not rankable)' if scene in unrankable else ''}" for scene in scenes) + " | mean scene rank |",
                   "|---" * (len(scenes) + 5) + "|"]
         for k, label in enumerate(order):
-            model = _without_training_scene(label, main)
+            model = names.get(label, label)
             parameters, training = (("—", "— (external)") if label.endswith(EXTERNAL_MARK) else
                                     trained.get(label.removesuffix(" (unprojected)"), ("not recorded", "not recorded")))
             row = [str(k + 1) if label in mean_rank else "—", model, parameters, training]

@@ -99,7 +99,7 @@ def _train(request: StageRun) -> None:
     if request.split:
         groups: dict[str, list[str]] = {}
         for job in request.jobs:
-            groups.setdefault(f"{job.model}-{job.scene}", []).append(job.name)
+            groups.setdefault(job.group, []).append(job.name)
         prepare_datasets(profile, request.jobs, out, request.progress)
         request.run_split("train", {name: [a for j in names for a in ("--job", j)] for name, names in groups.items()})
     else:
@@ -247,5 +247,5 @@ def _seed_groups(profile: Profile, scene: str, jobs: list[TrainingJob]) -> list[
     groups: dict[str, list[Pair]] = {}
     for pair in evaluation_pairs(profile):
         if pair.scene == scene and pair.job in selected:
-            groups.setdefault(f"{pair.job.model}-{pair.job.scene}", []).append(pair)
+            groups.setdefault(pair.job.group, []).append(pair)
     return list(groups.items())

@@ -12,6 +12,7 @@ report the finished ones.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import jax
@@ -31,8 +32,11 @@ def job_settings(profile: Profile, job: TrainingJob):
     """`(scene, model config, data config, train config)` of a training job: what its
     checkpoint is trained with (and what tools that time its epochs rebuild)."""
     scene = get_scene(job.scene)
-    model = models.ModelConfig.for_scene(job.model, scene)
-    data_config = profile.training.data_for(job.scene)
+    # On varied draws (the transfer track), with each link's mass, inertia and length
+    # where the model takes them: without them its links are indistinguishable.
+    features = {"link_features": True} if job.varied_draws and models.get_spec(job.model).link_features else {}
+    model = models.ModelConfig.for_scene(job.model, scene, **features)
+    data_config = dataclasses.replace(profile.training.data_for(job.scene), varied_draws=job.varied_draws)
     train_config = train_config_of(profile, job)
     return scene, model, data_config, train_config
 
@@ -78,7 +82,7 @@ def train_jobs(profile: Profile, jobs: list[TrainingJob], out: Path, progress: b
         if layout.in_base(layout.checkpoint(job)) is not None:
             log(f"train {job.name}: the base folder's checkpoint, read in place, never trained")
             continue
-        groups.setdefault((job.model, job.scene), []).append(job)
+        groups.setdefault(job.group, []).append(job)
     for group in groups.values():
         # Each job claimed (`lgnn.bench.claims`): one trained by another process (a second
         # `lgnn benchmark` on this folder) is waited for, then reused or resumed.
@@ -117,13 +121,12 @@ def _train_group(layout: Layout, profile: Profile, group: list[TrainingJob], pro
 
 
 def prepare_datasets(profile: Profile, jobs: list[TrainingJob], out: Path, progress: bool = True) -> None:
-    """Generate (or find cached) the training data of every training scene of `jobs`, one
-    scene at a time, before worker processes start: otherwise each of the groups
-    sharing a scene generates the same data at once (on one H100 the 14 groups of the
-    full grid spent 10 minutes generating the four training scenes' data before their
-    first epoch, 2026-11-24)."""
-    for scene in dict.fromkeys(job.scene for job in jobs):
-        config = profile.training.data_for(scene)
+    """Generate (or find cached) the training data of every training scene (and varied
+    draws) of `jobs`, one at a time, before worker processes start: otherwise each of
+    the groups sharing a scene generates the same data at once (on one H100 the 14
+    groups of the full grid spent 10 minutes generating the four training scenes' data
+    before their first epoch, 2026-11-24)."""
+    for config in dict.fromkeys(job_settings(profile, job)[2] for job in jobs):
         with claims.once(data.cache_path(config, Layout(out).datasets)):  # a second driver reads it from the cache
             data.load_or_generate(config, Layout(out).datasets, progress=progress)
 
@@ -145,7 +148,7 @@ def default_lgnn(profile: Profile, out: Path, training_scene: str = TRAINING_SCE
     `checkpoints`: `load_checkpoints(profile, out)` where the caller has it already."""
     found: dict[str, list[float]] = {}
     for job, state in load_checkpoints(profile, out) if checkpoints is None else checkpoints:
-        if job.model in LGNN_VARIANTS and job.scene == training_scene:
+        if job.model in LGNN_VARIANTS and job.scene == training_scene and not job.varied_draws:
             found.setdefault(job.model, []).append(state.best_val)
     scores = {v: float(np.exp(np.mean(np.log(found[v])))) for v in LGNN_VARIANTS if len(found.get(v, ())) == len(profile.seeds)}
     return (min(scores, key=lambda v: (scores[v], LGNN_VARIANTS.index(v))) if scores else None), scores
