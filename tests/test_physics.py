@@ -411,7 +411,7 @@ def test_link_gram_solve_matches_dense_normal_equations(name, tridiagonal, borde
     np.testing.assert_allclose(solved, expected, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("size", [1, 2, 45])
+@pytest.mark.parametrize("size", [1, 2, 4, 45])
 def test_spd_tridiagonal_solve_matches_the_dense_solve(size):
     """The LDL^T sweep of the Gram solves against a dense solve, several right-hand sides,
     on an SPD tridiagonal matrix whose off-diagonals are as large as a chain's."""
@@ -425,6 +425,31 @@ def test_spd_tridiagonal_solve_matches_the_dense_solve(size):
     lower, upper = np.concatenate([[0.0], off]), np.concatenate([off, [0.0]])
     solved = jax.jit(spd_tridiagonal_solve)(*(jnp.asarray(a) for a in (lower, diag, upper, rhs)))
     np.testing.assert_allclose(solved, np.linalg.solve(dense, rhs), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("size", [1, 3, 4, 5, 12])
+def test_cholesky_solves_written_out_match_lapacks(size):
+    """`cholesky_solve_fn` on either side of `UNROLLED_MAX` (written out, then LAPACK):
+    the solution of an ill-conditioned SPD system (cond ~1e8) for one and several
+    right-hand sides, and the factor's diagonal, against NumPy; an indefinite matrix
+    gives NaN pivots, which the guarded solve reads as unsafe, under `vmap` too."""
+    from lgnn.physics.solvers import UNROLLED_MAX, cholesky_solve_fn
+
+    assert 3 <= UNROLLED_MAX < 12  # the sizes cover both ways
+    rng = np.random.default_rng(size)
+    basis, _ = np.linalg.qr(rng.normal(size=(size, size)))
+    matrix = basis @ np.diag(np.logspace(0, 8, size)) @ basis.T
+    rhs = rng.normal(size=(size, 3))
+    solve_pivots = jax.jit(lambda m, r: (cholesky_solve_fn(m)[0](r), cholesky_solve_fn(m)[0](r[:, 0]), cholesky_solve_fn(m)[1]))
+    many, one, pivots = solve_pivots(jnp.asarray(matrix), jnp.asarray(rhs))
+    expected = np.linalg.solve(matrix, rhs)
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(many, expected, atol=1e-7 * scale)
+    np.testing.assert_allclose(one, expected[:, 0], atol=1e-7 * scale)
+    np.testing.assert_allclose(pivots, np.diag(np.linalg.cholesky(matrix)), rtol=1e-9)
+    indefinite = np.stack([np.eye(size), -np.eye(size)])
+    assert not np.isnan(jax.vmap(lambda m: cholesky_solve_fn(m)[1])(indefinite)[0]).any()
+    assert np.isnan(jax.vmap(lambda m: cholesky_solve_fn(m)[1])(indefinite)[1]).any()
 
 
 def test_chain_solver_is_accurate_on_a_long_chain():

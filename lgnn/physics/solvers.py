@@ -47,6 +47,16 @@ Array = jax.Array
 # becomes non-finite within 0.003 s and 1e-9 moves T3 by 1.3e-3 (issue 13).
 KKT_REGULARISATION = 3e-10
 KKT_REFINEMENT_STEPS = 3
+# Systems up to this size are factored by a Cholesky factorisation written out entry by
+# entry (`cholesky_solve_fn`), which XLA fuses into a few elementwise kernels, instead of
+# LAPACK's potrf and potrs, each a custom call whose fixed cost on a CPU exceeds a tiny
+# system's arithmetic; and tridiagonal systems up to this size run their sweeps unrolled
+# (`spd_tridiagonal_solve`), without a loop's per-iteration cost. Measured on the 2-core
+# CPU, one trajectory's RK4 step (`tools/cpu_vs_mujoco.py`): chain4 6.7 us with LAPACK
+# and loops, 5.4 us written out; sweeps unrolled up to 8 took chain8 from 10.3 to 11.6
+# us, and Cholesky factorisations written out up to 16 took chain16 from about 16 to 90
+# us (that code grows as the cube of the size).
+UNROLLED_MAX = 4
 
 
 def refine(solve: Callable[[Array], Array], residual: Callable[[Array], Array], x: Array, steps: int) -> Array:
@@ -85,13 +95,46 @@ def solve_kkt(mass: Array, jac: Array, force: Array, accel_rhs: Array) -> Array:
     return refine(solve, lambda solution: rhs - kkt @ solution, solve(rhs), KKT_REFINEMENT_STEPS)[:n]
 
 
+def cholesky_solve_fn(matrix: Array) -> tuple[Callable[[Array], Array], Array]:
+    """`(solve, pivots)` of a symmetric positive definite `matrix` (K, K): `r -> matrix^-1 r`
+    for `r` (K,) or (K, R), by a Cholesky factorisation made once, and the factor's
+    diagonal. Up to `UNROLLED_MAX` rows the factorisation and the two triangular solves
+    are written out entry by entry (the Cholesky-Banachiewicz order); larger systems go
+    to LAPACK (`jax.scipy.linalg.cho_factor`). Not positive definite: NaN, as LAPACK's."""
+    k = matrix.shape[0]
+    if k > UNROLLED_MAX:
+        factor = jax.scipy.linalg.cho_factor(matrix)
+        return functools.partial(jax.scipy.linalg.cho_solve, factor), jnp.diagonal(factor[0])
+    def minus(value: Array, terms: list[Array]) -> Array:
+        return functools.reduce(lambda total, term: total - term, terms, value)
+
+    lower: list[list[Array]] = []
+    for i in range(k):
+        row: list[Array] = []
+        for j in range(i + 1):
+            partial = minus(matrix[i, j], [row[p] * (row if j == i else lower[j])[p] for p in range(j)])
+            row.append(jnp.sqrt(partial) if j == i else partial / lower[j][j])
+        lower.append(row)
+
+    def solve(rhs: Array) -> Array:
+        forward: list[Array] = []
+        for i in range(k):
+            forward.append(minus(rhs[i], [lower[i][p] * forward[p] for p in range(i)]) / lower[i][i])
+        backward: list[Array] = list(forward)
+        for i in reversed(range(k)):
+            backward[i] = minus(forward[i], [lower[p][i] * backward[p] for p in range(i + 1, k)]) / lower[i][i]
+        return jnp.stack(backward)
+
+    return solve, jnp.stack([lower[i][i] for i in range(k)])
+
+
 def regularised_spd_solve(matrix: Array, rhs: Array) -> Array:
     """Cholesky solve of `(S + eps I) x = r`, refined against `S x = r`: exact at regular
     configurations, bounded near singular ones (as `solve_kkt`). `eps` is relative to
     `trace(S)/K`, so `c S` gives `x / c` for any c (scale-free). `matrix` (K, K)."""
     k = matrix.shape[0]
     eps = KKT_REGULARISATION * jnp.trace(matrix) / k
-    solve = functools.partial(jax.scipy.linalg.cho_solve, jax.scipy.linalg.cho_factor(matrix + eps * jnp.eye(k, dtype=matrix.dtype)))
+    solve, _ = cholesky_solve_fn(matrix + eps * jnp.eye(k, dtype=matrix.dtype))
     return refine(solve, lambda solution: rhs - matrix @ solution, solve(rhs), KKT_REFINEMENT_STEPS)
 
 
@@ -112,10 +155,9 @@ def guarded_spd_solve(matrix: Array, rhs: Array) -> Array:
     solves (T1 on a CPU: 96-100 us a step against 128-134); under `vmap` both branches
     run, so batched callers use `regularised_spd_solve` (`true_acceleration_fn`'s
     `vectorised`), as do accelerators (a branch reads its predicate back to the host)."""
-    factor = jax.scipy.linalg.cho_factor(matrix)
-    pivots = jnp.diagonal(factor[0])
+    solve, pivots = cholesky_solve_fn(matrix)
     plain = jnp.all(jnp.isfinite(pivots)) & (jnp.min(pivots) ** 2 >= SPD_PIVOT_RATIO * jnp.max(pivots) ** 2)
-    return jax.lax.cond(plain, lambda: jax.scipy.linalg.cho_solve(factor, rhs), lambda: regularised_spd_solve(matrix, rhs))
+    return jax.lax.cond(plain, lambda: solve(rhs), lambda: regularised_spd_solve(matrix, rhs))
 
 
 def spd_solve(matrix: Array, rhs: Array) -> Array:
@@ -124,7 +166,7 @@ def spd_solve(matrix: Array, rhs: Array) -> Array:
     independent), with neither regulariser nor refinement: `regularised_spd_solve`
     refines back to this same solution (to round-off) at three more pairs of triangular
     solves, most of a small scene's acceleration (chain12 on a CPU)."""
-    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(matrix), rhs)
+    return cholesky_solve_fn(matrix)[0](rhs)
 
 
 def _inverse_3x3(m: Array) -> Array:
@@ -261,8 +303,10 @@ def spd_tridiagonal_solve(lower: Array, diag: Array, upper: Array, rhs: Array) -
         reduced = row_rhs - weight * previous_reduced
         return (pivot, reduced, row_upper), (pivot, reduced)
 
+    # Short systems unrolled (`UNROLLED_MAX`): a loop's iterations cost more than their rows.
+    unroll = diag.shape[0] <= UNROLLED_MAX
     first = (diag[0], rhs[0], upper[0])
-    _, (pivots, reduced) = jax.lax.scan(sweep, first, (lower[1:], diag[1:], upper[1:], rhs[1:]))
+    _, (pivots, reduced) = jax.lax.scan(sweep, first, (lower[1:], diag[1:], upper[1:], rhs[1:]), unroll=unroll)
     pivots, reduced = jnp.concatenate([diag[:1], pivots]), jnp.concatenate([rhs[:1], reduced])
 
     def substitute(following, row):
@@ -271,7 +315,7 @@ def spd_tridiagonal_solve(lower: Array, diag: Array, upper: Array, rhs: Array) -
         return solution, solution
 
     last = reduced[-1] / pivots[-1]
-    _, rest = jax.lax.scan(substitute, last, (pivots[:-1, None], reduced[:-1], upper[:-1, None]), reverse=True)
+    _, rest = jax.lax.scan(substitute, last, (pivots[:-1, None], reduced[:-1], upper[:-1, None]), reverse=True, unroll=unroll)
     return jnp.concatenate([rest, last[None]])
 
 
@@ -342,8 +386,7 @@ class LinkGram:
         gram = jnp.diag(diag).at[self.first, self.second].add(off).at[self.second, self.first].add(off)
         if self.bordered:
             return _bordered_tridiagonal_solve_fn(gram, self.border)
-        factor = jax.scipy.linalg.cho_factor(gram)
-        return lambda r: jax.scipy.linalg.cho_solve(factor, r)
+        return cholesky_solve_fn(gram)[0]
 
 
 def _bordered_tridiagonal_solve_fn(matrix: Array, border: np.ndarray) -> Callable[[Array], Array]:
@@ -360,11 +403,11 @@ def _bordered_tridiagonal_solve_fn(matrix: Array, border: np.ndarray) -> Callabl
     tri_solve = functools.partial(spd_tridiagonal_solve, lower, diag, upper)
     tri_coupling = tri_solve(coupling)
     schur = matrix[border[:, None], border[None, :]] - coupling.T @ tri_coupling
-    factor = jax.scipy.linalg.cho_factor(schur)
+    border_solve, _ = cholesky_solve_fn(schur)
 
     def solve(r):
         reduced = tri_solve(r[main, None])[:, 0]
-        border_part = jax.scipy.linalg.cho_solve(factor, r[border] - coupling.T @ reduced)
+        border_part = border_solve(r[border] - coupling.T @ reduced)
         return jnp.zeros_like(r).at[main].set(reduced - tri_coupling @ border_part).at[border].set(border_part)
 
     return solve
