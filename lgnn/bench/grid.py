@@ -98,7 +98,7 @@ class GridEntry:
     @property
     def track(self) -> str:
         """The leaderboard the entry ranks on (`TRACKS`)."""
-        return TRANSFER_TRACK if self.varied_draws else PAPER_TRACK
+        return track_of(self.varied_draws)
 
     def __post_init__(self):
         if isinstance(self.varied_draws, bool) or not isinstance(self.varied_draws, int) or self.varied_draws < 0:
@@ -116,6 +116,13 @@ class GridEntry:
 PAPER_TRACK = "paper"
 TRANSFER_TRACK = "transfer"
 TRACKS = (PAPER_TRACK, TRANSFER_TRACK)
+
+
+def track_of(varied_draws: int) -> str:
+    """The track of a model trained on that many varied draws (0: on its scene alone)."""
+    return TRANSFER_TRACK if varied_draws else PAPER_TRACK
+
+
 # The transfer track: every graph model trained on TRANSFER_DRAWS draws of varied 4-link
 # chains (`lgnn.scene.varied_chain`; 20 trajectories of the full profile's 100 each),
 # evaluated zero-shot on the built-in varied chains and the trusses. Named by the
@@ -158,7 +165,8 @@ GRID = (
     GridEntry("lgn", SPATIAL_TRAINING_SCENE, SPATIAL_TRANSFER_SCENES),
     GridEntry("clnn", SPATIAL_TRAINING_SCENE, (SPATIAL_TRAINING_SCENE,)),
     *ZOO,
-    # The transfer track (a profile's `tracks` selects it).
+    # The transfer track (a profile's `tracks` selects it), each model stopped as the
+    # zoo's are: the plateau rule or ZOO_MINUTES, whichever comes first.
     *(GridEntry(model, TRANSFER_TRAINING_SCENE, TRANSFER_TRACK_SCENES, varied_draws=TRANSFER_DRAWS, minutes=ZOO_MINUTES)
       for model in (*LGNN_VARIANTS, "gns", "lgn", "gns-10-128", "cgnode", "chgn")),
 )
@@ -215,7 +223,7 @@ class TrainingJob:
 
     @property
     def track(self) -> str:
-        return TRANSFER_TRACK if self.varied_draws else PAPER_TRACK
+        return track_of(self.varied_draws)
 
     @property
     def label(self) -> str:
