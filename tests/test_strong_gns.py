@@ -19,6 +19,9 @@ from lgnn.scene import get_scene
 TINY_DATA = data.DataConfig(n_trajectories=6, duration=0.2, sample_dt=0.01, dt=1e-3)
 # The recipe's network at test size: its code, not its 1.6M parameters.
 SMALL = dict(latent=16, hidden=16, message_passing=2)
+# The strong GNS's recipe (statistics, noise, weight decay) at SMALL's sizes, for the
+# benchmark's stages: the full-size network's compile is most of a minute of CI.
+SMALL_STRONG_GNS = dataclasses.replace(models.get_spec("gns-10-128"), name="gns-10-128-small-test", **SMALL)
 
 
 @pytest.fixture(scope="module")
@@ -143,17 +146,17 @@ def test_statistics_of_another_shape_than_inits_placeholders_are_refused():
 
 
 def test_a_config_grid_entry_trains_and_evaluates_the_strong_gns(tmp_path, tiny_benchmark_config):
-    """A config's `[[grid]]` entry trains it through the benchmark (its statistics those
-    of the config's training data) and evaluates it."""
-    profile = grid.load_profile(tiny_benchmark_config("gns-10-128", epochs=2))
+    """A config's `[[grid]]` entry trains its recipe (at small sizes) through the
+    benchmark, its statistics those of the config's training data, and evaluates it."""
+    profile = grid.load_profile(tiny_benchmark_config(f"{__name__}:SMALL_STRONG_GNS", epochs=2))
     out = run(profile, tmp_path / "out", progress=False)
     (job,) = grid.training_jobs(profile)
     model, params = checkpoints.load_model(out / "benchmark" / "checkpoints" / f"{job.name}.npz")
-    assert model.name == "gns-10-128" and model.message_passing == 10
+    assert model.name == SMALL_STRONG_GNS.name and model.message_passing == 2
     dataset = data.load_or_generate(profile.training.data_for("chain4"), None)
     expected = models.training_statistics(model, get_scene("chain4"), *_training_arrays(dataset))
     np.testing.assert_array_equal(params[models.STATISTICS]["velocity_std"], expected["velocity_std"])
     from lgnn.bench.stages import evaluate
 
     ((pair, record),) = evaluate.load_pairs(profile, out)
-    assert pair.job.model == "gns-10-128" and pair.scene == "chain4"
+    assert pair.job.model == SMALL_STRONG_GNS.name and pair.scene == "chain4"
