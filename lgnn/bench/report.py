@@ -20,7 +20,7 @@ Files under `<out>` (`results/` for the full profile, `lgnn-out/quick/` for the 
   geometric mean over seeds and initial conditions with a two-level bootstrap interval
   (`lgnn.metrics.summarise_seeds`), `seeds`, and the summed divergences; the markdown
   tables show these.
-- `benchmark/curves.csv.gz`: the same metrics per frame (every 0.01 s): geometric mean
+- `benchmark/curves.csv.gz`: the same metrics per frame (every `evaluate.CURVE_DT`, 0.01 s): geometric mean
   over initial conditions with a normal-approximation 95% band (`t` column); columns
   `scene, model, seed, metric, statistic, t, value`. Each curve's commit, versions and
   device are those of its `summary.csv` rows (same scene, model, seed): repeated on
@@ -46,7 +46,7 @@ from lgnn.bench import convergence, gpu_truth
 from lgnn.bench.grid import (EXTERNAL, GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs,
                              Pair, TrainingJob, evaluation_scenes, model_order, settings_key, train_config, training_jobs)
 from lgnn.bench.stability import fit_exponent
-from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
+from lgnn.bench.stages.evaluate import CURVE_DT, FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.stages.evaluate import scene_level_prefix, scene_level_scores, truth_against, unmatched_base_pairs
 from lgnn.bench.stages.external import load_externals
@@ -81,7 +81,6 @@ EXACT_NO_DRAG = "exact, no drag"
 DEFAULT_REFERENCES = EvaluateSettings.references
 # How headings and columns name a reference engine (others by their registry name).
 ENGINE_TITLES = {"lagrangian": "the Lagrangian engine", "mujoco": "MuJoCo", "mjx": "MJX", "mjwarp": "MuJoCo Warp"}
-CURVE_STEP_S = 0.01
 # The per-frame curves' file under `benchmark/` (gzipped: module docstring).
 CURVES = "curves.csv.gz"
 # The `seed` of summary rows over every training seed of a model.
@@ -122,7 +121,8 @@ def _summary_rows(scene, model, seed, metric, arrays, meta, prefix, diverged=Non
 
 def _curve_rows(scene, model, seed, metric, arrays, prefix):
     t = arrays["t"]
-    stride = max(1, round(CURVE_STEP_S / (t[1] - t[0]))) if len(t) > 1 else 1
+    # Records kept every frame before they kept their curves every CURVE_DT s.
+    stride = max(1, round(CURVE_DT / (t[1] - t[0]))) if len(t) > 1 else 1
     rows = []
     for statistic in ("gmean", "low", "high"):
         values = arrays[f"{prefix}/{statistic}"]
@@ -813,7 +813,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
               *_provenance_lines(*records, speed_rows, mass_records, out), ""]
     lines += ["## Files", "", "| file | what |", "|---|---|",
               "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
-              "| `benchmark/curves.csv.gz` | per-frame geometric means and 95% bands (every 0.01 s; provenance: the matching `summary.csv` rows) |",
+              f"| `benchmark/curves.csv.gz` | per-frame geometric means and 95% bands (every {CURVE_DT:g} s; provenance: the matching `summary.csv` rows) |",
               "| `benchmark/speed_error.csv`, `.md` | speed against error |",
               *(["| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, each 3D chain beside the planar one, "
                  "and cost against chain length in 2D and 3D |"] if speed_rows else []),

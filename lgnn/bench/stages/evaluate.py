@@ -50,7 +50,7 @@ import numpy as np
 
 from lgnn import metrics, physics, records
 from lgnn.bench import claims, store
-from lgnn.bench.grid import Pair, Profile, evaluation_pairs, evaluation_scenes, settings_key
+from lgnn.bench.grid import SNAPSHOT_SCENES, Pair, Profile, evaluation_pairs, evaluation_scenes, settings_key
 from lgnn.bench.store import Layout, log
 from lgnn.engines import get_engine
 from lgnn.engines.base import SimulationConfig
@@ -129,8 +129,15 @@ def scene_level_scores(references: tuple[str, ...]) -> tuple[tuple[str, str], ..
 TRUE_DYNAMICS = Unparametrised(physics.vectorised_true_acceleration_fn)
 
 
-# Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s.
+# Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s, in
+# the records of the scenes the report draws them for (`grid.SNAPSHOT_SCENES`; kept on
+# every scene they were 70 % of the committed records' bytes).
 SNAPSHOT_DT = 0.01
+# A record keeps its per-frame statistics (`<metric>/gmean`, `low`, `high`, and `t`)
+# every CURVE_DT s, what the report's curves and figures draw; its per-initial-condition
+# statistics (`per_ic_log`, every table's number) are over every frame. At the 1 ms
+# frames the whole curves were 90 % of the committed records' bytes, none of it read.
+CURVE_DT = 0.01
 
 
 def evaluation_initial_states(profile: Profile, scene: Scene) -> State:
@@ -249,10 +256,13 @@ def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, r
     return found
 
 
-def snapshot(profile: Profile, trajectory: np.ndarray) -> np.ndarray:
-    """IC 0 of a trajectory at every SNAPSHOT_DT s (figures), float32."""
+def snapshot(profile: Profile, scene_name: str, name: str, trajectory: np.ndarray) -> dict:
+    """`{"snapshot/<name>": IC 0 of a trajectory at every SNAPSHOT_DT s}` (float32) on a
+    scene the report draws snapshots of (`SNAPSHOT_SCENES`), else `{}`."""
+    if scene_name not in SNAPSHOT_SCENES:
+        return {}
     stride = max(1, round(SNAPSHOT_DT / profile.evaluate.frame_dt))
-    return np.asarray(trajectory[0, ::stride], np.float32)
+    return {f"snapshot/{name}": np.asarray(trajectory[0, ::stride], np.float32)}
 
 
 def _floor_metrics() -> tuple[str, ...]:
@@ -265,9 +275,22 @@ def _against_references() -> tuple[str, ...]:
     return tuple(m.name for m in metrics.METRICS.values() if m.against_references)
 
 
-def _statistics_arrays(prefix: str, errors: np.ndarray) -> dict:
-    """`<prefix>/<statistic>` of clean errors (C, F - 1) (`lgnn.metrics.error_statistics`)."""
-    return {f"{prefix}/{k}": v for k, v in metrics.error_statistics(errors).items()}
+def curve_frames(frame_dt: float) -> slice:
+    """The frames t > 0 at which a record keeps its curves: every CURVE_DT s (the last
+    frame of each CURVE_DT), or every frame when frames are CURVE_DT or more apart."""
+    stride = max(1, round(CURVE_DT / frame_dt))
+    return slice(stride - 1, None, stride)
+
+
+def curve_times(n_frames: int, frame_dt: float) -> np.ndarray:
+    """A record's `t`: the times (s) of its curves' frames, of `n_frames` frames t >= 0."""
+    return (np.arange(1, n_frames) * frame_dt)[curve_frames(frame_dt)]
+
+
+def _statistics_arrays(prefix: str, errors: np.ndarray, frame_dt: float) -> dict:
+    """`<prefix>/<statistic>` of clean errors (C, F - 1) (`lgnn.metrics.error_statistics`),
+    the per-frame ones at the curves' frames (`curve_frames`)."""
+    return {f"{prefix}/{k}": v if k == "per_ic_log" else v[curve_frames(frame_dt)] for k, v in metrics.error_statistics(errors).items()}
 
 
 def score_against_truth(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth: dict) -> list[metrics.Scored]:
@@ -286,14 +309,15 @@ def record_arrays(prefix: str, scored: list[metrics.Scored], frame_dt: float) ->
     """The arrays of a model's (or a baseline's, under `prefix`) scores: statistics of
     every recorded metric (`recorded_name`) and `diverged_at` (s, NaN for none)."""
     arrays = {k: v for item in scored for metric, errors in item.errors.items()
-              for k, v in _statistics_arrays(prefix + recorded_name(metric, item.reference), errors).items()}
+              for k, v in _statistics_arrays(prefix + recorded_name(metric, item.reference), errors, frame_dt).items()}
     arrays[f"{prefix}diverged_at"] = np.where(scored[0].diverged >= 0, scored[0].diverged * frame_dt, np.nan)
     return arrays
 
 
-def _scene_level_arrays(group: str, scored: metrics.Scored) -> dict:
+def _scene_level_arrays(group: str, scored: metrics.Scored, frame_dt: float) -> dict:
     """The arrays of a scene-level score (`scene_level_prefix`)."""
-    return {k: v for name, errors in scored.errors.items() for k, v in _statistics_arrays(scene_level_prefix(group, name), errors).items()}
+    return {k: v for name, errors in scored.errors.items()
+            for k, v in _statistics_arrays(scene_level_prefix(group, name), errors, frame_dt).items()}
 
 
 def has_arrays(record: tuple[dict, dict] | None, names: tuple[str, ...]) -> bool:
@@ -333,19 +357,19 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
     t = np.arange(truth["q"].shape[1]) * frame_dt
     floor = metrics.score_rollouts(scene, t, truth["q_floor"], truth["qd_floor"], truth["q"], truth["energy"], names=_floor_metrics())
     arrays = {
-        "t": t[1:],
-        **_scene_level_arrays(FLOOR, floor),
+        "t": curve_times(len(t), frame_dt),
+        **_scene_level_arrays(FLOOR, floor, frame_dt),
         f"{FLOOR}/diverged_at": np.where(floor.diverged >= 0, floor.diverged * frame_dt, np.nan),
         **record_arrays(f"{REST}/", score_against_truth(profile, scene, *metrics.rest_rollouts(truth["q"], truth["qd"]), truth), frame_dt),
-        "snapshot/truth": snapshot(profile, truth["q"]),
+        **snapshot(profile, scene_name, "truth", truth["q"]),
         "mid_state": np.stack([truth["q"][0, truth["q"].shape[1] // 2], truth["qd"][0, truth["qd"].shape[1] // 2]]),
     }
     for engine in references:
         # The ground truth never diverges (it stops at divergence: `batched_rollouts`), so neither side's
         # errors are capped.
         versus = metrics.score_rollouts(scene, t, truth["q"], truth["qd"], truth[f"q_{engine}"], truth[f"energy_{engine}"], names=_against_references())
-        arrays.update(_scene_level_arrays(truth_against(engine), versus))
-        arrays[f"snapshot/{engine}"] = snapshot(profile, truth[f"q_{engine}"])
+        arrays.update(_scene_level_arrays(truth_against(engine), versus, frame_dt))
+        arrays.update(snapshot(profile, scene_name, engine, truth[f"q_{engine}"]))
     if scene.drag > 0:
         no_drag = scene.replace(drag=0.0)
         runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth["states"],
@@ -435,7 +459,8 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     for (pair, path, key, _, _), q, qd in zip(group, q_all, qd_all):
         scored = score_against_truth(profile, scene, q, qd, truth)
         diverged = scored[0].diverged
-        arrays = {"t": np.arange(1, q.shape[1]) * profile.evaluate.frame_dt, **record_arrays("", scored, profile.evaluate.frame_dt), "snapshot/model": snapshot(profile, q)}
+        frame_dt = profile.evaluate.frame_dt
+        arrays = {"t": curve_times(q.shape[1], frame_dt), **record_arrays("", scored, frame_dt), **snapshot(profile, pair.scene, "model", q)}
         # Compile and run times are the group's (`stacked` models rolled out together).
         meta = dict(job=pair.job.name, model=pair.job.model, label=pair.label, projected=pair.projected, train_scene=pair.job.scene, seed=pair.job.seed,
                     scene=pair.scene, initial_conditions=len(q), mujoco_reference=REFERENCE_VERSION, compile_s=compile_s, run_s=run_s,

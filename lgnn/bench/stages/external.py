@@ -159,8 +159,8 @@ def evaluate_external(profile: Profile, path: str | os.PathLike, out: Path, prog
         scene = get_scene(predictions.scene)
         scored = evaluate.score_against_truth(profile, scene, predictions.q, predictions.qd, truth)
         frame_dt = profile.evaluate.frame_dt
-        arrays = {"t": np.arange(1, predictions.q.shape[1]) * frame_dt, **evaluate.record_arrays("", scored, frame_dt),
-                  "snapshot/model": evaluate.snapshot(profile, predictions.q)}
+        arrays = {"t": evaluate.curve_times(predictions.q.shape[1], frame_dt), **evaluate.record_arrays("", scored, frame_dt),
+                  **evaluate.snapshot(profile, predictions.scene, "model", predictions.q)}
         meta = dict(external=True, model=predictions.model, label=predictions.pair.label, scene=predictions.scene, about=predictions.about,
                     file=predictions.path.name, file_digest=predictions.digest, truth_key=evaluate.truth_key(profile, predictions.scene),
                     initial_conditions=len(predictions.q), mujoco_reference=evaluate.REFERENCE_VERSION)
