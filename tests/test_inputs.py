@@ -514,6 +514,15 @@ def test_a_simulation_config_is_bounded_or_refused(dt, frame_dt, duration):
     assert 1 <= config.n_frames <= MAX_FRAMES and config.n_frames * config.steps_per_frame <= MAX_STEPS
 
 
+# `lgnn ARGS` as started from a terminal, where Ctrl-C is delivered. A process started in
+# the background by a non-interactive shell (`nohup pytest &`) inherits SIGINT ignored,
+# and Python then installs no handler: its children could not be interrupted at all.
+_AT_A_TERMINAL = """
+import signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)
+from lgnn.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
 INTERRUPTS = 50
 # Processes interrupted at once: the moments stay random (each process's own clock),
 # the test's wall time a fifth of one after another.
@@ -539,7 +548,7 @@ def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
         children = {}
         for trial in range(batch, min(batch + INTERRUPTED_AT_ONCE, INTERRUPTS)):
             out = tmp_path / f"o{trial}.npz"
-            children[trial] = (out, subprocess.Popen([sys.executable, "-m", "lgnn", "simulate", "chain4", "--duration", "0.2", "--out", str(out),
+            children[trial] = (out, subprocess.Popen([sys.executable, "-c", _AT_A_TERMINAL, "simulate", "chain4", "--duration", "0.2", "--out", str(out),
                                                       "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
         for trial, (out, child) in children.items():
             time.sleep(max(0.0, started + moments[trial] - time.monotonic()))
@@ -560,6 +569,7 @@ def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
 
 _INTERRUPTED_COMPILATION = """
 import os, signal, sys, threading
+signal.signal(signal.SIGINT, signal.default_int_handler)  # (as at a terminal: _AT_A_TERMINAL)
 from jax._src import compiler
 from lgnn.cli import main
 
