@@ -178,11 +178,14 @@ def test_committed_checkpoints_are_converted_and_keep_their_content():
     converted by tools/convert_checkpoints.py; the records made from the format-1 files
     load under their keys (bench/test_keys.py), whose `content_digest` is the converted
     file's: the same settings and best parameters."""
+    from lgnn.bench import grid
+
     paper = {"lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn"}
+    papers_grid = {job.name for job in grid.training_jobs(grid.load_profile("full", ['tracks=["paper"]'])) if job.model in paper}
     for path in sorted(COMMITTED.glob("*.npz")):
         meta, _ = checkpoints.read(path)
         assert meta["format"] == checkpoints.FORMAT, path.name
-        if meta["model"]["name"] in paper:
+        if path.stem in papers_grid:
             assert meta["converted_from"]["format"] == checkpoints.LEGACY_FORMAT, path.name
     model, _ = load_model(COMMITTED / "lgnn-notebook-chain4-s0.npz")
     assert model.name == "lgnn-notebook" and train.load_checkpoint(COMMITTED / "lgnn-notebook-chain4-s0.npz")[0].epoch > 0

@@ -2,6 +2,7 @@
 each state of its own draw's physics, and training on all draws at once."""
 
 import dataclasses
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -139,14 +140,16 @@ def test_link_features_are_a_setting_of_the_models_that_read_them():
 def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     """The grid's transfer entries train every graph model on varied draws of chain4
     (data with `varied_draws`, link features where the model takes them) under names
-    and labels of their own; the full profile keeps the paper's track until their
-    records are committed; a leaderboard of their own ranks them; an unknown track is
-    one line."""
+    and labels of their own; the full profile has both tracks, the paper's alone on
+    request; a leaderboard and tables of their own rank them, their scenes in the
+    track's order; an unknown track is one line."""
     from lgnn.bench import grid, report
     from lgnn.bench.stages.train import job_settings
 
-    assert all(job.track == grid.PAPER_TRACK for job in grid.training_jobs(grid.PROFILES["full"]))
-    both = grid.load_profile("full", ['tracks=["paper", "transfer"]'])
+    paper = grid.load_profile("full", ['tracks=["paper"]'])
+    assert all(job.track == grid.PAPER_TRACK for job in grid.training_jobs(paper))
+    both = grid.PROFILES["full"]
+    assert both.tracks == grid.TRACKS
     transfer = [job for job in grid.training_jobs(both) if job.track == grid.TRANSFER_TRACK]
     assert {job.model for job in transfer} == {*grid.LGNN_VARIANTS, "gns", "lgn", "gns-10-128", "cgnode", "chgn"}
     lgnn = next(job for job in transfer if job.model == "lgnn" and job.seed == 0)
@@ -160,10 +163,21 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     pairs = grid.evaluation_pairs(both)
     assert {p.scene for p in pairs if p.job.track == grid.TRANSFER_TRACK} == set(grid.TRANSFER_TRACK_SCENES)
     boards = {heading: board for heading, _, board in report.leaderboards(pairs)}
-    assert set(boards) == {"planar: trained on chain4", "3D: trained on chain4-3d",
-                           "planar, transfer track: trained on 5 varied draws of chain4-varied"}
-    assert all(p.job.varied_draws for p in boards["planar, transfer track: trained on 5 varied draws of chain4-varied"])
+    transfer_heading = "planar, transfer track: trained on chain4-varied, 5 draws"
+    assert set(boards) == {"planar: trained on chain4", "3D: trained on chain4-3d", transfer_heading}
+    assert all(p.job.varied_draws for p in boards[transfer_heading])
     assert not any(p.job.varied_draws for p in boards["planar: trained on chain4"])
+    # The track's tables list its scenes as its entries declare them (its training chain
+    # first), the paper's tables theirs.
+    assert report.scene_groups(["T1", "chain8-varied", "chain4-varied", "chain4"], grid.TRANSFER_TRACK)[2] == [
+        "chain4-varied", "chain8-varied", "T1", "chain4"]
+    assert report.scene_groups(["chain4-varied", "T1", "chain4"])[2] == ["chain4", "T1", "chain4-varied"]
+    # The committed report: each track's tables apart, no transfer model among the paper's.
+    sections = (Path(__file__).resolve().parents[1] / "results" / "README.md").read_text().split("\n## ")
+    paper_table = next(s for s in sections if s.startswith("Rollout error against the Lagrangian ground truth (planar: trained on chain4"))
+    transfer_table = next(s for s in sections if s.startswith(f"Rollout error against the Lagrangian ground truth ({transfer_heading})"))
+    assert "draws)" not in paper_table.splitlines()[2] and "| lgnn-notebook |" in transfer_table.splitlines()[2]
+    assert [row.split(" | ")[0].strip("| ") for row in transfer_table.splitlines()[4:11]] == list(grid.TRANSFER_TRACK_SCENES)
     with pytest.raises(ConfigError, match="setting 'tracks': unknown track 'mine'"):
         grid.load_profile("full", ['tracks=["mine"]'])
     with pytest.raises(ConfigError, match="'varied_draws' must be a whole number"):

@@ -175,12 +175,13 @@ GRID = (
 @dataclasses.dataclass(frozen=True)
 class FigureGroup:
     """An error-against-time figure of the report: its file under `figures/`, the scenes
-    drawn side by side (those with curves), the training scene its title names
-    ("each": the scenes' own)."""
+    drawn side by side (those with curves), what its title says the models trained on
+    ("each": the scenes' own), and the track whose models it draws (`TRACKS`)."""
 
     file: str
     scenes: tuple[str, ...]
     trained_on: str
+    track: str = PAPER_TRACK
 
 
 # The error-against-time figures of the built-in grid: each transfer group a figure,
@@ -194,6 +195,9 @@ ERROR_FIGURES = (
     FigureGroup("error_vs_time_chain4_8_16_3d.png", ("chain4-3d", "chain8-3d", "chain16-3d"), SPATIAL_TRAINING_SCENE),
     FigureGroup("error_vs_time_chain100_3d.png", ("chain100-3d",), SPATIAL_TRAINING_SCENE),
     FigureGroup("error_vs_time_net_rope_tensegrity_3d.png", ("net4x4-3d", "rope-3d", "tensegrity-3d"), SPATIAL_TRAINING_SCENE),
+    FigureGroup("error_vs_time_transfer_chains.png", TRANSFER_TRACK_SCENES[:4], f"{TRANSFER_TRAINING_SCENE}, {TRANSFER_DRAWS} draws", TRANSFER_TRACK),
+    FigureGroup("error_vs_time_transfer_T1_T2slack_T3slack.png", TRANSFER_TRACK_SCENES[4:], f"{TRANSFER_TRAINING_SCENE}, {TRANSFER_DRAWS} draws",
+                TRANSFER_TRACK),
 )
 # Scenes whose snapshots (learned against MuJoCo) the report draws: a chain and a
 # truss in each dimension, and the 3D net.
@@ -226,13 +230,17 @@ class TrainingJob:
         return track_of(self.varied_draws)
 
     @property
+    def trained_on(self) -> str:
+        """What the job trains on, as tables name it: its scene (`chain4-varied`), or
+        varied draws of it (`chain4-varied, 5 draws`)."""
+        return f"{self.scene}, {self.varied_draws} draws" if self.varied_draws else self.scene
+
+    @property
     def label(self) -> str:
         """The model as tables name it: `lgnn`, or `lgnn (chain4-varied)` off the main
         training scene, `lgnn (chain4-varied, 5 draws)` on varied draws of it, or
         `my-sim (external)` for predictions made outside lgnn."""
-        if self.varied_draws:
-            return f"{self.model} ({self.scene}, {self.varied_draws} draws)"
-        return self.model if self.scene == TRAINING_SCENE else f"{self.model} ({self.scene})"
+        return self.model if self.scene == TRAINING_SCENE and not self.varied_draws else f"{self.model} ({self.trained_on})"
 
     @property
     def external(self) -> bool:

@@ -43,8 +43,9 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
-from lgnn.bench.grid import (EXTERNAL, GRID, PROFILES, SNAPSHOT_SCENES, TRAINING_SCENES, EvaluateSettings, Profile, error_figures, evaluation_pairs,
-                             Pair, TrainingJob, evaluation_scenes, model_order, settings_key, train_config, training_jobs)
+from lgnn.bench.grid import (EXTERNAL, GRID, PAPER_TRACK, PROFILES, SNAPSHOT_SCENES, TRACKS, TRAINING_SCENES, TRANSFER_TRACK, EvaluateSettings,
+                             Profile, error_figures, evaluation_pairs, Pair, TrainingJob, evaluation_scenes, model_order, settings_key, track_of,
+                             train_config, training_jobs)
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.stages.evaluate import CURVE_DT, FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
@@ -87,8 +88,11 @@ CURVES = "curves.csv.gz"
 ALL_SEEDS = -1
 MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale", "scaled_percent_error", "scaled_tangent_percent_error")
 # Table order of scenes: the built-in grid's evaluation scenes as it declares them
-# (planar, then 3D); a user's grid's other scenes follow as recorded.
+# (planar, then 3D); a user's grid's other scenes follow as recorded. A track's tables
+# follow its own entries' order (the transfer track's starts from its training chain).
 SCENE_ORDER = tuple(dict.fromkeys(scene for entry in GRID for scene in entry.eval_scenes))
+TRACK_SCENE_ORDERS = {track: tuple(dict.fromkeys(scene for entry in GRID if track_of(entry.varied_draws) == track for scene in entry.eval_scenes))
+                      for track in TRACKS}
 # How headings name each dimension's grid.
 DIMENSION_NAMES = {2: "planar", 3: "3D"}
 
@@ -244,13 +248,15 @@ def truth_columns(metric: str, references: tuple[str, ...] = DEFAULT_REFERENCES)
     return columns
 
 
-def scene_groups(scenes) -> dict[int, list[str]]:
-    """`{dim: scenes}`, dimensions ascending, each group in table order (`SCENE_ORDER`,
-    then as given): each dimension's grid gets its own tables, whose columns are the
-    models evaluated on its scenes (a model trained in 2D is never evaluated in 3D)."""
+def scene_groups(scenes, track: str = PAPER_TRACK) -> dict[int, list[str]]:
+    """`{dim: scenes}`, dimensions ascending, each group in table order (the `track`'s
+    `TRACK_SCENE_ORDERS`, then `SCENE_ORDER`, then as given): each dimension's grid
+    gets its own tables, whose columns are the models evaluated on its scenes (a model
+    trained in 2D is never evaluated in 3D)."""
     scenes = list(dict.fromkeys(scenes))
+    order = tuple(dict.fromkeys((*TRACK_SCENE_ORDERS.get(track, ()), *SCENE_ORDER)))
     groups: dict[int, list[str]] = {}
-    for scene in [s for s in SCENE_ORDER if s in scenes] + [s for s in scenes if s not in SCENE_ORDER]:
+    for scene in [s for s in order if s in scenes] + [s for s in scenes if s not in order]:
         groups.setdefault(get_scene(scene).dim, []).append(scene)
     return dict(sorted(groups.items()))
 
@@ -634,7 +640,7 @@ def banner(profile: Profile) -> list[str]:
             budget = f"{config.epochs} epochs" + (f" or {config.minutes:g} minutes" if config.minutes else "")
             short_jobs.setdefault((job.model, budget), []).append(job)
     # One entry per model and budget: its training scenes and seeds.
-    short = [f"{model} ({budget}; {', '.join(dict.fromkeys(j.scene for j in jobs))}; "
+    short = [f"{model} ({budget}; {', '.join(dict.fromkeys(j.trained_on for j in jobs))}; "
              f"seed{'s' if len({j.seed for j in jobs}) > 1 else ''} {', '.join(str(s) for s in sorted({j.seed for j in jobs}))})"
              for (model, budget), jobs in short_jobs.items()]
     lines = []
@@ -678,18 +684,27 @@ def summary_tables(references: tuple[str, ...] = DEFAULT_REFERENCES) -> list[tup
 
 
 def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> list[str]:
-    """The summary tables of each dimension's grid apart (`scene_groups`), each heading
-    naming the grid and the scenes its models were trained on."""
+    """The summary tables of each track (`grid.TRACKS`: models trained on the paper's
+    scenes, then on varied draws) and dimension's grid apart (`scene_groups`), each
+    heading naming the grid and what its models were trained on. Predictions made
+    outside lgnn and a user's models join the paper's track."""
     pairs = evaluation_pairs(profile)
-    expected = {(pair.scene, pair.label) for pair in pairs}
     lines = []
-    for dim, scenes in (scene_groups([*summary["scene"], *(pair.scene for pair in pairs)]) if not summary.empty else {2: []}).items():
-        trained = list(dict.fromkeys(pair.job.scene for pair in pairs if pair.scene in scenes))
-        grid_name = DIMENSION_NAMES.get(dim, f"{dim}D") + (f": trained on {', '.join(trained)}" if trained else "")
-        for metric, heading in summary_tables(profile.evaluate.references):
-            table = summary_markdown(summary, metric, expected, unrankable, scenes, trained[0] if len(trained) == 1 else None,
-                                     model_order(profile), profile.evaluate.references)
-            lines += [f"## {heading} ({grid_name})", "", table]
+    for track in [t for t in TRACKS if t == PAPER_TRACK or any(p.job.track == t for p in pairs)]:
+        track_pairs = [p for p in pairs if p.job.track == track]
+        expected = {(pair.scene, pair.label) for pair in track_pairs}
+        others = {p.label for p in pairs if p.job.track != track}
+        shown = summary[~summary["model"].isin(others)] if not summary.empty else summary
+        modelled = shown[~shown["model"].isin(("ground truth", REST, EXACT_NO_DRAG))]["scene"] if not shown.empty else []
+        groups = scene_groups([*modelled, *(pair.scene for pair in track_pairs)], track) if not shown.empty else {2: []}
+        for dim, scenes in groups.items():
+            trained = list(dict.fromkeys(pair.job.trained_on for pair in track_pairs if pair.scene in scenes))
+            grid_name = (DIMENSION_NAMES.get(dim, f"{dim}D") + (", transfer track" if track == TRANSFER_TRACK else "")
+                         + (f": trained on {', '.join(trained)}" if trained else ""))
+            for metric, heading in summary_tables(profile.evaluate.references):
+                table = summary_markdown(shown, metric, expected, unrankable, scenes, trained[0] if len(trained) == 1 else None,
+                                         model_order(profile), profile.evaluate.references)
+                lines += [f"## {heading} ({grid_name})", "", table]
     return lines
 
 
@@ -1098,8 +1113,11 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
     # any other model recorded (from an earlier grid), by name.
     recorded = sorted({pair.job.model for pair, _ in pairs + externals} | {r["solver"].split()[0] for r in speed_rows if r["kind"] != "engine"})
     colors = model_colors([*model_order(profile), *recorded])
+    # Each figure draws its track's models (those outside the grid's tracks: the paper's).
+    other_tracks = {track: {pair.label for pair, _ in pairs if pair.job.track != track} for track in TRACKS}
     plots = [
-        *((group.file, lambda p, group=group: _plot_error_vs_time(curves, list(group.scenes), p, group.trained_on, colors))
+        *((group.file, lambda p, group=group: _plot_error_vs_time(curves[~curves["model"].isin(other_tracks[group.track])] if not curves.empty else curves,
+                                                                  list(group.scenes), p, group.trained_on, colors))
           for group in error_figures(profile)),
         ("mass_matrix.png", lambda p: _plot_mass_matrices(mass_records, p)),
         *((f"snapshots_{scene.replace('-', '_')}.png", lambda p, scene=scene: _plot_snapshots(scene, truths, pairs, p, colors))
@@ -1194,10 +1212,10 @@ def leaderboards(pairs: list[Pair]) -> list[tuple[str, int, list[Pair]]]:
               for dim, main in TRAINING_SCENES.items()]
     transfer: dict[int, list[Pair]] = {}
     for pair in pairs:
-        if pair.job.varied_draws:
+        if pair.job.track == TRANSFER_TRACK:
             transfer.setdefault(get_scene(pair.scene).dim, []).append(pair)
     for dim, board in transfer.items():
-        sources = ", ".join(dict.fromkeys(f"{p.job.varied_draws} varied draws of {p.job.scene}" for p in board))
+        sources = ", ".join(dict.fromkeys(p.job.trained_on for p in board))
         boards.append((f"{DIMENSION_NAMES.get(dim, f'{dim}D')}, transfer track: trained on {sources}", dim, board))
     return boards
 
@@ -1239,7 +1257,7 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, comman
     if wide is None:
         return "\n".join([*lines, "(no results)", ""])
     for heading, dim, board in leaderboards(evaluation_pairs(profile)):
-        scenes = [s for s in scene_groups([p.scene for p in board]).get(dim, [])]
+        scenes = [s for s in scene_groups([p.scene for p in board], board[0].job.track if board else PAPER_TRACK).get(dim, [])]
         if not scenes:
             continue
         names = {p.label: p.job.model + ("" if p.projected else " (unprojected)") for p in board if p.scene in scenes}
