@@ -1,5 +1,5 @@
 """Test setup shared by `tests/` and `bench/`: lgnn's process settings before anything
-loads JAX, no persistent compilation cache, a dataset cache of each test's own, and
+loads JAX, a persistent compilation cache of the worker's, a dataset cache of each test's own, and
 compiled programs released once a worker holds too many."""
 
 import atexit
@@ -7,7 +7,7 @@ import os
 import shutil
 import tempfile
 
-from lgnn.runtime import COMPILATION_CACHE_ENV, configure, release_compiled_programs
+from lgnn.runtime import COMPILATION_CACHE_ENV, configure, enable_compilation_cache, release_compiled_programs
 
 # The tests compile thousands of small programs that each run for milliseconds, so XLA's
 # optimisation passes cost more than they save (a third of a model test's time). They
@@ -15,13 +15,17 @@ from lgnn.runtime import COMPILATION_CACHE_ENV, configure, release_compiled_prog
 # holds at both levels. Read as JAX loads, here and in the `lgnn` processes tests start.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 configure()  # then: thread counts and XLA flags before numpy and JAX load; float64
-# No persistent compilation cache, in-process or in the `lgnn` processes tests start,
-# unless a test asks for one (`lgnn.runtime.enable_compilation_cache`).
-os.environ[COMPILATION_CACHE_ENV] = "off"
 # Datasets of module- and session-scoped fixtures: a folder of this worker's, never the
 # user's cache (each test then gets one of its own, `_own_dataset_cache`).
 os.environ["LGNN_CACHE"] = tempfile.mkdtemp(prefix="lgnn-test-cache-")
 atexit.register(shutil.rmtree, os.environ["LGNN_CACHE"], ignore_errors=True)
+# A persistent compilation cache of this worker's, never the user's, in-process and in
+# the `lgnn` processes tests start: tests compile the same programs again and again
+# (each `lgnn` process its scene's, each test its own closures), and a cache hit is
+# the program XLA compiled before. It starts empty, so every program is compiled at
+# least once per worker; a test that asks for another (or none) sets its own.
+os.environ[COMPILATION_CACHE_ENV] = os.path.join(os.environ["LGNN_CACHE"], "jax")
+enable_compilation_cache()
 
 import pytest  # noqa: E402
 

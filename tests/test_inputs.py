@@ -549,7 +549,8 @@ def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
         for trial in range(batch, min(batch + INTERRUPTED_AT_ONCE, INTERRUPTS)):
             out = tmp_path / f"o{trial}.npz"
             children[trial] = (out, subprocess.Popen([sys.executable, "-c", _AT_A_TERMINAL, "simulate", "chain4", "--duration", "0.2", "--out", str(out),
-                                                      "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
+                                                      "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                                      env=dict(os.environ, LGNN_JAX_CACHE="off")))  # (each compiles, as a first run)
         for trial, (out, child) in children.items():
             time.sleep(max(0.0, started + moments[trial] - time.monotonic()))
             child.send_signal(signal.SIGINT)
