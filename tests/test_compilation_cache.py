@@ -28,10 +28,16 @@ def test_unwritable_cache_directory_means_no_cache(monkeypatch):
     assert jax.config.jax_compilation_cache_dir == before
 
 
-def test_tests_run_without_a_cache():
-    # tests/conftest.py turns it off for the tests and the processes they start.
-    assert os.environ[COMPILATION_CACHE_ENV] == "off"
-    assert not jax.config.jax_compilation_cache_dir
+def test_tests_run_with_a_cache_of_their_worker_never_the_users():
+    # conftest.py gives the tests, and the processes they start, a cache in the
+    # worker's temporary folder; the user's (`~/.cache/lgnn/jax`) is never read or written.
+    import tempfile
+
+    from lgnn.files import user_cache_dir
+
+    directory = os.environ[COMPILATION_CACHE_ENV]
+    assert jax.config.jax_compilation_cache_dir == directory
+    assert directory.startswith(tempfile.gettempdir()) and not directory.startswith(str(user_cache_dir()))
 
 
 def test_compiled_programs_are_released_only_above_the_mapping_limit():
