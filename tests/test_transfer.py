@@ -172,6 +172,12 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     assert report.scene_groups(["T1", "chain8-varied", "chain4-varied", "chain4"], grid.TRANSFER_TRACK)[2] == [
         "chain4-varied", "chain8-varied", "T1", "chain4"]
     assert report.scene_groups(["chain4-varied", "T1", "chain4"])[2] == ["chain4", "T1", "chain4-varied"]
+    # A table's rows (summary, curves) by track: an external prediction stays with the paper's.
+    import pandas as pd
+
+    table = pd.DataFrame({"model": ["lgnn", "lgnn (chain4-varied, 5 draws)", "mine (external)", "rest"]})
+    assert list(report.track_rows(table, pairs, grid.PAPER_TRACK)["model"]) == ["lgnn", "mine (external)", "rest"]
+    assert list(report.track_rows(table, pairs, grid.TRANSFER_TRACK)["model"]) == ["lgnn (chain4-varied, 5 draws)", "mine (external)", "rest"]
     # The committed report: each track's tables apart, no transfer model among the paper's.
     sections = (Path(__file__).resolve().parents[1] / "results" / "README.md").read_text().split("\n## ")
     paper_table = next(s for s in sections if s.startswith("Rollout error against the Lagrangian ground truth (planar: trained on chain4"))

@@ -683,18 +683,24 @@ def summary_tables(references: tuple[str, ...] = DEFAULT_REFERENCES) -> list[tup
             for m in recorded_metrics(references)]
 
 
+def track_rows(table, pairs: list[Pair], track: str):
+    """The rows of `table` (a DataFrame with a `model` column of row labels) shown with
+    `track` (`grid.TRACKS`): those of another track's `pairs` left out. Rows of no pair
+    (the baselines, predictions made outside lgnn) stay in every track's."""
+    others = {pair.label for pair in pairs if pair.job.track != track}
+    return table[~table["model"].isin(others)] if not table.empty else table
+
+
 def _summary_sections(profile: Profile, summary, unrankable: dict[str, str]) -> list[str]:
     """The summary tables of each track (`grid.TRACKS`: models trained on the paper's
     scenes, then on varied draws) and dimension's grid apart (`scene_groups`), each
-    heading naming the grid and what its models were trained on. Predictions made
-    outside lgnn and a user's models join the paper's track."""
+    heading naming the grid and what its models were trained on (`track_rows`)."""
     pairs = evaluation_pairs(profile)
     lines = []
     for track in [t for t in TRACKS if t == PAPER_TRACK or any(p.job.track == t for p in pairs)]:
         track_pairs = [p for p in pairs if p.job.track == track]
         expected = {(pair.scene, pair.label) for pair in track_pairs}
-        others = {p.label for p in pairs if p.job.track != track}
-        shown = summary[~summary["model"].isin(others)] if not summary.empty else summary
+        shown = track_rows(summary, pairs, track)
         modelled = shown[~shown["model"].isin(("ground truth", REST, EXACT_NO_DRAG))]["scene"] if not shown.empty else []
         groups = scene_groups([*modelled, *(pair.scene for pair in track_pairs)], track) if not shown.empty else {2: []}
         for dim, scenes in groups.items():
@@ -1113,11 +1119,11 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
     # any other model recorded (from an earlier grid), by name.
     recorded = sorted({pair.job.model for pair, _ in pairs + externals} | {r["solver"].split()[0] for r in speed_rows if r["kind"] != "engine"})
     colors = model_colors([*model_order(profile), *recorded])
-    # Each figure draws its track's models (those outside the grid's tracks: the paper's).
-    other_tracks = {track: {pair.label for pair, _ in pairs if pair.job.track != track} for track in TRACKS}
+    # Each figure draws its track's models (`track_rows`).
+    recorded_pairs = [pair for pair, _ in pairs]
     plots = [
-        *((group.file, lambda p, group=group: _plot_error_vs_time(curves[~curves["model"].isin(other_tracks[group.track])] if not curves.empty else curves,
-                                                                  list(group.scenes), p, group.trained_on, colors))
+        *((group.file, lambda p, group=group: _plot_error_vs_time(track_rows(curves, recorded_pairs, group.track), list(group.scenes), p,
+                                                                  group.trained_on, colors))
           for group in error_figures(profile)),
         ("mass_matrix.png", lambda p: _plot_mass_matrices(mass_records, p)),
         *((f"snapshots_{scene.replace('-', '_')}.png", lambda p, scene=scene: _plot_snapshots(scene, truths, pairs, p, colors))
