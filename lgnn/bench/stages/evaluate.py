@@ -24,12 +24,14 @@ count as their maximum (1; for the RMS error the divergence rule's reach) and th
 divergence time is recorded. The chaos floor's divergence is recorded the same way
 (the report then gives no floor).
 
-Record arrays: `<metric>/<statistic>` (`lgnn.metrics.error_statistics`: `per_ic_log`,
-`gmean`, `low`, `high`) for a model; `rest/...` and `exact_no_drag/...` likewise in the
-ground-truth record, beside `chaos_floor` and `truth_vs_<engine>` (`scene_level_prefix`).
-A record written before a metric was registered lacks its arrays: the stage recomputes
-it, the report shows "not computed". Records made before MuJoCo's stale-frame fix are
-upgraded by `tools/upgrade_records.py`, not here.
+Record arrays: `<metric>/<statistic>` (`lgnn.metrics.error_statistics`: `per_ic_log`
+over every frame, and `gmean`, `low`, `high` at the times `t`, every `CURVE_DT` s) for
+a model; `rest/...` and `exact_no_drag/...` likewise in the ground-truth record, beside
+`chaos_floor` and `truth_vs_<engine>` (`scene_level_prefix`); `snapshot/...` on the
+scenes the report draws (`snapshot`). A record written before a metric was registered
+lacks its arrays: the stage recomputes it, the report shows "not computed". Records
+made before MuJoCo's stale-frame fix, or keeping every frame's curves, are upgraded by
+`tools/upgrade_records.py`, not here.
 
 Keys: a ground-truth record depends on the scene's content and the profile's
 `EvaluateSettings` as that scene uses them (`truth_key`); a pair record on that and the
