@@ -472,3 +472,16 @@ def test_the_settings_say_how_each_evaluated_scene_starts():
     sampled, own = text.split("; their own state, one initial condition: ")
     assert "rope-3d" in sampled and "chain4-3d" in sampled
     assert own.split(", ") == ["T1", "T2-slack", "T3-slack", "net4x4-3d", "tensegrity-3d"]
+
+
+def test_a_figure_the_report_no_longer_draws_is_removed_and_other_files_are_kept(tmp_path):
+    """Figures of an earlier report that this one does not draw (here: no records at
+    all) go; a file of another name under figures/ stays."""
+    from lgnn.bench import run as bench_run
+
+    figures = tmp_path / "figures"
+    figures.mkdir()
+    for name in ("error_vs_time_gone.png", "snapshots_gone.png", "mass_matrix.png", "my_own_plot.png", "notes.txt"):
+        (figures / name).write_bytes(b"x")
+    bench_run.run(grid.get_profile("quick"), tmp_path, stages=("report",), progress=False)
+    assert sorted(p.name for p in figures.iterdir()) == ["my_own_plot.png", "notes.txt"]

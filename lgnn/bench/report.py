@@ -36,6 +36,7 @@ pandas and matplotlib are imported here only (the library's numerics do not need
 from __future__ import annotations
 
 import csv
+import fnmatch
 import math
 from pathlib import Path
 
@@ -82,6 +83,9 @@ EXACT_NO_DRAG = "exact, no drag"
 DEFAULT_REFERENCES = EvaluateSettings.references
 # How headings and columns name a reference engine (others by their registry name).
 ENGINE_TITLES = {"lagrangian": "the Lagrangian engine", "mujoco": "MuJoCo", "mjx": "MJX", "mjwarp": "MuJoCo Warp"}
+# The names of the figures the report draws under `figures/` (and removes when it no
+# longer draws them).
+REPORT_FIGURES = ("error_vs_time_*.png", "snapshots_*.png", "mass_matrix.png", "speed_error.png")
 # The per-frame curves' file under `benchmark/` (gzipped: module docstring).
 CURVES = "curves.csv.gz"
 # The `seed` of summary rows over every training seed of a model.
@@ -1134,6 +1138,12 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
         if not curves.empty or name in ("mass_matrix.png", "speed_error.png"):
             if plot(figures_dir / name):
                 figures.append(name)
+    # A figure an earlier report drew and this one does not (its scene left the grid, or
+    # its records went) would sit in figures/ unnamed by README.md: removed. Files of
+    # other names are never touched.
+    for stale in figures_dir.glob("*.png") if figures_dir.is_dir() else ():
+        if stale.name not in figures and any(fnmatch.fnmatch(stale.name, pattern) for pattern in REPORT_FIGURES):
+            stale.unlink()
     path = out / "README.md"
     write_text_atomic(path, readme(profile, out, (truths, pairs + externals), summary, speed_rows, mass_records, figures, env,
                                    stage_sections(profile, out, sections), command))
