@@ -34,7 +34,6 @@ import sys
 from pathlib import Path
 
 from lgnn import records
-from lgnn.bench.grid import SNAPSHOT_SCENES
 from lgnn.bench.stages import evaluate
 from lgnn.scene import get_scene
 
@@ -72,9 +71,9 @@ def with_thinned_curves(arrays: dict) -> dict:
 
 
 def without_undrawn_snapshots(arrays: dict, meta: dict) -> dict:
-    """The arrays without trajectory snapshots unless the record's scene is drawn
-    (`SNAPSHOT_SCENES`)."""
-    drawn = meta.get("scene") in SNAPSHOT_SCENES
+    """The arrays without trajectory snapshots unless the record's scene keeps them
+    (`evaluate.keeps_snapshots`)."""
+    drawn = evaluate.keeps_snapshots(meta.get("scene"))
     return {name: value for name, value in arrays.items() if drawn or not name.startswith("snapshot/")}
 
 

@@ -123,6 +123,12 @@ def track_of(varied_draws: int) -> str:
     return TRANSFER_TRACK if varied_draws else PAPER_TRACK
 
 
+def trained_on(scene: str, varied_draws: int = 0) -> str:
+    """What a model trained on, as tables name it: the scene (`chain4-varied`), or
+    varied draws of it (`chain4-varied, 5 draws`)."""
+    return f"{scene}, {varied_draws} draws" if varied_draws else scene
+
+
 # The transfer track: every graph model trained on TRANSFER_DRAWS draws of varied 4-link
 # chains (`lgnn.scene.varied_chain`; 20 trajectories of the full profile's 100 each),
 # evaluated zero-shot on the built-in varied chains and the trusses. Named by the
@@ -195,8 +201,8 @@ ERROR_FIGURES = (
     FigureGroup("error_vs_time_chain4_8_16_3d.png", ("chain4-3d", "chain8-3d", "chain16-3d"), SPATIAL_TRAINING_SCENE),
     FigureGroup("error_vs_time_chain100_3d.png", ("chain100-3d",), SPATIAL_TRAINING_SCENE),
     FigureGroup("error_vs_time_net_rope_tensegrity_3d.png", ("net4x4-3d", "rope-3d", "tensegrity-3d"), SPATIAL_TRAINING_SCENE),
-    FigureGroup("error_vs_time_transfer_chains.png", TRANSFER_TRACK_SCENES[:4], f"{TRANSFER_TRAINING_SCENE}, {TRANSFER_DRAWS} draws", TRANSFER_TRACK),
-    FigureGroup("error_vs_time_transfer_T1_T2slack_T3slack.png", TRANSFER_TRACK_SCENES[4:], f"{TRANSFER_TRAINING_SCENE}, {TRANSFER_DRAWS} draws",
+    FigureGroup("error_vs_time_transfer_chains.png", TRANSFER_TRACK_SCENES[:4], trained_on(TRANSFER_TRAINING_SCENE, TRANSFER_DRAWS), TRANSFER_TRACK),
+    FigureGroup("error_vs_time_transfer_T1_T2slack_T3slack.png", TRANSFER_TRACK_SCENES[4:], trained_on(TRANSFER_TRAINING_SCENE, TRANSFER_DRAWS),
                 TRANSFER_TRACK),
 )
 # Scenes whose snapshots (learned against MuJoCo) the report draws: a chain and a
@@ -231,9 +237,8 @@ class TrainingJob:
 
     @property
     def trained_on(self) -> str:
-        """What the job trains on, as tables name it: its scene (`chain4-varied`), or
-        varied draws of it (`chain4-varied, 5 draws`)."""
-        return f"{self.scene}, {self.varied_draws} draws" if self.varied_draws else self.scene
+        """What the job trains on, as tables name it (`trained_on`)."""
+        return trained_on(self.scene, self.varied_draws)
 
     @property
     def label(self) -> str:

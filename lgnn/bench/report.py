@@ -45,10 +45,10 @@ import numpy as np
 from lgnn import metrics
 from lgnn.bench import convergence, gpu_truth
 from lgnn.bench.grid import (EXTERNAL, GRID, PAPER_TRACK, PROFILES, SNAPSHOT_SCENES, TRACKS, TRAINING_SCENES, TRANSFER_TRACK, EvaluateSettings,
-                             Profile, error_figures, evaluation_pairs, Pair, TrainingJob, evaluation_scenes, model_order, settings_key, track_of,
-                             train_config, training_jobs)
+                             Profile, error_figures, evaluation_pairs, Pair, TrainingJob, evaluation_scenes, model_order, settings_key, train_config,
+                             training_jobs)
 from lgnn.bench.stability import fit_exponent
-from lgnn.bench.stages.evaluate import CURVE_DT, FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, load_pairs, load_truths, recorded_metrics
+from lgnn.bench.stages.evaluate import CURVE_DT, FLOOR, NO_DRAG, SNAPSHOT_DT, TRUTH, curve_frames, load_pairs, load_truths, recorded_metrics
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.stages.evaluate import scene_level_prefix, scene_level_scores, truth_against, unmatched_base_pairs
 from lgnn.bench.stages.external import load_externals
@@ -95,7 +95,7 @@ MASS_COLUMNS = ("scene", "job", "percent_error", "tangent_percent_error", "scale
 # (planar, then 3D); a user's grid's other scenes follow as recorded. A track's tables
 # follow its own entries' order (the transfer track's starts from its training chain).
 SCENE_ORDER = tuple(dict.fromkeys(scene for entry in GRID for scene in entry.eval_scenes))
-TRACK_SCENE_ORDERS = {track: tuple(dict.fromkeys(scene for entry in GRID if track_of(entry.varied_draws) == track for scene in entry.eval_scenes))
+TRACK_SCENE_ORDERS = {track: tuple(dict.fromkeys(scene for entry in GRID if entry.track == track for scene in entry.eval_scenes))
                       for track in TRACKS}
 # How headings name each dimension's grid.
 DIMENSION_NAMES = {2: "planar", 3: "3D"}
@@ -129,12 +129,13 @@ def _summary_rows(scene, model, seed, metric, arrays, meta, prefix, diverged=Non
 
 def _curve_rows(scene, model, seed, metric, arrays, prefix):
     t = arrays["t"]
-    # Records kept every frame before they kept their curves every CURVE_DT s.
-    stride = max(1, round(CURVE_DT / (t[1] - t[0]))) if len(t) > 1 else 1
+    # Records kept every frame before they kept their curves every CURVE_DT s: the same
+    # frames are read from either.
+    frames = range(len(t))[curve_frames(float(t[1] - t[0]))] if len(t) > 1 else range(len(t))
     rows = []
     for statistic in ("gmean", "low", "high"):
         values = arrays[f"{prefix}/{statistic}"]
-        for k in range(stride - 1, len(t), stride):
+        for k in frames:
             rows.append(dict(scene=scene, model=model, seed=seed, metric=metric, statistic=statistic, t=round(float(t[k]), 9), value=float(values[k])))
     return rows
 

@@ -258,10 +258,16 @@ def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, r
     return found
 
 
+def keeps_snapshots(scene_name: str) -> bool:
+    """Whether a scene's records keep trajectory snapshots: the report draws its
+    (`SNAPSHOT_SCENES`)."""
+    return scene_name in SNAPSHOT_SCENES
+
+
 def snapshot(profile: Profile, scene_name: str, name: str, trajectory: np.ndarray) -> dict:
     """`{"snapshot/<name>": IC 0 of a trajectory at every SNAPSHOT_DT s}` (float32) on a
-    scene the report draws snapshots of (`SNAPSHOT_SCENES`), else `{}`."""
-    if scene_name not in SNAPSHOT_SCENES:
+    scene whose records keep snapshots (`keeps_snapshots`), else `{}`."""
+    if not keeps_snapshots(scene_name):
         return {}
     stride = max(1, round(SNAPSHOT_DT / profile.evaluate.frame_dt))
     return {f"snapshot/{name}": np.asarray(trajectory[0, ::stride], np.float32)}
