@@ -490,7 +490,7 @@ def _add_train_parser(commands) -> None:
     parser.add_argument("--link-features", action="store_true",
                         help="edges also carry each link's mass, inertia ratio and length (for models that read them; with --varied-draws)")
     parser.add_argument("--varied-draws", type=_nonnegative_int, default=0,
-                        help="train on K planar chains as long as the scene, each link's length, mass and inertia drawn by the varied-chain rule, "
+                        help="train on K chains as long as the scene (of its dimension), each link's length, mass and inertia drawn by the varied-chain rule, "
                              "the trajectories shared among them (the transfer track; default 0: the scene itself)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the initial parameters and shuffles (the data are the full profile's, as the benchmark's)")
     parser.add_argument("--cache-dir", default=None, help="training data cache (default: datasets/ in $LGNN_CACHE, else $XDG_CACHE_HOME/lgnn, else ~/.cache/lgnn)")

@@ -1,5 +1,6 @@
 """Scenes: the JSON schema, its validation (one clear line per problem), the built-ins."""
 
+import itertools
 import json
 
 import numpy as np
@@ -284,16 +285,37 @@ def test_varied_chains_follow_their_stated_rule():
     from lgnn.scene import get_scene, varied_chain
     from lgnn.scene.catalogue import VARIED_LENGTHS, VARIED_MASSES, VARIED_PAPER_INERTIAS
 
-    for n in (8, 16, 100):
-        scene = get_scene(f"chain{n}-varied")
-        assert scene == varied_chain(n, n) and scene.n_links == n and scene.pinned == (0,)
+    for n, dim in itertools.product((8, 16, 100), (2, 3)):
+        scene = get_scene(f"chain{n}{'-3d' if dim == 3 else ''}-varied")
+        assert scene == varied_chain(n, n, dim=dim) and scene.n_links == n and scene.pinned == (0,) and scene.dim == dim
         paper_inertias = scene.inertias / scene.lengths**4
         for values, listed in ((scene.lengths, VARIED_LENGTHS), (scene.masses, VARIED_MASSES), (paper_inertias, VARIED_PAPER_INERTIAS)):
             assert min(listed) <= values.min() and values.max() <= max(listed)
             assert np.ptp(values) > 0.5 * np.ptp(listed)  # spread over the range, not one value
+    # A dimension draws the same links; only the start differs (each dimension's sampler).
+    flat, spatial = varied_chain(16, 16), varied_chain(16, 16, dim=3)
+    for field in ("lengths", "masses", "inertias"):
+        np.testing.assert_array_equal(getattr(flat, field), getattr(spatial, field))
     assert varied_chain(8, 3) == varied_chain(8, 3) and varied_chain(8, 3) != varied_chain(8, 4)
     with pytest.raises(SceneError, match="at least one link"):
         varied_chain(0, 1)
+    with pytest.raises(SceneError, match="dim must be 2 or 3, got 4"):
+        varied_chain(4, 1, dim=4)
+
+
+def test_the_3d_varied_chain_is_the_papers_varied_links_started_by_the_3d_sampler():
+    """`chain4-3d-varied`: the links of `chain4-varied`, each link's length its nodes'
+    distance, started on its constraints (lengths stationary) by the 3D chain sampler."""
+    from lgnn.scene import get_scene
+
+    flat, spatial = get_scene("chain4-varied"), get_scene("chain4-3d-varied")
+    assert spatial.dim == 3 and spatial.pinned == (0,)
+    for field in ("lengths", "masses", "inertias"):
+        np.testing.assert_array_equal(getattr(flat, field), getattr(spatial, field))
+    steps = np.diff(spatial.nodes, axis=0)
+    np.testing.assert_allclose(np.linalg.norm(steps, axis=1), spatial.lengths, rtol=1e-12)
+    np.testing.assert_allclose(np.sum(steps * np.diff(spatial.velocities, axis=0), axis=1), 0.0, atol=1e-12)
+    assert np.abs(spatial.velocities).max() > 0.1 and np.abs(spatial.nodes[:, 2]).max() > 0.1  # turning, off the plane
 
 
 def test_scene_names_select_by_tag_and_a_bad_tag_is_one_line():
@@ -302,6 +324,7 @@ def test_scene_names_select_by_tag_and_a_bad_tag_is_one_line():
     assert scene_names("paper") == ("chain4", "chain8", "chain16", "chain100", "chain4-varied", "chain4-drag", "T1", "T2", "T3")
     assert "T2-slack" in scene_names("planar", "hard") and "T2-slack" not in scene_names("mjcf")
     assert set(scene_names("transfer")) == set(scene_names("3d")) | {"chain8-varied", "chain16-varied", "chain100-varied"}
+    assert {"chain4-3d-varied", "chain100-3d-varied"} <= set(scene_names("3d", "transfer")) - set(scene_names("mjcf"))
     with pytest.raises(SceneError, match="unknown scene tag 'spatial'"):
         scene_names("spatial")
 

@@ -47,8 +47,20 @@ def test_varied_draws_settings_are_checked_and_keep_the_keys_of_data_without_the
         data.DataConfig(n_trajectories=4, varied_draws=3)
     with pytest.raises(ConfigError, match="varied draws must be a whole number"):
         data.DataConfig(varied_draws=-1)
-    with pytest.raises(ConfigError, match="need a planar chain pinned at one end; 'T1'"):
+    with pytest.raises(ConfigError, match="need a chain pinned at one end; 'T1'"):
         data.draw_scenes(dataclasses.replace(DRAWS, scene="T1"))
+
+
+def test_varied_draws_of_a_3d_chain_are_3d_chains_of_the_rule():
+    """The 3D track's draws: 3D chains of the named chain's length whose links are the
+    planar draws' (one rule and seed per draw), each started by the 3D chain sampler."""
+    spatial = data.draw_scenes(dataclasses.replace(DRAWS, scene="chain4-3d-varied"))
+    flat = data.draw_scenes(DRAWS)
+    assert [s.name for s in spatial] == ["chain4-3d-varied-draw0", "chain4-3d-varied-draw1"]
+    for s, f in zip(spatial, flat, strict=True):
+        assert s.dim == 3 and s.n_links == 4
+        np.testing.assert_array_equal(s.lengths, f.lengths)
+        np.testing.assert_array_equal(s.masses, f.masses)
 
 
 def test_training_on_draws_scores_each_state_against_its_own_draw(draws_dataset):

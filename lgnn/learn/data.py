@@ -9,7 +9,7 @@ projection onto the constraints. The targets are the exact accelerations
 central finite difference of the positions, whose O(dt^2) error we avoid).
 
 Varied draws (`DataConfig.varied_draws = K`, the transfer track): the trajectories come
-from K planar chains as long as the named one, each link's properties drawn by the
+from K chains as long as the named one, of its dimension, each link's properties drawn by the
 varied-chain rule (`lgnn.scene.varied_chain`, seeds `VARIED_DRAW_SEED + k`),
 `n_trajectories / K` from each, and `Dataset.draw` says which draw each state is of
 (`draw_scenes(config)` the draws' scenes, in order). The split stays one random split of
@@ -128,13 +128,14 @@ class DataConfig:
 
 def draw_scenes(config: DataConfig) -> tuple[Scene, ...]:
     """The scenes the data come from: the named scene, or its varied draws (module
-    docstring), which need a planar chain pinned at one end."""
+    docstring), which need a chain pinned at one end; the draws have its dimension."""
     scene = get_scene(config.scene)
     if not config.varied_draws:
         return (scene,)
-    if scene.dim != 2 or not is_pinned_chain(scene):
-        raise ConfigError(f"varied draws need a planar chain pinned at one end; {scene.name!r} is not one")
-    return tuple(varied_chain(scene.n_links, VARIED_DRAW_SEED + k, name=f"{scene.name}-draw{k}") for k in range(config.varied_draws))
+    if not is_pinned_chain(scene):
+        raise ConfigError(f"varied draws need a chain pinned at one end; {scene.name!r} is not one")
+    return tuple(varied_chain(scene.n_links, VARIED_DRAW_SEED + k, name=f"{scene.name}-draw{k}", dim=scene.dim)
+                 for k in range(config.varied_draws))
 
 
 class Dataset(NamedTuple):

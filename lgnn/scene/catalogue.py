@@ -146,29 +146,44 @@ def chain(n_links: int, seed: int = 0, name: str | None = None, drag: float = 0.
     return scene_from_dict(data)
 
 
-def chain4_varied(seed: int = 0) -> Scene:
+def chain4_varied(seed: int = 0, dim: int = 2) -> Scene:
     """The paper's 4-link chain with varied link properties (appendix). Physical inertia
-    is the listed `I_k` times `l_k^4` (module docstring)."""
+    is the listed `I_k` times `l_k^4` (module docstring). In 3D (`chain4-3d-varied`, the
+    3D transfer track's training scene), the same links started by the 3D chain sampler."""
     inertias = [i * length**4 for i, length in zip(VARIED_PAPER_INERTIAS, VARIED_LENGTHS, strict=True)]
-    return scene_from_dict(_chain_dict("chain4-varied", VARIED_LENGTHS, VARIED_MASSES, inertias, seed))
+    return _chain_of_dim(dim, "chain4" + _DIM_SUFFIX[dim] + "-varied", VARIED_LENGTHS, VARIED_MASSES, inertias, seed)
 
 
-def varied_chain(n_links: int, seed: int, name: str | None = None) -> Scene:
-    """A planar chain of `n_links` links with varied properties, by one stated rule: each
+def varied_chain(n_links: int, seed: int, name: str | None = None, dim: int = 2) -> Scene:
+    """A chain of `n_links` links with varied properties, by one stated rule: each
     link's length, mass and paper inertia parameter drawn independently and uniformly
     between the smallest and the largest of the paper's varied 4-link chain's
     (`VARIED_LENGTHS`, `VARIED_MASSES`, `VARIED_PAPER_INERTIAS`), from NumPy's
     `default_rng(seed)`; physical inertia `I_k l_k^4` as the paper's varied chain's
-    (module docstring); the initial shape from the chain sampler with the same seed.
-    The built-ins `chain{8,16,100}-varied` are `varied_chain(n, seed=n)`: zero-shot
-    transfer from varied 4-link chains to longer ones whose links it never saw."""
+    (module docstring); the initial shape from the chain sampler of its dimension `dim`
+    (2 or 3) with the same seed. The built-ins `chain{8,16,100}-varied` and
+    `chain{8,16,100}-3d-varied` are `varied_chain(n, seed=n)`: zero-shot transfer from
+    varied 4-link chains to longer ones whose links it never saw."""
     if n_links < 1:
         raise SceneError(f"varied chain: need at least one link, got {n_links}")
+    if dim not in _DIM_SUFFIX:
+        raise SceneError(f"varied chain: dim must be 2 or 3, got {dim!r}")
     rng = np.random.default_rng(seed)
     lengths, masses, paper_inertias = (rng.uniform(min(values), max(values), n_links)
                                        for values in (VARIED_LENGTHS, VARIED_MASSES, VARIED_PAPER_INERTIAS))
     inertias = paper_inertias * lengths**4
-    return scene_from_dict(_chain_dict(name or f"chain{n_links}-varied", lengths.tolist(), masses.tolist(), inertias.tolist(), seed))
+    name = name or f"chain{n_links}{_DIM_SUFFIX[dim]}-varied"
+    return _chain_of_dim(dim, name, lengths.tolist(), masses.tolist(), inertias.tolist(), seed)
+
+
+# A chain's name after its link count, by dimension (`chain8`, `chain8-3d`).
+_DIM_SUFFIX = {2: "", 3: "-3d"}
+
+
+def _chain_of_dim(dim: int, name: str, lengths, masses, inertias, seed: int) -> Scene:
+    """A chain pinned at node 0 with these links, started by its dimension's sampler."""
+    make = _chain_dict if dim == 2 else _spatial_chain_dict
+    return scene_from_dict(make(name, lengths, masses, inertias, seed))
 
 
 def chain4_drag(seed: int = 0) -> Scene:
@@ -379,13 +394,20 @@ def spatial_chain(n_links: int, seed: int = 0, name: str | None = None) -> Scene
     -y, turning perpendicular to the links."""
     if n_links < 1:
         raise SceneError(f"spatial chain: need at least one link, got {n_links}")
+    ones = [1.0] * n_links
+    return scene_from_dict(_spatial_chain_dict(name or f"chain{n_links}-3d", ones, ones, [1.0 / 12.0] * n_links, seed))
+
+
+def _spatial_chain_dict(name: str, lengths, masses, inertias, seed: int) -> dict:
     rng = np.random.default_rng(seed)
-    lengths = np.ones(n_links)
-    nodes, velocities = spatial_chain_state(lengths, *_spatial_chain_angles(lambda low, high: rng.uniform(low, high, n_links), n_links))
-    return scene_from_dict({
-        "name": name or f"chain{n_links}-3d", "gravity": PAPER_GRAVITY, "nodes": nodes.tolist(), "velocities": velocities.tolist(),
-        "pinned": [0], "links": [{"nodes": [k, k + 1], "mass": 1.0, "inertia": 1 / 12, "length": 1.0} for k in range(n_links)],
-    })
+    n_links = len(lengths)
+    angles = _spatial_chain_angles(lambda low, high: rng.uniform(low, high, n_links), n_links)
+    nodes, velocities = spatial_chain_state(np.asarray(lengths, np.float64), *angles)
+    links = [
+        {"nodes": [k, k + 1], "mass": m, "inertia": inertia, "length": length}
+        for k, (length, m, inertia) in enumerate(zip(lengths, masses, inertias, strict=True))
+    ]
+    return {"name": name, "gravity": PAPER_GRAVITY, "nodes": nodes.tolist(), "velocities": velocities.tolist(), "pinned": [0], "links": links}
 
 
 def spatial_net(rows: int = 4, columns: int = 4, seed: int = 0) -> Scene:
@@ -526,7 +548,7 @@ TAGS = {
     "3d": "3D",
     "paper": "the paper's scenes (chains, the varied and drag chains, T1-T3)",
     "hard": "hard cases: lgnn stability, the physics tests, the stand-ins T2-slack and T3-slack, scaling",
-    "transfer": "scenes made for zero-shot transfer: 3D ones from the 3D 4-link chain, longer varied chains from varied 4-link ones",
+    "transfer": "scenes made for zero-shot transfer: 3D ones from the 3D 4-link chain, longer varied chains (planar and 3D) from varied 4-link ones",
     "mjcf": "its MJCF is committed in mjcf/ (lgnn mjcf --check)",
 }
 DIMENSION_TAGS = {2: "planar", 3: "3d"}
@@ -609,6 +631,10 @@ CATALOGUE: dict[str, CatalogueEntry] = {
         CatalogueEntry("chain16-3d", "16 unit links in 3D pinned at one end", lambda: spatial_chain(16), ("3d", "transfer", "mjcf"), CHAIN_SAMPLER),
         CatalogueEntry("chain100-3d", "100 unit links in 3D pinned at one end", lambda: spatial_chain(100), ("3d", "transfer", "mjcf"),
                        CHAIN_SAMPLER),
+        CatalogueEntry("chain4-3d-varied", "the varied chain's 4 links in 3D, turning in a cone about -y", functools.partial(chain4_varied, dim=3),
+                       ("3d", "transfer"), CHAIN_SAMPLER),
+        *(CatalogueEntry(f"chain{n}-3d-varied", f"{n} links of varied lengths, masses, inertias in 3D (`varied_chain`, seed {n})",
+                         functools.partial(varied_chain, n, n, dim=3), ("3d", "transfer"), CHAIN_SAMPLER) for n in (8, 16, 100)),
         CatalogueEntry("net4x4-3d", "a 4 x 4 net of links (9 closed loops) hung from two corners", spatial_net, ("3d", "transfer", "mjcf"),
                        OWN_STATE),
         # A pinned chain of short links: the 3D chain sampler's cone and spins, not its helix.
