@@ -173,11 +173,14 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     # The paper's appendix LGNN on the one varied chain stays its own job.
     assert grid.TrainingJob("lgnn", "chain4-varied", 0) in grid.training_jobs(both)
     pairs = grid.evaluation_pairs(both)
-    assert {p.scene for p in pairs if p.job.track == grid.TRANSFER_TRACK} == set(grid.TRANSFER_TRACK_SCENES)
+    assert {p.scene for p in pairs if p.job.track == grid.TRANSFER_TRACK} == {*grid.TRANSFER_TRACK_SCENES, *grid.SPATIAL_TRANSFER_TRACK_SCENES}
     boards = {heading: board for heading, _, board in report.leaderboards(pairs)}
     transfer_heading = "planar, transfer track: trained on chain4-varied, 5 draws"
-    assert set(boards) == {"planar: trained on chain4", "3D: trained on chain4-3d", transfer_heading}
+    spatial_heading = "3D, transfer track: trained on chain4-3d-varied, 5 draws"
+    assert set(boards) == {"planar: trained on chain4", "3D: trained on chain4-3d", transfer_heading, spatial_heading}
     assert all(p.job.varied_draws for p in boards[transfer_heading])
+    assert {p.scene for p in boards[spatial_heading]} == set(grid.SPATIAL_TRANSFER_TRACK_SCENES)
+    assert {p.job.model for p in boards[spatial_heading]} == {"lgnn", "lgnn-notebook", "gns", "lgn", *grid.TRANSFER_ZOO}
     assert not any(p.job.varied_draws for p in boards["planar: trained on chain4"])
     # The track's tables list its scenes as its entries declare them (its training chain
     # first), the paper's tables theirs.

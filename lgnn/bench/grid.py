@@ -136,6 +136,11 @@ def trained_on(scene: str, varied_draws: int = 0) -> str:
 TRANSFER_TRAINING_SCENE = "chain4-varied"
 TRANSFER_DRAWS = 5
 TRANSFER_TRACK_SCENES = ("chain4-varied", "chain8-varied", "chain16-varied", "chain100-varied", "T1", "T2-slack", "T3-slack")
+# In 3D: draws of varied 4-link chains in 3D (the same rule, the 3D chain sampler),
+# evaluated on the built-in varied 3D chains and the 3D grid's net, rope and tensegrity.
+SPATIAL_TRANSFER_TRAINING_SCENE = "chain4-3d-varied"
+SPATIAL_TRANSFER_TRACK_SCENES = ("chain4-3d-varied", "chain8-3d-varied", "chain16-3d-varied", "chain100-3d-varied", "net4x4-3d", "rope-3d",
+                                 "tensegrity-3d")
 
 # The LGNN variants (`lgnn.learn.models`): the per-edge one, the paper's equations with
 # 1 and 2 message-passing layers, the authors' notebook; the report's default LGNN is
@@ -150,6 +155,8 @@ LGNN_VARIANTS = ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook")
 # 30-minute GPU lease. The report says where each stopped.
 ZOO_MODELS = ("gns-10-128", "cgnode", "chgn", "chnn")
 ZOO_MINUTES = 10.0
+# The zoo's graph models (CHNN is tied to its system's size): the transfer track's.
+TRANSFER_ZOO = ("gns-10-128", "cgnode", "chgn")
 # Each zoo model in both dimensions, model by model (the benchmark's parts start in
 # this order, so on a host of several GPUs the large ones land on different GPUs).
 ZOO = tuple(GridEntry(model, train_scene, eval_scenes if model != "chnn" else (train_scene,), unprojected=model == "gns-10-128", minutes=ZOO_MINUTES)
@@ -174,7 +181,11 @@ GRID = (
     # The transfer track (a profile's `tracks` selects it), each model stopped as the
     # zoo's are: the plateau rule or ZOO_MINUTES, whichever comes first.
     *(GridEntry(model, TRANSFER_TRAINING_SCENE, TRANSFER_TRACK_SCENES, varied_draws=TRANSFER_DRAWS, minutes=ZOO_MINUTES)
-      for model in (*LGNN_VARIANTS, "gns", "lgn", "gns-10-128", "cgnode", "chgn")),
+      for model in (*LGNN_VARIANTS, "gns", "lgn", *TRANSFER_ZOO)),
+    # In 3D, the LGNN variants of the paper track's 3D grid (each 3D group costs as much
+    # again), the paper's graph baselines and the zoo's graph models.
+    *(GridEntry(model, SPATIAL_TRANSFER_TRAINING_SCENE, SPATIAL_TRANSFER_TRACK_SCENES, varied_draws=TRANSFER_DRAWS, minutes=ZOO_MINUTES)
+      for model in ("lgnn", "lgnn-notebook", "gns", "lgn", *TRANSFER_ZOO)),
 )
 
 
@@ -204,6 +215,10 @@ ERROR_FIGURES = (
     FigureGroup("error_vs_time_transfer_chains.png", TRANSFER_TRACK_SCENES[:4], trained_on(TRANSFER_TRAINING_SCENE, TRANSFER_DRAWS), TRANSFER_TRACK),
     FigureGroup("error_vs_time_transfer_T1_T2slack_T3slack.png", TRANSFER_TRACK_SCENES[4:], trained_on(TRANSFER_TRAINING_SCENE, TRANSFER_DRAWS),
                 TRANSFER_TRACK),
+    FigureGroup("error_vs_time_transfer_chains_3d.png", SPATIAL_TRANSFER_TRACK_SCENES[:4],
+                trained_on(SPATIAL_TRANSFER_TRAINING_SCENE, TRANSFER_DRAWS), TRANSFER_TRACK),
+    FigureGroup("error_vs_time_transfer_net_rope_tensegrity_3d.png", SPATIAL_TRANSFER_TRACK_SCENES[4:],
+                trained_on(SPATIAL_TRANSFER_TRAINING_SCENE, TRANSFER_DRAWS), TRANSFER_TRACK),
 )
 # Scenes whose snapshots (learned against MuJoCo) the report draws: a chain and a
 # truss in each dimension, and the 3D net.

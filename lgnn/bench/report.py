@@ -645,7 +645,7 @@ def banner(profile: Profile) -> list[str]:
             budget = f"{config.epochs} epochs" + (f" or {config.minutes:g} minutes" if config.minutes else "")
             short_jobs.setdefault((job.model, budget), []).append(job)
     # One entry per model and budget: its training scenes and seeds.
-    short = [f"{model} ({budget}; {', '.join(dict.fromkeys(j.trained_on for j in jobs))}; "
+    short = [f"{model} ({budget}; {'; '.join(dict.fromkeys(j.trained_on for j in jobs))}; "
              f"seed{'s' if len({j.seed for j in jobs}) > 1 else ''} {', '.join(str(s) for s in sorted({j.seed for j in jobs}))})"
              for (model, budget), jobs in short_jobs.items()]
     lines = []
