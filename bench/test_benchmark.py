@@ -43,8 +43,9 @@ FLOOR_DIVERGES = {"T2", "T3"}
 LEARNS = 0.75
 # Models whose quick-profile training does not learn yet. Strict: the test fails once
 # one learns, so its entry is removed then. (LGNN learns since the quick profile's 30
-# steps peak at train.SHORT_BUDGET_RATE: 0.70 of the untrained model's MSE.)
-DOES_NOT_LEARN_YET: set[str] = set()
+# steps peak at train.SHORT_BUDGET_RATE: 0.70 of the untrained model's MSE; LGNN with
+# the paper's two message-passing layers reaches 0.76 in those 30 steps.)
+DOES_NOT_LEARN_YET: set[str] = {"lgnn-mp2"}
 
 
 @pytest.fixture(scope="session")
