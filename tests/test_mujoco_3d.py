@@ -38,7 +38,10 @@ def free_scene():
     return scene_from_dict({"name": "free-3d", "nodes": nodes.tolist(), "velocities": velocities.tolist(), "pinned": [], "links": links})
 
 
-SCENES = {"chain4-3d": lambda: get_scene("chain4-3d"), "net3x3-3d": lambda: spatial_net(3, 3), "free-3d": free_scene}
+# chain4-3d-varied: links of four lengths, masses and inertias (the transfer track's),
+# where a unit chain would hide a swapped or misscaled per-link property.
+SCENES = {"chain4-3d": lambda: get_scene("chain4-3d"), "chain4-3d-varied": lambda: get_scene("chain4-3d-varied"),
+          "net3x3-3d": lambda: spatial_net(3, 3), "free-3d": free_scene}
 
 
 @functools.cache
@@ -108,7 +111,8 @@ def test_spatial_state_maps_round_trip_and_keep_the_kinetic_energy(name, form):
 
 
 @pytest.mark.parametrize(("name", "form", "tolerance"), [
-    ("chain4-3d", "nested", 1e-12), ("chain4-3d", "maximal", 1e-8), ("net3x3-3d", "nested", 2e-8), ("net3x3-3d", "maximal", 1e-7),
+    ("chain4-3d", "nested", 1e-12), ("chain4-3d", "maximal", 1e-8), ("chain4-3d-varied", "nested", 1e-12),
+    ("net3x3-3d", "nested", 2e-8), ("net3x3-3d", "maximal", 1e-7),
     ("free-3d", "nested", 1e-10),
 ])
 def test_spatial_scenes_agree_with_lagrangian(name, form, tolerance):
