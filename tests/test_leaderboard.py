@@ -165,3 +165,21 @@ def test_an_added_model_file_is_relative_to_the_working_directory_not_the_config
     (tmp_path / "configs" / "c.toml").write_text(SETTINGS)
     assert main(["benchmark", "--config", "configs/c.toml", "--add-model", "own.py:SPEC", "--stage", "report", "--out-dir", "out", "--quiet"]) == 0
     assert "file-leaderboard" in models.model_names() and (tmp_path / "out" / "README.md").exists()
+
+
+def test_a_cell_without_a_record_says_why():
+    """A grid pair with no record is "not evaluated"; a fixed-size model (CLNN, CHNN) on a
+    scene the grid does not run it on is "fixed size"; any other pair outside the grid
+    is "—". The committed leaderboard has every pair of its grid."""
+    from pathlib import Path
+
+    board = next(b for heading, _, b in report.leaderboards(grid.evaluation_pairs(grid.PROFILES["full"])) if heading.startswith("planar: "))
+    clnn = next(p for p in board if p.job.model == "clnn")
+    lgnn = next(p for p in board if p.job.model == "lgnn" and p.scene == "chain8")
+    assert report._missing_cell(lgnn.label, "chain8", board) == report.NOT_EVALUATED
+    assert report._missing_cell(clnn.label, "chain8", board) == report.FIXED_SIZE_CELL
+    assert report._missing_cell("mine (external)", "chain8", board) == "—"
+    committed = (Path(__file__).resolve().parents[1] / "results" / "LEADERBOARD.md").read_text()
+    rows = [line for line in committed.splitlines() if line.startswith("| ")]
+    assert not any(f"| {report.NOT_EVALUATED} |" in row for row in rows)
+    assert all(row.count(report.FIXED_SIZE_CELL) == 6 for row in rows if row.split(" | ")[1] in ("clnn", "chnn"))

@@ -59,6 +59,7 @@ from lgnn.bench.stages.train import default_lgnn, load_checkpoints
 from lgnn.bench import store
 from lgnn.bench.tables import escape_markdown_cell, write_csv
 from lgnn.files import atomic_path, write_text_atomic
+from lgnn.learn.models import get_spec
 from lgnn.learn.train import stop_reason, training_key
 from lgnn.scene import CHAIN_SAMPLER, OWN_STATE, PROJECTED, get_scene, initial_state_policy, is_pinned_chain
 
@@ -1237,6 +1238,21 @@ def leaderboards(pairs: list[Pair]) -> list[tuple[str, int, list[Pair]]]:
     return boards
 
 
+# What a leaderboard cell without a record says (`_missing_cell`).
+NOT_EVALUATED = "not evaluated"
+FIXED_SIZE_CELL = "— (fixed size)"
+
+
+def _missing_cell(label: str, scene: str, board: list[Pair]) -> str:
+    """A leaderboard cell with no record: a pair of the board's grid not evaluated yet, a
+    fixed-size model on a scene it cannot run (the grid evaluates it on its training
+    system alone), or a pair outside the grid."""
+    if any((pair.label, pair.scene) == (label, scene) for pair in board):
+        return NOT_EVALUATED
+    fixed = any(pair.label == label and get_spec(pair.job.model).fixed_size for pair in board if not pair.job.external)
+    return FIXED_SIZE_CELL if fixed else "—"
+
+
 def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, command: str | None = None) -> str:
     """`LEADERBOARD.md`: per leaderboard (`leaderboards`: each dimension's paper track
     and transfer track), one row per model it ranks and per external prediction, the rollout error
@@ -1257,7 +1273,10 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, comman
              "the better rank. A scene that cannot rank models (the reference does not converge in dt) ranks none. The overall rank "
              "orders the models with a number on every ranked scene of the table by the mean of their scene ranks; ties are broken by "
              "the geometric mean of their cells over those scenes, then by name. A model without a number on every scene has no "
-             "overall rank and follows, by name. `rest` (the initial state held) is the bar any model must clear, never ranked.", "",
+             "overall rank and follows, by name. `rest` (the initial state held) is the bar any model must clear, never ranked. "
+             f"\"{NOT_EVALUATED}\": a pair of the grid with no record yet; \"{FIXED_SIZE_CELL}\": a model tied to its training "
+             "system's size (CLNN, CHNN), which the grid evaluates on that system alone; \"—\": a pair outside the grid "
+             "(an external prediction answers only the scenes it was made for).", "",
              "**Parameters and training** come from the checkpoints: the learned parameters of the best epoch (training-set "
              "statistics apart) and the training minutes recorded in them (median over seeds; seeds trained together in one "
              "program share one wall time), with the device; GPU-minutes only where every seed trained on a GPU. Rows marked "
@@ -1301,7 +1320,7 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, comman
             row = [str(k + 1) if label in mean_rank else "—", model, parameters, training]
             for scene in scenes:
                 cell = cells[label][scene]
-                row.append("not evaluated" if cell is None else "not rankable" if scene in unrankable
+                row.append(_missing_cell(label, scene, board) if cell is None else "not rankable" if scene in unrankable
                            else f"{_interval(cell)} (rank {ranks[scene][label]})" if label in ranks[scene] else _interval(cell))
             row.append(f"{mean_rank[label]:.2f}" if label in mean_rank else f"— ({sum(label in ranks[s] for s in ranked)} of {len(ranked)} scenes)")
             lines.append("| " + " | ".join(row) + " |")
