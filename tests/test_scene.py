@@ -282,7 +282,7 @@ def test_varied_chains_follow_their_stated_rule():
     """`varied_chain(n, seed)`: lengths, masses and paper inertias within the ranges of the
     paper's varied 4-link chain, physical inertia `I l^4`, the same scene for the same
     seed and another for another; the built-ins are `varied_chain(n, seed=n)`."""
-    from lgnn.scene import get_scene, varied_chain
+    from lgnn.scene import chain4_varied, get_scene, varied_chain
     from lgnn.scene.catalogue import VARIED_LENGTHS, VARIED_MASSES, VARIED_PAPER_INERTIAS
 
     for n, dim in itertools.product((8, 16, 100), (2, 3)):
@@ -301,6 +301,8 @@ def test_varied_chains_follow_their_stated_rule():
         varied_chain(0, 1)
     with pytest.raises(SceneError, match="dim must be 2 or 3, got 4"):
         varied_chain(4, 1, dim=4)
+    with pytest.raises(SceneError, match="dim must be 2 or 3, got True"):
+        chain4_varied(dim=True)
 
 
 def test_the_3d_varied_chain_is_the_papers_varied_links_started_by_the_3d_sampler():

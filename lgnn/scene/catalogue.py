@@ -151,7 +151,7 @@ def chain4_varied(seed: int = 0, dim: int = 2) -> Scene:
     is the listed `I_k` times `l_k^4` (module docstring). In 3D (`chain4-3d-varied`, the
     3D transfer track's training scene), the same links started by the 3D chain sampler."""
     inertias = [i * length**4 for i, length in zip(VARIED_PAPER_INERTIAS, VARIED_LENGTHS, strict=True)]
-    return _chain_of_dim(dim, "chain4" + _DIM_SUFFIX[dim] + "-varied", VARIED_LENGTHS, VARIED_MASSES, inertias, seed)
+    return _chain_of_dim(dim, f"chain4{_dim_suffix(dim, 'varied chain')}-varied", VARIED_LENGTHS, VARIED_MASSES, inertias, seed)
 
 
 def varied_chain(n_links: int, seed: int, name: str | None = None, dim: int = 2) -> Scene:
@@ -166,18 +166,23 @@ def varied_chain(n_links: int, seed: int, name: str | None = None, dim: int = 2)
     varied 4-link chains to longer ones whose links it never saw."""
     if n_links < 1:
         raise SceneError(f"varied chain: need at least one link, got {n_links}")
-    if dim not in _DIM_SUFFIX:
-        raise SceneError(f"varied chain: dim must be 2 or 3, got {dim!r}")
+    suffix = _dim_suffix(dim, "varied chain")
     rng = np.random.default_rng(seed)
     lengths, masses, paper_inertias = (rng.uniform(min(values), max(values), n_links)
                                        for values in (VARIED_LENGTHS, VARIED_MASSES, VARIED_PAPER_INERTIAS))
     inertias = paper_inertias * lengths**4
-    name = name or f"chain{n_links}{_DIM_SUFFIX[dim]}-varied"
+    name = name or f"chain{n_links}{suffix}-varied"
     return _chain_of_dim(dim, name, lengths.tolist(), masses.tolist(), inertias.tolist(), seed)
 
 
 # A chain's name after its link count, by dimension (`chain8`, `chain8-3d`).
 _DIM_SUFFIX = {2: "", 3: "-3d"}
+
+
+def _dim_suffix(dim, what: str) -> str:
+    if isinstance(dim, bool) or dim not in _DIM_SUFFIX:
+        raise SceneError(f"{what}: dim must be 2 or 3, got {dim!r}")
+    return _DIM_SUFFIX[dim]
 
 
 def _chain_of_dim(dim: int, name: str, lengths, masses, inertias, seed: int) -> Scene:
