@@ -199,6 +199,9 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     transfer_table = next(s for s in sections if s.startswith(f"Rollout error against the Lagrangian ground truth ({transfer_heading})"))
     assert "draws)" not in paper_table.splitlines()[2] and "| lgnn-notebook |" in transfer_table.splitlines()[2]
     assert [row.split(" | ")[0].strip("| ") for row in transfer_table.splitlines()[4:11]] == list(grid.TRANSFER_TRACK_SCENES)
+    spatial_table = next(s for s in sections if s.startswith(f"Rollout error against the Lagrangian ground truth ({spatial_heading})"))
+    assert [row.split(" | ")[0].strip("| ") for row in spatial_table.splitlines()[4:11]] == list(grid.SPATIAL_TRANSFER_TRACK_SCENES)
+    assert "not evaluated" not in spatial_table and "| cgnode |" in spatial_table.splitlines()[2]
     with pytest.raises(ConfigError, match="setting 'tracks': unknown track 'mine'"):
         grid.load_profile("full", ['tracks=["mine"]'])
     with pytest.raises(ConfigError, match="'varied_draws' must be a whole number"):
