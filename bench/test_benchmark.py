@@ -269,7 +269,7 @@ def test_report(profile, out):
         assert f"| {pair.scene} |" in text
     # A quick report says its ranking and timings are no results; the full one does not.
     assert (report.QUICK_WARNING in text) == (profile.name != "full")
-    for name in ("summary.csv", report.CURVES, "speed_error.csv", "mass_matrix.csv"):
+    for name in (report.SUMMARY, report.CURVES, "speed_error.csv", "mass_matrix.csv"):
         assert (out / "benchmark" / name).stat().st_size > 0
     performance = (out / "performance.md").read_text()
     assert "Lagrangian / MuJoCo" in performance and "Cost per step against chain length" in performance

@@ -507,6 +507,10 @@ def _add_train_parser(commands) -> None:
     inspect.add_argument("--without-parameters", metavar="OUT",
                          help="also write the checkpoint to OUT without its parameters and optimiser state: its records and training "
                               "history stay readable (how the repository keeps large models)")
+    inspect.add_argument("--for-inference", metavar="OUT",
+                         help="also write the checkpoint to OUT with its best parameters only, without the latest ones and the "
+                              "optimiser state: it rolls out, scores and times as this one, but cannot be resumed (how the repository "
+                              "keeps finished models)")
     inspect.set_defaults(run=_cmd_checkpoint)
 
     rollout = commands.add_parser("rollout", help="roll a trained model out on a scene")
@@ -615,17 +619,20 @@ def _add_evaluation_parsers(commands) -> None:
 
 
 def _cmd_checkpoint(args) -> None:
-    from lgnn.learn import train
+    from pathlib import Path
+
+    from lgnn.files import check_writable
+    from lgnn.learn import checkpoints, train
 
     _import_model_code(args)
-    if args.without_parameters:
-        from pathlib import Path
-
-        from lgnn.files import check_writable
-
-        check_writable(args.without_parameters)
-        if Path(args.without_parameters).resolve() == Path(args.path).resolve():
-            raise ConfigError("--without-parameters must name another file than the checkpoint")
+    copies = {"--without-parameters": args.without_parameters, "--for-inference": args.for_inference}
+    if all(copies.values()):
+        raise ConfigError("give one of --without-parameters and --for-inference")
+    for option, target in copies.items():
+        if target:
+            check_writable(target)
+            if Path(target).resolve() == Path(args.path).resolve():
+                raise ConfigError(f"{option} must name another file than the checkpoint")
     state, meta = train.load_checkpoint(args.path)
     print(f"{args.path}: {meta['model']['name']}, epoch {state.epoch}, best validation loss {state.best_val:.4g} at epoch {state.best_epoch}, "
           f"{state.elapsed_s:.1f} s of training")
@@ -640,10 +647,11 @@ def _cmd_checkpoint(args) -> None:
             reached = "not reached"
         print(f"reference {args.reference}: best validation loss {reference.best_val:.4g} ({reference.elapsed_s:.1f} s of training): {reached}")
     if args.without_parameters:
-        from lgnn.learn import checkpoints
-
         checkpoints.without_parameters(args.path, args.without_parameters)
         print(f"wrote {args.without_parameters} (without parameters)")
+    if args.for_inference:
+        checkpoints.for_inference(args.path, args.for_inference)
+        print(f"wrote {args.for_inference} (for inference)")
 
 
 def _cmd_benchmark(args) -> None:

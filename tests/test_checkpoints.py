@@ -238,3 +238,40 @@ def test_a_checkpoint_kept_without_parameters_keeps_its_records_and_training_onl
     capsys.readouterr()
     assert cli.main(["checkpoint", str(full), "--without-parameters", str(full)]) == 2
     assert "another file" in capsys.readouterr().err
+
+
+def test_a_checkpoint_kept_for_inference_rolls_out_as_the_whole_one_but_does_not_resume(tmp_path, capsys):
+    """`lgnn checkpoint --for-inference`: the copy has the whole checkpoint's content
+    digest (what records key on), best parameters, history and budget, and is smaller;
+    resuming it is one line."""
+    from lgnn import cli
+
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene("lgnn", scene)
+    config = train.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
+    whole, kept = tmp_path / "whole.npz", tmp_path / "kept.npz"
+    state = train.train(model, config, _tiny_dataset(scene), scene, out=whole)
+    before = whole.read_bytes()
+    assert cli.main(["checkpoint", str(whole), "--for-inference", str(kept)]) == 0
+    assert whole.read_bytes() == before and kept.stat().st_size < whole.stat().st_size
+    assert checkpoints.content_digest(kept) == checkpoints.content_digest(whole)
+    restored, meta = train.load_checkpoint(kept)
+    assert restored.params is None and restored.opt_state is None
+    assert restored.history == state.history and (restored.epoch, restored.best_epoch, restored.best_val) == (state.epoch, state.best_epoch, state.best_val)
+    assert meta[checkpoints.FOR_INFERENCE]["sha256"] == records.file_digest(whole)
+    for ours, theirs in zip(jax.tree.leaves(load_model(kept)[1]), jax.tree.leaves(load_model(whole)[1])):
+        np.testing.assert_array_equal(ours, theirs)
+    with pytest.raises(CheckpointError, match="kept.npz: kept for inference .* cannot be resumed"):
+        train.train(model, config, _tiny_dataset(scene), scene, out=kept, resume=True)
+    # Again from the kept copy: it names the whole file it first came from.
+    again = tmp_path / "again.npz"
+    checkpoints.for_inference(kept, again)
+    assert checkpoints.read(again)[0][checkpoints.FOR_INFERENCE] == meta[checkpoints.FOR_INFERENCE]
+    slim = tmp_path / "slim.npz"
+    checkpoints.without_parameters(whole, slim)
+    with pytest.raises(CheckpointError, match="slim.npz: kept without its parameters .* cannot be kept for inference"):
+        checkpoints.for_inference(slim, tmp_path / "never.npz")
+    assert not (tmp_path / "never.npz").exists()
+    capsys.readouterr()
+    assert cli.main(["checkpoint", str(whole), "--for-inference", str(tmp_path / "a.npz"), "--without-parameters", str(tmp_path / "b.npz")]) == 2
+    assert "one of" in capsys.readouterr().err

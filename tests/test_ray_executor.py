@@ -1,6 +1,6 @@
 """`lgnn benchmark --executor ray` (`lgnn.bench.ray_executor`) on a local Ray cluster of
 2 CPUs: two drivers sharing an output folder compute each part once, and their records
-and `summary.csv` are the local executor's; a task whose worker is killed mid-training
+and `summary.csv.gz` are the local executor's; a task whose worker is killed mid-training
 is retried and its checkpoint is whole. A reduced selection (one model, one seed, one
 scene, one epoch) keeps it near a minute per run on 2 cores."""
 
@@ -16,7 +16,7 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
-from lgnn.bench import claims, grid  # noqa: E402
+from lgnn.bench import claims, grid, report  # noqa: E402
 from lgnn.bench.stages import evaluate  # noqa: E402
 from lgnn.cli import main  # noqa: E402
 from lgnn.learn import train  # noqa: E402
@@ -55,7 +55,7 @@ def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_execu
     """Two drivers started at once on one output folder: each training job, model
     evaluation and ground truth is computed by one of them (the other's task waits for
     its claim, then reads the record); the records' arrays and keys, the checkpoint's
-    parameters and `summary.csv` are the local executor's exactly (timings apart); the
+    parameters and `summary.csv.gz` are the local executor's exactly (timings apart); the
     tasks use the drivers' dataset cache; no claim is left."""
     local, shared, cache = tmp_path / "local", tmp_path / "ray", tmp_path / "drivers-cache"
     assert main(["benchmark", *PROFILE_ARGV, *STAGES, "--out-dir", str(local), "--quiet"]) == 0, capsys.readouterr().err
@@ -74,7 +74,7 @@ def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_execu
     assert len(list((cache / "datasets" / "ground-truth").glob("chain4-*.npz"))) == 1
     assert not list(shared.rglob("*.claim*")) and not list(cache.rglob("*.claim*"))
 
-    assert (shared / "benchmark" / "summary.csv").read_bytes() == (local / "benchmark" / "summary.csv").read_bytes()
+    assert (shared / "benchmark" / report.SUMMARY).read_bytes() == (local / "benchmark" / report.SUMMARY).read_bytes()
     profile = _profile()
     ours, theirs = dict(evaluate.load_pairs(profile, shared)), dict(evaluate.load_pairs(profile, local))
     assert len(ours) == len(theirs) == 2

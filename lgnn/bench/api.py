@@ -16,7 +16,7 @@ from pathlib import Path
 from lgnn.errors import ConfigError
 
 # `load_results`' tables: name -> file under the results folder's `benchmark/`.
-RESULT_TABLES = {"summary": "summary.csv", "curves": "curves.csv.gz", "speed": "speed_error.csv", "mass": "mass_matrix.csv"}
+RESULT_TABLES = {"summary": "summary.csv.gz", "curves": "curves.csv.gz", "speed": "speed_error.csv", "mass": "mass_matrix.csv"}
 
 
 def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: int | None = None, seed: int = 0,
@@ -85,7 +85,7 @@ def benchmark(profile: str | os.PathLike = "quick", out: str | os.PathLike | Non
 
 
 def load_results(folder: str | os.PathLike = "results", table: str = "summary"):
-    """A results folder's table as a DataFrame: `summary` (`benchmark/summary.csv`: scene,
+    """A results folder's table as a DataFrame: `summary` (`benchmark/summary.csv.gz`: scene,
     model, seed, metric, statistic, value and provenance), `curves`, `speed` or `mass`."""
     import pandas as pd
 

@@ -4,7 +4,7 @@ functions only (nothing is computed here but statistics of them).
 
 Files under `<out>` (`results/` for the full profile, `lgnn-out/quick/` for the quick):
 
-- `benchmark/summary.csv`: `scene, model, seed, metric, statistic, value` plus
+- `benchmark/summary.csv.gz`: `scene, model, seed, metric, statistic, value` plus
   `commit, versions, device` of the run that made each number. Models: the learned
   ones and `rest` (the rest baseline, from the ground-truth records); metrics: every
   metric of the registry `lgnn.metrics.METRICS` (`rollout_error`, `node_rms_error`,
@@ -19,11 +19,12 @@ Files under `<out>` (`results/` for the full profile, `lgnn-out/quick/` for the 
   A model trained with several seeds also has rows with `seed` -1 (`ALL_SEEDS`): the
   geometric mean over seeds and initial conditions with a two-level bootstrap interval
   (`lgnn.metrics.summarise_seeds`), `seeds`, and the summed divergences; the markdown
-  tables show these.
+  tables show these. Gzipped, as the curves: its provenance columns repeat on every
+  row (7.6 MB plain for the full profile, 0.2 MB gzipped); pandas reads it as is.
 - `benchmark/curves.csv.gz`: the same metrics per frame (every `evaluate.CURVE_DT`, 0.01 s): geometric mean
   over initial conditions with a normal-approximation 95% band (`t` column); columns
   `scene, model, seed, metric, statistic, t, value`. Each curve's commit, versions and
-  device are those of its `summary.csv` rows (same scene, model, seed): repeated on
+  device are those of its `summary.csv.gz` rows (same scene, model, seed): repeated on
   each of 200 000 frames they made the file 56 MB. Gzipped (pandas reads it as is).
 - `benchmark/speed_error.csv`, `.md`: wall time per simulated second against rollout
   error (`lgnn.bench.stages.speed`).
@@ -87,7 +88,9 @@ ENGINE_TITLES = {"lagrangian": "the Lagrangian engine", "mujoco": "MuJoCo", "mjx
 # The names of the figures the report draws under `figures/` (and removes when it no
 # longer draws them).
 REPORT_FIGURES = ("error_vs_time_*.png", "snapshots_*.png", "mass_matrix.png", "speed_error.png")
-# The per-frame curves' file under `benchmark/` (gzipped: module docstring).
+# The summary's and the per-frame curves' files under `benchmark/` (gzipped: module
+# docstring).
+SUMMARY = "summary.csv.gz"
 CURVES = "curves.csv.gz"
 # The `seed` of summary rows over every training seed of a model.
 ALL_SEEDS = -1
@@ -358,12 +361,21 @@ def speed_markdown(rows: list[dict]) -> str:
 
 
 def _savefig(fig, path: Path) -> None:
+    """`fig` as a PNG of 256 colours at most: the figures are line art on white, which
+    loses nothing visible in a palette, and the committed ones take a third of the
+    space (the 3D snapshots 2.2 MB in full colour, 0.7 MB so)."""
+    import io
+
     import matplotlib.pyplot as plt
+    from PIL import Image  # matplotlib's own dependency
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
+    rendered = io.BytesIO()
+    fig.savefig(rendered, dpi=110, format="png")
     plt.close(fig)
+    image = Image.open(rendered).convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    with atomic_path(path) as tmp:
+        image.save(tmp, format="PNG", optimize=True)
 
 
 def error_axis_labels() -> dict[str, str]:
@@ -766,7 +778,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         *([f"Records and checkpoints of `{p.base}` are read in place (never copied or written) beside this folder's; "
            "each record's folder and commit are under \"Where each record was made\"."] if p.base is not None else []),
         *_unmatched_lines(p, out),
-        "Each number's own commit, versions and device are columns of `benchmark/summary.csv` (the stages may run on different machines): "
+        "Each number's own commit, versions and device are columns of `benchmark/summary.csv.gz` (the stages may run on different machines): "
         + "; ".join(envs) + ".",
         "",
         *banner(p),
@@ -797,7 +809,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         "(GNS's own accelerations know no constraints); `gns (unprojected)` is the same checkpoint without projection. "
         f"`{EXACT_NO_DRAG}` (drag scenes): the exact physics with the drag term removed, from the same states: what ignoring drag scores.",
         "- Several training seeds: a cell is the geometric mean over seeds and initial conditions with a two-level bootstrap 95% interval "
-        "(seeds, then each seed's initial conditions), `(n seeds)`; each seed's own numbers are rows of `benchmark/summary.csv`. "
+        "(seeds, then each seed's initial conditions), `(n seeds)`; each seed's own numbers are rows of `benchmark/summary.csv.gz`. "
         "\"not evaluated\": a pair of the grid with no record yet (`lgnn benchmark --stage evaluate` resumes there).",
         *(["- Not rankable (`results/convergence.md`, `lgnn convergence`): the reference itself does not converge in dt, so no "
            "model number on these scenes could rank models and none is reported"
@@ -836,11 +848,11 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
               "Every stage resumes from the records it finds, so stages may run apart, on several machines, and be assembled by the "
               f"report: `lgnn benchmark{' --full' if p.name == 'full' else ''} --stage train|evaluate|speed|mass|report "
               "[--scene S] [--job J] [--chunk N]`. `+dirty` marks a record written while the working tree had uncommitted "
-              "changes. Each record also holds the versions (`benchmark/summary.csv`).", "",
+              "changes. Each record also holds the versions (`benchmark/summary.csv.gz`).", "",
               *_provenance_lines(*records, speed_rows, mass_records, out), ""]
     lines += ["## Files", "", "| file | what |", "|---|---|",
-              "| `benchmark/summary.csv` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
-              f"| `benchmark/curves.csv.gz` | per-frame geometric means and 95% bands (every {CURVE_DT:g} s; provenance: the matching `summary.csv` rows) |",
+              "| `benchmark/summary.csv.gz` | tidy summary: scene, model, seed, metric, statistic, value, commit, versions, device |",
+              f"| `benchmark/curves.csv.gz` | per-frame geometric means and 95% bands (every {CURVE_DT:g} s; provenance: the matching `summary.csv.gz` rows) |",
               "| `benchmark/speed_error.csv`, `.md` | speed against error |",
               *(["| `performance.md` | the speed records read as ratios to MuJoCo C at equal accuracy, each 3D chain beside the planar one, "
                  "and cost against chain length in 2D and 3D |"] if speed_rows else []),
@@ -1108,7 +1120,9 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
     summary, curves = tables(truths, pairs + externals, profile.evaluate.references)
     bench_dir = out / "benchmark"
     bench_dir.mkdir(parents=True, exist_ok=True)
-    write_csv(summary, bench_dir / "summary.csv")
+    write_csv(summary, bench_dir / SUMMARY)
+    # A summary written plain by an older lgnn would sit stale beside the new one.
+    (bench_dir / "summary.csv").unlink(missing_ok=True)
     write_csv(curves, bench_dir / CURVES)
     speed_rows = load_speed_rows(profile, out)
     # Where each row was read from is the provenance table's, not a column of the table.
@@ -1267,7 +1281,7 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, comman
              f"Written by `{command or shown}` from the benchmark's records (`benchmark/runs/` of this folder"
              + (f" and of `{profile.base}`" if profile.base else "") + "); nothing here is edited by hand. "
              f"Written at commit {env['commit']}. Every cell is the one of `README.md`'s table \"{metrics.METRICS[RANKED_METRIC].heading}\" "
-             "(the same records and statistics, `benchmark/summary.csv`): geometric mean over frames and initial conditions "
+             "(the same records and statistics, `benchmark/summary.csv.gz`): geometric mean over frames and initial conditions "
              "[bootstrap 95% interval], over every training seed where several; lower is better.", "",
              "**Ranks.** On each scene the models with a number are ranked by that geometric mean, lowest first; equal values share "
              "the better rank. A scene that cannot rank models (the reference does not converge in dt) ranks none. The overall rank "

@@ -27,6 +27,13 @@ match it, and tables still read its training; it cannot be rolled out or resumed
 (`load_model` and resuming refuse it with one line). The repository keeps the strong
 graph networks' checkpoints so (1.6M parameters: about 50 MB each with Adam's state).
 
+A finished checkpoint may be kept **for inference** (`for_inference`): its best
+parameters, meta and history, without the latest parameters and the optimiser state
+(together about two thirds of a whole checkpoint's arrays), and in the meta's
+`for_inference` the sha256 of the file it came from. It has the same content digest,
+so it rolls out, scores, times and reads as the whole one does; only resuming refuses
+it with one line. The repository keeps the other finished checkpoints so.
+
 Format 1 (leaves `prefix/k` in flatten order, the history in the meta, arrays stored
 uncompressed) is still read: `arrays_by_path` names its leaves by the template's paths.
 It is never written; `tools/convert_checkpoints.py` converts such files.
@@ -117,6 +124,9 @@ def meta_problem(meta: dict, arrays: dict) -> str | None:
         return f"'best_val' must be a number >= 0 or null, got {meta['best_val']!r}"
     if not number(meta.get("elapsed_s", 0.0)) or meta.get("elapsed_s", 0.0) < 0:
         return f"'elapsed_s' must be a number >= 0, got {meta['elapsed_s']!r}"
+    inference = meta.get(FOR_INFERENCE)
+    if inference is not None and not (isinstance(inference, dict) and isinstance(inference.get("sha256"), str)):
+        return f"{FOR_INFERENCE!r} must give the 'sha256' of the checkpoint it came from, got {inference!r}"
     kept = meta.get(WITHOUT_PARAMETERS)
     if kept is not None and not (isinstance(kept, dict) and isinstance(kept.get("content_digest"), str) and whole(kept.get("parameters"))):
         return f"{WITHOUT_PARAMETERS!r} must give the 'content_digest' and 'parameters' count of the checkpoint it came from, got {kept!r}"
@@ -135,8 +145,10 @@ def meta_problem(meta: dict, arrays: dict) -> str | None:
     return None
 
 
-# The meta entry of a checkpoint kept without its parameters (`without_parameters`).
+# The meta entries of a checkpoint kept without its parameters (`without_parameters`)
+# and of one kept for inference (`for_inference`).
 WITHOUT_PARAMETERS = "without_parameters"
+FOR_INFERENCE = "for_inference"
 
 
 def learned_parameter_count(params) -> int:
@@ -162,9 +174,39 @@ def without_parameters(source: str | os.PathLike, target: str | os.PathLike) -> 
     write(target, {}, {**rest, WITHOUT_PARAMETERS: kept}, entries, meta.get("environment"))
 
 
+def for_inference(source: str | os.PathLike, target: str | os.PathLike) -> None:
+    """Write the checkpoint at `source` to `target` with its best parameters, meta,
+    history and environment only (module docstring), plus `for_inference` (the sha256
+    of the first whole file it came from). `CheckpointError` (one line) for a source
+    without parameters or of the legacy format. `source` is only read."""
+    meta, arrays = read(source)
+    refuse_without_parameters(source, meta, "kept for inference")
+    if meta["format"] != FORMAT:
+        raise CheckpointError(f"{source}: checkpoint format {meta['format']}; convert it first (tools/convert_checkpoints.py)")
+    kept = meta.get(FOR_INFERENCE) or {"sha256": records.file_digest(source)}
+    best = {name: value for name, value in arrays.items() if name.startswith("best/")}
+    rest = {key: value for key, value in meta.items() if key not in ("format", "history", "environment", FOR_INFERENCE)}
+    write(target, best, {**rest, FOR_INFERENCE: kept}, history(meta, arrays), meta.get("environment"))
+
+
 def has_parameters(meta: dict) -> bool:
-    """Whether a checkpoint's meta (`read`) comes with its parameters."""
+    """Whether a checkpoint's meta (`read`) comes with its (best) parameters."""
     return WITHOUT_PARAMETERS not in meta
+
+
+def resumable(meta: dict) -> bool:
+    """Whether a checkpoint's meta (`read`) comes with what training resumes from: its
+    latest parameters and the optimiser state."""
+    return has_parameters(meta) and FOR_INFERENCE not in meta
+
+
+def refuse_unresumable(path: str | os.PathLike, meta: dict) -> None:
+    """`CheckpointError` (one line) for resuming a checkpoint kept without what
+    training resumes from."""
+    refuse_without_parameters(path, meta, "resumed")
+    if not resumable(meta):
+        raise CheckpointError(f"{path}: kept for inference (its best parameters, without the optimiser state), so it cannot be resumed; "
+                              f"train the model again for a checkpoint that can")
 
 
 def refuse_without_parameters(path: str | os.PathLike, meta: dict, use: str) -> None:

@@ -433,10 +433,14 @@ def initial_state(model: models.ModelConfig, config: TrainConfig, statistics: di
     `models.training_statistics`, where the model has any) and the optimiser's state
     of their trainable part."""
     params = models.with_statistics(models.init(jax.random.fold_in(jax.random.PRNGKey(config.seed), 0), model), statistics)
+    return TrainState(params, fresh_optimiser_state(model, config, params), params, float("inf"), -1, 0, [], 0.0)
+
+
+def fresh_optimiser_state(model: models.ModelConfig, config: TrainConfig, params: dict):
+    """The optimiser's state before its first step on `params`' trainable part."""
     # Adam's initial state holds no rate or warm-up, only whether there is a schedule
     # (always, by the rule), so a config that leaves them to the rule has one too.
-    opt_state = optimizer(scheduled(config, 1), model.spec.weight_decay).init(models.split_statistics(params)[0])
-    return TrainState(params, opt_state, params, float("inf"), -1, 0, [], 0.0)
+    return optimizer(scheduled(config, 1), model.spec.weight_decay).init(models.split_statistics(params)[0])
 
 
 @in_float64
@@ -645,7 +649,8 @@ def load_checkpoint(path) -> tuple[TrainState, dict]:
     """The training state and metadata of a checkpoint of any readable format, for
     resuming (inference needs only `load_model`); `CheckpointError` if unusable. One
     kept without its parameters (`checkpoints.without_parameters`) gives its training
-    alone: parameters and optimiser state None."""
+    alone: parameters and optimiser state None; one kept for inference
+    (`checkpoints.for_inference`) its best parameters too."""
     meta, arrays = checkpoints.read(path)
     model = checkpoints.model_config(path, meta)
     try:
@@ -657,6 +662,9 @@ def load_checkpoint(path) -> tuple[TrainState, dict]:
     elapsed = float(meta.get("elapsed_s", 0.0))
     if not checkpoints.has_parameters(meta):  # its training only: no parameters or optimiser state
         return TrainState(None, None, None, best_val, meta["best_epoch"], meta["epoch"], history, elapsed), meta
+    if not checkpoints.resumable(meta):
+        best = checkpoints.restore(path, checkpoints.params_template(model), arrays, "best")
+        return TrainState(None, None, best, best_val, meta["best_epoch"], meta["epoch"], history, elapsed), meta
     template = initial_state(model, config)
     arrays = checkpoints.arrays_by_path(path, meta, arrays, {"params": template.params, "best": template.params, "opt": template.opt_state})
     params = checkpoints.restore(path, template.params, arrays, "params")
@@ -682,7 +690,7 @@ def check_resumable(path, model: models.ModelConfig, config: TrainConfig) -> tup
     `CheckpointError` (one line) if it is unusable or was written with other settings.
     Entry points call it before generating data, so a wrong `--resume` fails at once."""
     state, saved = load_checkpoint(path)
-    checkpoints.refuse_without_parameters(path, saved, "resumed")
+    checkpoints.refuse_unresumable(path, saved)
     differences = settings_differences(saved["model"], model.to_dict(), "model") + settings_differences(saved["train"], training_key(config), "train")
     if differences:
         raise CheckpointError(f"{path}: cannot resume: it was written with other settings ({'; '.join(differences)})")

@@ -60,7 +60,7 @@ def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
         return False
     same = meta["model"] == model.to_dict() and meta["train"] == train.training_key(train_config) and meta["data"] == data_config.to_dict()
     if same and not train.finished(state, train_config) and state.params is None:
-        log(f"train {job.name}: its unfinished checkpoint is kept without its parameters; retraining")
+        log(f"train {job.name}: its unfinished checkpoint is kept without its optimiser state; retraining")
         return False
     if same and train.finished(state, train_config):
         log(f"train {job.name}: reusing finished checkpoint ({state.epoch} epochs, best validation MSE {state.best_val:.3g})")
@@ -156,7 +156,8 @@ def default_lgnn(profile: Profile, out: Path, training_scene: str = TRAINING_SCE
 
 def timed_epoch_fn(profile: Profile, job: TrainingJob, out: Path):
     """`(run, steps)`: a no-argument call running one training epoch of the job (the
-    compiled function training used, from the checkpoint's parameters), and the Adam
+    compiled function training used, from the checkpoint's parameters: its best ones
+    and a fresh optimiser state for a checkpoint kept for inference), and the Adam
     steps it takes; for pytest-benchmark."""
     scene, model, data_config, train_config = job_settings(profile, job)
     layout = store.layout(profile, out)
@@ -166,4 +167,8 @@ def timed_epoch_fn(profile: Profile, job: TrainingJob, out: Path):
     epoch = train.compiled_epoch_fn(model, scene, train_config)
     key = jax.random.PRNGKey(0)
     steps = len(dataset.train) // train_config.batch_size
-    return (lambda: jax.block_until_ready(epoch(state.params, state.opt_state, *arrays, key))), steps
+    if state.best_params is None:
+        raise CheckpointError(f"{layout.found(layout.checkpoint(job))}: kept without its parameters, so it has no epoch to time")
+    params = state.best_params if state.params is None else state.params
+    opt_state = train.fresh_optimiser_state(model, train_config, params) if state.opt_state is None else state.opt_state
+    return (lambda: jax.block_until_ready(epoch(params, opt_state, *arrays, key))), steps
