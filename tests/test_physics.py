@@ -293,6 +293,34 @@ def test_gradient_of_acceleration_matches_finite_differences():
     np.testing.assert_allclose(analytic, numeric, rtol=1e-6)
 
 
+def test_kkt_solve_derivatives_are_those_of_the_exact_solution():
+    """`solvers.solve_kkt` differentiates by the implicit function theorem: its first
+    and second derivatives in the mass matrix, Jacobian and right-hand sides are those
+    of the exact saddle-point solution (a dense solve of the unregularised system)."""
+    from lgnn.physics import solvers
+
+    rng = np.random.default_rng(12)
+    n, k = 8, 4
+    root = rng.normal(size=(n, n))
+    mass, jac = jnp.asarray(root @ root.T + n * np.eye(n)), jnp.asarray(rng.normal(size=(k, n)))
+    force, rhs = jnp.asarray(rng.normal(size=n)), jnp.asarray(rng.normal(size=k))
+
+    def exact(mass, jac, force, rhs):
+        kkt = jnp.block([[mass, jac.T], [jac, jnp.zeros((k, k))]])
+        return jnp.linalg.solve(kkt, jnp.concatenate([force, rhs]))[:n]
+
+    def scalar(solve):
+        return lambda *args: jnp.sum(jnp.sin(solve(*args)))
+
+    args = (mass, jac, force, rhs)
+    for ours, theirs in zip(jax.grad(scalar(solvers.solve_kkt), argnums=(0, 1, 2, 3))(*args),
+                            jax.grad(scalar(exact), argnums=(0, 1, 2, 3))(*args)):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-8, atol=1e-12)
+    tangent = tuple(jnp.asarray(rng.normal(size=np.shape(a))) for a in args)
+    second = lambda solve: jax.jvp(jax.grad(scalar(solve), argnums=2), args, tangent)[1]  # noqa: E731
+    np.testing.assert_allclose(second(solvers.solve_kkt), second(exact), rtol=1e-8, atol=1e-12)
+
+
 # ---------------------------------------------------------------------------------
 # The structured ground-truth solvers and the structured projection
 # ---------------------------------------------------------------------------------

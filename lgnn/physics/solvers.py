@@ -90,9 +90,22 @@ def solve_kkt(mass: Array, jac: Array, force: Array, accel_rhs: Array) -> Array:
     zeros = jnp.zeros((k, k), mass.dtype)
     kkt = jnp.block([[mass / scale, jac.T], [jac, zeros]])
     regularised = kkt.at[n:, n:].set(-KKT_REGULARISATION * jnp.eye(k, dtype=mass.dtype))
-    solve = functools.partial(jax.scipy.linalg.lu_solve, jax.scipy.linalg.lu_factor(regularised))
+    factors = jax.lax.stop_gradient(jax.scipy.linalg.lu_factor(regularised))
     rhs = jnp.concatenate([force / scale, accel_rhs])
-    return refine(solve, lambda solution: rhs - kkt @ solution, solve(rhs), KKT_REFINEMENT_STEPS)[:n]
+
+    def refined_solve(transposed: bool):
+        def solve_with(product, b):  # `product`: the exact system's (or its transpose's)
+            solve = functools.partial(jax.scipy.linalg.lu_solve, factors, trans=int(transposed))
+            return refine(solve, lambda solution: b - product(solution), solve(b), KKT_REFINEMENT_STEPS)
+
+        return solve_with
+
+    # Derivatives by the implicit function theorem (`custom_linear_solve`): a tangent
+    # or cotangent is one more refined solve with the same factors (transposed for a
+    # cotangent), not the derivative of the factorisation and of every refinement step.
+    # The same derivatives to round-off, of any order, with fewer operations
+    # (tests/test_physics.py; `results/gpu/training/README.md` for what it saves).
+    return jax.lax.custom_linear_solve(lambda solution: kkt @ solution, rhs, refined_solve(False), transpose_solve=refined_solve(True))[:n]
 
 
 def cholesky_solve_fn(matrix: Array) -> tuple[Callable[[Array], Array], Array]:
