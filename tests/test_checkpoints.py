@@ -208,17 +208,24 @@ def test_a_damaged_compressed_checkpoint_is_one_line(tmp_path):
             load_model(tmp_path / "damaged.npz")
 
 
+def _briefly_trained(tmp_path, name: str):
+    """`(scene, model config, train config, checkpoint path, state)` of `name` trained
+    for 2 epochs on chain4's tiny dataset, its checkpoint `tmp_path / "whole.npz"`."""
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene(name, scene)
+    config = train.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
+    path = tmp_path / "whole.npz"
+    return scene, model, config, path, train.train(model, config, _tiny_dataset(scene), scene, out=path)
+
+
 def test_a_checkpoint_kept_without_parameters_keeps_its_records_and_training_only(tmp_path, capsys):
     """`lgnn checkpoint --without-parameters`: the copy's content digest (what records
     key on), training history and learned parameter count are the checkpoint's; rolling
     it out or resuming it is one line; the source is only read."""
     from lgnn import cli
 
-    scene = get_scene("chain4")
-    model = models.ModelConfig.for_scene("gns", scene)
-    config = train.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
-    full, slim = tmp_path / "full.npz", tmp_path / "slim.npz"
-    state = train.train(model, config, _tiny_dataset(scene), scene, out=full)
+    scene, model, config, full, state = _briefly_trained(tmp_path, "gns")
+    slim = tmp_path / "slim.npz"
     before = full.read_bytes()
     assert cli.main(["checkpoint", str(full), "--without-parameters", str(slim)]) == 0
     assert full.read_bytes() == before and slim.stat().st_size < full.stat().st_size / 2
@@ -246,11 +253,8 @@ def test_a_checkpoint_kept_for_inference_rolls_out_as_the_whole_one_but_does_not
     resuming it is one line."""
     from lgnn import cli
 
-    scene = get_scene("chain4")
-    model = models.ModelConfig.for_scene("lgnn", scene)
-    config = train.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
-    whole, kept = tmp_path / "whole.npz", tmp_path / "kept.npz"
-    state = train.train(model, config, _tiny_dataset(scene), scene, out=whole)
+    scene, model, config, whole, state = _briefly_trained(tmp_path, "lgnn")
+    kept = tmp_path / "kept.npz"
     before = whole.read_bytes()
     assert cli.main(["checkpoint", str(whole), "--for-inference", str(kept)]) == 0
     assert whole.read_bytes() == before and kept.stat().st_size < whole.stat().st_size
