@@ -169,9 +169,7 @@ def without_parameters(source: str | os.PathLike, target: str | os.PathLike) -> 
     else:
         _, params = load_model(source)
         kept = {"content_digest": content_digest(source), "parameters": learned_parameter_count(params), "sha256": records.file_digest(source)}
-    entries = history(meta, arrays)
-    rest = {key: value for key, value in meta.items() if key not in ("format", "history", "environment", WITHOUT_PARAMETERS)}
-    write(target, {}, {**rest, WITHOUT_PARAMETERS: kept}, entries, meta.get("environment"))
+    _write_slimmer(target, meta, arrays, {}, WITHOUT_PARAMETERS, kept)
 
 
 def for_inference(source: str | os.PathLike, target: str | os.PathLike) -> None:
@@ -185,8 +183,15 @@ def for_inference(source: str | os.PathLike, target: str | os.PathLike) -> None:
         raise CheckpointError(f"{source}: checkpoint format {meta['format']}; convert it first (tools/convert_checkpoints.py)")
     kept = meta.get(FOR_INFERENCE) or {"sha256": records.file_digest(source)}
     best = {name: value for name, value in arrays.items() if name.startswith("best/")}
-    rest = {key: value for key, value in meta.items() if key not in ("format", "history", "environment", FOR_INFERENCE)}
-    write(target, best, {**rest, FOR_INFERENCE: kept}, history(meta, arrays), meta.get("environment"))
+    _write_slimmer(target, meta, arrays, best, FOR_INFERENCE, kept)
+
+
+def _write_slimmer(target: str | os.PathLike, meta: dict, arrays: dict, kept_arrays: dict, entry: str, source: dict) -> None:
+    """Write to `target` a slimmer copy of the checkpoint read as `(meta, arrays)`:
+    `kept_arrays` of its arrays, its history, environment and meta, and in the meta's
+    `entry` what it keeps of its `source`."""
+    rest = {key: value for key, value in meta.items() if key not in ("format", "history", "environment", entry)}
+    write(target, kept_arrays, {**rest, entry: source}, history(meta, arrays), meta.get("environment"))
 
 
 def has_parameters(meta: dict) -> bool:

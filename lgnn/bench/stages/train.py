@@ -25,6 +25,7 @@ from lgnn.bench import claims, store
 from lgnn.bench.store import Layout, log
 from lgnn.errors import CheckpointError
 from lgnn.learn import data, models, train
+from lgnn.learn.checkpoints import refuse_without_parameters
 from lgnn.scene import get_scene
 
 
@@ -161,14 +162,14 @@ def timed_epoch_fn(profile: Profile, job: TrainingJob, out: Path):
     steps it takes; for pytest-benchmark."""
     scene, model, data_config, train_config = job_settings(profile, job)
     layout = store.layout(profile, out)
-    state, _ = train.load_checkpoint(layout.found(layout.checkpoint(job)))
+    path = layout.found(layout.checkpoint(job))
+    state, meta = train.load_checkpoint(path)
+    refuse_without_parameters(path, meta, "timed")
     dataset = data.load_or_generate(data_config, Layout(out).datasets)
     arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
     epoch = train.compiled_epoch_fn(model, scene, train_config)
     key = jax.random.PRNGKey(0)
     steps = len(dataset.train) // train_config.batch_size
-    if state.best_params is None:
-        raise CheckpointError(f"{layout.found(layout.checkpoint(job))}: kept without its parameters, so it has no epoch to time")
     params = state.best_params if state.params is None else state.params
     opt_state = train.fresh_optimiser_state(model, train_config, params) if state.opt_state is None else state.opt_state
     return (lambda: jax.block_until_ready(epoch(params, opt_state, *arrays, key))), steps
