@@ -15,6 +15,7 @@ compiled (compile time is kept apart, in the records).
 import dataclasses
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -81,6 +82,18 @@ def pytest_generate_tests(metafunc):
         metafunc.parametrize("mass_scene", profile.mass.scenes)
 
 
+def _time(benchmark, run, rounds: int) -> None:
+    """Time `run` (compiled by a first call, not timed) where pytest-benchmark times.
+    Where it does not (under xdist, as in CI, or `--benchmark-disable`) the program is
+    not even compiled: the training or evaluation program the stage ran is another
+    one, and compiling each only to run it once untimed cost CI minutes of its 2 cores
+    (`test_the_timed_programs_run_from_the_stages_records` runs LGNN's once)."""
+    if benchmark.disabled:
+        return
+    run()
+    benchmark.pedantic(run, rounds=rounds, iterations=1)
+
+
 def test_training(benchmark, record_rate, request, profile, out, job):
     # The job's seeds train together (one compiled program); later seeds reuse the checkpoints.
     group = [j for j in grid.training_jobs(profile) if (j.model, j.scene) == (job.model, job.scene)]
@@ -89,8 +102,7 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     assert np.isfinite(state.best_val) and state.epoch >= 1
     run_epoch, steps = train_stage.timed_epoch_fn(profile, job, out)
     assert steps == train.adam_steps_per_epoch(profile.training.data, profile.training.train)  # the schedule rule's count
-    run_epoch()  # compiled already if this process trained; otherwise compile before timing
-    benchmark.pedantic(run_epoch, rounds=3, iterations=1)
+    _time(benchmark, run_epoch, rounds=3)
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
     # Training learns: far below the untrained model (same initial parameters) on the
     # same validation states. (Below its own first epoch would hold by construction.)
@@ -155,9 +167,22 @@ def test_evaluation(profile, out, pair):
 
 def test_rollout_speed(benchmark, record_rate, profile, out, timed_pair):
     run_chunk, steps = evaluate.timed_rollout_fn(profile, timed_pair, out)
-    run_chunk()  # compiled already if this process evaluated; otherwise compile before timing
-    benchmark.pedantic(run_chunk, rounds=1 if profile is FULL else 3, iterations=1)
+    _time(benchmark, run_chunk, rounds=1 if profile is FULL else 3)
     record_rate("rk4_steps", steps, pair=f"{timed_pair.job.label} on {timed_pair.scene}")
+
+
+def test_the_timed_programs_run_from_the_stages_records(profile, out):
+    """What test_training and test_rollout_speed time, run once here where they do not
+    time (`_time`): an epoch of LGNN's training from its checkpoint, and its first
+    evaluation chunk on chain4."""
+    job = grid.lgnn_job(profile)
+    run_epoch, _ = train_stage.timed_epoch_fn(profile, job, out)
+    params, _, loss = run_epoch()
+    assert np.isfinite(loss) and all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(params))
+    pair = next(p for p in grid.evaluation_pairs(profile) if p.job == job and p.scene in TIMED_SCENES and p.projected)
+    run_chunk, steps = evaluate.timed_rollout_fn(profile, pair, out)
+    rollouts = run_chunk()
+    assert np.isfinite(rollouts.q).all() and steps > 0
 
 
 def test_speed_error(profile, out, speed_scene):
