@@ -12,6 +12,7 @@ from the initial parameters, compile apart; issue 13, item 2.
     # checkpoints): epochs per second alone (1 seed) and packed (3 seeds in one program),
     # with the device running 1 or 10 epochs per call.
     python tools/training_throughput.py --loop --models lgnn lgn --seed-counts 1 3 --per-call 1 10
+    python tools/training_throughput.py --loop --checkpoints ...   # writing checkpoints, as the benchmark does
 
 One precision per process (`--dtype`): jit caches built in one precision are not
 reused in the other. Several processes started at once measure how they share a
@@ -21,6 +22,7 @@ import argparse
 import dataclasses
 import json
 import os
+import tempfile
 import time
 
 import jax
@@ -39,6 +41,7 @@ parser.add_argument("--summarise", nargs="+", metavar="JSONL", help="print a mar
 parser.add_argument("--loop", action="store_true", help="time the training loop (train_seeds), not a bare epoch")
 parser.add_argument("--seed-counts", nargs="+", type=int, default=[1, 3], help="--loop: seeds trained in one program")
 parser.add_argument("--per-call", nargs="+", type=int, default=[10], help="--loop: epochs per device call (checkpoint_every)")
+parser.add_argument("--checkpoints", action="store_true", help="--loop: write each seed's checkpoint after every call, as the benchmark does (to a temporary folder)")
 args = parser.parse_args()
 
 
@@ -63,12 +66,12 @@ def _epoch_cells(row) -> list:
 def _loop_cells(row) -> list:
     rate = ([str(row["epochs_per_s"]), str(round(row["epochs_per_s"] * row["seeds"], 1)), str(row["first_call_s"])] if "epochs_per_s" in row
             else [row.get("error", "?"), "", ""])
-    return [row["model"], row["scene"], str(row["seeds"]), str(row["per_call"]), *rate]
+    return [row["model"], row["scene"], str(row["seeds"]), str(row["per_call"]), "yes" if row.get("checkpoints") else "no", *rate]
 
 
 # The two tables: a bare epoch's outputs, and `--loop`'s (columns between the file and the device).
 EPOCH_TABLE = (("model", "scene", "dtype", "batch", "Adam steps", "epoch s (mean)", "epoch s (min..max)", "compile s"), _epoch_cells)
-LOOP_TABLE = (("model", "scene", "seeds", "epochs per call", "epochs/s", "seed-epochs/s", "first call s"), _loop_cells)
+LOOP_TABLE = (("model", "scene", "seeds", "epochs per call", "checkpoints written", "epochs/s", "seed-epochs/s", "first call s"), _loop_cells)
 
 
 def summarise(paths):
@@ -95,10 +98,11 @@ def measure_loop(names):
             for per_call in args.per_call:
                 timed = max(args.epochs, per_call)
                 config = dataclasses.replace(train_config, epochs=per_call + timed, patience=10 * (per_call + timed), min_improvement=0.0, checkpoint_every=per_call)
-                row = dict(model=name, scene=args.scene, dtype=args.dtype, seeds=seeds, per_call=per_call, batch=config.batch_size)
+                row = dict(model=name, scene=args.scene, dtype=args.dtype, seeds=seeds, per_call=per_call, batch=config.batch_size, checkpoints=args.checkpoints)
                 try:
-                    with runtime.precision(args.dtype):
-                        states = train.train_seeds(model, [dataclasses.replace(config, seed=s) for s in range(seeds)], dataset, scene)
+                    with runtime.precision(args.dtype), tempfile.TemporaryDirectory() as folder:
+                        outs = [os.path.join(folder, f"seed{s}.npz") for s in range(seeds)] if args.checkpoints else None
+                        states = train.train_seeds(model, [dataclasses.replace(config, seed=s) for s in range(seeds)], dataset, scene, outs=outs)
                     times = [entry[3] for entry in states[0].history]
                     row.update(first_call_s=round(times[per_call - 1], 2), epochs_per_s=round(timed / (times[-1] - times[per_call - 1]), 2), timed_epochs=timed)
                 except Exception as err:  # noqa: BLE001 -- a measurement: report (e.g. out of memory) and go on

@@ -527,14 +527,18 @@ def train_seeds(
         called = time.monotonic()
         queued = None if all(done) else chunk(seeds, budget, base_keys, train_arrays, val_arrays)
         while queued is not None:
-            seeds, train_loss, val_loss, ran = queued
-            ran = np.asarray(ran)  # waits for the call
+            seeds = queued[0]
+            # The call's results come to the host in one transfer (which waits for the
+            # call) before the next call is queued: read from the device afterwards,
+            # each would wait behind the next call, and the device would idle while the
+            # host writes checkpoints.
+            host_seeds, train_loss, val_loss, ran = jax.device_get(queued)
             now = time.monotonic()
             elapsed = [before + now - start for before in elapsed_before]
-            ended = np.asarray(seeds.done) | np.array([out_of_minutes(c, e) for c, e in zip(configs, elapsed)])
+            ended = host_seeds.done | np.array([out_of_minutes(c, e) for c, e in zip(configs, elapsed)])
             # The next call goes to the device before this one's results are written.
             queued = None if ended.all() else chunk(seeds._replace(done=jnp.asarray(ended)), budget, base_keys, train_arrays, val_arrays)
-            states = _from_device(states, seeds, np.asarray(train_loss), np.asarray(val_loss), ran, called - start, now - start, elapsed_before)
+            states = _from_device(states, host_seeds, train_loss, val_loss, ran, called - start, now - start, elapsed_before)
             called = now
             for k, (state, out) in enumerate(zip(states, outs)):
                 if out is not None and ran[k].any():
@@ -576,7 +580,7 @@ def _to_device(states: list[TrainState], done: list[bool], epochs: int) -> _Seed
 
 def _from_device(states: list[TrainState], seeds: _Seeds, train_loss, val_loss, ran, called_s: float, returned_s: float, elapsed_before: list[float]) -> list[TrainState]:
     """The host's `TrainState`s after a call: each seed's new history entries (epochs it
-    ran, times spread evenly over the call) and its device state."""
+    ran, times spread evenly over the call) and its state (`seeds` copied to the host)."""
     updated = []
     for k, state in enumerate(states):
         if not ran[k].any():
