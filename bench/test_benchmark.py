@@ -106,11 +106,15 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
     # Training learns: far below the untrained model (same initial parameters) on the
     # same validation states. (Below its own first epoch would hold by construction.)
-    scene, (model, _) = get_scene(job.scene), load_model(path)
+    scene, (model, best) = get_scene(job.scene), load_model(path)
+    assert model == train_stage.job_settings(profile, job)[1]
     dataset = data.load_or_generate(profile.training.data_for(job.scene), store.Layout(out).datasets)
     val = tuple(a[dataset.val] for a in (dataset.q, dataset.qd, dataset.qdd))
     untrained = train.initial_state(model, dataclasses.replace(profile.training.train, seed=job.seed)).params
     untrained_val = train.evaluate_fn(model, scene)(untrained, *val)
+    # The checkpoint alone predicts as training validated it: its best parameters, with
+    # the statistics a model normalises by, give the best validation MSE again.
+    assert train.evaluate_fn(model, scene)(best, *val) == pytest.approx(state.best_val, rel=1e-12)
     if job.model in DOES_NOT_LEARN_YET and profile is QUICK:
         request.applymarker(pytest.mark.xfail(reason="learns too slowly for the quick profile's 30 steps", strict=True))
     assert state.best_val < LEARNS * untrained_val, f"best validation MSE {state.best_val:.3g}, untrained {untrained_val:.3g}"

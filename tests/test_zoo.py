@@ -12,7 +12,7 @@ import pytest
 from lgnn import physics
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.errors import ConfigError
-from lgnn.learn import cgnode, checkpoints, chgn, chnn, data, models, train
+from lgnn.learn import cgnode, chgn, chnn, data, models, train
 from lgnn.scene import State, get_scene
 
 TINY_DATA = data.DataConfig(n_trajectories=6, duration=0.2, sample_dt=0.01, dt=1e-3)
@@ -206,18 +206,3 @@ def test_hamiltonian_models_conserve_their_learned_hamiltonian(tiny_dataset, unp
     drift = float(jnp.max(jnp.abs(energy - energy[0])) / kinetic)
     assert float(kinetic) > 1e-2 and drift < 1e-8, drift
     assert np.max(np.abs(trajectory.energy - trajectory.energy[0])) / float(kinetic) > 1e3 * drift
-
-
-@pytest.mark.parametrize("name", ZOO)
-def test_training_lowers_the_loss_and_the_checkpoint_predicts_alone(tiny_dataset, tmp_path, name):
-    scene = get_scene("chain4")
-    model = models.ModelConfig.for_scene(name, scene, **SIZES[name])
-    config = train.TrainConfig(learning_rate=3e-3, epochs=4, warmup_steps=5)
-    statistics = models.training_statistics(model, scene, *_training_arrays(tiny_dataset))
-    val = tuple(a[tiny_dataset.val] for a in (tiny_dataset.q, tiny_dataset.qd, tiny_dataset.qdd))
-    before = train.evaluate_fn(model, scene)(train.initial_state(model, config, statistics).params, *val)
-    state = train.train(model, config, tiny_dataset, scene, out=tmp_path / f"{name}.npz")
-    assert state.best_val < before / 2, (before, state.best_val)
-    loaded_model, loaded = checkpoints.load_model(tmp_path / f"{name}.npz")
-    assert loaded_model == model
-    assert train.evaluate_fn(loaded_model, scene)(loaded, *val) == pytest.approx(state.best_val, rel=1e-12)
