@@ -64,8 +64,11 @@ UNROLLED_MAX = 4
 # rows, and XLA fuses their kernels. Measured on one H200, 100 RK4 steps of chain100
 # x 100 states (results/gpu/sweeps/): LGNN 3.3-3.5 s to 0.78-0.87 s, the ground truth
 # 1.4-2.0 s to 0.37-0.40 s, compilation 10 s to 31 s and 2.5 s to 16 s; unrolled
-# whole (100), 0.59-0.79 s and 0.25-0.38 s, compiled in 123 s and 79 s. A CPU's loop
-# iterations cost little and its compilation is what a user waits for: not unrolled.
+# whole (100), 0.59-0.79 s and 0.25-0.38 s, compiled in 123 s and 79 s. On a CPU a
+# loop iteration costs little and unrolling only lengthens the code: chain100's
+# single-trajectory RK4 step on the 2-core CPU took 275-321 us with the loops, 379-386
+# us unrolled by 5 and 507-528 us by 10 (`tools/cpu_vs_mujoco.py --scene chain100`,
+# two alternated runs of each). Not unrolled there.
 ACCELERATOR_SWEEP_UNROLL = 10
 
 
