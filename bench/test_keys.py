@@ -184,7 +184,7 @@ def test_a_models_rollouts_do_not_wait_for_its_scenes_ground_truth(tmp_path, mon
         rollouts_started.set()
         np.testing.assert_array_equal(initial.q, states.q)
         q, qd = held_states(len(jax.tree.leaves(params)[0]))
-        return Rollouts(q, qd, metrics.true_energies(scene, q, qd), 1.0, 1.0)
+        return Rollouts(q, qd, metrics.true_energies(scene, q, qd), 1.0, 1.0, "cpu")
 
     monkeypatch.setattr(evaluate, "ground_truth", truth_after_rollouts)
     monkeypatch.setattr(evaluate, "batched_rollouts", rollouts)

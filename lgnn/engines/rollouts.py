@@ -31,6 +31,11 @@ and running. How:
 `integration` (`lgnn.engines.base.Integration`) is a required argument: the caller
 (an engine, a stage) says how it integrates; nothing falls back to a default here.
 
+`platform` says where a batch runs: None, JAX's default device (what timings measure);
+`rollout_platform(batch)`, what the evaluation and the engines' rollouts pass, the
+host's CPU for a batch of at most `HOST_BATCH_MAX` rollouts on a GPU machine (module
+constant's comment) and the default device otherwise. `Rollouts.platform` says where it ran.
+
 `timed_rollouts` is the timing rule on top (a warm-up call, then timed repeats), for
 `Engine.timed_rollout` and the benchmark's speed and scaling stages.
 """
@@ -58,6 +63,13 @@ from lgnn.scene import Scene, State, scene_to_dict
 # Frames per compiled call: a long run reports progress and is checked for divergence
 # this often, at a cost of one host round trip per call.
 FRAMES_PER_CALL = 100
+# On a GPU a rollout step runs hundreds to thousands of tiny kernels one after another
+# (an RK4 stage's solves, a learned model's graph network and its derivatives), so a
+# small batch costs the kernels' latency whatever its size, and the host's CPU, which
+# runs the same step in microseconds, is faster. A batch of at most this many rollouts
+# (parameter sets x initial conditions) runs there (`rollout_platform`). Measured
+# (results/gpu/host-rollouts/): see the README there for the batches either side.
+HOST_BATCH_MAX = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,13 +88,14 @@ class Unparametrised:
 class Rollouts:
     """`q`, `qd` (B, F+1, N, D) and true `energy` (B, F+1; None where not asked for),
     float64, frame 0 the initial state (with a leading S axis when stacked);
-    `compile_s` and `run_s` (seconds)."""
+    `compile_s` and `run_s` (seconds); the `platform` they ran on."""
 
     q: np.ndarray
     qd: np.ndarray
     energy: np.ndarray | None
     compile_s: float
     run_s: float
+    platform: str  # where the programs ran ("cpu", "gpu", ...)
 
     def trajectory(self, scene: Scene, config: SimulationConfig, integration: Integration, metadata: dict | None = None) -> Trajectory:
         """The rollouts as a `Trajectory` batch (not stacked), with the scene, settings
@@ -131,14 +144,22 @@ def _over_batch(fn: Callable, in_axes: tuple, batch: int) -> Callable:
     return one
 
 
+def rollout_platform(rollouts: int, host_max: int = HOST_BATCH_MAX) -> str | None:
+    """Where a batch of `rollouts` (parameter sets x initial conditions) runs: "cpu"
+    (the host) for at most `host_max` of them where JAX's default backend is an
+    accelerator, else None (the default device)."""
+    return "cpu" if rollouts <= host_max and jax.default_backend() != "cpu" else None
+
+
 @functools.lru_cache(maxsize=64)
 def compiled_programs(scene: Scene, config: SimulationConfig, integration: Integration, accel_factory: Callable, batch: int, dtype: str,
-                      frames: int, stacked: bool, signature: tuple, with_energy: bool = True) -> _Programs:
+                      frames: int, stacked: bool, signature: tuple, with_energy: bool = True, platform: str | None = None) -> _Programs:
     """The compiled `start` and `step` programs of `batched_rollouts` for `batch`
     initial conditions (a multiple of the device count) and parameters of
     `signature` (`params_signature`), `frames` frames per `step`, the true energy of
     each frame computed `with_energy` (else None: about a quarter of a small scene's
-    compile time); cached (a scene is a key by content), so
+    compile time), for the devices of `platform` (the caller's `sharding.platform()`,
+    inside whose context they run); cached (a scene is a key by content), so
     `compiled_programs.cache_info().misses` counts compilations."""
     project = physics.projection_fn(scene)
     true_energy = physics.energy_fn(scene)
@@ -175,16 +196,23 @@ def compiled_programs(scene: Scene, config: SimulationConfig, integration: Integ
 def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Callable, states: State, params=None, *,
                      integration: Integration, stacked: bool = False, dtype: str = "float64", chunk: int | None = None,
                      frames_per_call: int = FRAMES_PER_CALL, stop_at_divergence: bool = False, with_energy: bool = False, label: str = "",
-                     progress: bool = False, hint: str = "try a smaller dt") -> Rollouts:
+                     progress: bool = False, hint: str = "try a smaller dt", platform: str | None = None) -> Rollouts:
     """Rollouts of initial `states` (B, N, D) under `accel_factory(scene, params)`
     (module docstring) integrated by `integration` (its integrator and projection):
-    at most `chunk` (None: all) initial conditions per program, computed in `dtype`;
+    at most `chunk` (None: all) initial conditions per program, computed in `dtype`
+    on the devices of `platform` (None: the default's; `rollout_platform`);
     `stop_at_divergence` for a reference, `hint` ending its error; the true energies
     `with_energy` or `stop_at_divergence` (else `Rollouts.energy` is None); `label`
     names the run in progress bars and messages (default: the scene's name)."""
     if stop_at_divergence and stacked:
         raise ValueError("stop_at_divergence is for a reference's rollouts, not stacked parameter sets")
-    label = label or scene.name
+    with sharding.on_platform(platform):
+        return _batched_rollouts(scene, config, accel_factory, states, params, integration, stacked, dtype, chunk, frames_per_call,
+                                 stop_at_divergence, with_energy, label or scene.name, progress, hint)
+
+
+def _batched_rollouts(scene, config, accel_factory, states, params, integration, stacked, dtype, chunk, frames_per_call, stop_at_divergence,
+                      with_energy, label, progress, hint) -> Rollouts:
     count = len(states.q)
     calls = -(-config.n_frames // max(1, frames_per_call))
     frames = -(-config.n_frames // calls)  # the last call runs past the end; its extra frames are dropped
@@ -197,10 +225,10 @@ def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Call
         while True:
             try:
                 programs = compiled_programs(scene, config, integration, accel_factory, size, dtype, frames, stacked, signature,
-                                             with_energy or stop_at_divergence)
+                                             with_energy or stop_at_divergence, sharding.platform())
                 compile_total += programs.compile_s
                 out, run_s = _run(scene, config, programs, params, State(q0, qd0), size, stacked, stop_at_divergence, label, progress, hint)
-                return Rollouts(*out, compile_s=compile_total, run_s=run_s)
+                return Rollouts(*out, compile_s=compile_total, run_s=run_s, platform=sharding.platform())
             except jax.errors.JaxRuntimeError as err:
                 if "RESOURCE_EXHAUSTED" not in str(err):
                     raise

@@ -46,6 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lgnn import sharding
 from lgnn.physics.constraints import take_rows
 from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
 from lgnn.physics.local_mass import LOCAL, MassStructure
@@ -179,7 +180,7 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool
     # The guarded Schur solve is a branch per call: on a CPU it saves a single
     # trajectory the refinement; on an accelerator a branch reads its predicate back to
     # the host, and under `vmap` both branches run.
-    guarded = not vectorised and jax.default_backend() == "cpu"
+    guarded = not vectorised and sharding.platform() == "cpu"
     return full_precision_matmuls(_chain_acceleration_fn(system) if solver == "chain" else _schur_acceleration_fn(system, guarded=guarded))
 
 

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lgnn import sharding
 from lgnn.physics.constraints import Constraints, add_rows, take_rows
 
 Array = jax.Array
@@ -74,8 +75,9 @@ ACCELERATOR_SWEEP_UNROLL = 10
 
 def sweep_unroll() -> int:
     """How far `lax.scan` unrolls a sweep along a chain: by `ACCELERATOR_SWEEP_UNROLL`
-    on an accelerator, not on a CPU (the backend JAX computes on by default)."""
-    return 1 if jax.default_backend() == "cpu" else ACCELERATOR_SWEEP_UNROLL
+    on an accelerator, not on a CPU (the platform the trace computes on,
+    `lgnn.sharding.platform`)."""
+    return 1 if sharding.platform() == "cpu" else ACCELERATOR_SWEEP_UNROLL
 
 
 def refine(solve: Callable[[Array], Array], residual: Callable[[Array], Array], x: Array, steps: int) -> Array:

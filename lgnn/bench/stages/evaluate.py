@@ -56,7 +56,7 @@ from lgnn.bench.grid import SNAPSHOT_SCENES, Pair, Profile, evaluation_pairs, ev
 from lgnn.bench.store import Layout, log
 from lgnn.engines import get_engine
 from lgnn.engines.base import SimulationConfig
-from lgnn.engines.rollouts import Unparametrised, batched_rollouts
+from lgnn.engines.rollouts import Unparametrised, batched_rollouts, rollout_platform
 from lgnn.runtime import in_background
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models
@@ -178,7 +178,8 @@ def truth_trajectories(references: tuple[str, ...]) -> tuple[str, ...]:
 
 def truth_timings(references: tuple[str, ...]) -> tuple[str, ...]:
     """The ground truth's costs in seconds (JAX compile, JAX run, each reference
-    engine's `<engine>_s`), kept with its trajectories and in its record."""
+    engine's `<engine>_s`), kept with its trajectories and in its record (beside
+    `platform`, where its JAX rollouts ran)."""
     return ("compile_s", "run_s", *(f"{engine}_s" for engine in references))
 
 
@@ -209,12 +210,13 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
                 and all(name in stored[0] for name in trajectories)):
             arrays, meta = stored
             log(f"ground truth {scene_name}: read from {path}")
+            # (`platform`: unknown for a file written before it was kept.)
             return dict(**{name: arrays[name] for name in trajectories}, states=State(arrays["states/q"], arrays["states/qd"]),
-                        **{name: meta[name] for name in timings})
+                        **{name: meta[name] for name in timings}, platform=meta.get("platform"))
         truth = _computed_ground_truth(profile, scene_name, progress)
         store.save(path, key, {**{name: truth[name] for name in trajectories}, "states/q": np.asarray(truth["states"].q),
                                 "states/qd": np.asarray(truth["states"].qd)},
-                   dict(scene=scene_name, mujoco_reference=REFERENCE_VERSION, **{name: truth[name] for name in timings}))
+                   dict(scene=scene_name, mujoco_reference=REFERENCE_VERSION, platform=truth["platform"], **{name: truth[name] for name in timings}))
         return truth
 
 
@@ -232,16 +234,18 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     # A daemon thread: an error or Ctrl-C here does not wait out MuJoCo's minutes.
     references_when_done = in_background(lambda: _reference_rollouts(scene, reference_config, states, settings.references))
     # A reference that diverged would turn every error into 1 for every model: it stops there.
+    where = rollout_platform(len(states.q), settings.host_rollouts)
     truth = batched_rollouts(scene, config, TRUE_DYNAMICS, states, integration=settings.integration, chunk=settings.chunk, stop_at_divergence=True,
-                             label=f"truth {scene_name}", progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)")
+                             label=f"truth {scene_name}", progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)",
+                             platform=where)
     noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
     perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
     # The perturbed runs are not references: one that diverges (T2/T3's perturbed
     # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
     floor = batched_rollouts(scene, config, TRUE_DYNAMICS, perturbed, integration=settings.integration, chunk=settings.chunk,
-                             label=f"floor {scene_name}", progress=progress)
+                             label=f"floor {scene_name}", progress=progress, platform=where)
     return dict(q=truth.q, qd=truth.qd, energy=truth.energy, q_floor=floor.q, qd_floor=floor.qd, states=states,
-                compile_s=truth.compile_s, run_s=truth.run_s, **references_when_done())
+                compile_s=truth.compile_s, run_s=truth.run_s, platform=truth.platform, **references_when_done())
 
 
 def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, references: tuple[str, ...]) -> dict:
@@ -382,9 +386,9 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
         no_drag = scene.replace(drag=0.0)
         runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth["states"],
                                 integration=profile.evaluate.integration, chunk=profile.evaluate.chunk, label=f"{scene_name} without drag",
-                                progress=progress)
+                                progress=progress, platform=rollout_platform(len(truth["states"].q), profile.evaluate.host_rollouts))
         arrays.update(record_arrays(f"{NO_DRAG}/", score_against_truth(profile, scene, runs.q, runs.qd, truth), frame_dt))
-    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=REFERENCE_VERSION,
+    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=REFERENCE_VERSION, platform=truth["platform"],
                 **{name: truth[name] for name in truth_timings(references)})
     store.save(path, key, arrays, meta)
     return path
@@ -457,7 +461,8 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(states.q)} initial conditions")
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for *_, params in group))
     runs = batched_rollouts(scene, config, models.AccelerationFactory(group[0][3]), states, stacked, integration=integration, stacked=True,
-                            chunk=profile.evaluate.chunk, label=f"{pair.label} {seeds} on {pair.scene}", progress=progress)
+                            chunk=profile.evaluate.chunk, label=f"{pair.label} {seeds} on {pair.scene}", progress=progress,
+                            platform=rollout_platform(len(group) * min(profile.evaluate.chunk, len(states.q)), profile.evaluate.host_rollouts))
     q_all, qd_all, compile_s, run_s = runs.q, runs.qd, runs.compile_s, runs.run_s
     truth = truth_when_done()
     if not np.allclose(truth["states"].q, states.q, rtol=1e-9, atol=1e-12):
@@ -472,7 +477,7 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
         # Compile and run times are the group's (`stacked` models rolled out together).
         meta = dict(job=pair.job.name, model=pair.job.model, label=pair.label, projected=pair.projected, train_scene=pair.job.scene, seed=pair.job.seed,
                     scene=pair.scene, initial_conditions=len(q), mujoco_reference=REFERENCE_VERSION, compile_s=compile_s, run_s=run_s,
-                    steps_per_s=steps / run_s, stacked=len(group))
+                    steps_per_s=steps / run_s, stacked=len(group), platform=runs.platform)
         store.save(path, key, arrays, meta)
         n_div = int(np.sum(diverged >= 0))
         log(f"evaluate {pair.label} s{pair.job.seed} on {pair.scene}: rollout error {metrics.summarise(arrays['rollout_error/per_ic_log'])[0]:.3g}"
