@@ -14,8 +14,8 @@ and `pad_batch` fills a short batch by repeating its last element (callers drop 
 padding from the results).
 
 The local devices are those of `platform()`: JAX's default backend, or the host's CPU
-inside `on_platform("cpu")` on a GPU machine (a small batch's rollouts there:
-`lgnn.engines.rollouts.rollout_platform`). The context is JAX's own `jax.default_device`,
+inside `on_platform("cpu")` on a GPU machine (a small batch of ground-truth rollouts
+there: `lgnn.engines.rollouts.ground_truth_platform`). The context is JAX's own `jax.default_device`,
 so everything computed in it, sharded here or not, goes to the same place; like JAX's,
 it holds in the thread that entered it.
 """

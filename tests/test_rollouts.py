@@ -4,7 +4,9 @@ A batch of initial conditions is one compiled, vmapped program whose parameters 
 argument: the Lagrangian engine's batch equals `simulate` of each member with no loop
 over members, a second parameter set of one model config compiles nothing (in
 `ModelEngine` and in `lgnn evaluate`), a reference stops at the first diverging member,
-and `get_engine` refuses what an engine cannot do in one line.
+the exact dynamics' small batches run on the host's CPU of a GPU machine and a learned
+model's on the default device, and `get_engine` refuses what an engine cannot do in one
+line.
 """
 
 import dataclasses
@@ -14,11 +16,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lgnn import physics
+from lgnn import physics, sharding
 from lgnn.engines import ENGINES, EngineEntry, get_engine, lagrangian, register_engine, rollouts
 from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models
+from lgnn.physics import solvers
 from lgnn.scene import State, get_scene, sample_initial_states
 
 SHORT = SimulationConfig(dt=1e-3, frame_dt=5e-3, duration=0.05)
@@ -106,6 +109,47 @@ def test_a_reference_stops_at_its_first_diverging_member_with_the_frames_before_
     runs = rollouts.batched_rollouts(scene, config, factory, states, integration=unprojected)
     assert runs.q.shape[1] == config.n_frames + 1 and runs.energy is None, "energies only where asked for"
     np.testing.assert_array_equal(runs.q[0, -1], resting)
+
+
+def test_small_ground_truth_batches_run_on_the_host_of_an_accelerator_and_models_where_jax_computes(monkeypatch):
+    scene = get_scene("chain4")
+    asked = []
+
+    def recording(*args, **kwargs):
+        asked.append(kwargs.get("platform"))
+        return rollouts.batched_rollouts(*args, **kwargs)
+
+    monkeypatch.setattr(lagrangian, "batched_rollouts", recording)
+    monkeypatch.setattr(models, "batched_rollouts", recording)
+    model = models.ModelConfig("lgnn", latent=4, hidden=8)
+    params = models.init(jax.random.PRNGKey(0), model)
+    small, large = _states(scene, 2), _states(scene, rollouts.HOST_BATCH_MAX + 1)
+    # On a CPU machine every batch runs where JAX computes (None: no context entered).
+    assert rollouts.ground_truth_platform(1) is None
+
+    def as_on_a_gpu_machine(count):  # JAX's default backend an accelerator
+        with monkeypatch.context() as patched:
+            patched.setattr(rollouts.jax, "default_backend", lambda: "gpu")
+            return rollouts.ground_truth_platform(count)
+
+    assert [as_on_a_gpu_machine(n) for n in (1, rollouts.HOST_BATCH_MAX, rollouts.HOST_BATCH_MAX + 1)] == ["cpu", "cpu", None]
+    monkeypatch.setattr(lagrangian, "ground_truth_platform", as_on_a_gpu_machine)
+    lagrangian.simulate(scene, SHORT)
+    get_engine("lagrangian").rollout(scene, SHORT, small)
+    get_engine("lagrangian").rollout(scene, SHORT, large)
+    lagrangian.simulate(scene, SHORT, accel_factory=models.AccelerationFactory(model), params=params)
+    models.ModelEngine(model, params).rollout(scene, SHORT, small)
+    assert asked == ["cpu", "cpu", None, None, None]
+    # Inside the host's context the sweeps along a chain take their CPU form.
+    with sharding.on_platform("cpu"):
+        assert sharding.platform() == "cpu" and solvers.sweep_unroll() == 1
+
+
+def test_a_rollout_says_where_it_ran():
+    scene = get_scene("chain4")
+    runs = rollouts.batched_rollouts(scene, SHORT, rollouts.Unparametrised(physics.vectorised_true_acceleration_fn), _states(scene, 2),
+                                     integration=Integration(), platform="cpu")
+    assert runs.platform == "cpu"
 
 
 def test_get_engine_refuses_what_an_engine_lacks_in_one_line():

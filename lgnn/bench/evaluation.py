@@ -37,7 +37,7 @@ from lgnn.bench.grid import ROLLOUTS_PER_CALL
 from lgnn.bench.tables import write_table
 from lgnn.engines import ENGINES, get_engine
 from lgnn.engines.base import Integration, SimulationConfig, Trajectory
-from lgnn.engines.rollouts import batched_rollouts, rollout_platform
+from lgnn.engines.rollouts import batched_rollouts
 from lgnn.errors import ConfigError
 from lgnn.files import write_text_atomic
 from lgnn.learn import models
@@ -78,10 +78,9 @@ def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config
                             for name in REFERENCES}
     # The params are an argument of the compiled program: another checkpoint of the
     # same model config compiles nothing.
-    where = rollout_platform(len(states.q))
-    chunk = CPU_CHUNK if (where or jax.default_backend()) == "cpu" else None
+    chunk = CPU_CHUNK if jax.default_backend() == "cpu" else None
     runs = batched_rollouts(scene, config, models.AccelerationFactory(model), states, params, integration=integration, chunk=chunk,
-                            label=f"{model.name} on {scene.name}", progress=progress, platform=where)
+                            label=f"{model.name} on {scene.name}", progress=progress)
     references = {name: when_done() for name, when_done in references_when_done.items()}
     q, qd = runs.q, runs.qd
     t = references["lagrangian"].t

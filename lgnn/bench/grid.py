@@ -34,7 +34,6 @@ from lgnn.errors import ConfigError, SceneError, check_number
 from lgnn.records import KEY_UNLESS_DEFAULT, NOT_IN_KEY, settings_key
 from lgnn.engines import ENGINES
 from lgnn.engines.base import Integration, SimulationConfig
-from lgnn.engines.rollouts import HOST_BATCH_MAX
 from lgnn.learn.data import DataConfig
 from lgnn.learn.models import load_spec
 from lgnn.learn.train import TrainConfig, adam_steps_per_epoch, scheduled
@@ -341,15 +340,8 @@ class EvaluateSettings:
     # are also scored against each (`rollout_error_vs_<engine>`). MuJoCo C, the
     # independent implementation of the same physics, by default.
     references: tuple[str, ...] = dataclasses.field(default=("mujoco",), metadata=KEY_UNLESS_DEFAULT)
-    # Rollout programs of at most this many rollouts (parameter sets x initial
-    # conditions) run on the host's CPU where JAX's default device is an accelerator
-    # (`lgnn.engines.rollouts.rollout_platform`: T1-T3's one initial condition); 0:
-    # none. Where a record was computed, not what it holds: not in its key.
-    host_rollouts: int = dataclasses.field(default=HOST_BATCH_MAX, metadata=NOT_IN_KEY)
 
     def __post_init__(self):
-        if not (type(self.host_rollouts) is int and self.host_rollouts >= 0):
-            raise ConfigError(f"setting 'evaluate.host_rollouts' must be a whole number >= 0, got {self.host_rollouts!r}")
         unknown = [name for name in self.references if name not in ENGINES]
         if unknown:
             raise ConfigError(f"evaluate.references: unknown engine {unknown[0]!r} (choose from {', '.join(ENGINES)})")

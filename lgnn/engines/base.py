@@ -8,8 +8,8 @@
     (B, F+1, N, D) and `energy` (B, F+1) lgnn's exact energy, frame 0 the initial
     state. It raises `SimulationError` at the first non-finite or exploding frame
     (`lgnn.metrics.ExplosionBounds`), carrying the failing member's frames before it.
-    A JAX engine runs it where it is fastest (a small batch on the host's CPU on a GPU
-    machine: `lgnn.engines.rollouts.rollout_platform`);
+    The Lagrangian engine runs a small batch on the host's CPU on a GPU machine, where
+    it is fastest (`lgnn.engines.rollouts.ground_truth_platform`);
   - `timed_rollout(scene, config, states) -> (compile_s, run_s, q)`: the same run
     timed with one-off costs (compilation, model building) apart, `q` (B, F+1, N, D),
     on JAX's default device (what a timing names);

@@ -24,7 +24,7 @@ import numpy as np
 
 from lgnn import physics
 from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
-from lgnn.engines.rollouts import Unparametrised, batched_rollouts, rollout_platform, timed_rollouts
+from lgnn.engines.rollouts import Unparametrised, batched_rollouts, ground_truth_platform, timed_rollouts
 from lgnn.errors import SceneError
 from lgnn.integrate import rollout
 from lgnn.runtime import in_float64
@@ -89,7 +89,8 @@ def simulate(
     state = check_state(scene, scene.initial_state if state is None else state)
     factory = accel_factory if params is not None else Unparametrised(accel_factory)
     runs = batched_rollouts(scene, config, factory, State(state.q[None], state.qd[None]), params, integration=integration,
-                            frames_per_call=chunk_frames, stop_at_divergence=True, progress=progress, hint=hint, platform=rollout_platform(1))
+                            frames_per_call=chunk_frames, stop_at_divergence=True, progress=progress, hint=hint,
+                            platform=None if params is not None else ground_truth_platform(1))
     return runs.trajectory(scene, config, integration).member(0)
 
 
@@ -110,7 +111,7 @@ class LagrangianEngine(Engine):
         for q, qd in zip(states.q, states.qd):
             check_state(scene, State(q, qd))
         runs = batched_rollouts(scene, config, _ground_truth(len(states.q)), states, integration=self.integration, dtype=self.dtype,
-                                stop_at_divergence=True, progress=self.progress, platform=rollout_platform(len(states.q)))
+                                stop_at_divergence=True, progress=self.progress, platform=ground_truth_platform(len(states.q)))
         return runs.trajectory(scene, config, self.integration)
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:

@@ -31,10 +31,11 @@ and running. How:
 `integration` (`lgnn.engines.base.Integration`) is a required argument: the caller
 (an engine, a stage) says how it integrates; nothing falls back to a default here.
 
-`platform` says where a batch runs: None, JAX's default device (what timings measure);
-`rollout_platform(batch)`, what the evaluation and the engines' rollouts pass, the
-host's CPU for a batch of at most `HOST_BATCH_MAX` rollouts on a GPU machine (module
-constant's comment) and the default device otherwise. `Rollouts.platform` says where it ran.
+`platform` says where a batch runs: None, JAX's default device (learned models, and
+every timing); `ground_truth_platform(batch)`, what the exact dynamics' rollouts pass
+(the Lagrangian engine, the evaluation's ground truth): the host's CPU for a batch of at
+most `HOST_BATCH_MAX` on a GPU machine (the constant's comment), the default device
+otherwise. `Rollouts.platform` says where it ran.
 
 `timed_rollouts` is the timing rule on top (a warm-up call, then timed repeats), for
 `Engine.timed_rollout` and the benchmark's speed and scaling stages.
@@ -63,12 +64,16 @@ from lgnn.scene import Scene, State, scene_to_dict
 # Frames per compiled call: a long run reports progress and is checked for divergence
 # this often, at a cost of one host round trip per call.
 FRAMES_PER_CALL = 100
-# On a GPU a rollout step runs hundreds to thousands of tiny kernels one after another
-# (an RK4 stage's solves, a learned model's graph network and its derivatives), so a
-# small batch costs the kernels' latency whatever its size, and the host's CPU, which
-# runs the same step in microseconds, is faster. A batch of at most this many rollouts
-# (parameter sets x initial conditions) runs there (`rollout_platform`). Measured
-# (results/gpu/host-rollouts/): see the README there for the batches either side.
+# The exact dynamics' rollouts of a small batch run faster on the host's CPU than on a
+# GPU, whose step is a chain of tiny kernels that costs their latency whatever the
+# batch. Measured on one H200 and its 16-core host (results/gpu/host-rollouts/), ms per
+# RK4 step: chain16 at batch 1, 0.078 on the host against 1019 on the GPU (one
+# trajectory's solves, unvmapped, are pathological there); T1 at 1, 0.27 against 1.9;
+# chain16 at 16, 0.31 against 0.48; at 256 the GPU wins, 0.54 against 4.7. Batches of
+# at most this many run on the host (`ground_truth_platform`). Learned models stay on
+# the default device: the GPU was ahead from 3 rollouts (lgnn-notebook, 3 seeds: T1
+# 5.2 against 9.0 ms, chain16 1.55 against 2.38), and the evaluate stage's
+# single-initial-condition parts took 100 s with their models on the GPU, 197 s on the host.
 HOST_BATCH_MAX = 16
 
 
@@ -144,11 +149,11 @@ def _over_batch(fn: Callable, in_axes: tuple, batch: int) -> Callable:
     return one
 
 
-def rollout_platform(rollouts: int, host_max: int = HOST_BATCH_MAX) -> str | None:
-    """Where a batch of `rollouts` (parameter sets x initial conditions) runs: "cpu"
-    (the host) for at most `host_max` of them where JAX's default backend is an
-    accelerator, else None (the default device)."""
-    return "cpu" if rollouts <= host_max and jax.default_backend() != "cpu" else None
+def ground_truth_platform(rollouts: int) -> str | None:
+    """Where the exact dynamics' batch of `rollouts` runs fastest: "cpu" (the host)
+    for at most `HOST_BATCH_MAX` where JAX's default backend is an accelerator, else
+    None (the default device)."""
+    return "cpu" if rollouts <= HOST_BATCH_MAX and jax.default_backend() != "cpu" else None
 
 
 @functools.lru_cache(maxsize=64)
@@ -200,7 +205,7 @@ def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Call
     """Rollouts of initial `states` (B, N, D) under `accel_factory(scene, params)`
     (module docstring) integrated by `integration` (its integrator and projection):
     at most `chunk` (None: all) initial conditions per program, computed in `dtype`
-    on the devices of `platform` (None: the default's; `rollout_platform`);
+    on the devices of `platform` (None: the default's; `ground_truth_platform`);
     `stop_at_divergence` for a reference, `hint` ending its error; the true energies
     `with_energy` or `stop_at_divergence` (else `Rollouts.energy` is None); `label`
     names the run in progress bars and messages (default: the scene's name)."""

@@ -85,7 +85,7 @@ import numpy as np
 from lgnn import physics, records
 from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
-from lgnn.engines.rollouts import batched_rollouts, rollout_platform, timed_rollouts
+from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
 from lgnn.errors import ConfigError
 from lgnn.learn import cgnode, chgn, chnn, strong_gns
 from lgnn.learn.graphs import LINK_FEATURES, edge_attributes, edge_type_indices, graph_from_state
@@ -828,7 +828,6 @@ class ModelEngine(Engine):
         check_compatible(self.config, scene)
         runs = batched_rollouts(scene, config, AccelerationFactory(self.config), states, self.params, integration=self.integration,
                                 dtype=self.dtype, stop_at_divergence=True, progress=self.progress, label=f"{self.config.name} on {scene.name}",
-                                platform=rollout_platform(len(states.q)),
                                 hint=f"the {self.config.name} model's predicted dynamics diverge (its rollout stops there)")
         return runs.trajectory(scene, config, self.integration, {"model": self.config.to_dict()})
 

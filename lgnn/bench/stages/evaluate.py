@@ -56,7 +56,7 @@ from lgnn.bench.grid import SNAPSHOT_SCENES, Pair, Profile, evaluation_pairs, ev
 from lgnn.bench.store import Layout, log
 from lgnn.engines import get_engine
 from lgnn.engines.base import SimulationConfig
-from lgnn.engines.rollouts import Unparametrised, batched_rollouts, rollout_platform
+from lgnn.engines.rollouts import Unparametrised, batched_rollouts, ground_truth_platform
 from lgnn.runtime import in_background
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models
@@ -234,7 +234,7 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     # A daemon thread: an error or Ctrl-C here does not wait out MuJoCo's minutes.
     references_when_done = in_background(lambda: _reference_rollouts(scene, reference_config, states, settings.references))
     # A reference that diverged would turn every error into 1 for every model: it stops there.
-    where = rollout_platform(len(states.q), settings.host_rollouts)
+    where = ground_truth_platform(len(states.q))
     truth = batched_rollouts(scene, config, TRUE_DYNAMICS, states, integration=settings.integration, chunk=settings.chunk, stop_at_divergence=True,
                              label=f"truth {scene_name}", progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)",
                              platform=where)
@@ -386,7 +386,7 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
         no_drag = scene.replace(drag=0.0)
         runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth["states"],
                                 integration=profile.evaluate.integration, chunk=profile.evaluate.chunk, label=f"{scene_name} without drag",
-                                progress=progress, platform=rollout_platform(len(truth["states"].q), profile.evaluate.host_rollouts))
+                                progress=progress, platform=ground_truth_platform(len(truth["states"].q)))
         arrays.update(record_arrays(f"{NO_DRAG}/", score_against_truth(profile, scene, runs.q, runs.qd, truth), frame_dt))
     meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=REFERENCE_VERSION, platform=truth["platform"],
                 **{name: truth[name] for name in truth_timings(references)})
@@ -461,8 +461,7 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(states.q)} initial conditions")
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for *_, params in group))
     runs = batched_rollouts(scene, config, models.AccelerationFactory(group[0][3]), states, stacked, integration=integration, stacked=True,
-                            chunk=profile.evaluate.chunk, label=f"{pair.label} {seeds} on {pair.scene}", progress=progress,
-                            platform=rollout_platform(len(group) * min(profile.evaluate.chunk, len(states.q)), profile.evaluate.host_rollouts))
+                            chunk=profile.evaluate.chunk, label=f"{pair.label} {seeds} on {pair.scene}", progress=progress)
     q_all, qd_all, compile_s, run_s = runs.q, runs.qd, runs.compile_s, runs.run_s
     truth = truth_when_done()
     if not np.allclose(truth["states"].q, states.q, rtol=1e-9, atol=1e-12):
