@@ -24,7 +24,7 @@ from lgnn.bench import grid, report, store
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.bench.stages import train as train_stage
-from lgnn.learn import data, train
+from lgnn.learn import data, models, train
 from lgnn.learn.checkpoints import load_model
 from lgnn.scene import get_scene
 
@@ -115,6 +115,13 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     # The checkpoint alone predicts as training validated it: its best parameters, with
     # the statistics a model normalises by, give the best validation MSE again.
     assert train.evaluate_fn(model, scene)(best, *val) == pytest.approx(state.best_val, rel=1e-12)
+    # A model that normalises by training-set statistics (the strong GNS, the zoo's
+    # graph networks) carries those of its job's training split (one scene's; varied
+    # draws pool theirs), computed here from the data.
+    if models.STATISTICS in best and not job.varied_draws:
+        expected = models.training_statistics(model, scene, *(a[dataset.train] for a in (dataset.q, dataset.qd, dataset.qdd)))
+        for name, value in expected.items():
+            np.testing.assert_array_equal(best[models.STATISTICS][name], value, err_msg=name)
     if job.model in DOES_NOT_LEARN_YET and profile is QUICK:
         request.applymarker(pytest.mark.xfail(reason="learns too slowly for the quick profile's 30 steps", strict=True))
     assert state.best_val < LEARNS * untrained_val, f"best validation MSE {state.best_val:.3g}, untrained {untrained_val:.3g}"

@@ -406,23 +406,12 @@ def test_corrupt_or_stale_cache_is_regenerated(tmp_path, capsys):
 # ---------------------------------------------------------------------------------
 
 
-def test_tiny_lgnn_training_lowers_validation_loss_tenfold(tiny_dataset):
-    scene = get_scene("chain4")
-    model = models.ModelConfig.for_scene("lgnn", scene)
-    config = train.TrainConfig(learning_rate=1e-2, epochs=20, warmup_steps=30)  # 300 steps
-    evaluate = train.evaluate_fn(model, scene)
-    val = tuple(a[tiny_dataset.val] for a in (tiny_dataset.q, tiny_dataset.qd, tiny_dataset.qdd))
-    before = evaluate(train.initial_state(model, config).params, *val)
-    state = train.train(model, config, tiny_dataset, scene)
-    assert state.best_val < before / 10
-    assert evaluate(state.best_params, *val) == pytest.approx(state.best_val, rel=1e-12)
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_lgnn_training_does_not_blow_up_in_its_first_epochs(tiny_dataset, seed):
     """With the default optimisation (warm-up, decay, clipping) and initialisation,
-    no epoch's validation loss exceeds 10x the first, and training makes progress.
-    (The paper's random start with plain Adam swung by 1e4 on chain4: issue 13.)"""
+    no epoch's validation loss exceeds 10x the first, and training lowers it tenfold
+    (measured: 25-36x for these seeds). (The paper's random start with plain Adam swung
+    by 1e4 on chain4: issue 13.)"""
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene("lgnn", scene)
     config = train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, epochs=30, seed=seed, warmup_steps=100)  # 450 steps
@@ -432,7 +421,7 @@ def test_lgnn_training_does_not_blow_up_in_its_first_epochs(tiny_dataset, seed):
     history = np.array([entry[2] for entry in train.train(model, config, tiny_dataset, scene).history])
     assert np.all(np.isfinite(history))
     assert history.max() <= 10 * min(history[0], initial), history
-    assert history[-1] < history[0] / 3, history
+    assert history[-1] < history[0] / 10, history
 
 
 def test_schedule_warms_up_decays_and_legacy_checkpoints_keep_plain_adam():
@@ -529,7 +518,9 @@ def test_cli_train_and_zero_shot_rollout(tmp_path, capsys, tiny_dataset):
     data.save(tiny_dataset, cli_data, data.cache_path(cli_data, tmp_path))
     common = ["--scene", "chain4", "--trajectories", "2", "--epochs", "1", "--cache-dir", str(tmp_path), "--quiet"]
     assert main(["train", "--model", "lgnn", *common, "--out", str(ckpt)]) == 0
-    assert main(["train", "--model", "clnn", *common, "--out", str(clnn)]) == 0
+    # CLNN's refusal needs its checkpoint, not its training: its initial state.
+    clnn_model, clnn_config = models.ModelConfig.for_scene("clnn", get_scene("chain4")), train.TrainConfig(learning_rate=1e-3, warmup_steps=1)
+    train.save_checkpoint(clnn, train.initial_state(clnn_model, clnn_config), clnn_model, clnn_config)
     out = tmp_path / "roll.npz"
     assert main(["rollout", "--model", str(ckpt), "chain8", "--dt", "1e-3", "--duration", "0.05", "--out", str(out), "--quiet"]) == 0
     with np.load(out) as rolled:

@@ -30,9 +30,10 @@ STAGES = ["--set", 'stages=["train","evaluate","report"]']
 TIMINGS = {"compile_s", "run_s", "steps_per_s", "mujoco_s", "elapsed_s"}
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def cluster():
-    """A Ray of 2 CPUs started for the test (no dashboard) and stopped after it; its address."""
+    """A Ray of 2 CPUs started for this file's tests (no dashboard) and stopped after
+    them (the killed worker's test runs last); its address."""
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         yield ray.get_runtime_context().gcs_address

@@ -1,6 +1,8 @@
 """The strong GNS (`gns-10-128`, `lgnn.learn.strong_gns`) and the training-set statistics
 a model normalises by: physics of its predictions, its statistics from training to
-checkpoint, its recipe (AdamW, input noise), and the benchmark running it from a config."""
+checkpoint, and its recipe (AdamW, input noise). The benchmark trains it through its
+stages (`bench/test_benchmark.py::test_training`, which also checks the statistics a
+stage's checkpoint carries)."""
 
 import dataclasses
 
@@ -10,8 +12,6 @@ import numpy as np
 import pytest
 
 from lgnn import physics
-from lgnn.bench import grid
-from lgnn.bench.run import run
 from lgnn.errors import ConfigError
 from lgnn.learn import checkpoints, data, models, train
 from lgnn.scene import get_scene
@@ -19,9 +19,6 @@ from lgnn.scene import get_scene
 TINY_DATA = data.DataConfig(n_trajectories=6, duration=0.2, sample_dt=0.01, dt=1e-3)
 # The recipe's network at test size: its code, not its 1.6M parameters.
 SMALL = dict(latent=16, hidden=16, message_passing=2)
-# The strong GNS's recipe (statistics, noise, weight decay) at SMALL's sizes, for the
-# benchmark's stages: the full-size network's compile is most of a minute of CI.
-SMALL_STRONG_GNS = dataclasses.replace(models.get_spec("gns-10-128"), name="gns-10-128-small-test", **SMALL)
 
 
 @pytest.fixture(scope="module")
@@ -144,19 +141,3 @@ def test_statistics_of_another_shape_than_inits_placeholders_are_refused():
     with pytest.raises(ConfigError, match="placeholders of its statistics"):
         models.with_statistics(params, {"velocity_mean": jnp.zeros(3)})
 
-
-def test_a_config_grid_entry_trains_and_evaluates_the_strong_gns(tmp_path, tiny_benchmark_config):
-    """A config's `[[grid]]` entry trains its recipe (at small sizes) through the
-    benchmark, its statistics those of the config's training data, and evaluates it."""
-    profile = grid.load_profile(tiny_benchmark_config(f"{__name__}:SMALL_STRONG_GNS", epochs=2))
-    out = run(profile, tmp_path / "out", progress=False)
-    (job,) = grid.training_jobs(profile)
-    model, params = checkpoints.load_model(out / "benchmark" / "checkpoints" / f"{job.name}.npz")
-    assert model.name == SMALL_STRONG_GNS.name and model.message_passing == 2
-    dataset = data.load_or_generate(profile.training.data_for("chain4"), None)
-    expected = models.training_statistics(model, get_scene("chain4"), *_training_arrays(dataset))
-    np.testing.assert_array_equal(params[models.STATISTICS]["velocity_std"], expected["velocity_std"])
-    from lgnn.bench.stages import evaluate
-
-    ((pair, record),) = evaluate.load_pairs(profile, out)
-    assert pair.job.model == SMALL_STRONG_GNS.name and pair.scene == "chain4"
