@@ -145,6 +145,22 @@ def test_small_ground_truth_batches_run_on_the_host_of_an_accelerator_and_models
         assert sharding.platform() == "cpu" and solvers.sweep_unroll() == 1
 
 
+def test_a_batch_of_one_keeps_its_branches_on_a_cpu_and_is_vmapped_on_an_accelerator(monkeypatch):
+    """On a CPU a batch of one is `fn` itself, where a `lax.cond` stays a branch (the
+    guarded solve's saving); on an accelerator it is vmapped like any batch."""
+
+    def branchy(x):
+        return jax.lax.cond(x.sum() > 0, lambda y: y, lambda y: -y, x)
+
+    def primitives(platform):
+        with monkeypatch.context() as patched:
+            patched.setattr(rollouts.sharding, "platform", lambda: platform)
+            return {eqn.primitive.name for eqn in jax.make_jaxpr(rollouts._over_batch(branchy, (0,), 1))(jnp.ones((1, 3))).eqns}
+
+    assert "cond" in primitives("cpu")
+    assert "cond" not in primitives("gpu") and primitives("gpu") == {e.primitive.name for e in jax.make_jaxpr(jax.vmap(branchy))(jnp.ones((1, 3))).eqns}
+
+
 def test_a_rollout_says_where_it_ran():
     scene = get_scene("chain4")
     runs = rollouts.batched_rollouts(scene, SHORT, rollouts.Unparametrised(physics.vectorised_true_acceleration_fn), _states(scene, 2),

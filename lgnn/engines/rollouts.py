@@ -67,13 +67,14 @@ FRAMES_PER_CALL = 100
 # The exact dynamics' rollouts of a small batch run faster on the host's CPU than on a
 # GPU, whose step is a chain of tiny kernels that costs their latency whatever the
 # batch. Measured on one H200 and its 16-core host (results/gpu/host-rollouts/), ms per
-# RK4 step: chain16 at batch 1, 0.078 on the host against 1019 on the GPU (one
-# trajectory's solves, unvmapped, are pathological there); T1 at 1, 0.27 against 1.9;
-# chain16 at 16, 0.31 against 0.48; at 256 the GPU wins, 0.54 against 4.7. Batches of
-# at most this many run on the host (`ground_truth_platform`). Learned models stay on
-# the default device: the GPU was ahead from 3 rollouts (lgnn-notebook, 3 seeds: T1
-# 5.2 against 9.0 ms, chain16 1.55 against 2.38), and the evaluate stage's
-# single-initial-condition parts took 100 s with their models on the GPU, 197 s on the host.
+# RK4 step of the vectorised solver: chain16 at batch 1, 0.078 on the host against 0.48
+# on the GPU (vmapped; one trajectory with `lgnn simulate`'s solver: 0.35-0.44); T1 at
+# 1, 0.27 against 1.9; chain16 at 16, 0.31 against 0.48; at 256 the GPU wins, 0.54
+# against 4.7. Batches of at most this many run on the host (`ground_truth_platform`).
+# Learned models stay on the default device: the GPU was ahead from 3 rollouts
+# (lgnn-notebook, 3 seeds: T1 5.2 against 9.0 ms, chain16 1.55 against 2.38), and the
+# evaluate stage's single-initial-condition parts took 100 s with their models on the
+# GPU, 197 s on the host.
 HOST_BATCH_MAX = 16
 
 
@@ -136,10 +137,13 @@ def run_metadata(scene: Scene, config: SimulationConfig, integration: Integratio
 
 def _over_batch(fn: Callable, in_axes: tuple, batch: int) -> Callable:
     """`fn` mapped over a leading batch axis of the arguments `in_axes` marks: `vmap`,
-    or for a batch of one `fn` itself with the axis taken off and put back, so that
-    a `lax.cond` inside stays a branch (under `vmap` both of its branches run: one
-    trajectory's guarded Schur solve, `solvers.guarded_spd_solve`)."""
-    if batch != 1:
+    or for a batch of one on a CPU `fn` itself with the axis taken off and put back, so
+    that a `lax.cond` inside stays a branch (under `vmap` both of its branches run: one
+    trajectory's guarded Schur solve, `solvers.guarded_spd_solve`). An accelerator
+    always takes `vmap`: there the batch-of-one program was never faster, and with the
+    vectorised chain solve it took 1 s per chain16 RK4 step against 0.48 ms vmapped
+    (one H200, results/gpu/host-rollouts/batch-of-one.jsonl)."""
+    if batch != 1 or sharding.platform() != "cpu":
         return jax.vmap(fn, in_axes=in_axes)
 
     def one(*args):
