@@ -20,6 +20,16 @@ def full_profile(request) -> bool:
 
 
 @pytest.fixture
+def timing_benchmark(benchmark):
+    """`benchmark` for a test that only times (it checks nothing else): skipped where
+    pytest-benchmark does not time (under xdist, as in CI), where it would compile and
+    run for nothing. `pytest bench/` without `-n` times it."""
+    if benchmark.disabled:
+        pytest.skip("a timing only, and pytest-benchmark does not time under xdist: run pytest bench/ without -n")
+    return benchmark
+
+
+@pytest.fixture
 def record_rate(benchmark):
     """`record_rate(unit, count, **info)`: store what a benchmark timed in `extra_info`,
     and `count / mean time` as `<unit>_per_s` when timings exist (pytest-benchmark

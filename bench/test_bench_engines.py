@@ -32,19 +32,19 @@ def _states(name, batch):
 
 @pytest.mark.parametrize("batch", [1, 100])
 @pytest.mark.parametrize("name", ["chain4", "chain16", "chain100", "T1"])
-def test_mujoco_c(benchmark, record_rate, name, batch):
+def test_mujoco_c(timing_benchmark, record_rate, name, batch):
     scene, states = _states(name, batch)
     lm.compile_scene(scene, CONFIG.dt)
     # MuJoCo's stepping alone (the map to node states is a Python loop, see MujocoEngine.timed_rollout).
-    benchmark.pedantic(lm.joint_rollout, args=(scene, CONFIG, states), kwargs={"threads": 2}, rounds=3, warmup_rounds=1)
+    timing_benchmark.pedantic(lm.joint_rollout, args=(scene, CONFIG, states), kwargs={"threads": 2}, rounds=3, warmup_rounds=1)
     record_rate("steps", batch * STEPS, scene=scene.name, batch=batch)
 
 
 @pytest.mark.skipif(os.environ.get("LGNN_BENCH_MJX") != "1", reason="MJX compile is ~35 s on CPU: set LGNN_BENCH_MJX=1")
 @pytest.mark.parametrize("batch", [1, 100])
-def test_mjx_chain4(benchmark, record_rate, batch):
+def test_mjx_chain4(timing_benchmark, record_rate, batch):
     scene, states = _states("chain4", batch)
     run = mjx.runner(scene, CONFIG, "float64")
     args = (jnp.asarray(states.q), jnp.asarray(states.qd))
-    benchmark.pedantic(lambda: jax.block_until_ready(run(*args)), rounds=3, warmup_rounds=1)
+    timing_benchmark.pedantic(lambda: jax.block_until_ready(run(*args)), rounds=3, warmup_rounds=1)
     record_rate("steps", batch * STEPS, scene=scene.name, batch=batch)
