@@ -280,6 +280,46 @@ def test_projection_restores_constraints(drift, iterations):
     assert physics.velocity_constraint_violation(scene, q, qd) < 1e-12
 
 
+@pytest.mark.parametrize("scene_name", ["chain16", "T1"])
+def test_adaptive_projection_takes_its_second_step_and_pass_only_where_the_first_leaves_more_than_round_off(scene_name):
+    """`adaptive`: from a drift of 1e-4 the second Gauss-Newton step and velocity pass
+    are taken (the result is the two-step one, not the one-step one); from a state
+    already projected the second step is skipped (the positions are the one-step
+    projection's, bit for bit)."""
+    scene = get_scene(scene_name)
+    rng = np.random.default_rng(3)
+    q = jnp.asarray(scene.nodes + 1e-4 * rng.normal(size=scene.nodes.shape))
+    qd = jnp.asarray(rng.normal(size=scene.nodes.shape))
+    adaptive, two, one = (jax.jit(physics.projection_fn(scene, iterations, adaptive=flag))
+                          for iterations, flag in ((None, True), (None, False), (1, False)))
+    drifted = adaptive(q, qd)
+    np.testing.assert_allclose(drifted[0], two(q, qd)[0], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(drifted[1], two(q, qd)[1], rtol=0, atol=1e-13)
+    assert np.max(np.abs(one(q, qd)[0] - two(q, qd)[0])) > 1e-10  # one step alone would not do
+    on_manifold = two(q, qd)
+    np.testing.assert_array_equal(adaptive(*on_manifold)[0], one(*on_manifold)[0])
+    assert physics.velocity_constraint_violation(scene, *adaptive(*on_manifold)) < 1e-12
+
+
+def test_one_trajectory_of_the_exact_dynamics_projects_adaptively_to_the_same_motion(monkeypatch):
+    """`lgnn simulate`'s programs (one trajectory of the exact dynamics on a CPU) project
+    adaptively; forcing the usual two steps changes the motion by round-off only."""
+    from lgnn.engines import lagrangian, rollouts
+    from lgnn.engines.base import SimulationConfig
+
+    scene, config = get_scene("chain16"), SimulationConfig(dt=1e-4, frame_dt=1e-2, duration=0.5)
+    assert rollouts.exact_dynamics(rollouts.Unparametrised(physics.true_acceleration_fn))
+    adaptive = lagrangian.simulate(scene, config)
+    try:
+        monkeypatch.setattr(rollouts, "exact_dynamics", lambda factory: False)
+        rollouts.compiled_programs.cache_clear()
+        usual = lagrangian.simulate(scene, config)
+    finally:
+        rollouts.compiled_programs.cache_clear()
+    difference = np.max(np.abs(adaptive.q - usual.q))
+    assert 0 < difference < 1e-12, difference  # other programs, the same motion
+
+
 def test_gradient_of_acceleration_matches_finite_differences():
     """The solve is differentiable (learned models train through it)."""
     scene = get_scene("chain4")

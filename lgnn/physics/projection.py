@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -44,9 +45,12 @@ REGULAR_VELOCITY_PROJECTION_PASSES = 2
 # (sampling) ask for more.
 PROJECTION_ITERATIONS = 4
 REGULAR_PROJECTION_ITERATIONS = 2
+# What "round-off" means to `adaptive` projection: a link residual (m) or velocity
+# defect (m/s) at most this many ulps of the largest position or speed.
+ROUND_OFF_ULPS = 8
 
 
-def projection_fn(scene: Scene, iterations: int | None = None) -> Callable[..., tuple[Array, ...]]:
+def projection_fn(scene: Scene, iterations: int | None = None, *, adaptive: bool = False) -> Callable[..., tuple[Array, ...]]:
     """Project `(q, qd)` back onto the constraint manifold: `project(q, qd) -> (q, qd)`,
     or, for positions carried with their rounding remainders `q_low` (the integrators,
     `integrate.compensated_add`), `project(q, qd, q_low) -> (q, qd, q_low)`.
@@ -56,9 +60,15 @@ def projection_fn(scene: Scene, iterations: int | None = None) -> Callable[..., 
     from the small drift of one integration step, and larger drifts still converge;
     None: `REGULAR_PROJECTION_ITERATIONS` for a scene regular at its initial
     configuration, `PROJECTION_ITERATIONS` for a self-stressed one). Velocities: the
-    orthogonal projection onto `A v = 0` at the corrected positions. All products with
-    `A` use its per-link blocks (`solvers.LinkGram` solves with `A A^T`), so a chain
-    projects in time linear in its length. `A A^T` is SPD at regular configurations; a
+    orthogonal projection onto `A v = 0` at the corrected positions (`passes` of it).
+    `adaptive` (a regular scene's two steps and passes only): the second Gauss-Newton
+    step and the second velocity pass are taken only where the first leaves more than
+    round-off (`ROUND_OFF_ULPS`), a branch (`lax.cond`). The exact dynamics' drift over
+    one small step is round-off, so one trajectory of the ground truth on a CPU (where
+    a branch is one: `lgnn.engines.rollouts`) mostly skips them, and a large step, whose
+    drift is not, takes both as before. Under `vmap` both branches run: no saving there.
+    All products with `A` use its per-link blocks (`solvers.LinkGram` solves with
+    `A A^T`), so a chain projects in time linear in its length. `A A^T` is SPD at regular configurations; a
     Levenberg-Marquardt shift keeps its factorisation defined at singular ones
     (`REGULAR_PROJECTION_SHIFT` for scenes regular at their initial configuration,
     `PROJECTION_SHIFT` for self-stressed ones, where an unshifted step along a
@@ -82,6 +92,7 @@ def projection_fn(scene: Scene, iterations: int | None = None) -> Callable[..., 
     passes = VELOCITY_PROJECTION_PASSES if singular else REGULAR_VELOCITY_PROJECTION_PASSES
     if iterations is None:
         iterations = PROJECTION_ITERATIONS if singular else REGULAR_PROJECTION_ITERATIONS
+    adaptive_here = adaptive and not singular and iterations == REGULAR_PROJECTION_ITERATIONS
 
     def transpose_times(u, lam):
         force = u * lam[:, None]
@@ -104,12 +115,27 @@ def projection_fn(scene: Scene, iterations: int | None = None) -> Callable[..., 
             correction = -transpose_times(u, gram.solve_fn(u, shift)(constraints.link_residual(q, low)))
             return (q + correction, low) if low is None else compensated_add(q, low, correction)
 
-        for _ in range(iterations):
+        def round_off(residual, values):
+            return jnp.max(jnp.abs(residual)) <= ROUND_OFF_ULPS * jnp.finfo(values.dtype).eps * jnp.max(jnp.abs(values))
+
+        if adaptive_here:
             q, low = gauss_newton(q, low)
+            q, low = jax.lax.cond(round_off(constraints.link_residual(q, low), q), lambda q, low: (q, low), gauss_newton, q, low)
+        else:
+            for _ in range(iterations):
+                q, low = gauss_newton(q, low)
         u = constraints.link_directions(q, low)
         solve = gram.solve_fn(u, shift)
+
         # The velocity's defect is `A qd`; its correction the minimum-norm `-A^T G^-1 A qd`.
-        qd = refine(lambda defect: -transpose_times(u, solve(defect)), lambda v: times(u, v), qd, passes)
+        def velocity_pass(v):
+            return refine(lambda defect: -transpose_times(u, solve(defect)), lambda v: times(u, v), v, 1)
+
+        if adaptive_here:
+            qd = velocity_pass(qd)
+            qd = jax.lax.cond(round_off(times(u, qd), qd), lambda v: v, velocity_pass, qd)
+        else:
+            qd = refine(lambda defect: -transpose_times(u, solve(defect)), lambda v: times(u, v), qd, passes)
         return (q, qd) if q_low is None else (q, qd, low)
 
     # Full-precision products: float32 on a GPU is otherwise TF32's (`lgnn.runtime`).
