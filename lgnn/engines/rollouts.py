@@ -153,11 +153,13 @@ def _over_batch(fn: Callable, in_axes: tuple, batch: int) -> Callable:
     return one
 
 
-def exact_dynamics(accel_factory: Callable) -> bool:
-    """Whether `accel_factory` gives the scene's exact accelerations (`Unparametrised`
-    of `physics.true_acceleration_fn` or its vectorised form)."""
-    return isinstance(accel_factory, Unparametrised) and accel_factory.factory in (physics.true_acceleration_fn,
-                                                                                    physics.vectorised_true_acceleration_fn)
+def adaptive_projection(batch: int, stacked: bool) -> bool:
+    """Whether a program's projection skips its second step and pass where the first
+    reached round-off (`physics.projection_fn`'s `adaptive`): for one trajectory on a
+    CPU, where that is a branch (`_over_batch`). It never skips a step a state needs,
+    so any dynamics may take it; the exact dynamics' drift over a small step is
+    round-off, so the ground truth mostly skips, a learned model's seldom."""
+    return batch == 1 and not stacked and sharding.platform() == "cpu"
 
 
 def ground_truth_platform(rollouts: int) -> str | None:
@@ -177,11 +179,7 @@ def compiled_programs(scene: Scene, config: SimulationConfig, integration: Integ
     compile time), for the devices of `platform` (the caller's `sharding.platform()`,
     inside whose context they run); cached (a scene is a key by content), so
     `compiled_programs.cache_info().misses` counts compilations."""
-    # One trajectory of the exact dynamics on a CPU skips the projection's second step
-    # and pass where the first reached round-off (`physics.projection_fn`'s `adaptive`):
-    # a branch there, where its drift over a small step is round-off.
-    adaptive = exact_dynamics(accel_factory) and batch == 1 and not stacked and sharding.platform() == "cpu"
-    project = physics.projection_fn(scene, adaptive=adaptive)
+    project = physics.projection_fn(scene, adaptive=adaptive_projection(batch, stacked))
     true_energy = physics.energy_fn(scene)
 
     def energy(q, qd):

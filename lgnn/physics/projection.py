@@ -65,8 +65,8 @@ def projection_fn(scene: Scene, iterations: int | None = None, *, adaptive: bool
     step and the second velocity pass are taken only where the first leaves more than
     round-off (`ROUND_OFF_ULPS`), a branch (`lax.cond`). The exact dynamics' drift over
     one small step is round-off, so one trajectory of the ground truth on a CPU (where
-    a branch is one: `lgnn.engines.rollouts`) mostly skips them, and a large step, whose
-    drift is not, takes both as before. Under `vmap` both branches run: no saving there.
+    a branch is one: `lgnn.engines.rollouts.adaptive_projection`) mostly skips them; a
+    large step, or a learned model's drift, takes both as before. Under `vmap` both branches run: no saving there.
     All products with `A` use its per-link blocks (`solvers.LinkGram` solves with
     `A A^T`), so a chain projects in time linear in its length. `A A^T` is SPD at regular configurations; a
     Levenberg-Marquardt shift keeps its factorisation defined at singular ones
