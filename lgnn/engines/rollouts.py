@@ -224,17 +224,11 @@ def batched_rollouts(scene: Scene, config: SimulationConfig, accel_factory: Call
     names the run in progress bars and messages (default: the scene's name)."""
     if stop_at_divergence and stacked:
         raise ValueError("stop_at_divergence is for a reference's rollouts, not stacked parameter sets")
-    with sharding.on_platform(platform):
-        return _batched_rollouts(scene, config, accel_factory, states, params, integration, stacked, dtype, chunk, frames_per_call,
-                                 stop_at_divergence, with_energy, label or scene.name, progress, hint)
-
-
-def _batched_rollouts(scene, config, accel_factory, states, params, integration, stacked, dtype, chunk, frames_per_call, stop_at_divergence,
-                      with_energy, label, progress, hint) -> Rollouts:
+    label = label or scene.name
     count = len(states.q)
     calls = -(-config.n_frames // max(1, frames_per_call))
     frames = -(-config.n_frames // calls)  # the last call runs past the end; its extra frames are dropped
-    with precision(dtype):
+    with sharding.on_platform(platform), precision(dtype):
         params = None if params is None else jax.tree.map(lambda leaf: jnp.asarray(leaf, _param_dtype(leaf, dtype)), params)
         q0, qd0 = (np.asarray(a, dtype) for a in states)
         signature = params_signature(params)

@@ -66,9 +66,10 @@ def projection_fn(scene: Scene, iterations: int | None = None, *, adaptive: bool
     round-off (`ROUND_OFF_ULPS`), a branch (`lax.cond`). The exact dynamics' drift over
     one small step is round-off, so one trajectory of the ground truth on a CPU (where
     a branch is one: `lgnn.engines.rollouts.adaptive_projection`) mostly skips them; a
-    large step, or a learned model's drift, takes both as before. Under `vmap` both branches run: no saving there.
-    All products with `A` use its per-link blocks (`solvers.LinkGram` solves with
-    `A A^T`), so a chain projects in time linear in its length. `A A^T` is SPD at regular configurations; a
+    large step, or a learned model's drift, takes both as before. Under `vmap` both
+    branches run: no saving there. All products with `A` use its per-link blocks
+    (`solvers.LinkGram` solves with `A A^T`), so a chain projects in time linear in its
+    length. `A A^T` is SPD at regular configurations; a
     Levenberg-Marquardt shift keeps its factorisation defined at singular ones
     (`REGULAR_PROJECTION_SHIFT` for scenes regular at their initial configuration,
     `PROJECTION_SHIFT` for self-stressed ones, where an unshifted step along a
@@ -135,7 +136,8 @@ def projection_fn(scene: Scene, iterations: int | None = None, *, adaptive: bool
             qd = velocity_pass(qd)
             qd = jax.lax.cond(round_off(times(u, qd), qd), lambda v: v, velocity_pass, qd)
         else:
-            qd = refine(lambda defect: -transpose_times(u, solve(defect)), lambda v: times(u, v), qd, passes)
+            for _ in range(passes):
+                qd = velocity_pass(qd)
         return (q, qd) if q_low is None else (q, qd, low)
 
     # Full-precision products: float32 on a GPU is otherwise TF32's (`lgnn.runtime`).
