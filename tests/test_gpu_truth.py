@@ -82,6 +82,27 @@ def test_non_finite_worlds_are_said_plainly(monkeypatch):
     assert row["steps_per_s"] == pytest.approx(9) and row["steps_per_s_min"] == 6 and row["steps_per_s_max"] == 12
 
 
+def test_an_mjx_that_cannot_be_imported_is_a_row_note(monkeypatch, tmp_path):
+    """MJX installed without its own dependencies (on a lent GPU, wheels without
+    `trimesh`) raised an ImportError out of `lgnn gpu-truth`: it is the row's note, and
+    the other engines' rows are still written."""
+    import sys
+
+    from lgnn.engines import mjx
+
+    mjx._mjx.cache_clear()
+    monkeypatch.setitem(sys.modules, "mujoco.mjx", None)  # `from mujoco import mjx` raises ImportError
+    try:
+        code = main(["gpu-truth", "--scenes", "chain4", "--batches", "2", "--steps", "2", "--repeats", "1",
+                     "--engines", "lagrangian:float32", "mjx:float32", "--out", str(tmp_path), "--quiet"])
+    finally:
+        mjx._mjx.cache_clear()
+    assert code == 0
+    rows = read_rows(tmp_path / "gpu_truth_chain4.csv")
+    assert [r["engine"] for r in rows] == ["lagrangian", "lagrangian", "mjx"]
+    assert rows[2]["note"].startswith("not run: the mjx engine cannot import MuJoCo MJX") and rows[1]["note"] == ""
+
+
 @pytest.mark.parametrize("spec", ["mjwarp:float64", "bullet:float32", "lagrangian"])
 def test_bad_engine_is_one_line(spec, tmp_path, capsys):
     assert main(["gpu-truth", "--scenes", "chain4", "--engines", spec, "--out", str(tmp_path)]) == 2

@@ -93,8 +93,14 @@ NESTED_MAX_DEPTH = 8
 def _mjx():
     # `mujoco.mjx`, imported on first use: it prints "Failed to import mujoco_warp: ..."
     # without the optional `warp` package, which lgnn does not use.
-    with contextlib.redirect_stdout(io.StringIO()):
-        from mujoco import mjx
+    # A broken install (MJX's own dependencies missing) is one line naming what is
+    # missing, and `lgnn gpu-truth` makes it a row's note, not a traceback.
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            from mujoco import mjx
+    except ImportError as err:
+        raise ConfigError(f"the mjx engine cannot import MuJoCo MJX ({err.name or err} missing): pip install 'mujoco-mjx' and its "
+                          "dependencies") from None
     return mjx
 
 
