@@ -110,13 +110,14 @@ def test_bad_engine_is_one_line(spec, tmp_path, capsys):
     assert err.startswith("lgnn: error: ") and err.count("\n") == 1 and not list(tmp_path.iterdir())
 
 
-def write_gpu_table(directory, name, rows):
+def write_gpu_table(directory, name, rows, machine="1x Test GPU (gpu); CPU: test x2"):
     """A gpu-truth table as `gpu_truth.write` lays it out (header lines, then COLUMNS)."""
     defaults = dict(scene="chain4", dtype="float32", form="", steps=100, steps_per_s_min=0.0, steps_per_s_max=0.0, compile_s=1.0, note="")
     full = [{**defaults, **row} for row in rows]
     for row in full:
         row.setdefault("finite_worlds", row["batch"])
-    write_table(full, gpu_truth.COLUMNS, directory / f"gpu_truth_{name}.csv", directory / f"gpu_truth_{name}.md", name, ["command: test"])
+    write_table(full, gpu_truth.COLUMNS, directory / f"gpu_truth_{name}.csv", directory / f"gpu_truth_{name}.md", name,
+                ["command: test", f"machine: {machine}"])
 
 
 def test_performance_reads_the_gpu_truth_tables(tmp_path):
@@ -131,7 +132,7 @@ def test_performance_reads_the_gpu_truth_tables(tmp_path):
         dict(engine="lagrangian", dtype="float64", batch=8, steps_per_s=1e6, max_node_error=0.0, note="reference"),
         dict(engine="lagrangian", batch=8, steps_per_s=9e6, max_node_error=2e-6),
         dict(engine="lagrangian", batch=64, steps_per_s=5e7, max_node_error=3e-6),
-    ])
+    ], machine="1x Older GPU (gpu); CPU: test x2")
     write_gpu_table(truth, "chain4_mujoco", [
         dict(engine="lagrangian", batch=8, steps_per_s=3e6, max_node_error=2e-6),
         dict(engine="mjx", form="maximal", batch=8, steps_per_s=1e6, max_node_error=1e-5),
@@ -149,10 +150,13 @@ def test_performance_reads_the_gpu_truth_tables(tmp_path):
     assert small["tables"] == "gpu_truth_chain4_mujoco" and "mjwarp nested: non-finite in 1 of 8 worlds" in small["note"]
     assert "mjwarp maximal: 15 from the reference" in small["note"]
     assert np.isnan(large["ratio"]) and not large["meets_goal"] and "out of device memory" in large["note"]
+    # Each comparison names the GPU of the run(s) it is made of, read from the tables' headers.
+    assert small["machine"] == "1x Test GPU (gpu)" and large["machine"] == "1x Older GPU (gpu)"
     text = report.performance_markdown(get_profile("full"), [], None, tmp_path)
     section = text.split("## Ground truth on GPUs against MuJoCo's GPU engines")[1]
     assert "| chain4 | 8 | 3.00e+06 | 2.00e-06 | mjx float32 maximal | 1.00e+06 | 1.00e-05 | 3 | yes |" in section
     assert "| chain4 | 64 | 5.00e+07 |" in section and "| — | — |" in section
+    assert "| gpu_truth_chain4_mujoco | 1x Test GPU (gpu) |" in section
 
 
 def test_gpu_truth_reader_refuses_other_tables(tmp_path):

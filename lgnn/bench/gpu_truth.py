@@ -226,7 +226,8 @@ AGREEMENT_MAX = 1e-3
 
 def load(directory) -> list[dict]:
     """Every row of the `gpu_truth_*.csv` tables in `directory` (sorted by file name),
-    numbers as numbers, each with `table`: its file's stem. [] when there are none."""
+    numbers as numbers, each with `table`: its file's stem, and `machine`: its header's
+    GPU (a folder can hold runs of several machines). [] when there are none."""
     import pandas as pd
 
     rows = []
@@ -235,8 +236,20 @@ def load(directory) -> list[dict]:
         missing = set(COLUMNS) - set(frame.columns)
         if missing:
             raise ConfigError(f"{path}: not a gpu-truth table (no column {', '.join(sorted(missing))})")
-        rows += [dict(row, table=path.stem, form=str(row["form"])) for row in frame.to_dict("records")]
+        machine = _header_machine(path)
+        rows += [dict(row, table=path.stem, form=str(row["form"]), machine=machine) for row in frame.to_dict("records")]
     return rows
+
+
+def _header_machine(path: Path) -> str:
+    """The accelerator of a table's `# machine: ...` line (the part before `;`), "" without one."""
+    with open(path) as handle:
+        for line in handle:
+            if not line.startswith("#"):
+                break
+            if line.startswith("# machine:"):
+                return line.removeprefix("# machine:").split(";")[0].strip()
+    return ""
 
 
 def _finite(row: dict) -> bool:
@@ -253,7 +266,7 @@ def against_mujoco(rows: list[dict]) -> list[dict]:
     """Per scene and batch (in the order met): the float32 Lagrangian against the fastest
     MuJoCo GPU engine finite in every world and within `AGREEMENT_MAX` of the reference.
     Rows `scene, batch, lagrangian_steps_per_s, lagrangian_error, mujoco_engine,
-    mujoco_steps_per_s, mujoco_error, ratio, meets_goal, tables, note`.
+    mujoco_steps_per_s, mujoco_error, ratio, meets_goal, tables, machine, note`.
 
     Timings swing between sessions, so the Lagrangian row is taken from the MuJoCo
     row's own table (the same run) when that has one, else from another table of the
@@ -282,5 +295,6 @@ def against_mujoco(rows: list[dict]) -> list[dict]:
             mujoco_error=best["max_node_error"] if best else float("nan"),
             ratio=ratio, meets_goal=bool(ratio >= GOAL_RATIO),
             tables=", ".join(dict.fromkeys(r["table"] for r in (own, best) if r is not None)),
+            machine=", ".join(dict.fromkeys(r["machine"] for r in (own, best) if r is not None and r["machine"])),
             note="; ".join(notes)))
     return out

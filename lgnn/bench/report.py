@@ -920,15 +920,16 @@ def _gpu_truth_section(out: Path) -> list[str]:
     lines = [f"lgnn's Lagrangian engine in float32 against the fastest MuJoCo GPU engine (MJX, MuJoCo Warp; either MJCF form) "
              f"that stayed finite in every world and within {gpu_truth.AGREEMENT_MAX:g} of the float64 reference, from the tables in `gpu/truth/` (`lgnn gpu-truth`: RK4 at dt 1e-3, 100 steps; "
              f"commands, machine and versions in each table and in `gpu/truth/README.md`). Error: max node error after the last "
-             f"step against the float64 Lagrangian engine. Issue 14's goal is a ratio of at least {gpu_truth.GOAL_RATIO:g}.", "",
+             f"step against the float64 Lagrangian engine. The goal is a ratio of at least {gpu_truth.GOAL_RATIO:g}. Each ratio is "
+             "within one run; the machine column says which GPU ran it.", "",
              "| scene | batch | Lagrangian f32 steps/s | its error | fastest agreeing MuJoCo GPU engine | its steps/s | its error | "
-             f"ratio | >= {gpu_truth.GOAL_RATIO:g}? | tables | left out |", "|---" * 11 + "|"]
+             f"ratio | >= {gpu_truth.GOAL_RATIO:g}? | tables | machine | left out |", "|---" * 12 + "|"]
     for r in rows:
         ratio = "—" if math.isnan(r["ratio"]) else f"{r['ratio']:.3g}"
         goal = "—" if math.isnan(r["ratio"]) else ("yes" if r["meets_goal"] else "no")
         lines.append(f"| {r['scene']} | {r['batch']} | {_fmt(r['lagrangian_steps_per_s'])} | {_fmt(r['lagrangian_error'])} | "
                      f"{r['mujoco_engine'] or '—'} | {_fmt(r['mujoco_steps_per_s'])} | {_fmt(r['mujoco_error'])} | {ratio} | {goal} | "
-                     f"{r['tables']} | {escape_markdown_cell(r['note']) or '—'} |")
+                     f"{r['tables']} | {r['machine'] or '—'} | {escape_markdown_cell(r['note']) or '—'} |")
     return lines
 
 
