@@ -117,6 +117,13 @@ _positive_int = _int_in(1)
 _nonnegative_int = _int_in(0)
 
 
+def _file_name_part(text: str) -> str:
+    """An option's type: text that goes into a file's name, so no folder in it."""
+    if any(mark in text for mark in ("/", "\\", "\0")) or text in (".", ".."):
+        raise argparse.ArgumentTypeError(f"goes into file names, so no folder or path separator: {text!r}")
+    return text
+
+
 def _model_reference(text: str) -> str:
     """A built-in model name, or a `module:attribute` / `file.py:attribute` reference
     to a model defined outside lgnn (imported when the command runs, so a failing
@@ -336,9 +343,11 @@ def _cmd_crosscheck(args) -> None:
 
 
 def _add_mujoco_commands(commands) -> None:
+    from lgnn.engines.mjcf import FORMS
+
     mjcf = commands.add_parser("mjcf", help="render a scene's MJCF, or every built-in's into mjcf/")
     mjcf.add_argument("scene", nargs="?", help="built-in name or scene file to render (default: every built-in, both forms, into --dir)")
-    mjcf.add_argument("--form", choices=("nested", "maximal"), help="nested (joint coordinates) or maximal (a body per link, connect joints)")
+    mjcf.add_argument("--form", choices=FORMS, help="nested (joint coordinates) or maximal (a body per link, connect joints)")
     mjcf.add_argument("--dt", type=_positive_float, default=1e-4, help="SCENE: time step written into the model (default 1e-4)")
     mjcf.add_argument("--out", help="SCENE: output .xml file (default: standard output)")
     mjcf.add_argument("--dir", default="mjcf", help="output directory (default: mjcf)")
@@ -855,6 +864,7 @@ def _cmd_gpu_truth(args) -> None:
 
 def _add_gpu_truth_parser(commands) -> None:
     from lgnn.bench.gpu_truth import GpuTruthSettings
+    from lgnn.engines.mjcf import FORMS
 
     default = GpuTruthSettings()
     parser = commands.add_parser("gpu-truth", help="time every ground-truth engine on batches of one scene and its error against float64")
@@ -865,10 +875,10 @@ def _add_gpu_truth_parser(commands) -> None:
     parser.add_argument("--steps", type=_positive_int, default=default.steps, help="RK4 steps; the error is after the last")
     parser.add_argument("--dt", type=_positive_float, default=default.dt, help="integration step (s)")
     parser.add_argument("--repeats", type=_positive_int, default=default.repeats, help="timed runs per engine and batch (the spread)")
-    parser.add_argument("--form", default=default.form, help="MJCF form of the MuJoCo engines (default nested)")
+    parser.add_argument("--form", choices=FORMS, default=default.form, help="MJCF form of the MuJoCo engines (default nested)")
     parser.add_argument("--seed", type=int, default=default.seed, help="initial states' seed")
     parser.add_argument("--out", required=True, help="output directory: gpu_truth_<scene><suffix>.csv and .md")
-    parser.add_argument("--suffix", default="", help="appended to the file names (e.g. _mjx for a call of its own)")
+    parser.add_argument("--suffix", type=_file_name_part, default="", help="appended to the file names (e.g. _mjx for a call of its own)")
     parser.add_argument("--quiet", action="store_true", help="no per-run lines")
     parser.set_defaults(run=_cmd_gpu_truth)
 

@@ -110,6 +110,25 @@ def test_bad_engine_is_one_line(spec, tmp_path, capsys):
     assert err.startswith("lgnn: error: ") and err.count("\n") == 1 and not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("option, value, named", [("--form", "weird", "--form"), ("--suffix", "/../x", "--suffix"),
+                                                  ("--suffix", "a/b", "--suffix")])
+def test_bad_form_or_suffix_is_refused_before_any_run(option, value, named, tmp_path, capsys):
+    """A bad `--form` was found by the first MuJoCo engine, after the Lagrangian runs of
+    the first batch (minutes on a CPU at the default batches); a suffix with a folder in
+    it wrote outside `--out`. Both are one line before anything runs."""
+    try:
+        code = main(["gpu-truth", "--scenes", "chain4", option, value, "--out", str(tmp_path)])
+    except SystemExit as exit:  # argparse's own checks end the parse
+        code = exit.code
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("lgnn: error: ") and named in err and err.count("\n") == 1 and not list(tmp_path.iterdir())
+
+
+def test_settings_refuse_an_unknown_form():
+    with pytest.raises(ConfigError, match="unknown MJCF form 'weird'"):
+        gpu_truth.GpuTruthSettings(form="weird")
+
+
 def write_gpu_table(directory, name, rows, machine="1x Test GPU (gpu); CPU: test x2"):
     """A gpu-truth table as `gpu_truth.write` lays it out (header lines, then COLUMNS)."""
     defaults = dict(scene="chain4", dtype="float32", form="", steps=100, steps_per_s_min=0.0, steps_per_s_max=0.0, compile_s=1.0, note="")

@@ -48,6 +48,7 @@ import numpy as np
 
 from lgnn import physics, provenance
 from lgnn.bench.tables import write_table
+from lgnn.engines import mjcf
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, timed_rollouts
 from lgnn.engines.timing import compile_timed, time_runs
@@ -86,6 +87,9 @@ class GpuTruthSettings:
                 raise ConfigError("--engines: MuJoCo Warp computes in float32 only (mjwarp:float32)")
         if min(self.batches, default=0) < 1 or self.steps < 1 or self.repeats < 1 or not self.dt > 0:
             raise ConfigError("batches, steps and repeats must be positive whole numbers and dt positive")
+        # Checked here, not when the first MuJoCo engine renders its MJCF, after the
+        # Lagrangian runs of the first batch.
+        mjcf.check_form(self.form)
 
     @property
     def config(self) -> SimulationConfig:
