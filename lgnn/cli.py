@@ -858,6 +858,10 @@ def _cmd_gpu_truth(args) -> None:
     scenes = [get_scene(name) for name in settings.scenes]  # every name checked before any run
     log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     for scene in scenes:
+        if not args.fresh and gpu_truth.measured_before(args.out, scene.name + args.suffix, settings):
+            print(f"kept {args.out}/gpu_truth_{scene.name}{args.suffix}.md: measured with these settings on this machine at this "
+                  "commit (--fresh measures it again)")
+            continue
         rows = gpu_truth.measure(scene, settings, log=log)
         print(f"wrote {gpu_truth.write(rows, args.out, scene.name + args.suffix, 'lgnn ' + ' '.join(args.argv), settings)} and .csv")
 
@@ -879,6 +883,8 @@ def _add_gpu_truth_parser(commands) -> None:
     parser.add_argument("--seed", type=int, default=default.seed, help="initial states' seed")
     parser.add_argument("--out", required=True, help="output directory: gpu_truth_<scene><suffix>.csv and .md")
     parser.add_argument("--suffix", type=_file_name_part, default="", help="appended to the file names (e.g. _mjx for a call of its own)")
+    parser.add_argument("--fresh", action="store_true",
+                        help="measure every scene, also one whose table in --out this machine made with these settings at this commit")
     parser.add_argument("--quiet", action="store_true", help="no per-run lines")
     parser.set_defaults(run=_cmd_gpu_truth)
 

@@ -7,6 +7,7 @@ chain4 and chain4-3d, 2 worlds, 10 steps, with the engines this machine has (MJX
 """
 
 import csv
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -122,6 +123,38 @@ def test_bad_form_or_suffix_is_refused_before_any_run(option, value, named, tmp_
         code = exit.code
     err = capsys.readouterr().err
     assert code == 2 and err.startswith("lgnn: error: ") and named in err and err.count("\n") == 1 and not list(tmp_path.iterdir())
+
+
+def test_a_cut_run_resumes_with_the_scenes_it_had_not_written(tmp_path, monkeypatch, capsys):
+    """A command cut by a time limit after chain4's table, run again, keeps that table and
+    measures chain8; other settings, other engines or `--fresh` measure chain4 again."""
+    def argv(*extra, scenes=("chain4",), steps="2", engines=("lagrangian:float32",)):
+        return ["gpu-truth", "--scenes", *scenes, "--batches", "2", "--steps", steps, "--repeats", "1", "--engines", *engines,
+                "--out", str(tmp_path), "--quiet", *extra]
+
+    assert main(argv()) == 0
+    table = (tmp_path / "gpu_truth_chain4.csv").read_text()
+    measured = []
+    real = gpu_truth.measure
+    monkeypatch.setattr(gpu_truth, "measure", lambda scene, *args, **kwargs: measured.append(scene.name) or real(scene, *args, **kwargs))
+    capsys.readouterr()
+    assert main(argv(scenes=("chain4", "chain8"))) == 0
+    assert measured == ["chain8"] and (tmp_path / "gpu_truth_chain4.csv").read_text() == table
+    assert "kept " in capsys.readouterr().out
+    for changed in (argv("--fresh"), argv(steps="3")):
+        measured.clear()
+        assert main(changed) == 0 and measured == ["chain4"], changed
+    # The table now holds 3 steps of lagrangian:float32 at batch 2: only that run is kept.
+    same = gpu_truth.GpuTruthSettings(scenes=("chain4",), batches=(2,), engines=("lagrangian:float32",), steps=3, repeats=1)
+    assert gpu_truth.measured_before(tmp_path, "chain4", same)
+    for other in (dict(engines=("lagrangian:float32", "mjx:float32")), dict(batches=(2, 4)), dict(repeats=2), dict(form="maximal")):
+        assert not gpu_truth.measured_before(tmp_path, "chain4", dataclasses.replace(same, **other)), other
+    # A table that does not parse (or lacks its markdown twin) is measured again.
+    (tmp_path / "gpu_truth_chain4.csv").write_text("scene\nnot a table")
+    assert not gpu_truth.measured_before(tmp_path, "chain4", gpu_truth.GpuTruthSettings(scenes=("chain4",), batches=(2,)))
+    (tmp_path / "gpu_truth_chain8.md").unlink()
+    measured.clear()
+    assert main(argv(scenes=("chain8",))) == 0 and measured == ["chain8"]
 
 
 def test_settings_refuse_an_unknown_form():

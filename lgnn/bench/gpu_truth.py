@@ -39,6 +39,7 @@ float32 only.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import statistics
 from pathlib import Path
@@ -203,13 +204,39 @@ NOTES = (
 )
 
 
+def _settings_line(settings: GpuTruthSettings) -> str:
+    return f"settings: steps {settings.steps}, dt {settings.dt:g}, repeats {settings.repeats}, form {settings.form}, seed {settings.seed}"
+
+
 def write(rows: list[dict], out_dir, name: str, command: str, settings: GpuTruthSettings) -> str:
     """`gpu_truth_<name>.csv` and `.md` in `out_dir` (`name`: the scene's, and a suffix
-    where one scene's engines are split over calls); returns the markdown path."""
+    where one scene's engines are split over calls); returns the markdown path. The
+    CSV's header holds the settings too, for `measured_before`."""
     stem = f"{out_dir}/gpu_truth_{name}"
-    notes = NOTES + (f"settings: steps {settings.steps}, dt {settings.dt:g}, repeats {settings.repeats}, form {settings.form}, seed {settings.seed}",)
-    write_table(rows, COLUMNS, f"{stem}.csv", f"{stem}.md", f"GPU ground truth: {name}", header(command), notes)
+    write_table(rows, COLUMNS, f"{stem}.csv", f"{stem}.md", f"GPU ground truth: {name}", header(command) + [_settings_line(settings)], NOTES)
     return f"{stem}.md"
+
+
+def measured_before(out_dir, name: str, settings: GpuTruthSettings) -> bool:
+    """Whether `out_dir` already holds `name`'s table (`write`, both files) made by a run
+    like this one: the same settings, engines and batches, on this machine with these
+    versions at this commit. A command cut short by a time limit then resumes with the
+    scenes it had not written; anything else (an older table, another machine, a file
+    that does not parse) is measured again."""
+    stem = Path(out_dir) / f"gpu_truth_{name}"
+    if not (stem.with_suffix(".csv").is_file() and stem.with_suffix(".md").is_file()):
+        return False
+    wanted = header("")[1:] + [_settings_line(settings)]  # every provenance line but the command
+    try:
+        with open(stem.with_suffix(".csv")) as handle:
+            lines = handle.read().splitlines()
+        found = [line[2:] for line in lines if line.startswith("# ")]
+        table = [row for row in csv.DictReader(line for line in lines if not line.startswith("#"))]
+        runs = {(row["engine"] + ":" + row["dtype"], int(row["batch"])) for row in table}
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError):
+        return False
+    expected = {(spec, batch) for spec in (REFERENCE,) + settings.engines for batch in settings.batches}
+    return all(line in found for line in wanted) and runs == expected and len(table) == len(expected)
 
 
 # ---------------------------------------------------------------------------------
