@@ -91,8 +91,13 @@ def test_an_mjx_that_cannot_be_imported_is_a_row_note(monkeypatch, tmp_path):
 
     from lgnn.engines import mjx
 
+    import mujoco
+
     mjx._mjx.cache_clear()
-    monkeypatch.setitem(sys.modules, "mujoco.mjx", None)  # `from mujoco import mjx` raises ImportError
+    # `from mujoco import mjx` raises ImportError, also where MJX was imported before in
+    # this process (the package then holds it as an attribute).
+    monkeypatch.setitem(sys.modules, "mujoco.mjx", None)
+    monkeypatch.delattr(mujoco, "mjx", raising=False)
     try:
         code = main(["gpu-truth", "--scenes", "chain4", "--batches", "2", "--steps", "2", "--repeats", "1",
                      "--engines", "lagrangian:float32", "mjx:float32", "--out", str(tmp_path), "--quiet"])
