@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics, provenance
-from lgnn.bench.tables import write_table
+from lgnn.bench.tables import read_table, write_table
 from lgnn.engines import mjcf
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, timed_rollouts
@@ -228,10 +228,7 @@ def measured_before(out_dir, name: str, settings: GpuTruthSettings) -> bool:
         return False
     wanted = header("")[1:] + [_settings_line(settings)]  # every provenance line but the command
     try:
-        with open(stem.with_suffix(".csv")) as handle:
-            lines = handle.read().splitlines()
-        found = [line[2:] for line in lines if line.startswith("# ")]
-        table = [row for row in csv.DictReader(line for line in lines if not line.startswith("#"))]
+        found, table = read_table(stem.with_suffix(".csv"))
         runs = {(row["engine"] + ":" + row["dtype"], int(row["batch"])) for row in table}
     except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError):
         return False
@@ -273,14 +270,9 @@ def load(directory) -> list[dict]:
 
 
 def _header_machine(path: Path) -> str:
-    """The accelerator of a table's `# machine: ...` line (the part before `;`), "" without one."""
-    with open(path) as handle:
-        for line in handle:
-            if not line.startswith("#"):
-                break
-            if line.startswith("# machine:"):
-                return line.removeprefix("# machine:").split(";")[0].strip()
-    return ""
+    """The accelerator of a table's `machine: ...` header line (the part before `;`), "" without one."""
+    machines = [line.removeprefix("machine:").split(";")[0].strip() for line in read_table(path)[0] if line.startswith("machine:")]
+    return machines[0] if machines else ""
 
 
 def _finite(row: dict) -> bool:

@@ -36,7 +36,6 @@ pandas and matplotlib are imported here only (the library's numerics do not need
 
 from __future__ import annotations
 
-import csv
 import fnmatch
 import math
 from pathlib import Path
@@ -58,7 +57,7 @@ from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
 from lgnn.bench.stages.train import default_lgnn, load_checkpoints
 from lgnn.bench import store
-from lgnn.bench.tables import escape_markdown_cell, write_csv
+from lgnn.bench.tables import escape_markdown_cell, read_table, write_csv
 from lgnn.files import atomic_path, write_text_atomic
 from lgnn.learn.models import get_spec
 from lgnn.learn.train import stop_reason, training_key
@@ -690,8 +689,7 @@ def _unrankable(out: Path) -> dict[str, str]:
     path = out / "convergence.csv"
     if not path.exists():
         return {}
-    with path.open() as handle:
-        return convergence.unrankable(list(csv.DictReader(line for line in handle if not line.startswith("#"))))
+    return convergence.unrankable(read_table(path)[1])
 
 
 def summary_tables(references: tuple[str, ...] = DEFAULT_REFERENCES) -> list[tuple[str, str]]:

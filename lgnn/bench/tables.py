@@ -4,7 +4,8 @@
   gzipped for a `.gz` path), the benchmark report's tables;
 - `write_table(rows, columns, csv_path, md_path, title, header, notes)`: rows (dicts) as
   a CSV whose first lines are `# header` comments, and a markdown file with the title,
-  the header and notes as a list, then the table; the crosscheck and stability reports.
+  the header and notes as a list, then the table; the crosscheck and stability reports;
+- `read_table(csv_path)`: such a CSV's header lines and rows (strings) back.
 """
 
 from __future__ import annotations
@@ -61,3 +62,12 @@ def write_table(rows: Sequence[dict], columns: Sequence[str], csv_path: str | os
     md += ["| " + " | ".join(escape_markdown_cell(markdown_cell(row[k])) for k in columns) + " |" for row in rows]
     write_text_atomic(csv_path, buffer.getvalue())
     write_text_atomic(md_path, "\n".join(md) + "\n")
+
+
+def read_table(csv_path: str | os.PathLike) -> tuple[list[str], list[dict]]:
+    """`(header, rows)` of a CSV `write_table` wrote: its `# ` header lines without the
+    mark, and its rows as dicts of strings."""
+    with open(csv_path) as handle:
+        lines = handle.read().splitlines()
+    header = [line[2:] for line in lines if line.startswith("# ")]
+    return header, list(csv.DictReader(line for line in lines if not line.startswith("#")))

@@ -135,6 +135,12 @@ def run_metadata(scene: Scene, config: SimulationConfig, integration: Integratio
     return {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config), "integration": dataclasses.asdict(integration)}
 
 
+def _branches_stay(batch: int) -> bool:
+    """Whether a program of `batch` trajectories runs one trajectory unvmapped, so that a
+    `lax.cond` inside it is a real branch: a batch of one on a CPU (`_over_batch`)."""
+    return batch == 1 and sharding.platform() == "cpu"
+
+
 def _over_batch(fn: Callable, in_axes: tuple, batch: int) -> Callable:
     """`fn` mapped over a leading batch axis of the arguments `in_axes` marks: `vmap`,
     or for a batch of one on a CPU `fn` itself with the axis taken off and put back, so
@@ -143,7 +149,7 @@ def _over_batch(fn: Callable, in_axes: tuple, batch: int) -> Callable:
     always takes `vmap`: there the batch-of-one program was never faster, and with the
     vectorised chain solve it took 1 s per chain16 RK4 step against 0.48 ms vmapped
     (one H200, results/gpu/host-rollouts/batch-of-one.jsonl)."""
-    if batch != 1 or sharding.platform() != "cpu":
+    if not _branches_stay(batch):
         return jax.vmap(fn, in_axes=in_axes)
 
     def one(*args):
@@ -159,7 +165,7 @@ def adaptive_projection(batch: int, stacked: bool) -> bool:
     CPU, where that is a branch (`_over_batch`). It never skips a step a state needs,
     so any dynamics may take it; the exact dynamics' drift over a small step is
     round-off, so the ground truth mostly skips, a learned model's seldom."""
-    return batch == 1 and not stacked and sharding.platform() == "cpu"
+    return _branches_stay(batch) and not stacked
 
 
 def ground_truth_platform(rollouts: int) -> str | None:
