@@ -93,16 +93,22 @@ RK4_OFFSETS = (0.0, 0.5, 0.5, 1.0)
 RK4_WEIGHTS = (1.0, 2.0, 2.0, 1.0)
 
 
-def rk4(accel, dt: float, project: Projection | None = None) -> Integrator:
+def rk4(accel, dt: float, project: Projection | None = None, *, looped: bool = True) -> Integrator:
     """Classical 4th-order Runge-Kutta on the first-order system (q, qd).
 
-    The four stages are one loop over `RK4_OFFSETS` and `RK4_WEIGHTS`, so a compiled
-    step holds one copy of `accel`, not four: a learned model's acceleration (its
-    derivatives and constrained solve) is most of a rollout program, and compiling it
-    four times was most of the evaluate stage's compile time. On a 2-core CPU the
-    evaluate stage's programs compiled in 0.5-0.6 of the time and stepped within 3 %
-    (results/gpu/compile/README.md). The sums run in the order of the written-out
-    formula, `k1 + 2 k2 + 2 k3 + k4`."""
+    `looped`: the four stages are one loop over `RK4_OFFSETS` and `RK4_WEIGHTS`, so a
+    compiled step holds one copy of `accel`, not four. A learned model's acceleration
+    (its network, derivatives and constrained solve) is most of a rollout program, and
+    compiling it four times was most of the evaluate stage's compile time: on a 2-core
+    CPU its programs compiled in 0.50-0.66 of the time for the Lagrangian models and
+    stepped within 6 % (results/gpu/compile/README.md). Where a step costs
+    microseconds the loop costs a fifth of it (one 12-link chain's exact step on a CPU,
+    11.4 to 14.1 us, results/cpu_vs_mujoco.md): there the stages are written out
+    (`looped=False`; `Integration.integrator_for`'s `cheap_steps`). Either way the sums
+    run in the written-out formula's order, `k1 + 2 k2 + 2 k3 + k4`: the same step to
+    the last bit (tests/test_integrate.py)."""
+    if not looped:
+        return _written_out_rk4(accel, dt, project)
     offsets, weights = jnp.asarray(RK4_OFFSETS), jnp.asarray(RK4_WEIGHTS)
 
     def step(carry: Carry) -> Carry:
@@ -118,6 +124,24 @@ def rk4(accel, dt: float, project: Projection | None = None) -> Integrator:
         zero = jnp.zeros_like(qd)
         (sum_v, sum_a, _, _), _ = jax.lax.scan(stage, (zero, zero, zero, zero), (offsets, weights))
         return _next_carry(project, q, q_low, dt / 6 * sum_v, qd + dt / 6 * sum_a)
+
+    return Integrator(_initial_carry, step, 4)
+
+
+def _written_out_rk4(accel, dt: float, project: Projection | None) -> Integrator:
+    """`rk4` with its stages written out (four copies of `accel` in a compiled step)."""
+
+    def step(carry: Carry) -> Carry:
+        (q, qd), _, q_low = carry
+        k1v, k1a = qd, accel(q, qd)
+        k2v = qd + 0.5 * dt * k1a
+        k2a = accel(q + 0.5 * dt * k1v, k2v)
+        k3v = qd + 0.5 * dt * k2a
+        k3a = accel(q + 0.5 * dt * k2v, k3v)
+        k4v = qd + dt * k3a
+        k4a = accel(q + dt * k3v, k4v)
+        qd_next = qd + dt / 6 * (k1a + 2 * k2a + 2 * k3a + k4a)
+        return _next_carry(project, q, q_low, dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v), qd_next)
 
     return Integrator(_initial_carry, step, 4)
 

@@ -158,28 +158,31 @@ def test_verlet_carries_one_evaluation_per_step():
     assert len(calls) == 1 == integrator.evaluations_per_step
 
 
-def test_rk4_compiles_one_copy_of_the_acceleration():
+@pytest.mark.parametrize(("cheap_steps", "copies"), [(False, 1), (True, 4)])
+def test_rk4_compiles_one_copy_of_the_acceleration_unless_steps_are_cheap(cheap_steps, copies):
     """RK4's four stages are one loop: tracing a step traces the acceleration once (a
     rollout program then holds one copy of a learned model's derivatives and solve,
-    not four), while a step still evaluates it four times."""
+    not four); where steps are cheap (one trajectory on a CPU) they are written out.
+    A step evaluates the acceleration four times either way."""
     calls = []
 
     def counting_accel(q, qd):
         calls.append(1)
         return -jnp.sin(q) - 0.1 * qd
 
-    integrator = rk4(counting_accel, 1e-2)
+    integrator = Integration("rk4", project=False).integrator_for(counting_accel, 1e-2, cheap_steps=cheap_steps)
     carry = integrator.init_fn((jnp.ones((3, 2)), jnp.zeros((3, 2))))
     jax.jit(integrator.step_fn).lower(carry)
-    assert len(calls) == 1 and integrator.evaluations_per_step == 4
+    assert len(calls) == copies and integrator.evaluations_per_step == 4
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
-def test_rk4_step_is_the_classical_formula(dtype):
-    """The looped stages give the written-out classical RK4 step (its sums in the same
-    order), on a damped pendulum whose acceleration depends on both q and qd: equal to
-    the last bit in float64 and float32 (float32 also through the compensated position
-    sum, which adds the same increment)."""
+@pytest.mark.parametrize("looped", [True, False])
+def test_rk4_step_is_the_classical_formula(dtype, looped):
+    """Looped or written out, the stages give the classical RK4 step (its sums in the
+    formula's order), on a damped pendulum whose acceleration depends on both q and qd:
+    equal to the last bit in float64 and float32 (float32 also through the compensated
+    position sum, which adds the same increment)."""
 
     def accel(q, qd):
         return -jnp.sin(q) - 0.3 * qd * jnp.cos(q)
@@ -198,7 +201,7 @@ def test_rk4_step_is_the_classical_formula(dtype):
         k4a = accel(q + dt * k3v, k4v)
         return q + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v), qd + dt / 6 * (k1a + 2 * k2a + 2 * k3a + k4a)
 
-    integrator = rk4(accel, dt)
+    integrator = rk4(accel, dt, looped=looped)
     stepped = jax.jit(integrator.step_fn)(integrator.init_fn((q, qd))).state
     expected = jax.jit(written_out)(q, qd)
     assert stepped.q.dtype == jnp.dtype(dtype)

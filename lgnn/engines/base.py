@@ -40,7 +40,7 @@ import numpy as np
 from lgnn import physics
 from lgnn.errors import ConfigError, check_number
 from lgnn.files import atomic_path, check_regular_input
-from lgnn.integrate import INTEGRATORS, Integrator, Projection
+from lgnn.integrate import INTEGRATORS, Integrator, Projection, rk4
 from lgnn.scene import Scene, State
 from lgnn.scene.schema import MAX_MAGNITUDE
 
@@ -107,10 +107,16 @@ class Integration:
         if not isinstance(self.project, bool):
             raise ConfigError(f"project must be true or false, got {self.project!r}")
 
-    def integrator_for(self, accel: physics.AccelerationFn, dt: float, project: Projection | None = None) -> Integrator:
+    def integrator_for(self, accel: physics.AccelerationFn, dt: float, project: Projection | None = None, *,
+                       cheap_steps: bool = False) -> Integrator:
         """The integrator stepping `accel` by `dt`, projecting with `project` (a scene's
-        `physics.projection_fn`) where this integration projects."""
-        return INTEGRATORS[self.integrator](accel, dt, project if self.project else None)
+        `physics.projection_fn`) where this integration projects. `cheap_steps`: a step
+        costs microseconds (one trajectory on a CPU), where RK4's stages are written out
+        rather than looped (`integrate.rk4`)."""
+        project = project if self.project else None
+        if self.integrator == "rk4":
+            return rk4(accel, dt, project, looped=not cheap_steps)
+        return INTEGRATORS[self.integrator](accel, dt, project)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -135,9 +135,11 @@ def run_metadata(scene: Scene, config: SimulationConfig, integration: Integratio
     return {"scene": scene_to_dict(scene), "config": dataclasses.asdict(config), "integration": dataclasses.asdict(integration)}
 
 
-def _branches_stay(batch: int) -> bool:
-    """Whether a program of `batch` trajectories runs one trajectory unvmapped, so that a
-    `lax.cond` inside it is a real branch: a batch of one on a CPU (`_over_batch`)."""
+def _one_trajectory_on_cpu(batch: int) -> bool:
+    """Whether a program of `batch` trajectories steps one trajectory on a CPU: it runs
+    unvmapped, so that a `lax.cond` inside it is a real branch (`_over_batch`), and its
+    steps are cheap enough that RK4's stage loop would cost a fifth of them
+    (`integrate.rk4`)."""
     return batch == 1 and sharding.platform() == "cpu"
 
 
@@ -149,7 +151,7 @@ def _over_batch(fn: Callable, in_axes: tuple, batch: int) -> Callable:
     always takes `vmap`: there the batch-of-one program was never faster, and with the
     vectorised chain solve it took 1 s per chain16 RK4 step against 0.48 ms vmapped
     (one H200, results/gpu/host-rollouts/batch-of-one.jsonl)."""
-    if not _branches_stay(batch):
+    if not _one_trajectory_on_cpu(batch):
         return jax.vmap(fn, in_axes=in_axes)
 
     def one(*args):
@@ -165,7 +167,7 @@ def adaptive_projection(batch: int, stacked: bool) -> bool:
     CPU, where that is a branch (`_over_batch`). It never skips a step a state needs,
     so any dynamics may take it; the exact dynamics' drift over a small step is
     round-off, so the ground truth mostly skips, a learned model's seldom."""
-    return _branches_stay(batch) and not stacked
+    return _one_trajectory_on_cpu(batch) and not stacked
 
 
 def ground_truth_platform(rollouts: int) -> str | None:
@@ -192,7 +194,7 @@ def compiled_programs(scene: Scene, config: SimulationConfig, integration: Integ
         return true_energy(q, qd) if with_energy else None
 
     def integrator(params):
-        return integration.integrator_for(accel_factory(scene, params), config.dt, project)
+        return integration.integrator_for(accel_factory(scene, params), config.dt, project, cheap_steps=_one_trajectory_on_cpu(batch))
 
     def start(params, q, qd):
         carry = integrator(params).init_fn(State(q, qd))
