@@ -124,11 +124,14 @@ def test_committed_full_records_match_the_current_settings():
     assert "chain16" in analysed and len(mass.load_mass(profile, out)) == len(analysed)
 
 
-def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_path, monkeypatch):
+def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_path, monkeypatch, capsys):
     # Every process evaluating one of a scene's pairs reads the trajectories the first
     # one computed (chain100-3d's MuJoCo C reference takes 15 minutes on 16 cores).
     evaluate.ground_truth.cache_clear()
     computed = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
+    # The one that computes them says in its log what they cost, the reference included.
+    cost = [line for line in capsys.readouterr().err.splitlines() if "compile" in line and line.startswith(f"[benchmark] ground truth {SCENE}:")]
+    assert len(cost) == 1 and f"mujoco {computed['mujoco_s']:.1f} s" in cost[0], cost
     assert evaluate.truth_file(QUICK, SCENE).exists()
     assert not (tmp_path / "datasets").exists()  # in the dataset cache, not the output folder
     evaluate.ground_truth.cache_clear()
