@@ -27,6 +27,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from lgnn.scene import State
 
@@ -109,7 +110,9 @@ def rk4(accel, dt: float, project: Projection | None = None, *, looped: bool = T
     the last bit (tests/test_integrate.py)."""
     if not looped:
         return _written_out_rk4(accel, dt, project)
-    offsets, weights = jnp.asarray(RK4_OFFSETS), jnp.asarray(RK4_WEIGHTS)
+    # NumPy constants: no device array made where the integrator is built (a program
+    # for the host's CPU may be built on a GPU machine).
+    offsets, weights = np.asarray(RK4_OFFSETS), np.asarray(RK4_WEIGHTS)
 
     def step(carry: Carry) -> Carry:
         (q, qd), _, q_low = carry
