@@ -130,7 +130,7 @@ def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_
     evaluate.ground_truth.cache_clear()
     computed = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
     # The one that computes them says in its log what they cost, the reference included.
-    cost = [line for line in capsys.readouterr().err.splitlines() if "compile" in line and line.startswith(f"[benchmark] ground truth {SCENE}:")]
+    cost = [line for line in capsys.readouterr().err.splitlines() if line.startswith(f"[benchmark] ground truth {SCENE} cost: ")]
     assert len(cost) == 1 and f"mujoco {computed['mujoco_s']:.1f} s" in cost[0], cost
     assert evaluate.truth_file(QUICK, SCENE).exists()
     assert not (tmp_path / "datasets").exists()  # in the dataset cache, not the output folder

@@ -110,22 +110,22 @@ def rk4(accel, dt: float, project: Projection | None = None, *, looped: bool = T
     the last bit (tests/test_integrate.py)."""
     if not looped:
         return _written_out_rk4(accel, dt, project)
-    # NumPy constants: no device array made where the integrator is built (a program
-    # for the host's CPU may be built on a GPU machine).
-    offsets, weights = np.asarray(RK4_OFFSETS), np.asarray(RK4_WEIGHTS)
-
     def step(carry: Carry) -> Carry:
         (q, qd), _, q_low = carry
+        # NumPy constants in the state's dtype: no device array is made where the
+        # integrator is built (a program for the host's CPU may be built on a GPU
+        # machine), and a float32 program holds no float64 value.
+        tableau = tuple(np.asarray(row, qd.dtype) for row in (RK4_OFFSETS, RK4_WEIGHTS))
 
         def stage(sums, row):
             sum_v, sum_a, kv, ka = sums
-            offset, weight = (x.astype(qd.dtype) for x in row)
+            offset, weight = row
             v = qd + offset * dt * ka
             a = accel(q + offset * dt * kv, v)
             return (sum_v + weight * v, sum_a + weight * a, v, a), None
 
         zero = jnp.zeros_like(qd)
-        (sum_v, sum_a, _, _), _ = jax.lax.scan(stage, (zero, zero, zero, zero), (offsets, weights))
+        (sum_v, sum_a, _, _), _ = jax.lax.scan(stage, (zero, zero, zero, zero), tableau)
         return _next_carry(project, q, q_low, dt / 6 * sum_v, qd + dt / 6 * sum_a)
 
     return Integrator(_initial_carry, step, 4)

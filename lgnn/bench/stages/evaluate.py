@@ -247,7 +247,7 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     references = references_when_done()
     # What the scene's ground truth cost, in the part's log: the reference engines
     # (MuJoCo C on chain100-3d) can be most of an evaluate stage.
-    log(f"ground truth {scene_name}: rollouts {truth.run_s:.1f} s + compile {truth.compile_s:.1f} s on {truth.platform}, chaos floor "
+    log(f"ground truth {scene_name} cost: rollouts {truth.run_s:.1f} s + compile {truth.compile_s:.1f} s on {truth.platform}, chaos floor "
         f"{floor.run_s + floor.compile_s:.1f} s" + "".join(f"; {engine} {references[f'{engine}_s']:.1f} s" for engine in settings.references))
     return dict(q=truth.q, qd=truth.qd, energy=truth.energy, q_floor=floor.q, qd_floor=floor.qd, states=states,
                 compile_s=truth.compile_s, run_s=truth.run_s, platform=truth.platform, **references)
