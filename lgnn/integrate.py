@@ -110,6 +110,7 @@ def rk4(accel, dt: float, project: Projection | None = None, *, looped: bool = T
     the last bit (tests/test_integrate.py)."""
     if not looped:
         return _written_out_rk4(accel, dt, project)
+
     def step(carry: Carry) -> Carry:
         (q, qd), _, q_low = carry
         # NumPy constants in the state's dtype: no device array is made where the
