@@ -9,26 +9,35 @@ the largest node distance over all frames between each pair, and MuJoCo's second
     python results/gpu/evaluate-stage/reference_dt.py
 """
 
+import time
+
 from lgnn.runtime import configure
+
 configure()
-import numpy as np, time
-from lgnn.bench.grid import load_profile
-from lgnn.bench.stages.evaluate import evaluation_initial_states
-from lgnn.engines import get_engine
-from lgnn.engines.base import SimulationConfig
-from lgnn.scene import State, get_scene
+
+import numpy as np  # noqa: E402
+
+from lgnn.bench.grid import load_profile  # noqa: E402
+from lgnn.bench.stages.evaluate import evaluation_initial_states  # noqa: E402
+from lgnn.engines import get_engine  # noqa: E402
+from lgnn.engines.base import SimulationConfig  # noqa: E402
+from lgnn.provenance import environment  # noqa: E402
+from lgnn.scene import State, get_scene  # noqa: E402
+
 profile = load_profile("full")
+lagrangian, mujoco_c = get_engine("lagrangian"), get_engine("mujoco", form="nested")
 for name in ("chain16-3d", "chain16"):
     scene = get_scene(name)
-    s = evaluation_initial_states(profile, scene)
-    s = State(np.asarray(s.q[:10]), np.asarray(s.qd[:10]))
-    truth = get_engine("lagrangian").rollout(scene, SimulationConfig(1e-3, 1e-3, 1.0), s)
-    fine = get_engine("lagrangian").rollout(scene, SimulationConfig(1e-4, 1e-3, 1.0), s)
-    out = {"truth dt1e-3 vs truth dt1e-4": np.abs(truth.q - fine.q).max()}
+    states = evaluation_initial_states(profile, scene)
+    states = State(np.asarray(states.q[:10]), np.asarray(states.qd[:10]))
+    truth = lagrangian.rollout(scene, SimulationConfig(1e-3, 1e-3, 1.0), states)
+    fine = lagrangian.rollout(scene, SimulationConfig(1e-4, 1e-3, 1.0), states)
+    found = {"truth dt1e-3 vs truth dt1e-4": np.abs(truth.q - fine.q).max()}
     for dt in (1e-4, 1e-3):
-        t = time.perf_counter()
-        m = get_engine("mujoco", form="nested").rollout(scene, SimulationConfig(dt, 1e-3, 1.0), s)
-        out[f"mujoco dt{dt:g} vs truth dt1e-3"] = np.abs(m.q - truth.q).max()
-        out[f"mujoco dt{dt:g} vs truth dt1e-4"] = np.abs(m.q - fine.q).max()
-        out[f"mujoco dt{dt:g} s"] = time.perf_counter() - t
-    print(name, {k: f"{v:.3g}" for k, v in out.items()}, flush=True)
+        began = time.perf_counter()
+        reference = mujoco_c.rollout(scene, SimulationConfig(dt, 1e-3, 1.0), states)
+        found[f"mujoco dt{dt:g} vs truth dt1e-3"] = np.abs(reference.q - truth.q).max()
+        found[f"mujoco dt{dt:g} vs truth dt1e-4"] = np.abs(reference.q - fine.q).max()
+        found[f"mujoco dt{dt:g} s"] = time.perf_counter() - began
+    print(name, {key: f"{value:.3g}" for key, value in found.items()}, flush=True)
+print(environment())
