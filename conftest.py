@@ -1,5 +1,5 @@
 """Test setup shared by `tests/` and `bench/`: lgnn's process settings before anything
-loads JAX, a persistent compilation cache of the worker's, a dataset cache of each test's own, and
+loads JAX, a persistent compilation cache of the test run's, a dataset cache of each test's own, and
 compiled programs released once a worker holds too many."""
 
 import atexit
@@ -8,6 +8,9 @@ import shutil
 import tempfile
 
 from lgnn.runtime import COMPILATION_CACHE_ENV, configure, enable_compilation_cache, release_compiled_programs
+
+# Where a test run's workers find the compilation cache they share (below).
+SHARED_JAX_CACHE_ENV = "LGNN_TEST_JAX_CACHE"
 
 # The tests compile thousands of small programs that each run for milliseconds, so XLA's
 # optimisation passes cost more than they save (a third of a model test's time). They
@@ -19,12 +22,19 @@ configure()  # then: thread counts and XLA flags before numpy and JAX load; floa
 # user's cache (each test then gets one of its own, `_own_dataset_cache`).
 os.environ["LGNN_CACHE"] = tempfile.mkdtemp(prefix="lgnn-test-cache-")
 atexit.register(shutil.rmtree, os.environ["LGNN_CACHE"], ignore_errors=True)
-# A persistent compilation cache of this worker's, never the user's, in-process and in
-# the `lgnn` processes tests start: tests compile the same programs again and again
-# (each `lgnn` process its scene's, each test its own closures), and a cache hit is
-# the program XLA compiled before. It starts empty, so every program is compiled at
-# least once per worker; a test that asks for another (or none) sets its own.
-os.environ[COMPILATION_CACHE_ENV] = os.path.join(os.environ["LGNN_CACHE"], "jax")
+# A persistent compilation cache of this test run's, never the user's, shared by its
+# xdist workers, in-process and in the `lgnn` processes tests start: tests compile the
+# same programs again and again (each `lgnn` process its scene's, each test its own
+# closures, in whichever worker its file runs), and a cache hit is the program XLA
+# compiled before. `lgnn benchmark --workers` shares one cache between processes the
+# same way. The run's first process (the xdist controller, or pytest without xdist)
+# makes it and removes it when it exits, after its workers; it starts empty, so every
+# program is compiled at least once per run; a test that asks for another (or none)
+# sets its own.
+if SHARED_JAX_CACHE_ENV not in os.environ or "PYTEST_XDIST_WORKER" not in os.environ:
+    os.environ[SHARED_JAX_CACHE_ENV] = tempfile.mkdtemp(prefix="lgnn-test-jax-")
+    atexit.register(shutil.rmtree, os.environ[SHARED_JAX_CACHE_ENV], ignore_errors=True)
+os.environ[COMPILATION_CACHE_ENV] = os.environ[SHARED_JAX_CACHE_ENV]
 enable_compilation_cache()
 
 import pytest  # noqa: E402

@@ -28,15 +28,17 @@ def test_unwritable_cache_directory_means_no_cache(monkeypatch):
     assert jax.config.jax_compilation_cache_dir == before
 
 
-def test_tests_run_with_a_cache_of_their_worker_never_the_users():
-    # conftest.py gives the tests, and the processes they start, a cache in the
-    # worker's temporary folder; the user's (`~/.cache/lgnn/jax`) is never read or written.
+def test_tests_run_with_a_cache_of_their_run_never_the_users():
+    # conftest.py gives the tests, and the processes they start, a cache in a temporary
+    # folder of the test run's, one for all its xdist workers (the controller made it);
+    # the user's (`~/.cache/lgnn/jax`) is never read or written.
     import tempfile
 
     from lgnn.files import user_cache_dir
 
     directory = os.environ[COMPILATION_CACHE_ENV]
-    assert jax.config.jax_compilation_cache_dir == directory
+    assert jax.config.jax_compilation_cache_dir == directory == os.environ["LGNN_TEST_JAX_CACHE"]
+    assert os.path.isdir(directory)
     assert directory.startswith(tempfile.gettempdir()) and not directory.startswith(str(user_cache_dir()))
 
 
