@@ -1,14 +1,18 @@
-"""Why the evaluate stage's MuJoCo C reference steps at 1e-4 while the ground truth
-steps at 1e-3: how far each is from the Lagrangian engine at both steps.
+"""Why the evaluate stage's MuJoCo C reference steps finer than the ground truth: how
+far each is from the Lagrangian engine at a fine step, at several steps.
 
-From the first 10 of the full profile's evaluation initial conditions of chain16-3d
-and chain16, 1 s, float64: the Lagrangian engine (RK4 with projection) at dt 1e-3
-(the ground truth's step) and 1e-4, and MuJoCo C (nested form, RK4) at 1e-4 and 1e-3;
-the largest node distance over all frames between each pair, and MuJoCo's seconds.
+From the first `--initial-conditions` of the full profile's evaluation initial
+conditions of each scene, `--duration` s, float64: the Lagrangian engine (RK4 with
+projection) at dt 1e-3 (the ground truth's step) and at `--fine-dt`, and MuJoCo C
+(nested form, RK4) at each of `--mujoco-dts`; the largest node distance over all
+frames between each pair, and MuJoCo's seconds.
 
-    python results/gpu/evaluate-stage/reference_dt.py
+    python results/gpu/evaluate-stage/reference_dt.py      # reference-dt-cpu.txt
+    python results/gpu/evaluate-stage/reference_dt.py --scene chain100-3d --initial-conditions 2 --duration 0.3 \\
+        --mujoco-dts 1e-4 2.5e-4 5e-4 1e-3                  # reference-dt-chain100-3d-cpu.txt
 """
 
+import argparse
 import time
 
 from lgnn.runtime import configure
@@ -24,20 +28,28 @@ from lgnn.engines.base import SimulationConfig  # noqa: E402
 from lgnn.provenance import environment  # noqa: E402
 from lgnn.scene import State, get_scene  # noqa: E402
 
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+parser.add_argument("--scene", nargs="+", default=["chain16-3d", "chain16"])
+parser.add_argument("--initial-conditions", type=int, default=10)
+parser.add_argument("--duration", type=float, default=1.0)
+parser.add_argument("--fine-dt", type=float, default=1e-4)
+parser.add_argument("--mujoco-dts", type=float, nargs="+", default=[1e-4, 1e-3])
+args = parser.parse_args()
+
 profile = load_profile("full")
 lagrangian, mujoco_c = get_engine("lagrangian"), get_engine("mujoco", form="nested")
-for name in ("chain16-3d", "chain16"):
+for name in args.scene:
     scene = get_scene(name)
     states = evaluation_initial_states(profile, scene)
-    states = State(np.asarray(states.q[:10]), np.asarray(states.qd[:10]))
-    truth = lagrangian.rollout(scene, SimulationConfig(1e-3, 1e-3, 1.0), states)
-    fine = lagrangian.rollout(scene, SimulationConfig(1e-4, 1e-3, 1.0), states)
-    found = {"truth dt1e-3 vs truth dt1e-4": np.abs(truth.q - fine.q).max()}
-    for dt in (1e-4, 1e-3):
+    states = State(np.asarray(states.q[:args.initial_conditions]), np.asarray(states.qd[:args.initial_conditions]))
+    truth = lagrangian.rollout(scene, SimulationConfig(1e-3, 1e-3, args.duration), states)
+    fine = lagrangian.rollout(scene, SimulationConfig(args.fine_dt, 1e-3, args.duration), states)
+    found = {f"truth dt1e-3 vs truth dt{args.fine_dt:g}": np.abs(truth.q - fine.q).max()}
+    for dt in args.mujoco_dts:
         began = time.perf_counter()
-        reference = mujoco_c.rollout(scene, SimulationConfig(dt, 1e-3, 1.0), states)
+        reference = mujoco_c.rollout(scene, SimulationConfig(dt, 1e-3, args.duration), states)
         found[f"mujoco dt{dt:g} vs truth dt1e-3"] = np.abs(reference.q - truth.q).max()
-        found[f"mujoco dt{dt:g} vs truth dt1e-4"] = np.abs(reference.q - fine.q).max()
+        found[f"mujoco dt{dt:g} vs truth dt{args.fine_dt:g}"] = np.abs(reference.q - fine.q).max()
         found[f"mujoco dt{dt:g} s"] = time.perf_counter() - began
     print(name, {key: f"{value:.3g}" for key, value in found.items()}, flush=True)
 print(environment())
