@@ -42,6 +42,7 @@ began = time.perf_counter()
 c = get_engine("mujoco", form="nested").rollout(scene, config, states)
 found["mujoco_c_s"] = round(time.perf_counter() - began, 2)
 found["mujoco_c_s_per_simulated_s"] = round(found["mujoco_c_s"] / duration, 1)
+print(json.dumps({**found, **environment()}), flush=True)
 
 mjx = get_engine("mjx", dtype="float64", form="nested")
 compile_s, run_s, q_mjx = mjx.timed_rollout(scene, config, states)
