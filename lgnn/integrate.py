@@ -94,10 +94,10 @@ RK4_OFFSETS = (0.0, 0.5, 0.5, 1.0)
 RK4_WEIGHTS = (1.0, 2.0, 2.0, 1.0)
 
 
-def rk4(accel, dt: float, project: Projection | None = None, *, looped: bool = True) -> Integrator:
+def rk4(accel, dt: float, project: Projection | None = None) -> Integrator:
     """Classical 4th-order Runge-Kutta on the first-order system (q, qd).
 
-    `looped`: the four stages are one loop over `RK4_OFFSETS` and `RK4_WEIGHTS`, so a
+    The four stages are one loop over `RK4_OFFSETS` and `RK4_WEIGHTS`, so a
     compiled step holds one copy of `accel`, not four. A learned model's acceleration
     (its network, derivatives and constrained solve) is most of a rollout program, and
     compiling it four times was most of the evaluate stage's compile time: on a 2-core
@@ -105,11 +105,9 @@ def rk4(accel, dt: float, project: Projection | None = None, *, looped: bool = T
     stepped within 6 % (results/gpu/compile/README.md). Where a step costs
     microseconds the loop costs a fifth of it (one 12-link chain's exact step on a CPU,
     11.4 to 14.1 us, results/cpu_vs_mujoco.md): there the stages are written out
-    (`looped=False`; `Integration.integrator_for`'s `cheap_steps`). Either way the sums
-    run in the written-out formula's order, `k1 + 2 k2 + 2 k3 + k4`: the same step to
-    the last bit (tests/test_integrate.py)."""
-    if not looped:
-        return _written_out_rk4(accel, dt, project)
+    (`written_out_rk4`, `integrator(..., cheap_steps=True)`). Either way the sums run in
+    the written-out formula's order, `k1 + 2 k2 + 2 k3 + k4`: the same step to the last
+    bit (tests/test_integrate.py)."""
 
     def step(carry: Carry) -> Carry:
         (q, qd), _, q_low = carry
@@ -132,7 +130,7 @@ def rk4(accel, dt: float, project: Projection | None = None, *, looped: bool = T
     return Integrator(_initial_carry, step, 4)
 
 
-def _written_out_rk4(accel, dt: float, project: Projection | None) -> Integrator:
+def written_out_rk4(accel, dt: float, project: Projection | None = None) -> Integrator:
     """`rk4` with its stages written out (four copies of `accel` in a compiled step)."""
 
     def step(carry: Carry) -> Carry:
@@ -173,6 +171,16 @@ def velocity_verlet(accel, dt: float, project: Projection | None = None) -> Inte
 
 
 INTEGRATORS = {"rk4": rk4, "verlet": velocity_verlet}
+# The form of an integrator for steps that cost microseconds, where its stage loop
+# would cost a fifth of a step (`rk4`); an integrator without one steps as it is.
+CHEAP_STEP_FORMS = {"rk4": written_out_rk4}
+
+
+def integrator(name: str, accel, dt: float, project: Projection | None = None, *, cheap_steps: bool = False) -> Integrator:
+    """The integrator `name` of `INTEGRATORS` stepping `accel` by `dt`, projecting with
+    `project`; where `cheap_steps`, its `CHEAP_STEP_FORMS` form if it has one."""
+    factory = CHEAP_STEP_FORMS.get(name) if cheap_steps else None
+    return (factory or INTEGRATORS[name])(accel, dt, project)
 
 
 def advance(integrator: Integrator, carry: Carry, n_frames: int, steps_per_frame: int):

@@ -37,10 +37,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from lgnn import physics
+from lgnn import integrate, physics
 from lgnn.errors import ConfigError, check_number
 from lgnn.files import atomic_path, check_regular_input
-from lgnn.integrate import INTEGRATORS, Integrator, Projection, rk4
+from lgnn.integrate import INTEGRATORS, Integrator, Projection
 from lgnn.scene import Scene, State
 from lgnn.scene.schema import MAX_MAGNITUDE
 
@@ -112,11 +112,8 @@ class Integration:
         """The integrator stepping `accel` by `dt`, projecting with `project` (a scene's
         `physics.projection_fn`) where this integration projects. `cheap_steps`: a step
         costs microseconds (one trajectory on a CPU), where RK4's stages are written out
-        rather than looped (`integrate.rk4`)."""
-        project = project if self.project else None
-        if self.integrator == "rk4":
-            return rk4(accel, dt, project, looped=not cheap_steps)
-        return INTEGRATORS[self.integrator](accel, dt, project)
+        rather than looped (`integrate.CHEAP_STEP_FORMS`)."""
+        return integrate.integrator(self.integrator, accel, dt, project if self.project else None, cheap_steps=cheap_steps)
 
 
 @dataclasses.dataclass(frozen=True)
