@@ -192,12 +192,12 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
     (`truth_trajectories`, `truth_timings`).
 
     With `out`, the trajectories are kept in the dataset cache (`truth_file`, named and
-    keyed by `truth_key`), and read back by every
-    later process, of any output folder: MuJoCo C's reference alone takes
-    6.6 minutes on 16 cores for chain100-3d, more beside other work (a serial chain's
-    joint-space mass matrix is dense: O(nv^3) per step), which each process evaluating
-    one of the scene's pairs would otherwise redo. Float64 as computed (the reference agrees with MuJoCo to
-    1e-10 and better); about 1.2 GB for chain100-3d."""
+    keyed by `truth_key`), and read back by every later process, of any output folder:
+    MuJoCo C's reference alone takes 6.6 minutes on 16 cores for chain100-3d, more
+    beside other work (a serial chain's joint-space mass matrix is dense: O(nv^3) per
+    step), which each process evaluating one of the scene's pairs would otherwise redo.
+    Float64 as computed (the reference agrees with MuJoCo to 1e-10 and better); about
+    1.2 GB for chain100-3d."""
     if out is None:
         return _computed_ground_truth(profile, scene_name, progress)
     key, path = truth_key(profile, scene_name), truth_file(profile, scene_name)
