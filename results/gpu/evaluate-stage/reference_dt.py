@@ -8,8 +8,8 @@ projection) at dt 1e-3 (the ground truth's step) and at `--fine-dt`, and MuJoCo 
 frames between each pair, and MuJoCo's seconds.
 
     python results/gpu/evaluate-stage/reference_dt.py      # reference-dt-cpu.txt
-    python results/gpu/evaluate-stage/reference_dt.py --scene chain100-3d --initial-conditions 2 --duration 0.3 \\
-        --mujoco-dts 1e-4 2.5e-4 5e-4 1e-3                  # reference-dt-chain100-3d-cpu.txt
+    python results/gpu/evaluate-stage/reference_dt.py --scene chain100-3d --initial-conditions 4 --duration 0.2 \\
+        --mujoco-dts 1e-4 2.5e-4 5e-4 1e-3                  # reference-dt-chain100-3d-h200.txt
 """
 
 import argparse
