@@ -51,7 +51,9 @@ def _tiny_benchmark(tmp_path):
 
 def test_a_registered_metric_and_reference_engine_reach_records_and_report(registered, tmp_path):
     profile, pair = _tiny_benchmark(tmp_path)
+    assert not evaluate.truth_recorded(profile, "chain4", tmp_path)
     evaluate.evaluate_scene(profile, "chain4", tmp_path, progress=False)
+    assert evaluate.truth_recorded(profile, "chain4", tmp_path)  # what the truth stage skips
     evaluate.evaluate_pair(profile, pair, tmp_path, progress=False)
     truth, _ = evaluate.load_truth(profile, "chain4", tmp_path)
     arrays, _ = evaluate.load_pair(profile, pair, tmp_path)

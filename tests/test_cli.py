@@ -1,5 +1,6 @@
 """The command line: outputs, and one clear line for every bad input."""
 
+import dataclasses
 import json
 import os
 import signal
@@ -197,8 +198,8 @@ def test_benchmark_workers_evaluate_each_models_seeds_together_scenes_interleave
     monkeypatch.setattr(bench_run, "run_split", lambda *args: calls.append(args))
     profile = grid.get_profile("full")
     bench_run.run(profile, tmp_path, stages=["evaluate"], workers=4, profile_argv=["--full"])
-    (stage, parts, argv, _, workers), = calls
-    assert (stage, argv, workers) == ("evaluate", ["--full"], 4)
+    (stage, parts, argv, _, workers, after), = calls
+    assert (stage, argv, workers, after) == ("evaluate", ["--full"], 4, ())
     covered = set()
     for name, args in parts.items():
         scene = args[args.index("--scene") + 1]
@@ -210,6 +211,44 @@ def test_benchmark_workers_evaluate_each_models_seeds_together_scenes_interleave
     scenes = grid.evaluation_scenes(profile)
     first = [args[args.index("--scene") + 1] for args in list(parts.values())[: len(scenes)]]
     assert sorted(first) == sorted(scenes)
+
+
+def test_benchmark_workers_queue_the_ground_truths_behind_the_training_groups(tmp_path, monkeypatch):
+    """With the truth stage to come, split training queues one part per evaluation scene
+    behind its groups in the same pool, the costliest reference first; the truth stage
+    then runs those still missing (here all: the children are spied on, not run). In one
+    process the truth stage leaves the ground truths to a following evaluate stage
+    (which computes each beside its models' rollouts) and computes them when alone."""
+    from lgnn.bench import grid, run as bench_run
+
+    calls, scenes_computed = [], []
+    monkeypatch.setattr(bench_run, "run_split", lambda *args: calls.append(args))
+    monkeypatch.setattr(bench_run, "prepare_datasets", lambda *args: None)
+    profile = grid.get_profile("full")
+    bench_run.run(profile, tmp_path, stages=["train", "truth"], workers=4, profile_argv=["--full"])
+    (stage, groups, _, _, _, after), (truth_stage, truth_parts, _, _, _, truth_after) = calls
+    assert stage == "train" and {job.group for job in grid.training_jobs(profile)} == set(groups)
+    ((queued_stage, queued),) = after
+    scenes = grid.evaluation_scenes(profile)
+    assert queued_stage == "truth" and sorted(queued) == sorted(scenes)
+    assert all(args == ["--scene", scene] for scene, args in queued.items())
+    assert list(queued)[0] == "chain100-3d" and list(queued).index("chain100") < list(queued).index("chain4")
+    assert (truth_stage, truth_parts, truth_after) == ("truth", queued, ())
+    # Training alone queues no ground truth; the truth stage of some jobs computes their scenes'.
+    calls.clear()
+    bench_run.run(profile, tmp_path, stages=["train"], workers=4, profile_argv=["--full"])
+    assert calls[0][-1] == ()
+    calls.clear()
+    bench_run.run(profile, tmp_path, stages=["truth"], jobs=["clnn-chain4-s0", "clnn-chain4-3d-s0"], workers=4, profile_argv=["--full"])
+    assert calls[0][:2] == ("truth", {"chain4-3d": ["--scene", "chain4-3d"], "chain4": ["--scene", "chain4"]})
+    # One process.
+    monkeypatch.setattr(bench_run, "evaluate_scene", lambda profile, scene, out, progress: scenes_computed.append(scene))
+    monkeypatch.setitem(bench_run.STAGES, "evaluate", dataclasses.replace(bench_run.STAGES["evaluate"], run=lambda request: None))
+    quick = grid.get_profile("quick")
+    bench_run.run(quick, tmp_path, stages=["truth", "evaluate"], progress=False)
+    assert scenes_computed == []
+    bench_run.run(quick, tmp_path, stages=["truth"], progress=False)
+    assert scenes_computed == grid.evaluation_scenes(quick)
 
 
 def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_ones_log(capsys, tmp_path, monkeypatch):

@@ -47,12 +47,26 @@ from lgnn.runtime import BENCHMARK_CHILD
 STOP_GRACE_S = 60.0
 
 
-def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int) -> None:
+def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int,
+              after: tuple[tuple[str, dict[str, list[str]]], ...] = ()) -> None:
     """Run `lgnn benchmark PROFILE_ARGV --stage STAGE --out-dir OUT ARGS` for each part
-    (`{name: ARGS}`, e.g. `["--job", "gns-chain4-s0", ...]`), `workers` at a time."""
+    (`{name: ARGS}`, e.g. `["--job", "gns-chain4-s0", ...]`), `workers` at a time.
+    `after`: `(stage, parts)` of other stages, queued behind these in the same pool (the
+    evaluation's ground truths behind the training groups, `lgnn.bench.run`)."""
+    queue = split_queue(stage, parts, after)
     logs = logs_folder(out)
-    with gpu_sharing(child_environment(os.environ), enabled=workers > 1 and len(parts) > 1) as env:
-        _run_parts(stage, parts, profile_argv, out, workers, env, logs)
+    with gpu_sharing(child_environment(os.environ), enabled=workers > 1 and len(queue) > 1) as env:
+        _run_parts(queue, profile_argv, out, workers, env, logs)
+
+
+def split_queue(stage: str, parts: dict[str, list[str]], after=()) -> list[tuple[str, str, list[str]]]:
+    """`(stage, part, args)` in the order the parts start: `parts`, then each of `after`'s."""
+    return [(name_of_stage, name, args) for name_of_stage, named in ((stage, parts), *after) for name, args in named.items()]
+
+
+def stages_named(queue: list[tuple[str, str, list[str]]]) -> str:
+    """The stages of a queue, as a failure names them ("train" or "train, truth")."""
+    return ", ".join(dict.fromkeys(stage for stage, _, _ in queue))
 
 
 def logs_folder(out: Path) -> Path:
@@ -76,10 +90,10 @@ def child_environment(environ) -> dict:
     return env
 
 
-def _run_parts(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int, env: dict, logs: Path) -> None:
-    waiting, running, failed = list(parts.items()), {}, []
+def _run_parts(queue: list[tuple[str, str, list[str]]], profile_argv: list[str], out: Path, workers: int, env: dict, logs: Path) -> None:
+    waiting, running, failed = list(queue), {}, []
     try:
-        _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, running, failed)
+        _supervise(len(queue), profile_argv, out, workers, env, logs, waiting, running, failed)
     finally:
         # The parent unwinding (Ctrl-C, SIGTERM): its children stop too, each as on
         # Ctrl-C (a training child saves its checkpoint first; `runtime.
@@ -95,25 +109,26 @@ def _run_parts(stage: str, parts: dict[str, list[str]], profile_argv: list[str],
                 process.wait()
             handle.close()
     if failed:
-        raise LgnnError(f"benchmark {stage}: {len(failed)} of {len(parts)} parts failed; see {failed[0][1]}")
+        raise LgnnError(f"benchmark {stages_named(queue)}: {len(failed)} of {len(queue)} parts failed; see {failed[0][1]}")
 
 
-def _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, running, failed) -> None:
+def _supervise(total, profile_argv, out, workers, env, logs, waiting, running, failed) -> None:
     """Start the `waiting` parts, `workers` at a time, until every one has ended."""
     started = time.monotonic()
     gpus, on_gpu = visible_gpus(env), {}
     while waiting or running:
         while waiting and len(running) < workers:
-            name, args = waiting.pop(0)
+            stage, part, args = waiting.pop(0)
+            name = f"{stage} {part}"
             command = [sys.executable, "-m", "lgnn", *child_arguments(stage, profile_argv, out, args)]
-            path = logs / f"{stage}-{file_name(name)}.log"
+            path = logs / f"{stage}-{file_name(part)}.log"
             handle = path.open("w")
             child_env, where = env, ""
             if len(gpus) > 1:
                 gpu = least_loaded(gpus, [on_gpu[n] for n in running])
                 on_gpu[name], child_env, where = gpu, {**env, "CUDA_VISIBLE_DEVICES": gpu}, f", GPU {gpu}"
             running[name] = (subprocess.Popen(command, stdout=handle, stderr=subprocess.STDOUT, env=child_env), handle, path)
-            log(f"{stage} {name}: started (log {path}{where})")
+            log(f"{name}: started (log {path}{where})")
         time.sleep(1.0)
         for name, (process, handle, path) in list(running.items()):
             if process.poll() is None:
@@ -122,8 +137,8 @@ def _supervise(stage, parts, profile_argv, out, workers, env, logs, waiting, run
             del running[name]
             if process.returncode:
                 failed.append((name, path))
-            log(f"{stage} {name}: {'failed' if process.returncode else 'done'} after {(time.monotonic() - started) / 60:.1f} min"
-                f" ({len(parts) - len(waiting) - len(running)} of {len(parts)} parts ended)")
+            log(f"{name}: {'failed' if process.returncode else 'done'} after {(time.monotonic() - started) / 60:.1f} min"
+                f" ({total - len(waiting) - len(running)} of {total} parts ended)")
 
 
 def visible_gpus(env: dict) -> list[str]:

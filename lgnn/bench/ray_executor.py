@@ -36,7 +36,7 @@ import sys
 import time
 from pathlib import Path
 
-from lgnn.bench.parallel import STOP_GRACE_S, child_arguments, child_environment, logs_folder
+from lgnn.bench.parallel import STOP_GRACE_S, child_arguments, child_environment, logs_folder, split_queue, stages_named
 from lgnn.bench.store import file_name, log
 from lgnn.errors import ConfigError, LgnnError
 from lgnn.files import user_cache_dir
@@ -90,23 +90,27 @@ def task_resources(workers: int) -> dict:
     return {"num_cpus": max(1, min(int(per_node), int(ray.cluster_resources().get("CPU", 1) // workers)))}
 
 
-def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int) -> None:
-    """`parallel.run_split` on the connected Ray cluster (`connected`): one task per part,
-    `workers` in flight; progress (parts done, running, failed) on stderr."""
+def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], out: Path, workers: int,
+              after: tuple[tuple[str, dict[str, list[str]]], ...] = ()) -> None:
+    """`parallel.run_split` on the connected Ray cluster (`connected`): one task per part
+    (`after`'s queued behind `parts`), `workers` in flight; progress (parts done,
+    running, failed) on stderr."""
     ray = _ray()
     logs = logs_folder(out)
     out, cwd = Path(out).resolve(), os.getcwd()
     cache = str(user_cache_dir().resolve())  # every task uses the driver's dataset cache
     task = ray.remote(max_retries=MAX_RETRIES, retry_exceptions=False)(run_part).options(**task_resources(workers))
-    waiting, running, failed, done = list(parts.items()), {}, [], 0
+    queue = split_queue(stage, parts, after)
+    stages = stages_named(queue)
+    waiting, running, failed, done = list(queue), {}, [], 0
     started = last = time.monotonic()
     try:
         while waiting or running:
             while waiting and len(running) < workers:
-                name, args = waiting.pop(0)
-                path = logs / f"{stage}-{file_name(name)}.log"
-                running[task.remote(child_arguments(stage, profile_argv, out, args), cwd, str(path), cache)] = (name, path)
-                log(f"{stage} {name}: submitted (log {path})")
+                part_stage, part, args = waiting.pop(0)
+                path = logs / f"{part_stage}-{file_name(part)}.log"
+                running[task.remote(child_arguments(part_stage, profile_argv, out, args), cwd, str(path), cache)] = (f"{part_stage} {part}", path)
+                log(f"{part_stage} {part}: submitted (log {path})")
             ended, _ = ray.wait(list(running), num_returns=1, timeout=PROGRESS_EVERY_S)
             for ref in ended:
                 name, path = running.pop(ref)
@@ -118,16 +122,16 @@ def run_split(stage: str, parts: dict[str, list[str]], profile_argv: list[str], 
                     failed.append((name, path))
                 else:
                     done += 1
-                log(f"{stage} {name}: {'failed' if code else 'done'} on {where}")
+                log(f"{name}: {'failed' if code else 'done'} on {where}")
             if ended or time.monotonic() - last >= PROGRESS_EVERY_S:
                 last = time.monotonic()
-                log(f"{stage}: {done} done, {len(running)} running, {len(failed)} failed, {len(waiting)} waiting of {len(parts)} parts"
+                log(f"{stages}: {done} done, {len(running)} running, {len(failed)} failed, {len(waiting)} waiting of {len(queue)} parts"
                     f" ({(last - started) / 60:.1f} min)")
     finally:
         for ref in running:  # the driver interrupted: each running child stops as on Ctrl-C
             ray.cancel(ref)
     if failed:
-        raise LgnnError(f"benchmark {stage}: {len(failed)} of {len(parts)} parts failed; see {failed[0][1]}")
+        raise LgnnError(f"benchmark {stages}: {len(failed)} of {len(queue)} parts failed; see {failed[0][1]}")
 
 
 def run_part(arguments: list[str], cwd: str, log_path: str, cache: str) -> tuple[int, str]:

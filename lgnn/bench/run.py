@@ -29,7 +29,7 @@ from lgnn.bench.grid import Pair, Profile, TrainingJob, evaluation_pairs, evalua
 from lgnn.bench import store
 from lgnn.bench.parallel import run_split
 from lgnn.runtime import release_compiled_programs
-from lgnn.bench.stages.evaluate import evaluate_group, evaluate_scene
+from lgnn.bench.stages.evaluate import evaluate_group, evaluate_scene, truth_cost, truth_recorded
 from lgnn.bench.stages.external import check_predictions, evaluate_external, read_predictions
 from lgnn.bench.stages.mass import mass_matrices
 from lgnn.bench.stages.scaling import scaling
@@ -59,20 +59,22 @@ class StageRun:
     # Where split parts run: "local" (child processes, `lgnn.bench.parallel`) or "ray"
     # (Ray tasks, `lgnn.bench.ray_executor`; parts split even with one worker).
     executor: str = "local"
+    # The stages this run runs (a stage may do a later one's work early: `_train`).
+    stages: tuple[str, ...] = ()
 
     @property
     def split(self) -> bool:
         """Whether training and evaluation run as parts (child processes or Ray tasks)."""
         return self.workers > 1 or self.executor == "ray"
 
-    def run_split(self, stage: str, parts: dict[str, list[str]]) -> None:
-        """Run `parts` of `stage` on this run's executor."""
+    def run_split(self, stage: str, parts: dict[str, list[str]], after: tuple[tuple[str, dict[str, list[str]]], ...] = ()) -> None:
+        """Run `parts` of `stage`, then `after`'s (`(stage, parts)`), on this run's executor."""
         if self.executor == "ray":
             from lgnn.bench import ray_executor
 
-            ray_executor.run_split(stage, parts, self.profile_argv, self.out, self.workers)
+            ray_executor.run_split(stage, parts, self.profile_argv, self.out, self.workers, after)
         else:
-            run_split(stage, parts, self.profile_argv, self.out, self.workers)
+            run_split(stage, parts, self.profile_argv, self.out, self.workers, after)
 
     def keeps(self, scene: str) -> bool:
         """Whether a stage's scene is selected (every scene unless `--scene` named some)."""
@@ -101,9 +103,44 @@ def _train(request: StageRun) -> None:
         for job in request.jobs:
             groups.setdefault(job.group, []).append(job.name)
         prepare_datasets(profile, request.jobs, out, request.progress)
-        request.run_split("train", {name: [a for j in names for a in ("--job", j)] for name, names in groups.items()})
+        # The evaluation's ground truths need no model: with the truth stage to come, they
+        # are queued behind the training groups, so they take the workers the groups
+        # leave (a group's GPU program leaves the host's cores idle, and the references
+        # are CPU work: chain100-3d's MuJoCo C reference takes 6.6 minutes of 16 cores).
+        after = (("truth", _truth_parts(request)),) if "truth" in request.stages else ()
+        request.run_split("train", {name: [a for j in names for a in ("--job", j)] for name, names in groups.items()}, after)
     else:
         train_jobs(profile, request.jobs, out, request.progress)
+
+
+def _truth(request: StageRun) -> None:
+    """Each selected scene's ground truth (kept in the dataset cache) and ground-truth
+    record, before any model is evaluated there: in split runs one part per scene, the
+    costliest reference first (those `_train` did not already finish). In one process
+    with the evaluate stage to come, nothing: that stage computes each scene's ground
+    truth while the scene's models roll out (`evaluate_group`)."""
+    if request.split:
+        parts = _truth_parts(request)
+        if parts:
+            request.run_split("truth", parts)
+    elif "evaluate" not in request.stages:
+        for scene in _scenes_of_jobs(request):
+            evaluate_scene(request.profile, scene, request.out, request.progress)
+
+
+def _scenes_of_jobs(request: StageRun) -> list[str]:
+    """The selected scenes on which a selected training job is evaluated."""
+    selected = set(request.jobs)
+    evaluated = {pair.scene for pair in evaluation_pairs(request.profile) if pair.job in selected}
+    return [scene for scene in request.scenes if scene in evaluated]
+
+
+def _truth_parts(request: StageRun) -> dict[str, list[str]]:
+    """`{scene: ["--scene", scene]}` of the selected jobs' scenes (`_scenes_of_jobs`)
+    whose ground-truth record is not yet written, the costliest reference first
+    (`truth_cost`)."""
+    missing = [scene for scene in _scenes_of_jobs(request) if not truth_recorded(request.profile, scene, request.out)]
+    return {scene: ["--scene", scene] for scene in sorted(missing, key=lambda scene: -truth_cost(request.profile, scene))}
 
 
 def _evaluate(request: StageRun) -> None:
@@ -160,6 +197,7 @@ STAGES: dict[str, Stage] = {
     stage.name: stage
     for stage in (
         Stage("train", _train, lambda profile: profile.training),
+        Stage("truth", _truth, lambda profile: profile.evaluate),
         Stage("evaluate", _evaluate, lambda profile: profile.evaluate),
         Stage("speed", _speed, lambda profile: profile.speed),
         Stage("scaling", _scaling, lambda profile: profile.scaling),
@@ -173,7 +211,7 @@ STAGES: dict[str, Stage] = {
 EXECUTORS = ("local", "ray")
 
 # The stages a run with a `base` folder runs unless told otherwise.
-BASE_STAGES = ("train", "evaluate", "report")
+BASE_STAGES = ("train", "truth", "evaluate", "report")
 
 
 def register_stage(stage: Stage) -> None:
@@ -221,7 +259,7 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
             raise ConfigError(f"scene {name!r} is not evaluated in the {profile.name} profile (choose from {', '.join(evaluation_scenes(profile))})")
     request = StageRun(profile, out, [j for j in all_jobs if not jobs or j.name in jobs],
                        [s for s in evaluation_scenes(profile) if not scenes or s in scenes], bool(scenes), progress, workers, profile_argv, command,
-                       executor)
+                       executor, tuple(stages))
     out.mkdir(parents=True, exist_ok=True)
     with _executor_session(executor, address):
         for stage in list(STAGES.values()):

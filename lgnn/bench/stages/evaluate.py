@@ -363,11 +363,28 @@ def evaluate_scene(profile: Profile, scene_name: str, out: Path, progress: bool 
         return _evaluated_scene(profile, scene_name, out, progress, path)
 
 
+def truth_recorded(profile: Profile, scene_name: str, out: Path) -> bool:
+    """Whether the scene's ground-truth record of the current settings and metrics is
+    written (`evaluate_scene` would compute nothing)."""
+    layout = store.layout(profile, out)
+    return has_arrays(layout.load(layout.truth_record(scene_name), truth_key(profile, scene_name)), _truth_needs(profile, get_scene(scene_name)))
+
+
+def truth_cost(profile: Profile, scene_name: str) -> float:
+    """A scene's ground-truth cost in arbitrary units, to start the costliest first: its
+    initial conditions times the cube of its coordinates (MuJoCo C factorises a serial
+    chain's dense joint-space mass matrix every step; chain100-3d's is most of the
+    stage)."""
+    scene = get_scene(scene_name)
+    count = 1 if initial_state_policy(scene) == OWN_STATE else profile.evaluate.initial_conditions
+    return count * float(scene.n_nodes * scene.dim) ** 3
+
+
 def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: bool, path: Path) -> Path:
+    if truth_recorded(profile, scene_name, out):
+        return path
     key = truth_key(profile, scene_name)
     scene = get_scene(scene_name)
-    if has_arrays(store.layout(profile, out).load(path, key), _truth_needs(profile, scene)):
-        return path
     truth = ground_truth(profile, scene_name, progress, out)
     references = profile.evaluate.references
     frame_dt = profile.evaluate.frame_dt
