@@ -1,5 +1,5 @@
-"""Checkpoints: leaves by pytree path, inference without the optimiser, compressed
-files, the format-1 reader and its conversion (rollouts bit-identical)."""
+"""Checkpoints: leaves by pytree path, inference without the optimiser, stored and
+compressed files, the format-1 reader and its conversion (rollouts bit-identical)."""
 
 import os
 import subprocess
@@ -112,17 +112,21 @@ def test_a_model_outside_the_registry_loads_with_its_spec(tmp_path, monkeypatch)
         load_model(path, other)
 
 
-def test_checkpoints_are_compressed_with_the_history_as_an_array(tmp_path):
+def test_training_stores_checkpoints_the_kept_copies_are_compressed_the_history_an_array(tmp_path):
+    """Training's checkpoints are stored (fast to write every few epochs), the slimmer
+    copies kept for good deflated; both hold the history as an array."""
     model = models.ModelConfig.for_scene("lgnn", get_scene("chain4"))
     state = train.initial_state(model, train.TrainConfig())._replace(history=[(1, 2.0, 3.0, 4.5), (2, 1.5, 2.5)], epoch=2)
-    path = tmp_path / "c.npz"
+    path, kept = tmp_path / "c.npz", tmp_path / "kept.npz"
     train.save_checkpoint(path, state, model, train.TrainConfig())
-    with zipfile.ZipFile(path) as archive:
-        assert {info.compress_type for info in archive.infolist()} == {zipfile.ZIP_DEFLATED}
-    arrays, meta = records.read(path)
-    assert meta["format"] == checkpoints.FORMAT == 2 and "history" not in meta
-    assert arrays["history"].shape == (2, 4)
-    assert train.load_checkpoint(path)[0].history == state.history
+    checkpoints.for_inference(path, kept)
+    for written, compression in ((path, zipfile.ZIP_STORED), (kept, zipfile.ZIP_DEFLATED)):
+        with zipfile.ZipFile(written) as archive:
+            assert {info.compress_type for info in archive.infolist()} == {compression}, written.name
+        arrays, meta = records.read(written)
+        assert meta["format"] == checkpoints.FORMAT == 2 and "history" not in meta
+        assert arrays["history"].shape == (2, 4)
+        assert train.load_checkpoint(written)[0].history == state.history
 
 
 def _write_format_1(path, state: train.TrainState, model, config):
@@ -191,11 +195,17 @@ def test_committed_checkpoints_are_converted_and_keep_their_content():
     assert model.name == "lgnn-notebook" and train.load_checkpoint(COMMITTED / "lgnn-notebook-chain4-s0.npz")[0].epoch > 0
 
 
-def test_a_damaged_compressed_checkpoint_is_one_line(tmp_path):
-    """A byte flipped anywhere in a deflated leaf: a `CheckpointError`, never zlib's or zipfile's traceback."""
+@pytest.mark.parametrize("kept", [False, True], ids=["stored", "deflated"])
+def test_a_damaged_checkpoint_is_one_line(tmp_path, kept):
+    """A byte flipped anywhere in a stored or deflated leaf: a `CheckpointError`, never
+    zlib's or zipfile's traceback."""
     model = models.ModelConfig.for_scene("lgnn", get_scene("chain4"))
     path = tmp_path / "good.npz"
-    _save_initial(path, model)
+    _save_initial(tmp_path / "whole.npz", model)
+    if kept:
+        checkpoints.for_inference(tmp_path / "whole.npz", path)
+    else:
+        (tmp_path / "whole.npz").rename(path)
     raw = path.read_bytes()
     with zipfile.ZipFile(path) as archive:
         leaf = max(archive.infolist(), key=lambda info: info.compress_size if info.filename.startswith("best/") else 0)

@@ -41,7 +41,7 @@ rollout accumulates), and statistics of the training states it normalises by:
 computed once before the first epoch, kept in the params, never stepped (the
 optimiser sees only `models.split_statistics`'s trainable part).
 
-Checkpoints (`lgnn.learn.checkpoints`: leaves by pytree path, compressed) hold the
+Checkpoints (`lgnn.learn.checkpoints`: leaves by pytree path) hold the
 whole training state; `load_checkpoint` rebuilds it from the model config and the
 optimiser's template, for resuming, and refuses, with one `CheckpointError` line, a
 file that is unreadable, corrupt or of another shape. Inference reads only the best
