@@ -213,6 +213,37 @@ def test_benchmark_workers_evaluate_each_models_seeds_together_scenes_interleave
     assert sorted(first) == sorted(scenes)
 
 
+def test_benchmark_workers_start_the_costliest_evaluation_parts_first(tmp_path, monkeypatch):
+    """Evaluation parts whose checkpoints say how long an epoch took start first, the
+    dearest first (seconds per epoch times the scene's nodes); the others follow in the
+    interleaved order; an unreadable checkpoint is only a part of unknown cost."""
+    from lgnn.bench import grid, run as bench_run, store
+    from lgnn.learn import checkpoints
+    from lgnn.scene import get_scene
+
+    calls = []
+    monkeypatch.setattr(bench_run, "run_split", lambda *args: calls.append(args))
+    profile = grid.get_profile("full")
+    layout = store.Layout(tmp_path)
+    layout.checkpoint(grid.training_jobs(profile)[0]).parent.mkdir(parents=True)
+    for seed, seconds in enumerate((40.0, 50.0, 30.0)):  # LGN's: 5 s an epoch for its slowest seed
+        checkpoints.write(layout.checkpoint(grid.TrainingJob("lgn", "chain4", seed)), {}, {}, [(1, 1.0, 1.0, 1.0), (10, 1.0, 1.0, seconds)])
+    checkpoints.write(layout.checkpoint(grid.TrainingJob("gns", "chain4", 0)), {}, {}, [(10, 1.0, 1.0, 0.5)])
+    layout.checkpoint(grid.TrainingJob("lgnn", "chain4", 0)).write_bytes(b"not an archive")
+    assert checkpoints.seconds_per_epoch(layout.checkpoint(grid.TrainingJob("lgn", "chain4", 1))) == 5.0
+    bench_run.run(profile, tmp_path, stages=["evaluate"], workers=4, profile_argv=["--full"])
+    names = list(calls[0][1])
+    lgn_scenes = [p.scene for p in grid.evaluation_pairs(profile) if p.job.name == "lgn-chain4-s0"]
+    gns_scenes = list(dict.fromkeys(p.scene for p in grid.evaluation_pairs(profile) if p.job.name == "gns-chain4-s0"))
+    by_size = lambda scenes: sorted(scenes, key=lambda scene: -get_scene(scene).n_nodes)  # noqa: E731 (stable: ties keep their order)
+    known = [f"{scene}-lgn-chain4" for scene in by_size(lgn_scenes)] + [f"{scene}-gns-chain4" for scene in by_size(gns_scenes)]
+    assert names[: len(known)] == known
+    calls.clear()
+    monkeypatch.setattr(bench_run, "_rollout_cost", lambda *args: 0.0)
+    bench_run.run(profile, tmp_path, stages=["evaluate"], workers=4, profile_argv=["--full"])
+    assert names[len(known):] == [name for name in calls[0][1] if name not in known]
+
+
 def test_benchmark_workers_queue_the_ground_truths_behind_the_training_groups(tmp_path, monkeypatch):
     """With the truth stage to come, split training queues one part per evaluation scene
     behind its groups in the same pool, the costliest reference first; the truth stage

@@ -37,6 +37,8 @@ from lgnn.bench.stages.speed import speed_error
 from lgnn.bench.stages.train import prepare_datasets, train_jobs
 from lgnn.bench.store import default_out
 from lgnn.errors import ConfigError
+from lgnn.learn.checkpoints import seconds_per_epoch
+from lgnn.scene import get_scene
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,14 +151,18 @@ def _evaluate(request: StageRun) -> None:
     if request.split:
         # One part per (scene, model's seeds); scenes interleaved, so the first parts
         # to start compute different scenes' ground truths (`ground_truth`: one
-        # process computes a scene's, the others wait and read it).
-        parts = {}
+        # process computes a scene's, the others wait and read it). Then the costliest
+        # first (`_rollout_cost`; parts of no known cost keep that order, last): on one
+        # H200 the last parts to end were LGN's on the 100-link chains, which the
+        # interleaving alone had started 1.5-2.5 minutes in.
+        parts, costs = {}, {}
         for rank in range(max(map(len, by_scene.values()), default=0)):
             for scene, groups in by_scene.items():
                 if rank < len(groups):
                     name, pairs = groups[rank]
                     parts[f"{scene}-{name}"] = ["--scene", scene, *(a for j in dict.fromkeys(p.job.name for p in pairs) for a in ("--job", j))]
-        request.run_split("evaluate", parts)
+                    costs[f"{scene}-{name}"] = _rollout_cost(request, scene, pairs)
+        request.run_split("evaluate", {name: parts[name] for name in sorted(parts, key=lambda name: -costs[name])})
     else:
         for scene, groups in by_scene.items():
             # The models first: their rollouts run while the scene's ground truth is
@@ -169,6 +175,16 @@ def _evaluate(request: StageRun) -> None:
     for path in profile.predictions:
         if read_predictions(profile, path).scene in request.scenes:
             evaluate_external(profile, path, out, request.progress)
+
+
+def _rollout_cost(request: StageRun, scene: str, pairs: list[Pair]) -> float:
+    """An evaluation part's cost in arbitrary units, to start the longest first: its
+    model's training seconds per epoch (the slowest seed's checkpoint: how dear its
+    acceleration is, measured where it trained) times the scene's nodes; 0 where no
+    checkpoint says."""
+    layout = store.layout(request.profile, request.out)
+    rates = [rate for rate in (seconds_per_epoch(layout.checkpoint(pair.job)) for pair in pairs) if rate is not None]
+    return max(rates, default=0.0) * get_scene(scene).n_nodes
 
 
 def _speed(request: StageRun) -> None:
