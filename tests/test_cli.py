@@ -504,6 +504,29 @@ def test_run_split_marks_its_children_and_gives_them_one_minute_together(tmp_pat
     assert timeouts[0] <= 0.3 and sum(timeouts) < 0.3 + 0.1, timeouts
 
 
+def test_run_split_starts_another_stages_parts_behind_its_own(tmp_path, monkeypatch):
+    """`after`'s parts (the truth stage's behind training's) start once the stage's own
+    have, in the same pool of workers, each with its own `--stage` and log."""
+    from lgnn.bench import parallel
+
+    started = []
+
+    class Child:
+        returncode = 0
+
+        def __init__(self, command, stdout, stderr, env):
+            started.append((command[command.index("--stage") + 1], command[-1], Path(stdout.name).name))
+
+        def poll(self):
+            return 0
+
+    monkeypatch.setattr(parallel.subprocess, "Popen", Child)
+    monkeypatch.setattr(parallel.time, "sleep", lambda s: None)
+    parallel.run_split("train", {"a": ["--job", "a-s0"], "b": ["--job", "b-s0"]}, [], tmp_path, 1,
+                       after=(("truth", {"chain8": ["--scene", "chain8"]}),))
+    assert started == [("train", "a-s0", "train-a.log"), ("train", "b-s0", "train-b.log"), ("truth", "chain8", "truth-chain8.log")]
+
+
 def test_scene_export_takes_every_builtin(capsys):
     """T2-slack, which the grid evaluates, is a built-in like any other."""
     from lgnn.scene import get_scene, scene_from_dict

@@ -18,7 +18,7 @@ from lgnn.scene import spatial_chain
 from lgnn.scene.catalogue import double_pinned_chain
 
 
-pytestmark = pytest.mark.xla_optimised  # MJX programs run thousands of steps (conftest.py)
+# (20 steps: XLA's optimisations would cost more to compile than they save.)
 
 STEPS = 20
 
