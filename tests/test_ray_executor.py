@@ -27,6 +27,8 @@ PROFILE_ARGV = ["--set", 'models=["gns"]', "--set", 'scenes=["chain4"]', "--set"
                 "--set", "training.data.n_trajectories=4", "--set", "training.data.duration=0.1", "--set", "training.data.sample_dt=0.02",
                 "--set", "training.data.dt=1e-3"]
 STAGES = ["--set", 'stages=["train","evaluate","report"]']
+# The drivers' stages: the ground truths too, queued behind the training groups (`lgnn.bench.run._train`).
+SPLIT_STAGES = ["--set", 'stages=["train","truth","evaluate","report"]']
 TIMINGS = {"compile_s", "run_s", "steps_per_s", "mujoco_s", "elapsed_s"}
 
 
@@ -47,7 +49,7 @@ def _profile():
 
 def _driver(out: Path, address: str, cache: Path) -> subprocess.Popen:
     """A driver process whose dataset cache (`$LGNN_CACHE`, which its tasks use too) is `cache`."""
-    return subprocess.Popen([sys.executable, "-m", "lgnn", "benchmark", *PROFILE_ARGV, *STAGES, "--executor", "ray", "--address", address,
+    return subprocess.Popen([sys.executable, "-m", "lgnn", "benchmark", *PROFILE_ARGV, *SPLIT_STAGES, "--executor", "ray", "--address", address,
                              "--workers", "2", "--out-dir", str(out), "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "LGNN_CACHE": str(cache)})
 
@@ -55,9 +57,11 @@ def _driver(out: Path, address: str, cache: Path) -> subprocess.Popen:
 def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_executor_does(cluster, tmp_path, capsys):
     """Two drivers started at once on one output folder: each training job, model
     evaluation and ground truth is computed by one of them (the other's task waits for
-    its claim, then reads the record); the records' arrays and keys, the checkpoint's
-    parameters and `summary.csv.gz` are the local executor's exactly (timings apart); the
-    tasks use the drivers' dataset cache; no claim is left."""
+    its claim, then reads the record), the ground truth by a truth task queued behind
+    training; the records' arrays and keys, the checkpoint's parameters and
+    `summary.csv.gz` are the local executor's exactly (timings apart; locally the
+    evaluate stage computed the ground truth); the tasks use the drivers' dataset cache;
+    no claim is left."""
     local, shared, cache = tmp_path / "local", tmp_path / "ray", tmp_path / "drivers-cache"
     assert main(["benchmark", *PROFILE_ARGV, *STAGES, "--out-dir", str(local), "--quiet"]) == 0, capsys.readouterr().err
     # The drivers' own cache: they compute the ground truth again, rather than read the local run's.
@@ -67,11 +71,12 @@ def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_execu
     logs = shared / "benchmark" / "logs"
     train_log = (logs / "train-gns-chain4.log").read_text()
     evaluate_log = (logs / "evaluate-chain4-gns-chain4.log").read_text()
+    truth_log = (logs / "truth-chain4.log").read_text()
     assert train_log.count("# lgnn benchmark") == 2 and evaluate_log.count("# lgnn benchmark") == 2  # a task of each driver
     assert train_log.count("train gns-chain4-s0: 1 epochs in") == 1
     assert evaluate_log.count("evaluate gns s0 on chain4: rollout error") == 1
     assert evaluate_log.count("evaluate gns (unprojected) s0 on chain4: rollout error") == 1
-    assert evaluate_log.count("ground truth chain4: 3 initial conditions") == 1
+    assert truth_log.count("ground truth chain4: 3 initial conditions") == 1 and "ground truth chain4: 3 initial" not in evaluate_log
     assert len(list((cache / "datasets" / "ground-truth").glob("chain4-*.npz"))) == 1
     assert not list(shared.rglob("*.claim*")) and not list(cache.rglob("*.claim*"))
 
