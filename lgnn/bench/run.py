@@ -155,13 +155,13 @@ def _evaluate(request: StageRun) -> None:
         # first (`_rollout_cost`; parts of no known cost keep that order, last): on one
         # H200 the last parts to end were LGN's on the 100-link chains, which the
         # interleaving alone had started 1.5-2.5 minutes in.
-        parts, costs = {}, {}
+        parts, costs, layout = {}, {}, store.layout(profile, out)
         for rank in range(max(map(len, by_scene.values()), default=0)):
             for scene, groups in by_scene.items():
                 if rank < len(groups):
                     name, pairs = groups[rank]
                     parts[f"{scene}-{name}"] = ["--scene", scene, *(a for j in dict.fromkeys(p.job.name for p in pairs) for a in ("--job", j))]
-                    costs[f"{scene}-{name}"] = _rollout_cost(request, scene, pairs)
+                    costs[f"{scene}-{name}"] = _rollout_cost(layout, scene, pairs)
         request.run_split("evaluate", {name: parts[name] for name in sorted(parts, key=lambda name: -costs[name])})
     else:
         for scene, groups in by_scene.items():
@@ -177,12 +177,11 @@ def _evaluate(request: StageRun) -> None:
             evaluate_external(profile, path, out, request.progress)
 
 
-def _rollout_cost(request: StageRun, scene: str, pairs: list[Pair]) -> float:
+def _rollout_cost(layout: store.Layout, scene: str, pairs: list[Pair]) -> float:
     """An evaluation part's cost in arbitrary units, to start the longest first: its
-    model's training seconds per epoch (the slowest seed's checkpoint: how dear its
-    acceleration is, measured where it trained) times the scene's nodes; 0 where no
-    checkpoint says."""
-    layout = store.layout(request.profile, request.out)
+    model's training seconds per epoch (the slowest seed's checkpoint in `layout`: how
+    dear its acceleration is, measured where it trained) times the scene's nodes; 0
+    where no checkpoint says."""
     rates = [rate for rate in (seconds_per_epoch(layout.checkpoint(pair.job)) for pair in pairs) if rate is not None]
     return max(rates, default=0.0) * get_scene(scene).n_nodes
 

@@ -147,8 +147,13 @@ def evaluation_initial_states(profile: Profile, scene: Scene) -> State:
     initial-state policy (`lgnn.scene.initial_state_policy`, `physics.benchmark_initial_states`):
     its own state (C = 1: T1-T3), or `initial_conditions` samples of the chain sampler
     or of projected perturbations."""
-    count = 1 if initial_state_policy(scene) == OWN_STATE else profile.evaluate.initial_conditions
-    return physics.benchmark_initial_states(scene, count, profile.evaluate.ic_seed)
+    return physics.benchmark_initial_states(scene, evaluation_count(profile, scene), profile.evaluate.ic_seed)
+
+
+def evaluation_count(profile: Profile, scene: Scene) -> int:
+    """How many initial conditions a scene is evaluated from: 1 for a scene started from
+    its own state (T1-T3), else the profile's `initial_conditions`."""
+    return 1 if initial_state_policy(scene) == OWN_STATE else profile.evaluate.initial_conditions
 
 
 def truth_key(profile: Profile, scene_name: str) -> str:
@@ -376,8 +381,7 @@ def truth_cost(profile: Profile, scene_name: str) -> float:
     chain's dense joint-space mass matrix every step: on one H200's 16 cores
     chain100-3d's reference took 431 s, the paper track's whole truth stage 452 s)."""
     scene = get_scene(scene_name)
-    count = 1 if initial_state_policy(scene) == OWN_STATE else profile.evaluate.initial_conditions
-    return count * float(scene.n_nodes * scene.dim) ** 3
+    return evaluation_count(profile, scene) * float(scene.n_nodes * scene.dim) ** 3
 
 
 def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: bool, path: Path) -> Path:
