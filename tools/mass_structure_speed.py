@@ -4,6 +4,7 @@ the two paths' accelerations differ. Untrained parameters: the cost and the agre
 not depend on training.
 
     python tools/mass_structure_speed.py --model lgn --scene chain100-3d --batch 8 --rounds 5
+    python tools/mass_structure_speed.py --model lgn --scene chain100 --batch 300 --paths declared   # an evaluation's batch on a GPU
 
 The model is configured for its grid's training scene of the scene's dimension (chain4 or
 chain4-3d); states are the scene's own positions with random velocities on its
@@ -19,6 +20,8 @@ parser.add_argument("--model", default="lgn")
 parser.add_argument("--scene", default="chain100-3d")
 parser.add_argument("--batch", type=int, default=8)
 parser.add_argument("--rounds", type=int, default=5, help="timed calls after the compiling one")
+parser.add_argument("--paths", nargs="+", choices=("declared", "dense"), default=("declared", "dense"),
+                    help="which paths to time (the dense one is the costly one at large batches)")
 args = parser.parse_args()
 runtime.configure()
 
@@ -40,15 +43,16 @@ qds = jax.vmap(lambda key: project(q, jax.random.normal(key, q.shape))[1])(jax.r
 structure = config.spec.mass(config, params, scene) if config.spec.mass else None
 free = len(physics.prepare(scene).constraints.free)
 paths = {
-    "declared structure": (models.acceleration_fn(config, params, scene),
-                           structure.products(physics.prepare(scene).local_mass(structure.reach), scene.dim) if structure else free),
-    "dense Hessian": (physics.acceleration_fn(scene, models.lagrangian_fn(config, params, scene)), free),
+    "declared": (models.acceleration_fn(config, params, scene),
+             structure.products(physics.prepare(scene).local_mass(structure.reach), scene.dim) if structure else free),
+    "dense": (physics.acceleration_fn(scene, models.lagrangian_fn(config, params, scene)), free),
 }
 print(f"{args.model} on {args.scene}, batch {args.batch}; {provenance.device()}; {provenance.versions()}; commit {provenance.commit()}")
-print("| path | products per state | compile + first call s | per call ms (min..max) | max difference / max acceleration |")
+print("| path (declared structure or dense Hessian) | products per state | compile + first call s | per call ms (min..max) | max difference / max acceleration |")
 print("|---|---|---|---|---|")
 reference = None
-for label, (accel, products) in paths.items():
+for label in args.paths:
+    accel, products = paths[label]
     call = jax.jit(jax.vmap(accel))
     start = time.perf_counter()
     out = np.asarray(call(qs, qds).block_until_ready())
