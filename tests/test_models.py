@@ -572,6 +572,60 @@ def test_lgnn_mass_reach_is_the_graph_networks_reach(message_passing):
     assert blocks[distance > reach].max() == 0.0
 
 
+@pytest.mark.parametrize("scene_name", ["chain16", "T1"])
+def test_lgn_terms_depend_on_their_supports_only(scene_name):
+    """Each of LGN's read-out terms (`MassStructure.terms`) depends on the velocities of
+    exactly the nodes of its declared support (`models.graph_net_supports`), so the
+    Jacobian's colouring is neither wrong nor wasteful; the terms sum to LGN's pooled
+    read-out input."""
+    scene = get_scene(scene_name)
+    config = models.ModelConfig.for_scene("lgn", scene)
+    params = models.init(jax.random.PRNGKey(9), config)
+    structure = config.spec.mass(config, params, scene)
+    q, qd = _moving_state(scene, seed=10)
+    graph = graphs.graph_from_state(scene, q, qd, config.vocabulary, config.link_features)
+    np.testing.assert_allclose(structure.terms(q, qd).sum(0), models._lgn_pooled(params, graph), rtol=1e-12)
+    jacobian = np.asarray(jax.jacfwd(structure.terms, argnums=1)(q, qd))  # (T, P, N, D)
+    depends = np.abs(jacobian).max(axis=(1, 3)) > 0
+    declared = np.zeros_like(depends)
+    for term, support in enumerate(structure.supports):
+        declared[term, list(support)] = True
+    np.testing.assert_array_equal(depends, declared)
+
+
+def test_pooled_jacobian_colouring():
+    """The Jacobian's colouring gives no two free nodes of one support the same colour,
+    takes 4 colours for LGN on a chain of any length (its edges see 4 nodes), and its
+    forward products give the reverse-mode Jacobian of the pooled terms."""
+    for scene_name in ("chain16", "chain100", "T1"):
+        scene = get_scene(scene_name)
+        config = models.ModelConfig.for_scene("lgn", scene)
+        params = models.init(jax.random.PRNGKey(11), config)
+        structure = config.spec.mass(config, params, scene)
+        system = physics.prepare(scene)
+        pooled = system.pooled_jacobian(structure.supports)
+        constraints = system.constraints
+        colour_of = {}
+        for seed, row in enumerate(pooled.seeds):
+            for coordinate in np.flatnonzero(row):
+                colour_of[int(constraints.free[coordinate]) // scene.dim] = seed // scene.dim
+        for support in structure.supports:
+            colours = [colour_of[node] for node in support if node in colour_of]
+            assert len(colours) == len(set(colours))
+        if scene_name.startswith("chain"):
+            assert pooled.n_colours == 4
+        with pytest.raises(ValueError, match="together"):
+            physics.MassStructure(structure.reach, terms=structure.terms, readout=structure.readout)
+        if scene_name == "T1":
+            q, qd = _moving_state(scene, seed=12)
+            x, v = constraints.restrict(q), constraints.restrict(qd)
+            terms = lambda w: structure.terms(constraints.embed(x), constraints.embed_velocity(w))  # noqa: E731
+            _, linear = jax.linearize(terms, v)
+            forward = np.asarray(pooled.transposed(linear, v.dtype))
+            reverse = np.asarray(jax.jacrev(lambda w: terms(w).sum(0))(v)).T
+            np.testing.assert_allclose(forward, reverse, atol=1e-12 * np.abs(reverse).max())
+
+
 def test_physics_differences_from_the_training_scene():
     """A rollout on a scene with other gravity, drag, link masses or lengths is flagged;
     a longer chain of the same links (generalisation) is not."""

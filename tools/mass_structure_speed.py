@@ -44,7 +44,7 @@ structure = config.spec.mass(config, params, scene) if config.spec.mass else Non
 free = len(physics.prepare(scene).constraints.free)
 paths = {
     "declared": (models.acceleration_fn(config, params, scene),
-             structure.products(physics.prepare(scene).local_mass(structure.reach), scene.dim) if structure else free),
+             structure.products(physics.prepare(scene)) if structure else free),
     "dense": (physics.acceleration_fn(scene, models.lagrangian_fn(config, params, scene)), free),
 }
 print(f"{args.model} on {args.scene}, batch {args.batch}; {provenance.device()}; {provenance.versions()}; commit {provenance.commit()}")

@@ -544,6 +544,37 @@ def _lgn_lagrangian(config: ModelConfig, params: dict, scene: Scene) -> physics.
     return lambda q, qd: _apply_lgn(config, params, graph_from_state(scene, q, qd, config.vocabulary, config.link_features))
 
 
+def _lgn_terms(params: dict, graph):
+    """LGN's read-out input as a sum of local terms (T, 2 latent): each node's embedding
+    in the first half, each edge's in the second (their sum is `_lgn_pooled`)."""
+    h, e = _graph_net_outputs(params, graph)
+    return jnp.concatenate([jnp.pad(h, ((0, 0), (0, e.shape[1]))), jnp.pad(e, ((0, 0), (h.shape[1], 0)))])
+
+
+def graph_net_supports(scene: Scene, layers: int) -> tuple[tuple[int, ...], ...]:
+    """The nodes each of `_apply_graph_net`'s outputs depends on, in its output order:
+    each node's embedding (nodes at most r links away), then each directed edge's of
+    `graph_from_state` (at most s links from either end; `graph_net_reach`)."""
+    node_reach, edge_reach = graph_net_reach(layers)
+    neighbours = [set() for _ in range(scene.n_nodes)]
+    for a, b in scene.edges:
+        neighbours[a].add(b)
+        neighbours[b].add(a)
+
+    def within(start: int, reach: int) -> set:
+        seen = frontier = {start}
+        for _ in range(reach):
+            frontier = set().union(*(neighbours[k] for k in frontier)) - seen
+            seen = seen | frontier
+        return seen
+
+    i, j = scene.edge_index.T
+    directed = list(zip(np.concatenate([i, j]).tolist(), np.concatenate([j, i]).tolist()))
+    nodes = [within(k, node_reach) for k in range(scene.n_nodes)]
+    edges = [within(a, edge_reach) | within(b, edge_reach) for a, b in directed]
+    return tuple(tuple(sorted(support)) for support in nodes + edges)
+
+
 def _lgn_mass(config: ModelConfig, params: dict, scene: Scene) -> physics.MassStructure:
     """LGN's `L` is a read-out of summed embeddings: its mass matrix is low rank (the
     read-out's 2 latent inputs) plus local. A node's embedding couples nodes up to 2 r
@@ -551,9 +582,9 @@ def _lgn_mass(config: ModelConfig, params: dict, scene: Scene) -> physics.MassSt
     node, edge = graph_net_reach(config.message_passing)
     return physics.MassStructure(
         max(2 * node, 2 * edge + 1),
-        features=lambda q, qd: _lgn_pooled(params, graph_from_state(scene, q, qd, config.vocabulary, config.link_features)),
+        terms=lambda q, qd: _lgn_terms(params, graph_from_state(scene, q, qd, config.vocabulary, config.link_features)),
+        supports=graph_net_supports(scene, config.message_passing),
         readout=lambda pooled: _apply_mlp(params["readout"], pooled)[0],
-        n_features=2 * config.latent,
     )
 
 

@@ -75,7 +75,7 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
       step costs time linear in the chain's length;
     - a larger reach: more colours, the dense KKT solve;
     - pooled (LGN's read-out of summed embeddings): the low-rank part from the features'
-      Jacobian, the rest local.
+      Jacobian (forward products on a colouring of the terms' supports), the rest local.
     Declaring a structure the Lagrangian does not have gives wrong accelerations (tests
     compare every declared structure with the dense path).
     """
@@ -83,6 +83,7 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
     constraints = system.constraints
     structured = mass is not None and uses_mass_structure(scene, mass)
     local = system.local_mass(mass.reach) if structured else None
+    pooled = system.pooled_jacobian(mass.supports) if structured and mass.pooled else None
     chain_solve = structured and mass == LOCAL and system.long_chain
 
     def reduced(fn):
@@ -96,14 +97,15 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
         low-rank part (F, F) of a pooled structure (or None)."""
         if not mass.pooled:
             return local.products(lambda seed: jax.jvp(lambda w: grad_v(x, w), (v,), (seed,))[1], x.dtype), None
-        features = reduced(mass.features)
-        p, pullback = jax.vjp(lambda w: features(x, w), v)
+        terms = reduced(mass.terms)
+        values, linear = jax.linearize(lambda w: terms(x, w), v)
+        p = jnp.sum(values, 0)
         slope, curvature = jax.grad(mass.readout)(p), jax.hessian(mass.readout)(p)
-        jacobian = jax.vmap(lambda row: pullback(row)[0])(jnp.eye(p.shape[0], dtype=p.dtype))
+        jacobian_t = pooled.transposed(linear, x.dtype)
         # The local sum weighted by the read-out's slope at this state, held fixed.
-        grad_local = jax.grad(lambda w: jnp.dot(jax.lax.stop_gradient(slope), features(x, w)))
+        grad_local = jax.grad(lambda w: jnp.dot(jnp.sum(terms(x, w), 0), jax.lax.stop_gradient(slope)))
         products = local.products(lambda seed: jax.jvp(grad_local, (v,), (seed,))[1], x.dtype)
-        return products, jacobian.T @ curvature @ jacobian
+        return products, jacobian_t @ curvature @ jacobian_t.T
 
     def accel(q, qd):
         x, v = constraints.restrict(q), constraints.restrict(qd)
@@ -135,7 +137,7 @@ def uses_mass_structure(scene: Scene, mass: MassStructure) -> bool:
     system = prepare(scene)
     if mass == LOCAL:
         return True
-    return mass.products(system.local_mass(mass.reach), scene.dim) < len(system.constraints.free)
+    return mass.products(system) < len(system.constraints.free)
 
 
 def mass_matrix_fn(lagrangian: LagrangianFn) -> Callable[[Array, Array], Array]:

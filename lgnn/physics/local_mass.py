@@ -9,15 +9,17 @@ colouring and the maps from products to blocks); its methods are pure JAX functi
   LGNN's per-link energies do). `M` is then recovered from one Hessian-vector product
   per (colour, coordinate) instead of one per coordinate: 3 x D for any chain at reach 1,
   (2 reach + 1) x D at any reach, whatever the chain's length.
-- pooled (`features`, `readout`): `L = readout(p)` of features `p(q, qd)` (P,) that are a
-  sum of local terms of that reach, as LGN's read-out of its summed node and edge
-  embeddings. Then `M = J^T H J + S`: `J = dp/dqd` (P reverse products), `H` the
-  read-out's P x P Hessian, and `S = sum_c dreadout/dp_c d2p_c/dqd2`, the Hessian of the
-  local sum with the read-out's gradient held fixed, local again. The dense matrix is
-  low rank plus local.
+- pooled (`terms`, `supports`, `readout`): `L = readout(p)` of features `p(q, qd)` (P,)
+  that are a sum of local terms `terms(q, qd)` (T, P), term t depending on the
+  velocities of the nodes `supports[t]` only, as LGN's read-out of its summed node and
+  edge embeddings. Then `M = J^T H J + S`: `H` the read-out's P x P Hessian, `J =
+  dp/dqd` from one forward product per (colour, coordinate) of a colouring in which no
+  support holds two nodes of one colour (`PooledJacobian`: 4 x D for LGN on any chain),
+  and `S = sum_c dreadout/dp_c d2p_c/dqd2`, the Hessian of the local sum with the
+  read-out's gradient held fixed, local again. The dense matrix is low rank plus local.
 
-`MassStructure.products(local, dim)` counts the products a structure costs, so the solve
-(`dynamics.acceleration_fn`) takes it only where it is cheaper than one product per
+`MassStructure.products(system)` counts the products a structure costs on a scene, so the
+solve (`dynamics.acceleration_fn`) takes it only where it is cheaper than one product per
 coordinate.
 """
 
@@ -45,26 +47,30 @@ class MassStructure:
 
     # Nodes further apart than this many links are not coupled.
     reach: int = 1
-    # `features(q, qd) -> (P,)` and `readout(p) -> L` with `L = readout(features(q, qd))`,
-    # the features a sum of terms of `reach`; None: `L` itself is such a sum.
-    features: Callable | None = None
+    # `terms(q, qd) -> (T, P)` and `readout(p) -> L` with `L = readout(terms(q, qd).sum(0))`;
+    # term t depends on the velocities of the nodes `supports[t]` only, none of them
+    # more than `reach` links apart. None: `L` itself is a sum of terms of `reach`.
+    terms: Callable | None = None
+    supports: tuple[tuple[int, ...], ...] = ()
     readout: Callable | None = None
-    # P, the number of features (reverse products for `J`); 0 when not pooled.
-    n_features: int = 0
 
     def __post_init__(self):
         if self.reach < 1:
             raise ValueError(f"a mass structure's reach must be >= 1, got {self.reach}")
-        if (self.features is None) != (self.readout is None) or (self.features is None) != (self.n_features == 0):
-            raise ValueError("a pooled mass structure needs features, readout and their number together")
+        if (self.terms is None) != (self.readout is None) or (self.terms is None) != (not self.supports):
+            raise ValueError("a pooled mass structure needs terms, their supports and a readout together")
 
     @property
     def pooled(self) -> bool:
-        return self.features is not None
+        return self.terms is not None
 
-    def products(self, local: "LocalMass", dim: int) -> int:
-        """Derivative products that assemble the mass matrix with this structure."""
-        return local.n_colours * dim + self.n_features
+    def products(self, system) -> int:
+        """Derivative products that assemble the mass matrix with this structure on
+        `system`'s scene (`physics.prepare`): the local part's Hessian-vector products
+        and, pooled, the Jacobian's forward products."""
+        dim = system.scene.dim
+        pooled = system.pooled_jacobian(self.supports).n_colours * dim if self.pooled else 0
+        return system.local_mass(self.reach).n_colours * dim + pooled
 
 
 # Reach 1: the exact rods, LGNN's per-link energies.
@@ -149,3 +155,49 @@ class LocalMass:
         if self.reach != 1:
             raise ValueError("chain blocks hold a mass matrix of reach 1 only")
         return products[self.diagonal_seeds, self.diagonal_rows], products[self.upper_seeds, self.upper_rows]
+
+
+class PooledJacobian:
+    """The Jacobian `J = dp/dqd` over the free coordinates of pooled features `p =
+    sum_t terms_t` (`MassStructure`), from forward products on a colouring of the nodes.
+
+    No two free nodes of one colour lie in one term's support (greedy colouring; 4
+    colours for LGN's terms on a chain, whose edge embeddings see 4 nodes). The forward
+    product of the terms with the indicator of colour c, coordinate d then holds in each
+    term's row its derivative by coordinate d of its one node of colour c; summing the
+    rows into those coordinates' columns gives `J`. A reverse product per feature would
+    cost one backward pass per feature (16 for LGN) instead.
+    """
+
+    def __init__(self, constraints: Constraints, supports: tuple[tuple[int, ...], ...]):
+        n, d = constraints.shape
+        free_node = constraints.free_mask[:, 0]
+        conflicts = {node: set() for node in np.flatnonzero(free_node)}
+        free_supports = [[k for k in support if free_node[k]] for support in supports]
+        for support in free_supports:
+            for node in support:
+                conflicts[node].update(support)
+        colour = np.full(n, -1)
+        for node in conflicts:
+            taken = {colour[k] for k in conflicts[node] if colour[k] >= 0}
+            colour[node] = next(c for c in range(len(taken) + 1) if c not in taken)
+        self.n_colours = int(colour.max()) + 1 if free_node.any() else 0
+        n_free = len(constraints.free)
+        node_of, coord_of = constraints.free // d, constraints.free % d
+        self.seeds = np.zeros((self.n_colours * d, n_free))
+        self.seeds[colour[node_of] * d + coord_of, np.arange(n_free)] = 1.0
+        # column[s, t]: the free coordinate whose derivative the product of seed s holds
+        # in term t's row; n_free (dropped) where the term has no node of s's colour.
+        free_index = np.full((n, d), n_free)
+        free_index[node_of, coord_of] = np.arange(n_free)
+        self.column = np.full((self.n_colours * d, len(supports)), n_free)
+        for term, support in enumerate(free_supports):
+            for node in support:
+                self.column[colour[node] * d + np.arange(d), term] = free_index[node]
+        self.n_free = n_free
+
+    def transposed(self, linear: Callable[[Array], Array], dtype) -> Array:
+        """(F, P) `J^T` from `linear(seed) -> (T, P)`, the terms' forward product."""
+        products = jax.vmap(linear)(jnp.asarray(self.seeds, dtype))
+        rows = products.reshape(-1, products.shape[-1])
+        return jax.ops.segment_sum(rows, self.column.reshape(-1), num_segments=self.n_free + 1)[:-1]

@@ -9,6 +9,7 @@ coordinates never pays for a QR, an SVD or a mass factorisation:
   self-stresses at the initial configuration (SVD), see `constraints.Constraints`;
 - `gram`: the sparsity of `A A^T` for the projection (`solvers.LinkGram`);
 - `local_mass(reach)`: the node colouring of a graph-local mass matrix of that reach;
+- `pooled_jacobian(supports)`: the node colouring of the Jacobian of pooled local terms;
 - `regular_mass`, `schur_inverse`, `chain_mass_blocks`, `node_gravity`: the constant
   node mass of the exact rods (`energies.constant_node_mass`), whether it is regular on
   the free nodes, its inverse, its chain blocks, and the weight on the free nodes;
@@ -30,7 +31,7 @@ import numpy as np
 from lgnn.errors import SceneError
 from lgnn.physics.constraints import Constraints
 from lgnn.physics.energies import constant_node_mass
-from lgnn.physics.local_mass import LocalMass
+from lgnn.physics.local_mass import LocalMass, PooledJacobian
 from lgnn.physics.solvers import LinkGram
 from lgnn.scene import Scene, is_pinned_chain
 
@@ -69,6 +70,16 @@ class System:
         if reach not in self._local_masses:
             self._local_masses[reach] = LocalMass(self.scene, self.constraints, reach)
         return self._local_masses[reach]
+
+    @functools.cached_property
+    def _pooled_jacobians(self) -> dict:
+        return {}
+
+    def pooled_jacobian(self, supports: tuple[tuple[int, ...], ...]) -> PooledJacobian:
+        """The colouring of the Jacobian of a sum of terms with these node supports."""
+        if supports not in self._pooled_jacobians:
+            self._pooled_jacobians[supports] = PooledJacobian(self.constraints, supports)
+        return self._pooled_jacobians[supports]
 
     @functools.cached_property
     def is_pinned_chain(self) -> bool:
