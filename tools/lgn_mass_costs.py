@@ -1,0 +1,179 @@
+"""Where one LGN acceleration's time goes on a large scene, what the dense solve's
+alternatives would cost, and whether a trained LGN's mass matrix would allow them.
+
+    python tools/lgn_mass_costs.py parts --scene chain100 --batch 300
+    python tools/lgn_mass_costs.py solves --batch 300
+    python tools/lgn_mass_costs.py definiteness --scene chain100 --every 100
+
+- `parts`: milliseconds per batched call (compile apart, median of `--rounds`) of each
+  stage of `physics.acceleration_fn` with LGN's declared mass structure, untrained
+  parameters: the Lagrangian, the right-hand side (`dL/dq` and the Coriolis product),
+  the pooled Jacobian's forward products, the local part's Hessian-vector products,
+  the whole mass matrix, the regularised KKT solve, and the whole acceleration.
+- `solves`: the same batch of random systems of the sizes of chain100 (200 free
+  coordinates, 100 rods) and chain100-3d (300, 100): the KKT matrix's LU and the
+  refined solve as `solvers.solve_kkt` does them, against factorisations that need
+  more of `M` (an LU of `M` alone; a Cholesky factorisation, which needs `M` positive
+  definite).
+- `definiteness`: the committed checkpoints' 3 seeds of LGN (trained on chain4 or
+  chain4-3d) rolled out from the benchmark's evaluation initial conditions of
+  `--scene`; every `--every` frames, how many states are finite, and of those how many
+  have a mass matrix over the free coordinates that is not positive definite (its
+  Cholesky factorisation fails), and the smallest ratio of its extreme eigenvalues.
+
+Prints the environment first, then one line per measurement.
+"""
+import argparse
+import time
+
+from lgnn import runtime
+
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+parser.add_argument("what", choices=("parts", "solves", "definiteness"))
+parser.add_argument("--scene", default="chain100")
+parser.add_argument("--batch", type=int, default=300)
+parser.add_argument("--rounds", type=int, default=7, help="timed calls after the compiling one")
+parser.add_argument("--every", type=int, default=100, help="definiteness: frames between the states checked")
+args = parser.parse_args()
+runtime.configure()
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from lgnn import physics, provenance  # noqa: E402
+from lgnn.learn import models  # noqa: E402
+from lgnn.physics import solvers  # noqa: E402
+from lgnn.scene import get_scene  # noqa: E402
+
+print(f"{args.what}; {provenance.device()}; {provenance.versions()}; commit {provenance.commit()}", flush=True)
+
+
+def timed(label: str, fn, *inputs) -> None:
+    call = jax.jit(fn)
+    jax.block_until_ready(call(*inputs))
+    times = []
+    for _ in range(args.rounds):
+        start = time.perf_counter()
+        jax.block_until_ready(call(*inputs))
+        times.append(1e3 * (time.perf_counter() - start))
+    print(f"| {label} | {np.median(times):.2f} ({min(times):.2f}..{max(times):.2f}) |", flush=True)
+
+
+def training_scene(scene):
+    return get_scene("chain4-3d" if scene.dim == 3 else "chain4")
+
+
+def parts() -> None:
+    scene = get_scene(args.scene)
+    config = models.ModelConfig.for_scene("lgn", training_scene(scene))
+    params = models.init(jax.random.PRNGKey(0), config)
+    q = jnp.asarray(scene.nodes)
+    project = jax.jit(physics.projection_fn(scene))
+    qs = jnp.broadcast_to(q, (args.batch, *q.shape))
+    qds = jax.vmap(lambda key: project(q, jax.random.normal(key, q.shape))[1])(jax.random.split(jax.random.PRNGKey(1), args.batch))
+    system = physics.prepare(scene)
+    constraints = system.constraints
+    structure = config.spec.mass(config, params, scene)
+    local, pooled = system.local_mass(structure.reach), system.pooled_jacobian(structure.supports)
+    lagrangian = models.lagrangian_fn(config, params, scene)
+
+    def reduced(fn):
+        return lambda x, v: fn(constraints.embed(x), constraints.embed_velocity(v))
+
+    grad_v = jax.grad(reduced(lagrangian), argnums=1)
+    terms = reduced(structure.terms)
+
+    def right_hand_side(q, qd):
+        x, v = constraints.restrict(q), constraints.restrict(qd)
+        return jax.grad(reduced(lagrangian))(x, v) - jax.jvp(lambda y: grad_v(y, v), (x,), (v,))[1]
+
+    def jacobian(q, qd):
+        x, v = constraints.restrict(q), constraints.restrict(qd)
+        return pooled.transposed(jax.linearize(lambda w: terms(x, w), v)[1], x.dtype)
+
+    def local_products(q, qd):
+        x, v = constraints.restrict(q), constraints.restrict(qd)
+        grad_local = jax.grad(lambda w: jnp.sum(terms(x, w)))
+        return local.products(lambda seed: jax.jvp(grad_local, (v,), (seed,))[1], x.dtype)
+
+    def mass(q, qd):
+        x, v = constraints.restrict(q), constraints.restrict(qd)
+        jacobian_t = jacobian(q, qd)
+        p = jnp.sum(terms(x, v), 0)
+        return local.dense(local_products(q, qd)) + jacobian_t @ jax.hessian(structure.readout)(p) @ jacobian_t.T
+
+    masses = jax.jit(jax.vmap(mass))(qs, qds)
+
+    def solve(q, qd, m):
+        x, v = constraints.restrict(q), constraints.restrict(qd)
+        return solvers.solve_kkt(m, constraints.jacobian(x), jnp.ones(m.shape[0]), -constraints.jacobian_dot_v(x, v))
+
+    print(f"LGN on {args.scene}, batch {args.batch}: {local.n_colours * scene.dim} local and {pooled.n_colours * scene.dim} "
+          f"Jacobian products, {len(constraints.free)} free coordinates")
+    print("| part of one acceleration | ms per batched call (min..max) |")
+    print("|---|---|")
+    timed("the Lagrangian", jax.vmap(lagrangian), qs, qds)
+    timed("right-hand side (dL/dq, Coriolis)", jax.vmap(right_hand_side), qs, qds)
+    timed("pooled Jacobian (forward products)", jax.vmap(jacobian), qs, qds)
+    timed("local Hessian-vector products", jax.vmap(local_products), qs, qds)
+    timed("mass matrix", jax.vmap(mass), qs, qds)
+    timed("regularised KKT solve", jax.vmap(solve), qs, qds, masses)
+    timed("whole acceleration", jax.vmap(models.acceleration_fn(config, params, scene)), qs, qds)
+
+
+def solves() -> None:
+    print("| system (batch, free coordinates, rods) | factorisation | ms per batched call (min..max) |")
+    print("|---|---|---|")
+    for free, rods in ((200, 100), (300, 100)):
+        label = f"{args.batch}, {free}, {rods}"
+        x = jax.random.normal(jax.random.PRNGKey(0), (args.batch, free, free))
+        mass = x @ x.transpose(0, 2, 1) / free + jnp.eye(free)
+        rows = jax.random.normal(jax.random.PRNGKey(1), (args.batch, rods, free))
+        rhs = jax.random.normal(jax.random.PRNGKey(2), (args.batch, free))
+        kkt = jax.vmap(lambda m, a: jnp.block([[m, a.T], [a, -solvers.KKT_REGULARISATION * jnp.eye(rods)]]))(mass, rows)
+        timed(f"{label} | LU of the KKT matrix", jax.vmap(jax.scipy.linalg.lu_factor), kkt)
+        timed(f"{label} | the refined KKT solve (`solvers.solve_kkt`)",
+              jax.vmap(lambda m, a, f: solvers.solve_kkt(m, a, f, jnp.zeros(rods))), mass, rows, rhs)
+        timed(f"{label} | LU of M alone", jax.vmap(jax.scipy.linalg.lu_factor), mass)
+        timed(f"{label} | Cholesky factorisation of M (M positive definite)", jnp.linalg.cholesky, mass)
+        factor = jax.jit(jnp.linalg.cholesky)(mass)
+        timed(f"{label} | one solve with M's Cholesky factor", jax.vmap(lambda c, b: jax.scipy.linalg.cho_solve((c, True), b)), factor, rhs)
+
+
+def definiteness() -> None:
+    from lgnn.bench import grid
+    from lgnn.bench.stages.evaluate import evaluation_initial_states
+    from lgnn.engines.rollouts import batched_rollouts
+    from lgnn.learn import checkpoints
+
+    profile = grid.load_profile("full")
+    scene = get_scene(args.scene)
+    trained_on = training_scene(scene).name
+    loaded = [checkpoints.load_model(f"results/benchmark/checkpoints/lgn-{trained_on}-s{seed}.npz") for seed in range(3)]
+    model = loaded[0][0]
+    states = evaluation_initial_states(profile, scene)
+    stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for _, params in loaded))
+    runs = batched_rollouts(scene, profile.evaluate.simulation(args.scene), models.AccelerationFactory(model), states, stacked,
+                            integration=profile.evaluate.integration, stacked=True)
+    print(f"LGN ({trained_on}) on {args.scene}: {len(states.q)} initial conditions, {runs.q.shape[2]} frames; "
+          f"rollouts {runs.run_s:.1f} s + compile {runs.compile_s:.1f} s for 3 seeds")
+    print("| seed | frame | finite states | of them, M not positive definite | smallest eigenvalue / largest |")
+    print("|---|---|---|---|---|")
+    free = np.asarray(physics.prepare(scene).constraints.free)
+    for seed, (_, params) in enumerate(loaded):
+        mass = physics.mass_matrix_fn(models.lagrangian_fn(model, params, scene))
+
+        def check(q, qd):
+            m = mass(q, qd)[np.ix_(free, free)]
+            eigenvalues = jnp.linalg.eigvalsh(m)
+            return jnp.all(jnp.isfinite(m)), jnp.all(jnp.isfinite(jnp.linalg.cholesky(m))), eigenvalues[0] / eigenvalues[-1]
+
+        checked = jax.jit(jax.vmap(check))
+        for frame in range(0, runs.q.shape[2], args.every):
+            finite, cholesky, ratio = (np.asarray(a) for a in checked(jnp.asarray(runs.q[seed, :, frame]), jnp.asarray(runs.qd[seed, :, frame])))
+            smallest = f"{np.min(ratio[finite]):.3g}" if finite.any() else "-"
+            print(f"| {seed} | {frame} | {int(finite.sum())} | {int((finite & ~cholesky).sum())} | {smallest} |", flush=True)
+
+
+{"parts": parts, "solves": solves, "definiteness": definiteness}[args.what]()
