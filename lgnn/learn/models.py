@@ -556,22 +556,10 @@ def graph_net_supports(scene: Scene, layers: int) -> tuple[tuple[int, ...], ...]
     each node's embedding (nodes at most r links away), then each directed edge's of
     `graph_from_state` (at most s links from either end; `graph_net_reach`)."""
     node_reach, edge_reach = graph_net_reach(layers)
-    neighbours = [set() for _ in range(scene.n_nodes)]
-    for a, b in scene.edges:
-        neighbours[a].add(b)
-        neighbours[b].add(a)
-
-    def within(start: int, reach: int) -> set:
-        seen = frontier = {start}
-        for _ in range(reach):
-            frontier = set().union(*(neighbours[k] for k in frontier)) - seen
-            seen = seen | frontier
-        return seen
-
+    nodes = physics.neighbourhoods(scene, node_reach)
+    near_edge = physics.neighbourhoods(scene, edge_reach)
     i, j = scene.edge_index.T
-    directed = list(zip(np.concatenate([i, j]).tolist(), np.concatenate([j, i]).tolist()))
-    nodes = [within(k, node_reach) for k in range(scene.n_nodes)]
-    edges = [within(a, edge_reach) | within(b, edge_reach) for a, b in directed]
+    edges = [near_edge[a] | near_edge[b] for a, b in zip(np.concatenate([i, j]), np.concatenate([j, i]))]
     return tuple(tuple(sorted(support)) for support in nodes + edges)
 
 

@@ -50,7 +50,7 @@ from lgnn.physics.energies import (
     lagrangian_fn,
     potential_energy_per_link,
 )
-from lgnn.physics.local_mass import LOCAL, MassStructure
+from lgnn.physics.local_mass import LOCAL, MassStructure, neighbourhoods
 from lgnn.physics.projection import projection_fn
 from lgnn.physics.sampling import benchmark_initial_states, own_or_sampled_states, sample_initial_conditions, sample_states
 from lgnn.physics.solvers import refine
@@ -76,6 +76,7 @@ __all__ = [
     "kinetic_energy_per_link",
     "lagrangian_fn",
     "mass_matrix_fn",
+    "neighbourhoods",
     "own_or_sampled_states",
     "potential_energy_per_link",
     "prepare",

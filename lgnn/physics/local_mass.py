@@ -77,17 +77,50 @@ class MassStructure:
 LOCAL = MassStructure(1)
 
 
-def _within(adjacency: list[set], start: int, reach: int) -> set:
-    """Nodes at most `reach` links from `start` (breadth first)."""
-    seen, frontier = {start}, deque([(start, 0)])
-    while frontier:
-        node, depth = frontier.popleft()
-        if depth == reach:
-            continue
-        for near in adjacency[node] - seen:
-            seen.add(near)
-            frontier.append((near, depth + 1))
-    return seen
+def neighbourhoods(scene: Scene, reach: int) -> list[set]:
+    """For each node, the nodes at most `reach` links from it (breadth first, through
+    any node)."""
+    adjacency = [set() for _ in range(scene.n_nodes)]
+    for a, b in scene.edges:
+        adjacency[a].add(b)
+        adjacency[b].add(a)
+
+    def within(start: int) -> set:
+        seen, frontier = {start}, deque([(start, 0)])
+        while frontier:
+            node, depth = frontier.popleft()
+            if depth == reach:
+                continue
+            for near in adjacency[node] - seen:
+                seen.add(near)
+                frontier.append((near, depth + 1))
+        return seen
+
+    return [within(node) for node in range(scene.n_nodes)]
+
+
+def _colouring(constraints: Constraints, groups) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+    """A greedy colouring of the free nodes in which no group holds two free nodes of
+    one colour: `(colour, n_colours, seed_of, seeds)`, with `colour` (N,) -1 at pinned
+    nodes, `seed_of` (F,) each free coordinate's (colour, coordinate) seed and `seeds`
+    (n_colours D, F) those seeds as indicator vectors."""
+    n, d = constraints.shape
+    free_node = constraints.free_mask[:, 0]
+    conflicts = {node: set() for node in np.flatnonzero(free_node)}
+    for group in groups:
+        members = [k for k in group if free_node[k]]
+        for node in members:
+            conflicts[node].update(members)
+    colour = np.full(n, -1)
+    for node in conflicts:
+        taken = {colour[k] for k in conflicts[node] if colour[k] >= 0}
+        colour[node] = next(c for c in range(len(taken) + 1) if c not in taken)
+    n_colours = int(colour.max()) + 1 if free_node.any() else 0
+    node_of, coord_of = constraints.free // d, constraints.free % d
+    seed_of = colour[node_of] * d + coord_of
+    seeds = np.zeros((n_colours * d, len(constraints.free)))
+    seeds[seed_of, np.arange(len(constraints.free))] = 1.0
+    return colour, n_colours, seed_of, seeds
 
 
 class LocalMass:
@@ -105,29 +138,13 @@ class LocalMass:
     def __init__(self, scene: Scene, constraints: Constraints, reach: int = 1):
         n, d = constraints.shape
         free_node = constraints.free_mask[:, 0]
-        adjacency = [set() for _ in range(n)]
-        for a, b in scene.edges:
-            adjacency[a].add(b)
-            adjacency[b].add(a)
         # The free nodes each free node couples to; two nodes coupled to a common one
         # must differ in colour.
-        coupled_to = {node: {k for k in _within(adjacency, node, reach) if free_node[k]} for node in np.flatnonzero(free_node)}
-        conflicts = {node: set() for node in coupled_to}
-        for group in coupled_to.values():
-            for node in group:
-                conflicts[node] |= group
-        colour = np.full(n, -1)
-        for node in coupled_to:
-            taken = {colour[k] for k in conflicts[node] if colour[k] >= 0}
-            colour[node] = next(c for c in range(len(taken) + 1) if c not in taken)
+        near = neighbourhoods(scene, reach)
+        coupled_to = {node: {k for k in near[node] if free_node[k]} for node in np.flatnonzero(free_node)}
+        _, self.n_colours, self.seed_of, self.seeds = _colouring(constraints, coupled_to.values())
         self.reach = reach
-        self.n_colours = int(colour.max()) + 1 if free_node.any() else 0
         node_of = constraints.free // d
-        coord_of = constraints.free % d
-        # Seed (colour, coordinate) of each free coordinate, and the seeds as vectors.
-        self.seed_of = colour[node_of] * d + coord_of
-        self.seeds = np.zeros((self.n_colours * d, len(constraints.free)))
-        self.seeds[self.seed_of, np.arange(len(constraints.free))] = 1.0
         adjacent = np.eye(n, dtype=bool)
         for node, group in coupled_to.items():
             adjacent[node, list(group)] = True
@@ -171,30 +188,17 @@ class PooledJacobian:
 
     def __init__(self, constraints: Constraints, supports: tuple[tuple[int, ...], ...]):
         n, d = constraints.shape
-        free_node = constraints.free_mask[:, 0]
-        conflicts = {node: set() for node in np.flatnonzero(free_node)}
-        free_supports = [[k for k in support if free_node[k]] for support in supports]
-        for support in free_supports:
-            for node in support:
-                conflicts[node].update(support)
-        colour = np.full(n, -1)
-        for node in conflicts:
-            taken = {colour[k] for k in conflicts[node] if colour[k] >= 0}
-            colour[node] = next(c for c in range(len(taken) + 1) if c not in taken)
-        self.n_colours = int(colour.max()) + 1 if free_node.any() else 0
-        n_free = len(constraints.free)
-        node_of, coord_of = constraints.free // d, constraints.free % d
-        self.seeds = np.zeros((self.n_colours * d, n_free))
-        self.seeds[colour[node_of] * d + coord_of, np.arange(n_free)] = 1.0
+        colour, self.n_colours, _, self.seeds = _colouring(constraints, supports)
+        self.n_free = n_free = len(constraints.free)
         # column[s, t]: the free coordinate whose derivative the product of seed s holds
         # in term t's row; n_free (dropped) where the term has no node of s's colour.
         free_index = np.full((n, d), n_free)
-        free_index[node_of, coord_of] = np.arange(n_free)
+        free_index[constraints.free // d, constraints.free % d] = np.arange(n_free)
         self.column = np.full((self.n_colours * d, len(supports)), n_free)
-        for term, support in enumerate(free_supports):
+        for term, support in enumerate(supports):
             for node in support:
-                self.column[colour[node] * d + np.arange(d), term] = free_index[node]
-        self.n_free = n_free
+                if colour[node] >= 0:
+                    self.column[colour[node] * d + np.arange(d), term] = free_index[node]
 
     def transposed(self, linear: Callable[[Array], Array], dtype) -> Array:
         """(F, P) `J^T` from `linear(seed) -> (T, P)`, the terms' forward product."""
