@@ -16,7 +16,7 @@ alternatives would cost, and whether a trained LGN's mass matrix would allow the
   more of `M` (an LU of `M` alone; a Cholesky factorisation, which needs `M` positive
   definite).
 - `definiteness`: the committed checkpoints' 3 seeds of LGN (trained on chain4 or
-  chain4-3d) rolled out from the benchmark's evaluation initial conditions of
+  chain4-3d; run from the repository's root) rolled out from the benchmark's evaluation initial conditions of
   `--scene`; every `--every` frames, how many states are finite, and of those how many
   have a mass matrix over the free coordinates that is not positive definite (its
   Cholesky factorisation fails), and the smallest ratio of its extreme eigenvalues.
