@@ -5,8 +5,8 @@ argument: the Lagrangian engine's batch equals `simulate` of each member with no
 over members, a second parameter set of one model config compiles nothing (in
 `ModelEngine` and in `lgnn evaluate`), a reference stops at the first diverging member,
 the exact dynamics' small batches run on the host's CPU of a GPU machine and a learned
-model's on the default device, and `get_engine` refuses what an engine cannot do in one
-line.
+model's on the default device, the evaluation's chaos floor runs its ground truth's
+program, and `get_engine` refuses what an engine cannot do in one line.
 """
 
 import dataclasses
@@ -241,3 +241,26 @@ def test_a_registered_engine_is_got_like_the_built_ins():
             get_engine("resting", dtype="float32")
     finally:
         ENGINES.pop("resting", None)
+
+
+def test_the_chaos_floor_runs_the_ground_truths_compiled_program(monkeypatch):
+    # The evaluation's ground truth and its chaos floor roll out one batch each with the
+    # same dynamics and settings: the floor compiles nothing (a program of its own took
+    # 23-35 s to compile for chain100 on a GPU machine's busy host).
+    from lgnn.bench import grid
+    from lgnn.bench.stages import evaluate
+
+    profile = grid.load_profile("quick", ["evaluate.duration=0.01", "evaluate.frame_dt=0.005", "evaluate.dt=0.005"])
+    compiled = []
+
+    def counting(*args, **kwargs):
+        runs = rollouts.batched_rollouts(*args, **kwargs)
+        compiled.append(rollouts.compiled_programs.cache_info().misses)
+        return runs
+
+    monkeypatch.setattr(evaluate, "batched_rollouts", counting)
+    truth = evaluate._computed_ground_truth(profile, "chain4", progress=False)
+    assert len(compiled) == 2, "the ground truth, then its chaos floor"
+    assert compiled[1] == compiled[0], "the chaos floor compiled a program of its own"
+    gap = np.abs(truth["q_floor"] - truth["q"]).max()
+    assert 0 < gap < 1e-2, "the floor starts from perturbed states and stays near the truth this briefly"

@@ -246,9 +246,11 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
     perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
     # The perturbed runs are not references: one that diverges (T2/T3's perturbed
-    # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's.
+    # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's. With
+    # energies, as the ground truth's, so that they run its compiled program (without,
+    # another program: chain100's took 23-35 s to compile on an H200's busy host).
     floor = batched_rollouts(scene, config, TRUE_DYNAMICS, perturbed, integration=settings.integration, chunk=settings.chunk,
-                             label=f"floor {scene_name}", progress=progress, platform=where)
+                             with_energy=True, label=f"floor {scene_name}", progress=progress, platform=where)
     references = references_when_done()
     # What the scene's ground truth cost, in the part's log: the reference engines
     # (MuJoCo C on chain100-3d) can be most of an evaluate stage.
