@@ -11,7 +11,8 @@ and `refine`s the solution against the exact system, which recovers the exact so
   is no obstacle.
 - `regularised_spd_solve`: a symmetric positive semidefinite system (a Schur complement
   `A M^-1 A^T`) by Cholesky with `+eps I`; `spd_solve` without either where the
-  system is positive definite at every configuration (a pinned chain's).
+  system is positive definite at every configuration (a pinned chain's), small ones
+  by Gauss-Jordan elimination.
 - `chain_kkt_solve`: the KKT system of a chain pinned at node 0 (2D or 3D) in time
   linear in its length (block-tridiagonal elimination from the free end).
 - `LinkGram`: `A A^T` from its per-link sparsity (tridiagonal on chains, tridiagonal
@@ -58,6 +59,14 @@ KKT_REFINEMENT_STEPS = 3
 # us, and Cholesky factorisations written out up to 16 took chain16 from about 16 to 90
 # us (that code grows as the cube of the size).
 UNROLLED_MAX = 4
+# `spd_solve` of systems up to this size eliminates by Gauss-Jordan, one whole-matrix
+# update per pivot (`gauss_jordan_solve`): a fused kernel each, about 0.3 us on the
+# 2-core CPU, against LAPACK's three calls (factorisation, two triangular solves) at
+# about 1.75 us together for a 12 x 12 system. One trajectory's RK4 step
+# (`tools/cpu_vs_mujoco.py`'s loop): chain4 5.7 us written out as above, 4.2 us
+# eliminated; chain4-3d 6.0 and 4.6; chain8 10.9 with LAPACK, 9.4 eliminated; but
+# chain12 14.4 and 21.2, chain16 16.2 and 22.7.
+ELIMINATED_MAX = 8
 # On a GPU a `lax.scan` is a loop whose every iteration runs a few tiny kernels and reads
 # its predicate back to the host, so the sweeps along a long chain cost the loop, not
 # their arithmetic, at the batch sizes of an evaluation: a chain100 RK4 step x 100 states
@@ -195,12 +204,30 @@ def guarded_spd_solve(matrix: Array, rhs: Array) -> Array:
 
 
 def spd_solve(matrix: Array, rhs: Array) -> Array:
-    """Cholesky solve of `S x = r` for an `S` (K, K) known to be positive definite at
-    every configuration (a pinned chain's Schur complement: its rows are always
-    independent), with neither regulariser nor refinement: `regularised_spd_solve`
-    refines back to this same solution (to round-off) at three more pairs of triangular
-    solves, most of a small scene's acceleration (chain12 on a CPU)."""
+    """Solve `S x = r` for an `S` (K, K) known to be positive definite at every
+    configuration (a pinned chain's Schur complement: its rows are always independent),
+    with neither regulariser nor refinement: `regularised_spd_solve` refines back to
+    this same solution (to round-off) at three more pairs of triangular solves, most of
+    a small scene's acceleration (chain12 on a CPU). By Gauss-Jordan elimination up to
+    `ELIMINATED_MAX` rows, else by a Cholesky factorisation."""
+    if matrix.shape[0] <= ELIMINATED_MAX:
+        return gauss_jordan_solve(matrix, rhs)
     return cholesky_solve_fn(matrix)[0](rhs)
+
+
+def gauss_jordan_solve(matrix: Array, rhs: Array) -> Array:
+    """`matrix^-1 rhs` for a positive definite `matrix` (K, K) and `rhs` (K,) or (K, R)
+    by Gauss-Jordan elimination without pivoting, which a positive definite matrix
+    never needs (its pivots are the squares of its Cholesky factor's diagonal): K
+    updates of the whole augmented matrix, each one fused kernel, unrolled."""
+    k = matrix.shape[0]
+    augmented = jnp.concatenate([matrix, rhs.reshape(k, -1)], 1)
+    identity = jnp.eye(k, dtype=matrix.dtype)
+    for pivot in range(k):
+        # Row `pivot` divided by its pivot; that multiple of it taken from every other row.
+        scaled = augmented[pivot] / augmented[pivot, pivot]
+        augmented = augmented - jnp.outer(augmented[:, pivot] - identity[:, pivot], scaled)
+    return augmented[:, k:].reshape(rhs.shape)
 
 
 def _inverse_3x3(m: Array) -> Array:
