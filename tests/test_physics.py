@@ -466,7 +466,8 @@ def test_constraint_jacobian_and_its_derivative_match_autodiff(name):
                                                       ("double-pinned", True, None), ("pinned-triangle", True, None)])
 def test_link_gram_solve_matches_dense_normal_equations(name, tridiagonal, border):
     """`A A^T` from the link pairs (tridiagonal for chains, bordered on braced chains)
-    solves like the dense product."""
+    solves like the dense product, by the sweeps and by LAPACK's tridiagonal solve (one
+    system on a CPU)."""
     scene = STRUCTURED_SCENES[name]()
     system = physics.prepare(scene)
     constraints, gram = system.constraints, system.gram
@@ -476,8 +477,9 @@ def test_link_gram_solve_matches_dense_normal_equations(name, tridiagonal, borde
     jac = constraints.jacobian(constraints.restrict(q))
     rhs = jnp.asarray(np.random.default_rng(0).normal(size=constraints.n_rows))
     expected = np.linalg.solve(np.asarray(jac @ jac.T), np.asarray(rhs))
-    solved = gram.solve_fn(constraints.link_directions(q), 0.0)(rhs)
-    np.testing.assert_allclose(solved, expected, rtol=1e-10, atol=1e-12)
+    for one_system in (False, True):
+        solved = jax.jit(lambda u, r: gram.solve_fn(u, 0.0, one_system)(r))(constraints.link_directions(q), rhs)
+        np.testing.assert_allclose(solved, expected, rtol=1e-10, atol=1e-12)
 
 
 @pytest.mark.parametrize("size", [1, 2, 4, 45])

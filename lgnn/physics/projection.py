@@ -69,7 +69,8 @@ def projection_fn(scene: Scene, iterations: int | None = None, *, adaptive: bool
     large step, or a learned model's drift, takes both as before. Under `vmap` both
     branches run: no saving there. All products with `A` use its per-link blocks
     (`solvers.LinkGram` solves with `A A^T`), so a chain projects in time linear in its
-    length. `A A^T` is SPD at regular configurations; a
+    length; `adaptive` (one system on a CPU) also solves their tridiagonal parts by
+    LAPACK's one call instead of two loops. `A A^T` is SPD at regular configurations; a
     Levenberg-Marquardt shift keeps its factorisation defined at singular ones
     (`REGULAR_PROJECTION_SHIFT` for scenes regular at their initial configuration,
     `PROJECTION_SHIFT` for self-stressed ones, where an unshifted step along a
@@ -113,7 +114,7 @@ def projection_fn(scene: Scene, iterations: int | None = None, *, adaptive: bool
 
         def gauss_newton(q, low):
             u = constraints.link_directions(q, low)
-            correction = -transpose_times(u, gram.solve_fn(u, shift)(constraints.link_residual(q, low)))
+            correction = -transpose_times(u, gram.solve_fn(u, shift, adaptive)(constraints.link_residual(q, low)))
             return (q + correction, low) if low is None else compensated_add(q, low, correction)
 
         def round_off(residual, values):
@@ -126,7 +127,7 @@ def projection_fn(scene: Scene, iterations: int | None = None, *, adaptive: bool
             for _ in range(iterations):
                 q, low = gauss_newton(q, low)
         u = constraints.link_directions(q, low)
-        solve = gram.solve_fn(u, shift)
+        solve = gram.solve_fn(u, shift, adaptive)
 
         # The velocity's defect is `A qd`; its correction the minimum-norm `-A^T G^-1 A qd`.
         def velocity_pass(v):

@@ -438,21 +438,28 @@ class LinkGram:
             return None
         return np.asarray(sorted(border), np.int64)
 
-    def solve_fn(self, u: Array, shift: float) -> Callable[[Array], Array]:
-        """`r -> (G + shift I)^-1 r` (K,) at link directions `u` (K, D), factored once."""
+    def solve_fn(self, u: Array, shift: float, one_system: bool = False) -> Callable[[Array], Array]:
+        """`r -> (G + shift I)^-1 r` (K,) at link directions `u` (K, D), factored once.
+        `one_system`: the caller solves one system on a CPU, not under `vmap`, where
+        LAPACK's `gtsv` (one call) solves a tridiagonal part faster than the sweeps'
+        two loops (`spd_tridiagonal_solve`; the same operations, so the same result):
+        one trajectory's RK4 step on the 2-core CPU, the 12-link held-out chain
+        13.8-14.7 -> 13.2-13.9 us, chain8 9.6-10.1 -> 8.8-9.3, chain16 unchanged
+        (`results/cpu_vs_mujoco.md`)."""
+        tridiagonal_solve = jax.lax.linalg.tridiagonal_solve if one_system else spd_tridiagonal_solve
         diag = jnp.asarray(self.free_ends, u.dtype) * jnp.sum(u * u, -1) + shift
         off = jnp.asarray(self.sign, u.dtype) * jnp.sum(take_rows(u, self.first) * take_rows(u, self.second), -1)
         if self.tridiagonal:
             upper = add_rows(jnp.zeros_like(diag), self.first, off)
             lower = jnp.roll(upper, 1)
-            return lambda r: spd_tridiagonal_solve(lower, diag, upper, r[:, None])[:, 0]
+            return lambda r: tridiagonal_solve(lower, diag, upper, r[:, None])[:, 0]
         gram = jnp.diag(diag).at[self.first, self.second].add(off).at[self.second, self.first].add(off)
         if self.bordered:
-            return _bordered_tridiagonal_solve_fn(gram, self.border)
+            return _bordered_tridiagonal_solve_fn(gram, self.border, tridiagonal_solve)
         return cholesky_solve_fn(gram)[0]
 
 
-def _bordered_tridiagonal_solve_fn(matrix: Array, border: np.ndarray) -> Callable[[Array], Array]:
+def _bordered_tridiagonal_solve_fn(matrix: Array, border: np.ndarray, tridiagonal_solve: Callable[..., Array]) -> Callable[[Array], Array]:
     """`r -> matrix^-1 r` for an SPD `matrix` (K, K) that is tridiagonal once the rows and
     columns `border` (static, a few) are taken out: `T x_m + E x_b = r_m`,
     `E^T x_m + C x_b = r_b`, so `x_b` solves the small SPD Schur complement
@@ -463,7 +470,7 @@ def _bordered_tridiagonal_solve_fn(matrix: Array, border: np.ndarray) -> Callabl
     lower, diag, upper = jnp.diagonal(tri, -1), jnp.diagonal(tri), jnp.diagonal(tri, 1)
     lower, upper = jnp.pad(lower, (1, 0)), jnp.pad(upper, (0, 1))
     coupling = matrix[main[:, None], border[None, :]]
-    tri_solve = functools.partial(spd_tridiagonal_solve, lower, diag, upper)
+    tri_solve = functools.partial(tridiagonal_solve, lower, diag, upper)
     tri_coupling = tri_solve(coupling)
     schur = matrix[border[:, None], border[None, :]] - coupling.T @ tri_coupling
     border_solve, _ = cholesky_solve_fn(schur)
