@@ -63,9 +63,9 @@ UNROLLED_MAX = 4
 # update per pivot (`gauss_jordan_solve`): a fused kernel each, about 0.3 us on the
 # 2-core CPU, against LAPACK's three calls (factorisation, two triangular solves) at
 # about 1.75 us together for a 12 x 12 system. One trajectory's RK4 step
-# (`tools/cpu_vs_mujoco.py`'s loop): chain4 5.7 us written out as above, 4.2 us
-# eliminated; chain4-3d 6.0 and 4.6; chain8 10.9 with LAPACK, 9.4 eliminated; but
-# chain12 14.4 and 21.2, chain16 16.2 and 22.7.
+# (`results/cpu_vs_mujoco.md`): chain4 5.97 us written out as above, 4.25 eliminated;
+# chain4-3d 6.08 and 4.68; chain8 11.2 with LAPACK, 9.57 eliminated. Eliminating 12
+# and 16 rows instead made chain12's step 14.4 -> 21.2 us and chain16's 16.2 -> 22.7.
 ELIMINATED_MAX = 8
 # On a GPU a `lax.scan` is a loop whose every iteration runs a few tiny kernels and reads
 # its predicate back to the host, so the sweeps along a long chain cost the loop, not
