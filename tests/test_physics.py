@@ -544,6 +544,19 @@ def test_spd_solves_eliminated_match_numpys(size):
     np.testing.assert_allclose(batched[1], expected / 2, atol=1e-7 * scale)
 
 
+@pytest.mark.parametrize("rows, inner, columns", [(3, 3, 3), (4, 4, 4), (4, 4, None), (2, 5, 3)])
+def test_block_products_match_matmul(rows, inner, columns):
+    """`block_product`, the chain elimination's dot-free product, against `@` for
+    blocks and vectors, plainly and under `vmap`."""
+    from lgnn.physics.solvers import block_product
+
+    rng = np.random.default_rng(rows * inner)
+    a = rng.normal(size=(2, rows, inner))
+    b = rng.normal(size=(2, inner) + (() if columns is None else (columns,)))
+    np.testing.assert_allclose(block_product(jnp.asarray(a[0]), jnp.asarray(b[0])), a[0] @ b[0], rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(jax.vmap(block_product)(jnp.asarray(a), jnp.asarray(b)), np.einsum("bij,bj...->bi...", a, b), rtol=1e-14, atol=1e-14)
+
+
 def test_chain_solver_is_accurate_on_a_long_chain():
     """The linear-time chain elimination against the Schur solve on 300 links, at a
     random configuration with fast motion (round-off relative to the scale)."""

@@ -19,6 +19,7 @@ parser.add_argument("--dense", action="store_true")
 parser.add_argument("--scene", default="chain100")
 parser.add_argument("--states", type=int, default=100)
 parser.add_argument("--duration", type=float, default=0.1)
+parser.add_argument("--checkpoint", default="results/benchmark/checkpoints/lgnn-chain4-s0.npz", help="the LGNN (lgnn-chain4-3d-s0 for a 3D chain)")
 args = parser.parse_args()
 configure()
 
@@ -48,7 +49,7 @@ def schur_truth(scene):
 scene = get_scene(args.scene)
 states = State(*(np.asarray(a) for a in physics.benchmark_initial_states(scene, args.states, 1)))
 config = SimulationConfig(1e-3, 1e-3, args.duration)
-model, params = load_model("results/benchmark/checkpoints/lgnn-chain4-s0.npz")
+model, params = load_model(args.checkpoint)
 truth = Unparametrised(schur_truth if args.dense else vectorised_true_acceleration_fn)
 row = dict(scene=args.scene, states=args.states, duration=args.duration, unroll=solvers.sweep_unroll(), dense=args.dense, backend=jax.default_backend())
 for label, factory, p in (("lgnn", models.AccelerationFactory(model), params), ("truth", truth, None)):
