@@ -56,7 +56,7 @@ mixed() {  # name: the mix's parts at once, their programs compiled in the stage
     for part in lgnn-chain4:chain100 lgnn-mp1-chain4:chain100 lgnn-mp2-chain4:chain100 lgnn-notebook-chain4:chain100 lgn-chain4:chain100 \
                 lgnn-chain4-3d:chain100-3d lgnn-notebook-chain4-3d:chain100-3d lgn-chain4-3d:chain100-3d lgnn-chain4:T1 lgn-chain4:T1 \
                 lgnn-chain4:T2-slack lgnn-mp2-chain4:T2-slack lgnn-chain4:T3-slack lgn-chain4:T3-slack; do
-        LGNN_JAX_CACHE=off timeout 280 $probe --once --tag "$1-${part#*:}" --job "${part%:*}" --scene "${part#*:}" --calls 3 >> "$out/$1.jsonl" 2>> "$out/$1.err" &
+        LGNN_JAX_CACHE=off timeout 260 $probe --once --tag "$1-${part#*:}" --job "${part%:*}" --scene "${part#*:}" --calls 3 >> "$out/$1.jsonl" 2>> "$out/$1.err" &
         parts+=($!)
     done
     (sleep 60; nvidia-smi > "$out/$1.smi" 2>&1) &
