@@ -166,7 +166,9 @@ def adaptive_projection(batch: int, stacked: bool) -> bool:
     reached round-off (`physics.projection_fn`'s `adaptive`): for one trajectory on a
     CPU, where that is a branch (`_over_batch`). It never skips a step a state needs,
     so any dynamics may take it; the exact dynamics' drift over a small step is
-    round-off, so the ground truth mostly skips, a learned model's seldom."""
+    round-off, so the ground truth mostly skips, a learned model's seldom. The same
+    flag has the projection solve its tridiagonal Gram systems by LAPACK's `gtsv`, one
+    call, where a batch's sweeps vectorise (`physics.solvers.LinkGram.solve_fn`)."""
     return _one_trajectory_on_cpu(batch) and not stacked
 
 
