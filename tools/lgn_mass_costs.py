@@ -6,10 +6,13 @@ alternatives would cost, and whether a trained LGN's mass matrix would allow the
     python tools/lgn_mass_costs.py definiteness --scene chain100 --every 100
 
 - `parts`: milliseconds per batched call (compile apart, median of `--rounds`) of each
-  stage of `physics.acceleration_fn` with LGN's declared mass structure, untrained
+  piece of `physics.acceleration_fn` with LGN's declared mass structure
+  (`physics.euler_lagrange`, the functions the acceleration calls), untrained
   parameters: the Lagrangian, the right-hand side (`dL/dq` and the Coriolis product),
-  the pooled Jacobian's forward products, the local part's Hessian-vector products,
-  the whole mass matrix, the regularised KKT solve, and the whole acceleration.
+  the pooled Jacobian's forward products, the mass products (the local part's
+  Hessian-vector products with the pooled low-rank part, which holds the Jacobian's
+  products again), the whole mass matrix, the regularised KKT solve, and the whole
+  acceleration.
 - `solves`: the same batch of random systems of the sizes of chain100 (200 free
   coordinates, 100 rods) and chain100-3d (300, 100): the KKT matrix's LU and the
   refined solve as `solvers.solve_kkt` does them, against factorisations that need
@@ -72,52 +75,33 @@ def parts() -> None:
     project = jax.jit(physics.projection_fn(scene))
     qs = jnp.broadcast_to(q, (args.batch, *q.shape))
     qds = jax.vmap(lambda key: project(q, jax.random.normal(key, q.shape))[1])(jax.random.split(jax.random.PRNGKey(1), args.batch))
-    system = physics.prepare(scene)
-    constraints = system.constraints
+    constraints = physics.prepare(scene).constraints
     structure = config.spec.mass(config, params, scene)
-    local, pooled = system.local_mass(structure.reach), system.pooled_jacobian(structure.supports)
     lagrangian = models.lagrangian_fn(config, params, scene)
+    # The pieces `physics.acceleration_fn` solves, as LGN's acceleration builds them.
+    equations = physics.euler_lagrange(scene, lagrangian, structure)
+    if equations.pooled_jacobian is None:
+        raise SystemExit(f"LGN's mass structure is not used on {args.scene} (the dense path is fewer products): nothing to time by part")
 
-    def reduced(fn):
-        return lambda x, v: fn(constraints.embed(x), constraints.embed_velocity(v))
+    def restricted(fn):
+        return lambda q, qd: fn(constraints.restrict(q), constraints.restrict(qd))
 
-    grad_v = jax.grad(reduced(lagrangian), argnums=1)
-    terms = reduced(structure.terms)
-
-    def right_hand_side(q, qd):
-        x, v = constraints.restrict(q), constraints.restrict(qd)
-        return jax.grad(reduced(lagrangian))(x, v) - jax.jvp(lambda y: grad_v(y, v), (x,), (v,))[1]
-
-    def jacobian(q, qd):
-        x, v = constraints.restrict(q), constraints.restrict(qd)
-        return pooled.transposed(jax.linearize(lambda w: terms(x, w), v)[1], x.dtype)
-
-    def local_products(q, qd):
-        x, v = constraints.restrict(q), constraints.restrict(qd)
-        grad_local = jax.grad(lambda w: jnp.sum(terms(x, w)))
-        return local.products(lambda seed: jax.jvp(grad_local, (v,), (seed,))[1], x.dtype)
-
-    def mass(q, qd):
-        x, v = constraints.restrict(q), constraints.restrict(qd)
-        jacobian_t = jacobian(q, qd)
-        p = jnp.sum(terms(x, v), 0)
-        return local.dense(local_products(q, qd)) + jacobian_t @ jax.hessian(structure.readout)(p) @ jacobian_t.T
-
-    masses = jax.jit(jax.vmap(mass))(qs, qds)
+    masses = jax.jit(jax.vmap(restricted(equations.mass_matrix)))(qs, qds)
 
     def solve(q, qd, m):
         x, v = constraints.restrict(q), constraints.restrict(qd)
         return solvers.solve_kkt(m, constraints.jacobian(x), jnp.ones(m.shape[0]), -constraints.jacobian_dot_v(x, v))
 
+    local, pooled = equations.local, physics.prepare(scene).pooled_jacobian(structure.supports)
     print(f"LGN on {args.scene}, batch {args.batch}: {local.n_colours * scene.dim} local and {pooled.n_colours * scene.dim} "
           f"Jacobian products, {len(constraints.free)} free coordinates")
     print("| part of one acceleration | ms per batched call (min..max) |")
     print("|---|---|")
     timed("the Lagrangian", jax.vmap(lagrangian), qs, qds)
-    timed("right-hand side (dL/dq, Coriolis)", jax.vmap(right_hand_side), qs, qds)
-    timed("pooled Jacobian (forward products)", jax.vmap(jacobian), qs, qds)
-    timed("local Hessian-vector products", jax.vmap(local_products), qs, qds)
-    timed("mass matrix", jax.vmap(mass), qs, qds)
+    timed("right-hand side (dL/dq, Coriolis)", jax.vmap(restricted(equations.right_hand_side)), qs, qds)
+    timed("pooled Jacobian (forward products)", jax.vmap(restricted(equations.pooled_jacobian)), qs, qds)
+    timed("mass products (local Hessian-vector products and the pooled low-rank part)", jax.vmap(restricted(equations.mass_products)), qs, qds)
+    timed("mass matrix", jax.vmap(restricted(equations.mass_matrix)), qs, qds)
     timed("regularised KKT solve", jax.vmap(solve), qs, qds, masses)
     timed("whole acceleration", jax.vmap(models.acceleration_fn(config, params, scene)), qs, qds)
 

@@ -19,8 +19,8 @@ One module per idea, from the bottom up:
 - `system`: `prepare(scene) -> System`, everything static about a scene computed
   once, cached by scene content;
 - `dynamics`: the Euler-Lagrange transformer `acceleration_fn(scene, lagrangian,
-  force_fn)` (true and learned Lagrangians go through the same solve) and the
-  ground-truth `true_acceleration_fn`;
+  force_fn)` (true and learned Lagrangians go through the same solve), the equations'
+  pieces it solves (`euler_lagrange`), and the ground-truth `true_acceleration_fn`;
 - `projection`: `projection_fn`, back onto the constraint manifold after a step;
 - `sampling`: `sample_initial_conditions(scene, count, seed)`, random initial states of
   any scene on its constraint manifold; `sample_states` (the paper's chain sampler where
@@ -31,7 +31,9 @@ One module per idea, from the bottom up:
 from lgnn.physics.constraints import Constraints, constraint_violation, velocity_constraint_violation
 from lgnn.physics.dynamics import (
     AccelerationFn,
+    EulerLagrange,
     acceleration_fn,
+    euler_lagrange,
     mass_matrix_fn,
     true_acceleration_fn,
     uses_mass_structure,
@@ -59,6 +61,7 @@ from lgnn.physics.system import System, prepare
 __all__ = [
     "AccelerationFn",
     "Constraints",
+    "EulerLagrange",
     "ForceFn",
     "LOCAL",
     "LagrangianFn",
@@ -72,6 +75,7 @@ __all__ = [
     "constraint_violation",
     "drag_force_fn",
     "energy_fn",
+    "euler_lagrange",
     "hamiltonian_fn",
     "kinetic_energy_per_link",
     "lagrangian_fn",

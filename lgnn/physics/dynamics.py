@@ -40,6 +40,7 @@ larger reach and LGN's pooled read-out). Each is tested against the general path
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 import jax
@@ -49,13 +50,91 @@ import numpy as np
 from lgnn import sharding
 from lgnn.physics.constraints import take_rows
 from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
-from lgnn.physics.local_mass import LOCAL, MassStructure
+from lgnn.physics.local_mass import LOCAL, LocalMass, MassStructure
 from lgnn.physics.solvers import chain_kkt_solve, guarded_spd_solve, regularised_spd_solve, solve_kkt, spd_solve
 from lgnn.physics.system import System, prepare
 from lgnn.runtime import full_precision_matmuls
 from lgnn.scene import Scene
 
 AccelerationFn = Callable[[Array, Array], Array]
+
+
+@dataclasses.dataclass(frozen=True)
+class EulerLagrange:
+    """The pieces of `acceleration_fn`'s constrained Euler-Lagrange equations, each a
+    pure function of the free coordinates `x` and velocities `v`
+    (`Constraints.restrict`), unbatched: what `acceleration_fn` solves, and what a
+    profile of one acceleration times part by part (`tools/lgn_mass_costs.py`).
+
+    - `right_hand_side(x, v)` (F,): `Pi - C qd`, the forces less the Coriolis product;
+    - `mass_matrix(x, v)` (F, F): `M`, from the declared structure's products where
+      `structured`, else by forward differentiation, one product per coordinate;
+    - `mass_products(x, v)`: where `structured`, `(products (S, F), low_rank)`: the
+      local part's products with its colouring's seeds, and the pooled read-out's
+      dense low-rank part (F, F) or None;
+    - `pooled_jacobian(x, v)` (F, P): where the structure is pooled, the transposed
+      Jacobian of the summed terms by the velocities (forward products);
+    - `local`: the local part's colouring (`System.local_mass`), None unless
+      `structured`; `chain_solve`: the mass matrix is local on a long pinned chain, so
+      the block elimination solves it (`solvers.chain_kkt_solve`)."""
+
+    right_hand_side: Callable[[Array, Array], Array]
+    mass_matrix: Callable[[Array, Array], Array]
+    mass_products: Callable[[Array, Array], tuple] | None
+    pooled_jacobian: Callable[[Array, Array], Array] | None
+    local: LocalMass | None
+    chain_solve: bool
+
+    @property
+    def structured(self) -> bool:
+        return self.local is not None
+
+
+def euler_lagrange(scene: Scene, lagrangian: LagrangianFn, mass: MassStructure | None = None) -> EulerLagrange:
+    """The pieces of the constrained Euler-Lagrange equations of `lagrangian` on
+    `scene` (`EulerLagrange`), its mass matrix assembled from `mass`'s structure where
+    that is fewer products (`acceleration_fn`, `uses_mass_structure`)."""
+    system = prepare(scene)
+    constraints = system.constraints
+    structured = mass is not None and uses_mass_structure(scene, mass)
+    local = system.local_mass(mass.reach) if structured else None
+    pooled = system.pooled_jacobian(mass.supports) if structured and mass.pooled else None
+
+    def reduced(fn):
+        return lambda x, v: fn(constraints.embed(x), constraints.embed_velocity(v))
+
+    reduced_lagrangian = reduced(lagrangian)
+    grad_v = jax.grad(reduced_lagrangian, argnums=1)
+    terms = reduced(mass.terms) if pooled is not None else None
+
+    def right_hand_side(x, v):
+        pi = jax.grad(reduced_lagrangian, argnums=0)(x, v)
+        coriolis_v = jax.jvp(lambda y: grad_v(y, v), (x,), (v,))[1]
+        return pi - coriolis_v
+
+    def mass_products(x, v):
+        if pooled is None:
+            return local.products(lambda seed: jax.jvp(lambda w: grad_v(x, w), (v,), (seed,))[1], x.dtype), None
+        values, linear = jax.linearize(lambda w: terms(x, w), v)
+        p = jnp.sum(values, 0)
+        slope, curvature = jax.grad(mass.readout)(p), jax.hessian(mass.readout)(p)
+        jacobian_t = pooled.transposed(linear, x.dtype)
+        # The local sum weighted by the read-out's slope at this state, held fixed.
+        grad_local = jax.grad(lambda w: jnp.dot(jnp.sum(terms(x, w), 0), jax.lax.stop_gradient(slope)))
+        products = local.products(lambda seed: jax.jvp(grad_local, (v,), (seed,))[1], x.dtype)
+        return products, jacobian_t @ curvature @ jacobian_t.T
+
+    def pooled_jacobian(x, v):
+        return pooled.transposed(jax.linearize(lambda w: terms(x, w), v)[1], x.dtype)
+
+    def mass_matrix(x, v):
+        if local is None:
+            return jax.jacfwd(grad_v, argnums=1)(x, v)
+        products, low_rank = mass_products(x, v)
+        return local.dense(products) if low_rank is None else local.dense(products) + low_rank
+
+    return EulerLagrange(right_hand_side, mass_matrix, mass_products if structured else None,
+                         pooled_jacobian if pooled is not None else None, local, structured and mass == LOCAL and system.long_chain)
 
 
 def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | None = None, *, mass: MassStructure | None = None) -> AccelerationFn:
@@ -77,54 +156,23 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
     - pooled (LGN's read-out of summed embeddings): the low-rank part from the features'
       Jacobian (forward products on a colouring of the terms' supports), the rest local.
     Declaring a structure the Lagrangian does not have gives wrong accelerations (tests
-    compare every declared structure with the dense path).
+    compare every declared structure with the dense path). The equations' pieces are
+    `euler_lagrange`'s.
     """
-    system = prepare(scene)
-    constraints = system.constraints
-    structured = mass is not None and uses_mass_structure(scene, mass)
-    local = system.local_mass(mass.reach) if structured else None
-    pooled = system.pooled_jacobian(mass.supports) if structured and mass.pooled else None
-    chain_solve = structured and mass == LOCAL and system.long_chain
-
-    def reduced(fn):
-        return lambda x, v: fn(constraints.embed(x), constraints.embed_velocity(v))
-
-    reduced_lagrangian = reduced(lagrangian)
-    grad_v = jax.grad(reduced_lagrangian, argnums=1)
-
-    def mass_products(x, v):
-        """(S, F) the local part's products with the colouring's seeds, and the dense
-        low-rank part (F, F) of a pooled structure (or None)."""
-        if not mass.pooled:
-            return local.products(lambda seed: jax.jvp(lambda w: grad_v(x, w), (v,), (seed,))[1], x.dtype), None
-        terms = reduced(mass.terms)
-        values, linear = jax.linearize(lambda w: terms(x, w), v)
-        p = jnp.sum(values, 0)
-        slope, curvature = jax.grad(mass.readout)(p), jax.hessian(mass.readout)(p)
-        jacobian_t = pooled.transposed(linear, x.dtype)
-        # The local sum weighted by the read-out's slope at this state, held fixed.
-        grad_local = jax.grad(lambda w: jnp.dot(jnp.sum(terms(x, w), 0), jax.lax.stop_gradient(slope)))
-        products = local.products(lambda seed: jax.jvp(grad_local, (v,), (seed,))[1], x.dtype)
-        return products, jacobian_t @ curvature @ jacobian_t.T
+    constraints = prepare(scene).constraints
+    equations = euler_lagrange(scene, lagrangian, mass)
 
     def accel(q, qd):
         x, v = constraints.restrict(q), constraints.restrict(qd)
-        pi = jax.grad(reduced_lagrangian, argnums=0)(x, v)
-        coriolis_v = jax.jvp(lambda y: grad_v(y, v), (x,), (v,))[1]
-        rhs = pi - coriolis_v
+        rhs = equations.right_hand_side(x, v)
         if force_fn is not None:
             rhs = rhs + constraints.restrict(force_fn(q, qd))
-        if local is None:
-            mass_matrix = jax.jacfwd(grad_v, argnums=1)(x, v)
-        else:
-            products, low_rank = mass_products(x, v)
-            if chain_solve:
-                diagonal, upper = local.chain_blocks(products)
-                u = constraints.link_directions(q)
-                xdd = chain_kkt_solve(diagonal, upper, u, rhs.reshape(-1, constraints.shape[1]), -constraints.jacobian_dot_v(x, v), regularised=True)
-                return constraints.embed_velocity(xdd.reshape(-1))
-            mass_matrix = local.dense(products) if low_rank is None else local.dense(products) + low_rank
-        xdd = solve_kkt(mass_matrix, constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
+        if equations.chain_solve:
+            diagonal, upper = equations.local.chain_blocks(equations.mass_products(x, v)[0])
+            u = constraints.link_directions(q)
+            xdd = chain_kkt_solve(diagonal, upper, u, rhs.reshape(-1, constraints.shape[1]), -constraints.jacobian_dot_v(x, v), regularised=True)
+            return constraints.embed_velocity(xdd.reshape(-1))
+        xdd = solve_kkt(equations.mass_matrix(x, v), constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
         return constraints.embed_velocity(xdd)
 
     return full_precision_matmuls(accel)
