@@ -581,6 +581,27 @@ def test_local_mass_solve_matches_the_dense_solve(name):
     np.testing.assert_allclose(local, dense, atol=1e-10 * (1 + np.abs(dense).max()))
 
 
+@pytest.mark.parametrize("name", ["chain4", "chain90", "T1"])
+def test_euler_lagranges_structured_mass_matrix_is_the_dense_one(name):
+    """`euler_lagrange`'s pieces with the local structure declared: its mass matrix is
+    the one forward differentiation gives, its products are what the matrix is made
+    of, and a long chain goes to the block elimination (`chain_solve`)."""
+    scene = STRUCTURED_SCENES[name]()
+    q, qd = random_state(scene, seed=9, speed=2.0)
+    constraints = physics.prepare(scene).constraints
+    x, v = constraints.restrict(q), constraints.restrict(qd)
+    lagrangian = physics.lagrangian_fn(scene)
+    dense, local = physics.euler_lagrange(scene, lagrangian), physics.euler_lagrange(scene, lagrangian, physics.LOCAL)
+    assert not dense.structured and dense.mass_products is None and local.structured
+    assert local.chain_solve == (name == "chain90")
+    expected = np.asarray(jax.jit(dense.mass_matrix)(x, v))
+    np.testing.assert_allclose(jax.jit(local.mass_matrix)(x, v), expected, atol=1e-12 * np.abs(expected).max())
+    products, low_rank = jax.jit(local.mass_products)(x, v)
+    assert low_rank is None
+    np.testing.assert_allclose(local.local.dense(products), expected, atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_allclose(local.right_hand_side(x, v), dense.right_hand_side(x, v), rtol=1e-12, atol=1e-12)
+
+
 def test_local_mass_colouring_needs_2_reach_plus_1_colours_for_any_chain():
     for n in (4, 40, 400):
         scene = chain(n)
