@@ -338,3 +338,26 @@ def test_a_file_with_a_builtins_content_is_that_entry_and_a_reused_name_is_not()
     t1 = get_scene("T1")
     assert catalogue_entry(scene_from_dict(scene_to_dict(t1))) is CATALOGUE["T1"]
     assert catalogue_entry(get_scene("chain8").replace(name="T1")) is None
+
+
+def test_checking_a_scene_name_builds_no_catalogue_scene(monkeypatch, tmp_path):
+    """`check_scene_name` (what a profile's names are checked with at import): a
+    catalogue name passes without its builder running, a file is loaded, an unknown
+    name or a broken file is a `SceneError`."""
+    import dataclasses
+
+    from lgnn.scene import check_scene_name
+
+    def unbuildable():
+        raise AssertionError("built")
+
+    monkeypatch.setitem(CATALOGUE, "chain4", dataclasses.replace(CATALOGUE["chain4"], build=unbuildable))
+    check_scene_name("chain4")
+    path = tmp_path / "mine.json"
+    path.write_text(scene_to_json(dataclasses.replace(get_scene("chain8"), name="mine")))
+    check_scene_name(str(path))
+    with pytest.raises(SceneError, match="unknown scene 'chain5'"):
+        check_scene_name("chain5")
+    path.write_text("{")
+    with pytest.raises(SceneError):
+        check_scene_name(str(path))

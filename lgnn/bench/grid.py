@@ -37,7 +37,7 @@ from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.learn.data import DataConfig
 from lgnn.learn.models import load_spec
 from lgnn.learn.train import TrainConfig, adam_steps_per_epoch, scheduled
-from lgnn.scene import get_scene
+from lgnn.scene import check_scene_name, get_scene
 
 # The scene every model of the main grid is trained on.
 TRAINING_SCENE = "chain4"
@@ -549,7 +549,7 @@ def _check_names(profile: Profile) -> None:
             raise ConfigError(f"grid[{k}]: unknown model {entry.model!r} (choose from {', '.join(model_names())}, or module:attribute)")
         for name in (entry.train_scene, *entry.eval_scenes):
             try:
-                get_scene(name)
+                check_scene_name(name)
             except SceneError as err:
                 raise ConfigError(f"grid[{k}]: {err}") from None
     unknown_tracks = sorted(set(profile.tracks or ()) - set(TRACKS))
@@ -569,7 +569,7 @@ def _check_names(profile: Profile) -> None:
                        ("scaling.throughput_scenes", profile.scaling.throughput_scenes), ("mass.scenes", profile.mass.scenes)):
         for name in names:
             try:
-                get_scene(name)
+                check_scene_name(name)
             except SceneError as err:
                 raise ConfigError(f"setting {key!r}: {err}") from None
 

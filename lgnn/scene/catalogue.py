@@ -683,6 +683,14 @@ def initial_state_policy(scene: Scene) -> str:
     return CHAIN_SAMPLER if is_pinned_chain(scene) else PROJECTED
 
 
+def check_scene_name(name_or_path: str) -> None:
+    """`SceneError` unless `get_scene(name_or_path)` finds a scene: a catalogue name
+    (not built: checking a profile's names at import must not build every scene), or a
+    scene file that loads."""
+    if name_or_path not in CATALOGUE:
+        get_scene(name_or_path)
+
+
 def get_scene(name_or_path: str) -> Scene:
     """A catalogue scene by name (`CATALOGUE`), or a user's scene JSON file by path."""
     if name_or_path in CATALOGUE:
