@@ -557,6 +557,49 @@ def test_block_products_match_matmul(rows, inner, columns):
     np.testing.assert_allclose(jax.vmap(block_product)(jnp.asarray(a), jnp.asarray(b)), np.einsum("bij,bj...->bi...", a, b), rtol=1e-14, atol=1e-14)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_cyclic_reduction_solves_the_chains_kkt_system_as_the_sweeps_do(dim):
+    """`chain_kkt_solve` by cyclic reduction against the sweeps, both exact and
+    regularised-and-refined, on random chains of lengths around powers of two (the
+    padding), with a positive definite block-tridiagonal mass; and under `vmap`."""
+    from lgnn.physics.solvers import chain_kkt_solve
+
+    solve = jax.jit(chain_kkt_solve, static_argnames=("regularised", "cyclic"))
+    rng = np.random.default_rng(dim)
+    for n, regularised in ((1, True), (2, True), (3, False), (5, True), (9, False), (9, True)):
+        factors = rng.normal(size=(n, dim, dim)) * 0.3
+        diagonal = 2 * np.eye(dim) + factors @ np.swapaxes(factors, 1, 2)
+        upper = rng.normal(size=(n - 1, dim, dim)) * 0.3
+        u = rng.normal(size=(n, dim))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        args = (diagonal, upper, u, rng.normal(size=(n, dim)), rng.normal(size=n))
+        sweeps = np.asarray(solve(*args, regularised=regularised, cyclic=False))
+        cyclic = np.asarray(solve(*args, regularised=regularised, cyclic=True))
+        np.testing.assert_allclose(cyclic, sweeps, atol=1e-13 * np.abs(sweeps).max(), err_msg=f"{n} links, regularised {regularised}")
+    batched = jax.jit(jax.vmap(lambda *a: chain_kkt_solve(*a, regularised=True, cyclic=True)))(*(np.stack([a, a]) for a in args))
+    np.testing.assert_allclose(batched[1], sweeps, atol=1e-13 * np.abs(sweeps).max())
+
+
+def test_an_accelerator_eliminates_a_chain_by_cyclic_reduction(monkeypatch):
+    """`chain_elimination`: the sweeps on a CPU, `ACCELERATOR_CHAIN_ELIMINATION` where
+    the trace computes on an accelerator; and the exact dynamics of a long chain by
+    cyclic reduction give the Schur solve's accelerations."""
+    from lgnn import sharding
+    from lgnn.physics import solvers
+
+    assert solvers.chain_elimination() == "sweeps"
+    monkeypatch.setattr(sharding, "platform", lambda: "gpu")
+    assert solvers.chain_elimination() == solvers.ACCELERATOR_CHAIN_ELIMINATION == "cyclic"
+    monkeypatch.undo()
+    monkeypatch.setattr(solvers, "chain_elimination", lambda: "cyclic")
+    scene = chain(90)
+    q = sample_initial_states(scene, jax.random.PRNGKey(5), 1).q[0]
+    q, qd = jax.jit(physics.projection_fn(scene))(q, jax.random.normal(jax.random.PRNGKey(6), q.shape))
+    cyclic = np.asarray(jax.jit(physics.true_acceleration_fn(scene, "chain"))(q, qd))
+    schur = np.asarray(jax.jit(physics.true_acceleration_fn(scene, "schur"))(q, qd))
+    np.testing.assert_allclose(cyclic, schur, atol=1e-10 * np.abs(schur).max())
+
+
 def test_chain_solver_is_accurate_on_a_long_chain():
     """The linear-time chain elimination against the Schur solve on 300 links, at a
     random configuration with fast motion (round-off relative to the scale)."""

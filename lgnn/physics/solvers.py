@@ -14,12 +14,16 @@ and `refine`s the solution against the exact system, which recovers the exact so
   system is positive definite at every configuration (a pinned chain's), small ones
   by Gauss-Jordan elimination.
 - `chain_kkt_solve`: the KKT system of a chain pinned at node 0 (2D or 3D) in time
-  linear in its length (block-tridiagonal elimination from the free end).
+  linear in its length: block-tridiagonal elimination from the free end (sweeps, on a
+  CPU) or by cyclic reduction (`cyclic_reduction`, log-depth, on an accelerator:
+  `chain_elimination`).
 - `LinkGram`: `A A^T` from its per-link sparsity (tridiagonal on chains, tridiagonal
   with a small dense border on T1), for the projection's Gauss-Newton steps.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import functools
 from typing import Callable
@@ -80,6 +84,24 @@ ELIMINATED_MAX = 8
 # us unrolled by 5 and 507-528 us by 10 (`tools/cpu_vs_mujoco.py --scene chain100`,
 # two alternated runs of each). Not unrolled there.
 ACCELERATOR_SWEEP_UNROLL = 10
+
+
+# How `chain_kkt_solve` eliminates on an accelerator: "sweeps" (n dependent rows,
+# unrolled by `ACCELERATOR_SWEEP_UNROLL`) or "cyclic" (`cyclic_reduction`: 2 log2 n
+# rounds of whole-array block work). Measured on one H200, 100 RK4 steps x 100 states
+# (results/gpu/sweeps/, last section), sweeps -> cyclic: chain100 LGNN 0.73 -> 0.28 s,
+# ground truth 0.32 -> 0.14 s; chain100-3d 0.95 -> 0.33 s and 0.44 -> 0.15 s; each
+# compiled in less time, the trajectories the same to every printed digit. A CPU always
+# sweeps: there a loop trip costs little, and cyclic reduction's extra arithmetic made
+# chain100 x 16 states 1.06 -> 1.38 s (LGNN) and 0.07 -> 0.25 s (ground truth).
+ACCELERATOR_CHAIN_ELIMINATION = "cyclic"
+
+
+def chain_elimination() -> str:
+    """How `chain_kkt_solve` eliminates on the platform the trace computes on
+    (`lgnn.sharding.platform`): `ACCELERATOR_CHAIN_ELIMINATION` on an accelerator,
+    "sweeps" on a CPU."""
+    return "sweeps" if sharding.platform() == "cpu" else ACCELERATOR_CHAIN_ELIMINATION
 
 
 def sweep_unroll() -> int:
@@ -231,15 +253,16 @@ def gauss_jordan_solve(matrix: Array, rhs: Array) -> Array:
 
 
 def block_product(a: Array, b: Array) -> Array:
-    """`a @ b` for a small block `a` (R, K) and `b` (K, C) or (K,), as K elementwise
-    multiply-adds in order k = 0, 1, ...: no dot, so on an accelerator one row of a
-    sweep along a chain, products and the adjugate inverse, fuses into a few elementwise
-    kernels where a dot is a kernel of its own (`chain_kkt_solve`)."""
-    columns = b if b.ndim == 2 else b[:, None]
-    product = a[:, :1] * columns[:1]
-    for k in range(1, a.shape[1]):
-        product = product + a[:, k:k + 1] * columns[k:k + 1]
-    return product if b.ndim == 2 else product[:, 0]
+    """`a @ b` for small blocks `a` (..., R, K) and `b` (..., K, C) or (..., K), the
+    leading axes alike, as K elementwise multiply-adds in order k = 0, 1, ...: no dot,
+    so on an accelerator one row of a sweep along a chain, products and the adjugate
+    inverse, fuses into a few elementwise kernels where a dot is a kernel of its own
+    (`chain_kkt_solve`)."""
+    columns = b if b.ndim == a.ndim else b[..., None]
+    product = a[..., :, :1] * columns[..., :1, :]
+    for k in range(1, a.shape[-1]):
+        product = product + a[..., :, k:k + 1] * columns[..., k:k + 1, :]
+    return product if b.ndim == a.ndim else product[..., 0]
 
 
 def _inverse_3x3(m: Array) -> Array:
@@ -278,7 +301,7 @@ def _inverse_4x4(m: Array) -> Array:
 
 
 def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs: Array, link_rhs: Array, *,
-                    regularised: bool = False) -> Array:
+                    regularised: bool = False, cyclic: bool | None = None) -> Array:
     """Solve the KKT system of a chain pinned at node 0 in time linear in n, in D = 2 or 3.
 
     Block b (b = 0..n-1) holds node b+1's acceleration and link b's multiplier. Link b
@@ -294,6 +317,8 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
     `regularised` sets `eps = KKT_REGULARISATION` in these units and refines against
     the exact (`eps = 0`) system with `KKT_REFINEMENT_STEPS` steps, each costing two
     more scans; without it `eps = 0` (a pinned chain's rows are independent).
+    `cyclic`: the same system factored by cyclic reduction (`cyclic_reduction`) instead
+    of the sweeps (None: `chain_elimination`'s choice for the platform).
     `node_rhs` (n, D), `link_rhs` (n,). Returns the node accelerations (n, D).
     """
     (n, d), dtype = u.shape, u.dtype
@@ -335,11 +360,20 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
         _, rest = jax.lax.scan(substitute, first, (inverses[1:], reduced[1:], upper), unroll=unroll)
         return jnp.concatenate([first[None], rest])
 
-    # The factorisation and the first solve share one elimination pass.
-    last_inverse = inverse_block(diagonal[-1])
-    _, (inverses, weights, reduced) = jax.lax.scan(eliminate, (last_inverse, rhs[-1]), (diagonal[:-1], upper, rhs[:-1]), reverse=True, unroll=unroll)
-    inverses = jnp.concatenate([inverses, last_inverse[None]])
-    solution = back_substitute(inverses, jnp.concatenate([reduced, rhs[-1:]]))
+    if cyclic if cyclic is not None else chain_elimination() == "cyclic":
+        factored = cyclic_reduction(diagonal, upper, inverse_block)
+        solution, solve = factored.solve(rhs), factored.solve
+    else:
+        # The factorisation and the first solve share one elimination pass.
+        last_inverse = inverse_block(diagonal[-1])
+        _, (inverses, weights, reduced) = jax.lax.scan(eliminate, (last_inverse, rhs[-1]), (diagonal[:-1], upper, rhs[:-1]), reverse=True, unroll=unroll)
+        inverses = jnp.concatenate([inverses, last_inverse[None]])
+        solution = back_substitute(inverses, jnp.concatenate([reduced, rhs[-1:]]))
+
+        def solve(residual):
+            _, reduced = jax.lax.scan(reduce, residual[-1], (weights, residual[:-1]), reverse=True, unroll=unroll)
+            return back_substitute(inverses, jnp.concatenate([reduced, residual[-1:]]))
+
     if not regularised:
         return solution[:, :d]
     exact = blocks(0.0)
@@ -351,11 +385,70 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
         product = product.at[1:].add(jnp.einsum("bji,bj->bi", upper, solution[:-1]))
         return rhs - product
 
-    def solve(residual):
-        _, reduced = jax.lax.scan(reduce, residual[-1], (weights, residual[:-1]), reverse=True, unroll=unroll)
-        return back_substitute(inverses, jnp.concatenate([reduced, residual[-1:]]))
-
     return refine(solve, residual, solution, KKT_REFINEMENT_STEPS)[:, :d]
+
+
+@dataclasses.dataclass(frozen=True)
+class CyclicReduction:
+    """A block-tridiagonal system factored by cyclic reduction (`cyclic_reduction`):
+    per level, from the whole system down, the odd blocks' inverses `inverses`, their
+    couplings to the even blocks beside them (`lower`, `upper`: (B, R, R) each), and
+    the weights that carry the odd rows into the even ones (`left`, `right`); `last`,
+    the inverse of the one block left at the bottom. `solve(rhs)` applies it."""
+
+    inverses: tuple
+    lower: tuple
+    upper: tuple
+    left: tuple
+    right: tuple
+    last: Array
+    size: int  # blocks of the system before padding
+
+    def solve(self, rhs: Array) -> Array:
+        """The solution (n, R) of the factored system for `rhs` (n, R)."""
+        padded = jnp.zeros((2 ** len(self.inverses),) + rhs.shape[1:], rhs.dtype).at[:self.size].set(rhs)
+        odd_rhs = []
+        for left, right in zip(self.left, self.right):
+            even, odd = padded[0::2], padded[1::2]
+            odd_rhs.append(odd)
+            padded = even - block_product(left, jnp.roll(odd, 1, axis=0)) - block_product(right, odd)
+        solution = block_product(self.last, padded[0])[None]
+        for inverses, lower, upper, odd in zip(*(reversed(x) for x in (self.inverses, self.lower, self.upper, odd_rhs))):
+            following = jnp.concatenate([solution[1:], jnp.zeros_like(solution[:1])])
+            odd_solution = block_product(inverses, odd - block_product(lower, solution) - block_product(upper, following))
+            solution = jnp.stack([solution, odd_solution], axis=1).reshape((-1,) + solution.shape[1:])
+        return solution[:self.size]
+
+
+def cyclic_reduction(diagonal: Array, upper: Array, inverse_block: Callable[[Array], Array]) -> CyclicReduction:
+    """Factor the block-tridiagonal matrix of diagonal blocks `diagonal` (n, R, R) and
+    blocks above them `upper` (n-1, R, R) (block b couples b to b+1; below, their
+    transposes: the matrix is symmetric) by cyclic reduction: the system, padded to a
+    power of two with identity blocks, eliminates its odd blocks into the even ones,
+    log2 n times. Each level is whole-array block work, so on an accelerator the solve
+    is about 2 log2 n rounds of elementwise kernels, where the sweeps of
+    `chain_kkt_solve` are n dependent rows. It inverts the odd blocks of each level
+    (`inverse_block`, one (R, R) block), Schur complements of the matrix on sets of
+    whole blocks: a KKT matrix of a positive definite mass and independent rows has
+    them all nonsingular. About twice the sweeps' arithmetic."""
+    n, r = diagonal.shape[0], diagonal.shape[1]
+    levels = max(0, (n - 1).bit_length())
+    size = 2 ** levels
+    eye = jnp.broadcast_to(jnp.eye(r, dtype=diagonal.dtype), (size - n, r, r))
+    diag = jnp.concatenate([diagonal, eye])
+    up = jnp.zeros((size, r, r), diagonal.dtype).at[:n - 1].set(upper)
+    low = jnp.concatenate([jnp.zeros_like(up[:1]), jnp.swapaxes(up[:-1], 1, 2)])  # block b's coupling to b-1
+    invert = jax.vmap(inverse_block)
+    inverses, lowers, uppers, lefts, rights = [], [], [], [], []
+    for _ in range(levels):
+        inverse = invert(diag[1::2])
+        left = block_product(low[0::2], jnp.roll(inverse, 1, axis=0))  # the odd block before each even one (none before block 0: its coupling is 0)
+        right = block_product(up[0::2], inverse)
+        previous_upper, previous_lower = jnp.roll(up[1::2], 1, axis=0), jnp.roll(low[1::2], 1, axis=0)
+        diag = diag[0::2] - block_product(left, previous_upper) - block_product(right, low[1::2])
+        inverses.append(inverse), lowers.append(low[1::2]), uppers.append(up[1::2]), lefts.append(left), rights.append(right)
+        low, up = -block_product(left, previous_lower), -block_product(right, up[1::2])
+    return CyclicReduction(tuple(inverses), tuple(lowers), tuple(uppers), tuple(lefts), tuple(rights), inverse_block(diag[0]), n)
 
 
 def spd_tridiagonal_solve(lower: Array, diag: Array, upper: Array, rhs: Array) -> Array:

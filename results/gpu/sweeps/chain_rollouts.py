@@ -4,6 +4,7 @@ compiling call, as one JSON line.
 
     python results/gpu/sweeps/chain_rollouts.py --unroll 10 --scene chain100 --states 100 --duration 0.1
     python results/gpu/sweeps/chain_rollouts.py --dense ...   # the dense solves instead of the chain's
+    python results/gpu/sweeps/chain_rollouts.py --chain-elimination cyclic ...   # cyclic reduction instead of the sweeps
 
 `--unroll` sets `lgnn.physics.solvers.ACCELERATOR_SWEEP_UNROLL` before anything
 compiles; `--dense` raises `system.CHAIN_SOLVER_MIN_LINKS` past the chain and gives the
@@ -19,6 +20,8 @@ parser.add_argument("--dense", action="store_true")
 parser.add_argument("--scene", default="chain100")
 parser.add_argument("--states", type=int, default=100)
 parser.add_argument("--duration", type=float, default=0.1)
+parser.add_argument("--chain-elimination", choices=("sweeps", "cyclic"), default=None,
+                    help="how chain_kkt_solve eliminates, on any platform (default: solvers.chain_elimination's choice)")
 parser.add_argument("--checkpoint", default="results/benchmark/checkpoints/lgnn-chain4-s0.npz", help="the LGNN (lgnn-chain4-3d-s0 for a 3D chain)")
 args = parser.parse_args()
 configure()
@@ -40,6 +43,8 @@ if args.unroll is not None:
     solvers.ACCELERATOR_SWEEP_UNROLL = args.unroll
 if args.dense:
     system.CHAIN_SOLVER_MIN_LINKS = 10**9
+if args.chain_elimination is not None:
+    solvers.chain_elimination = lambda: args.chain_elimination
 
 
 def schur_truth(scene):
@@ -51,7 +56,8 @@ states = State(*(np.asarray(a) for a in physics.benchmark_initial_states(scene, 
 config = SimulationConfig(1e-3, 1e-3, args.duration)
 model, params = load_model(args.checkpoint)
 truth = Unparametrised(schur_truth if args.dense else vectorised_true_acceleration_fn)
-row = dict(scene=args.scene, states=args.states, duration=args.duration, unroll=solvers.sweep_unroll(), dense=args.dense, backend=jax.default_backend())
+row = dict(scene=args.scene, states=args.states, duration=args.duration, unroll=solvers.sweep_unroll(), dense=args.dense,
+           chain_elimination=solvers.chain_elimination(), backend=jax.default_backend())
 for label, factory, p in (("lgnn", models.AccelerationFactory(model), params), ("truth", truth, None)):
     runs = [batched_rollouts(scene, config, factory, states, p, integration=Integration("rk4", project=True), chunk=args.states) for _ in range(3)]
     row[f"{label}_compile_s"] = round(runs[0].compile_s, 2)
