@@ -26,7 +26,7 @@ from __future__ import annotations
 import dataclasses
 
 import functools
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -388,67 +388,73 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
     return refine(solve, residual, solution, KKT_REFINEMENT_STEPS)[:, :d]
 
 
+class ReductionLevel(NamedTuple):
+    """One level of `cyclic_reduction`: its odd blocks' `inverse`s, their couplings to
+    the even blocks before and after them (`lower`, `upper`), and the weights that carry
+    the odd rows into the even ones (`left`, `right`), each (B, R, R)."""
+
+    inverse: Array
+    lower: Array
+    upper: Array
+    left: Array
+    right: Array
+
+
 @dataclasses.dataclass(frozen=True)
 class CyclicReduction:
-    """A block-tridiagonal system factored by cyclic reduction (`cyclic_reduction`):
-    per level, from the whole system down, the odd blocks' inverses `inverses`, their
-    couplings to the even blocks beside them (`lower`, `upper`: (B, R, R) each), and
-    the weights that carry the odd rows into the even ones (`left`, `right`); `last`,
+    """A block-tridiagonal system of `size` blocks factored by cyclic reduction
+    (`cyclic_reduction`): its `levels` from the whole (padded) system down, and `last`,
     the inverse of the one block left at the bottom. `solve(rhs)` applies it."""
 
-    inverses: tuple
-    lower: tuple
-    upper: tuple
-    left: tuple
-    right: tuple
+    levels: tuple[ReductionLevel, ...]
     last: Array
-    size: int  # blocks of the system before padding
+    size: int
 
     def solve(self, rhs: Array) -> Array:
         """The solution (n, R) of the factored system for `rhs` (n, R)."""
-        padded = jnp.zeros((2 ** len(self.inverses),) + rhs.shape[1:], rhs.dtype).at[:self.size].set(rhs)
-        odd_rhs = []
-        for left, right in zip(self.left, self.right):
-            even, odd = padded[0::2], padded[1::2]
-            odd_rhs.append(odd)
-            padded = even - block_product(left, jnp.roll(odd, 1, axis=0)) - block_product(right, odd)
-        solution = block_product(self.last, padded[0])[None]
-        for inverses, lower, upper, odd in zip(*(reversed(x) for x in (self.inverses, self.lower, self.upper, odd_rhs))):
+        reduced = jnp.zeros((2 ** len(self.levels),) + rhs.shape[1:], rhs.dtype).at[:self.size].set(rhs)
+        odd_rows = []
+        for level in self.levels:
+            even, odd = reduced[0::2], reduced[1::2]
+            odd_rows.append(odd)
+            # Even block 2k's neighbours are odd blocks k-1 (none before block 0, whose `left` is 0) and k.
+            reduced = even - block_product(level.left, jnp.roll(odd, 1, axis=0)) - block_product(level.right, odd)
+        solution = block_product(self.last, reduced[0])[None]
+        for level, odd in zip(reversed(self.levels), reversed(odd_rows)):
             following = jnp.concatenate([solution[1:], jnp.zeros_like(solution[:1])])
-            odd_solution = block_product(inverses, odd - block_product(lower, solution) - block_product(upper, following))
+            odd_solution = block_product(level.inverse, odd - block_product(level.lower, solution) - block_product(level.upper, following))
             solution = jnp.stack([solution, odd_solution], axis=1).reshape((-1,) + solution.shape[1:])
         return solution[:self.size]
 
 
 def cyclic_reduction(diagonal: Array, upper: Array, inverse_block: Callable[[Array], Array]) -> CyclicReduction:
-    """Factor the block-tridiagonal matrix of diagonal blocks `diagonal` (n, R, R) and
-    blocks above them `upper` (n-1, R, R) (block b couples b to b+1; below, their
-    transposes: the matrix is symmetric) by cyclic reduction: the system, padded to a
-    power of two with identity blocks, eliminates its odd blocks into the even ones,
-    log2 n times. Each level is whole-array block work, so on an accelerator the solve
-    is about 2 log2 n rounds of elementwise kernels, where the sweeps of
-    `chain_kkt_solve` are n dependent rows. It inverts the odd blocks of each level
-    (`inverse_block`, one (R, R) block), Schur complements of the matrix on sets of
-    whole blocks: a KKT matrix of a positive definite mass and independent rows has
-    them all nonsingular. About twice the sweeps' arithmetic."""
+    """Factor the symmetric block-tridiagonal matrix of diagonal blocks `diagonal` (n,
+    R, R) and blocks above them `upper` (n-1, R, R) (block b couples b to b+1; below
+    the diagonal, their transposes) by cyclic reduction: the system, padded to a power
+    of two with identity blocks, eliminates its odd blocks into the even ones, log2 n
+    times. Each level is whole-array block work, so on an accelerator a solve is about
+    2 log2 n rounds of elementwise kernels, where the sweeps of `chain_kkt_solve` are n
+    dependent rows; the arithmetic is about twice the sweeps'. It inverts the odd
+    blocks of each level (`inverse_block`, one (R, R) block), Schur complements of the
+    matrix on sets of whole blocks: a chain's KKT matrix with a positive definite mass
+    has them all nonsingular (each link's row has its own block's node)."""
     n, r = diagonal.shape[0], diagonal.shape[1]
-    levels = max(0, (n - 1).bit_length())
-    size = 2 ** levels
-    eye = jnp.broadcast_to(jnp.eye(r, dtype=diagonal.dtype), (size - n, r, r))
-    diag = jnp.concatenate([diagonal, eye])
+    size = 2 ** max(0, (n - 1).bit_length())
+    diag = jnp.concatenate([diagonal, jnp.broadcast_to(jnp.eye(r, dtype=diagonal.dtype), (size - n, r, r))])
     up = jnp.zeros((size, r, r), diagonal.dtype).at[:n - 1].set(upper)
     low = jnp.concatenate([jnp.zeros_like(up[:1]), jnp.swapaxes(up[:-1], 1, 2)])  # block b's coupling to b-1
     invert = jax.vmap(inverse_block)
-    inverses, lowers, uppers, lefts, rights = [], [], [], [], []
-    for _ in range(levels):
+    levels = []
+    while len(diag) > 1:
         inverse = invert(diag[1::2])
-        left = block_product(low[0::2], jnp.roll(inverse, 1, axis=0))  # the odd block before each even one (none before block 0: its coupling is 0)
+        # Even block 2k's neighbours are odd blocks k-1 (rolled in; block 0 has no coupling before it) and k.
+        left = block_product(low[0::2], jnp.roll(inverse, 1, axis=0))
         right = block_product(up[0::2], inverse)
-        previous_upper, previous_lower = jnp.roll(up[1::2], 1, axis=0), jnp.roll(low[1::2], 1, axis=0)
-        diag = diag[0::2] - block_product(left, previous_upper) - block_product(right, low[1::2])
-        inverses.append(inverse), lowers.append(low[1::2]), uppers.append(up[1::2]), lefts.append(left), rights.append(right)
-        low, up = -block_product(left, previous_lower), -block_product(right, up[1::2])
-    return CyclicReduction(tuple(inverses), tuple(lowers), tuple(uppers), tuple(lefts), tuple(rights), inverse_block(diag[0]), n)
+        upper_before, lower_before = jnp.roll(up[1::2], 1, axis=0), jnp.roll(low[1::2], 1, axis=0)
+        levels.append(ReductionLevel(inverse, low[1::2], up[1::2], left, right))
+        diag = diag[0::2] - block_product(left, upper_before) - block_product(right, low[1::2])
+        low, up = -block_product(left, lower_before), -block_product(right, up[1::2])
+    return CyclicReduction(tuple(levels), inverse_block(diag[0]), n)
 
 
 def spd_tridiagonal_solve(lower: Array, diag: Array, upper: Array, rhs: Array) -> Array:
