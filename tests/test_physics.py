@@ -581,15 +581,46 @@ def test_cyclic_reduction_solves_the_chains_kkt_system_as_the_sweeps_do(dim):
     np.testing.assert_allclose(batched[1], sweeps, atol=1e-13 * np.abs(sweeps).max())
 
 
-def test_an_accelerator_eliminates_a_chain_by_cyclic_reduction(monkeypatch):
-    """`chain_elimination`: the sweeps on a CPU, `ACCELERATOR_CHAIN_ELIMINATION` where
-    the trace computes on an accelerator."""
+def test_an_accelerator_eliminates_a_chain_by_cyclic_reduction_unless_it_solves_many_at_once(monkeypatch):
+    """`chain_elimination`: the sweeps on a CPU; where the trace computes on an
+    accelerator `ACCELERATOR_CHAIN_ELIMINATION`, and the sweeps past
+    `CYCLIC_MAX_SYSTEMS` systems at once."""
     from lgnn import sharding
     from lgnn.physics import solvers
 
     assert solvers.chain_elimination() == "sweeps"
     monkeypatch.setattr(sharding, "platform", lambda: "gpu")
     assert solvers.chain_elimination() == solvers.ACCELERATOR_CHAIN_ELIMINATION == "cyclic"
+    with solvers.systems_at_once(solvers.CYCLIC_MAX_SYSTEMS):
+        assert solvers.chain_elimination() == "cyclic"
+        with solvers.systems_at_once(solvers.CYCLIC_MAX_SYSTEMS + 1):
+            assert solvers.chain_elimination() == "sweeps"
+        assert solvers.chain_elimination() == "cyclic"
+    assert solvers.chain_elimination() == "cyclic"
+
+
+@pytest.mark.parametrize("batch, stacked, elimination", [(8, False, "cyclic"), (16384, False, "cyclic"), (16392, False, "sweeps"),
+                                                         (8200, True, "sweeps")])
+def test_a_rollout_program_chooses_the_chain_elimination_for_its_batch(batch, stacked, elimination, monkeypatch):
+    """`compiled_programs` traces its solves as the systems it solves at once (initial
+    conditions times stacked parameter sets), which a `vmap`ped solve cannot see."""
+    from types import SimpleNamespace
+
+    from lgnn.engines import rollouts
+    from lgnn.engines.base import Integration, SimulationConfig
+    from lgnn.physics import solvers
+
+    monkeypatch.setattr(solvers, "sharding", SimpleNamespace(platform=lambda: "gpu"))
+    chosen = set()
+
+    def factory(scene, params):
+        chosen.add(solvers.chain_elimination())
+        return lambda q, qd: params * jnp.zeros_like(q)
+
+    params = jnp.ones(2) if stacked else jnp.ones(())
+    rollouts.compiled_programs(chain(1), SimulationConfig(1e-3, 1e-3, 1e-3), Integration(), factory, batch, "float64", 1, stacked,
+                               rollouts.params_signature(params), False)
+    assert chosen == {elimination}
 
 
 @pytest.mark.parametrize("elimination", ["sweeps", "cyclic"])

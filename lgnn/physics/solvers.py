@@ -23,8 +23,9 @@ and `refine`s the solution against the exact system, which recovers the exact so
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
-
 import functools
 from typing import Callable, NamedTuple
 
@@ -95,13 +96,38 @@ ACCELERATOR_SWEEP_UNROLL = 10
 # sweeps: there a loop trip costs little, and cyclic reduction's extra arithmetic made
 # chain100 x 16 states 1.06 -> 1.38 s (LGNN) and 0.07 -> 0.25 s (ground truth).
 ACCELERATOR_CHAIN_ELIMINATION = "cyclic"
+# Cyclic reduction's doubled arithmetic wins while a sweep's row leaves the device idle,
+# that is, while few systems are solved at once. The float32 ground truth's steps/s on
+# one H200, sweeps / cyclic (results/gpu/truth/, `chain_elimination_ab.py`), chain16,
+# chain100 and chain100-3d: at 1 024 systems 0.59, 0.42, 0.42; at 8 192 0.80, 0.76,
+# 0.64; at 16 384 1.04, 0.96, 0.80; at 32 768 1.10, 1.16, 1.17; at 65 536 1.25, 1.53,
+# 1.32 (chain4: 0.94-0.99 up to 8 192). Above this many systems per device the sweeps
+# are taken.
+CYCLIC_MAX_SYSTEMS = 16384
+_SYSTEMS_AT_ONCE: contextvars.ContextVar[int | None] = contextvars.ContextVar("systems_at_once", default=None)
+
+
+@contextlib.contextmanager
+def systems_at_once(count: int | None):
+    """Trace the solves inside the block as `count` systems solved at once on each
+    device: the batch that a `vmap`ped solve cannot see, for `chain_elimination`'s
+    choice (None: not known, as outside the block)."""
+    token = _SYSTEMS_AT_ONCE.set(count)
+    try:
+        yield
+    finally:
+        _SYSTEMS_AT_ONCE.reset(token)
 
 
 def chain_elimination() -> str:
     """How `chain_kkt_solve` eliminates on the platform the trace computes on
-    (`lgnn.sharding.platform`): `ACCELERATOR_CHAIN_ELIMINATION` on an accelerator,
-    "sweeps" on a CPU."""
-    return "sweeps" if sharding.platform() == "cpu" else ACCELERATOR_CHAIN_ELIMINATION
+    (`lgnn.sharding.platform`): "sweeps" on a CPU; on an accelerator
+    `ACCELERATOR_CHAIN_ELIMINATION`, or the sweeps where more than `CYCLIC_MAX_SYSTEMS`
+    systems are solved at once per device (`systems_at_once`)."""
+    if sharding.platform() == "cpu":
+        return "sweeps"
+    count = _SYSTEMS_AT_ONCE.get()
+    return "sweeps" if count is not None and count > CYCLIC_MAX_SYSTEMS else ACCELERATOR_CHAIN_ELIMINATION
 
 
 def sweep_unroll() -> int:
