@@ -14,9 +14,9 @@ and `refine`s the solution against the exact system, which recovers the exact so
   system is positive definite at every configuration (a pinned chain's), small ones
   by Gauss-Jordan elimination.
 - `chain_kkt_solve`: the KKT system of a chain pinned at node 0 (2D or 3D) in time
-  linear in its length: block-tridiagonal elimination from the free end (sweeps, on a
-  CPU) or by cyclic reduction (`cyclic_reduction`, log-depth, on an accelerator:
-  `chain_elimination`).
+  linear in its length: block-tridiagonal elimination from the free end (`chain_sweeps`,
+  on a CPU and for large batches) or by cyclic reduction (`cyclic_reduction`,
+  log-depth, on an accelerator): `chain_elimination`.
 - `LinkGram`: `A A^T` from its per-link sparsity (tridiagonal on chains, tridiagonal
   with a small dense border on T1), for the projection's Gauss-Newton steps.
 """
@@ -361,6 +361,34 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
     diagonal = blocks(eps)
     rhs = jnp.concatenate([node_rhs, link_rhs[:, None]], axis=1)
 
+    if cyclic if cyclic is not None else chain_elimination() == "cyclic":
+        factored = cyclic_reduction(diagonal, upper, inverse_block)
+        solution, solve = factored.solve(rhs), factored.solve
+    else:
+        solution, solve = chain_sweeps(diagonal, upper, rhs, inverse_block)
+
+    if not regularised:
+        return solution[:, :d]
+    exact = blocks(0.0)
+
+    def residual(solution):
+        # Against the exact system: K y = D_b y_b + U_b y_b+1 + U_b-1^T y_b-1.
+        product = jnp.einsum("bij,bj->bi", exact, solution)
+        product = product.at[:-1].add(jnp.einsum("bij,bj->bi", upper, solution[1:]))
+        product = product.at[1:].add(jnp.einsum("bji,bj->bi", upper, solution[:-1]))
+        return rhs - product
+
+    return refine(solve, residual, solution, KKT_REFINEMENT_STEPS)[:, :d]
+
+
+def chain_sweeps(diagonal: Array, upper: Array, rhs: Array, inverse_block: Callable[[Array], Array]) -> tuple[Array, Callable[[Array], Array]]:
+    """`(solution, solve)`: the symmetric block-tridiagonal system of `cyclic_reduction`'s
+    arguments solved for `rhs` (n, R) by two sweeps along the chain, `lax.scan`s
+    unrolled by `sweep_unroll`: elimination from the last block (`D~_b = D_b - U_b
+    D~_b+1^-1 U_b^T`), which also reduces `rhs`, then substitution back from the first.
+    `solve(rhs)` solves again with the same factorisation, two sweeps."""
+    unroll = sweep_unroll()
+
     def eliminate(carry, block):
         next_inverse, next_reduced = carry
         block_diagonal, block_upper, block_rhs = block
@@ -379,39 +407,21 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
         solution = block_product(inverse, reduced - block_product(block_upper.T, previous))
         return solution, solution
 
-    unroll = sweep_unroll()
-
     def back_substitute(inverses, reduced):
         first = block_product(inverses[0], reduced[0])
         _, rest = jax.lax.scan(substitute, first, (inverses[1:], reduced[1:], upper), unroll=unroll)
         return jnp.concatenate([first[None], rest])
 
-    if cyclic if cyclic is not None else chain_elimination() == "cyclic":
-        factored = cyclic_reduction(diagonal, upper, inverse_block)
-        solution, solve = factored.solve(rhs), factored.solve
-    else:
-        # The factorisation and the first solve share one elimination pass.
-        last_inverse = inverse_block(diagonal[-1])
-        _, (inverses, weights, reduced) = jax.lax.scan(eliminate, (last_inverse, rhs[-1]), (diagonal[:-1], upper, rhs[:-1]), reverse=True, unroll=unroll)
-        inverses = jnp.concatenate([inverses, last_inverse[None]])
-        solution = back_substitute(inverses, jnp.concatenate([reduced, rhs[-1:]]))
+    # The factorisation and the first solve share one elimination pass.
+    last_inverse = inverse_block(diagonal[-1])
+    _, (inverses, weights, reduced) = jax.lax.scan(eliminate, (last_inverse, rhs[-1]), (diagonal[:-1], upper, rhs[:-1]), reverse=True, unroll=unroll)
+    inverses = jnp.concatenate([inverses, last_inverse[None]])
 
-        def solve(residual):
-            _, reduced = jax.lax.scan(reduce, residual[-1], (weights, residual[:-1]), reverse=True, unroll=unroll)
-            return back_substitute(inverses, jnp.concatenate([reduced, residual[-1:]]))
+    def solve(residual):
+        _, reduced = jax.lax.scan(reduce, residual[-1], (weights, residual[:-1]), reverse=True, unroll=unroll)
+        return back_substitute(inverses, jnp.concatenate([reduced, residual[-1:]]))
 
-    if not regularised:
-        return solution[:, :d]
-    exact = blocks(0.0)
-
-    def residual(solution):
-        # Against the exact system: K y = D_b y_b + U_b y_b+1 + U_b-1^T y_b-1.
-        product = jnp.einsum("bij,bj->bi", exact, solution)
-        product = product.at[:-1].add(jnp.einsum("bij,bj->bi", upper, solution[1:]))
-        product = product.at[1:].add(jnp.einsum("bji,bj->bi", upper, solution[:-1]))
-        return rhs - product
-
-    return refine(solve, residual, solution, KKT_REFINEMENT_STEPS)[:, :d]
+    return back_substitute(inverses, jnp.concatenate([reduced, rhs[-1:]])), solve
 
 
 class ReductionLevel(NamedTuple):
