@@ -599,13 +599,15 @@ def test_an_accelerator_eliminates_a_chain_by_cyclic_reduction_unless_it_solves_
     assert solvers.chain_elimination() == "cyclic"
 
 
-@pytest.mark.parametrize("batch, stacked, elimination", [(8, False, "cyclic"), (16384, False, "cyclic"), (16392, False, "sweeps"),
-                                                         (8200, True, "sweeps")])
-def test_a_rollout_program_chooses_the_chain_elimination_for_its_batch(batch, stacked, elimination, monkeypatch):
-    """`compiled_programs` traces its solves as the systems it solves at once (initial
-    conditions times stacked parameter sets), which a `vmap`ped solve cannot see."""
+@pytest.mark.parametrize("per_device, stacked, elimination", [(8, False, "cyclic"), (16384, False, "cyclic"), (16392, False, "sweeps"),
+                                                              (8200, True, "sweeps")])
+def test_a_rollout_program_chooses_the_chain_elimination_for_its_batch(per_device, stacked, elimination, monkeypatch):
+    """`compiled_programs` traces its solves as the systems it solves at once on each
+    device (initial conditions times stacked parameter sets, over the devices), which
+    a `vmap`ped solve cannot see."""
     from types import SimpleNamespace
 
+    from lgnn import sharding
     from lgnn.engines import rollouts
     from lgnn.engines.base import Integration, SimulationConfig
     from lgnn.physics import solvers
@@ -618,6 +620,7 @@ def test_a_rollout_program_chooses_the_chain_elimination_for_its_batch(batch, st
         return lambda q, qd: params * jnp.zeros_like(q)
 
     params = jnp.ones(2) if stacked else jnp.ones(())
+    batch = per_device * sharding.device_count()
     rollouts.compiled_programs(chain(1), SimulationConfig(1e-3, 1e-3, 1e-3), Integration(), factory, batch, "float64", 1, stacked,
                                rollouts.params_signature(params), False)
     assert chosen == {elimination}
