@@ -1,5 +1,6 @@
 """Physics of the constrained Lagrangian: energies, mass matrices, invariances, the solve."""
 
+import functools
 import json
 
 import jax
@@ -579,6 +580,50 @@ def test_cyclic_reduction_solves_the_chains_kkt_system_as_the_sweeps_do(dim):
         np.testing.assert_allclose(cyclic, sweeps, atol=1e-13 * np.abs(sweeps).max(), err_msg=f"{n} links, regularised {regularised}")
     batched = jax.jit(jax.vmap(lambda *a: chain_kkt_solve(*a, regularised=True, cyclic=True)))(*(np.stack([a, a]) for a in args))
     np.testing.assert_allclose(batched[1], sweeps, atol=1e-13 * np.abs(sweeps).max())
+
+
+def _banded_chain_system(n: int, dim: int, reach: int, seed: int):
+    """A pinned chain's KKT system whose random positive definite mass couples nodes up
+    to `reach` links apart: `(band, u, node_rhs, link_rhs)` for `banded_chain_kkt_solve`
+    and the dense solve's node accelerations."""
+    rng = np.random.default_rng(seed)
+    node = np.arange(n * dim) // dim
+    mass = rng.normal(size=(n * dim, n * dim))
+    mass = np.where(np.abs(node[:, None] - node[None, :]) <= reach, mass @ mass.T + 5 * np.eye(n * dim), 0.0)
+    band = np.zeros((n, reach + 1, dim, dim))
+    for b in range(n):
+        for k in range(min(reach + 1, n - b)):
+            band[b, k] = mass[dim * b:dim * (b + 1), dim * (b + k):dim * (b + k + 1)]
+    u = rng.normal(size=(n, dim))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    jac = np.zeros((n, n * dim))
+    for b in range(n):
+        jac[b, dim * b:dim * (b + 1)] = -u[b]
+        if b:
+            jac[b, dim * (b - 1):dim * b] = u[b]
+    node_rhs, link_rhs = rng.normal(size=(n, dim)), rng.normal(size=n)
+    kkt = np.block([[mass, jac.T], [jac, np.zeros((n, n))]])
+    expected = np.linalg.solve(kkt, np.concatenate([node_rhs.ravel(), link_rhs]))[:n * dim].reshape(n, dim)
+    return (band, u, node_rhs, link_rhs), expected
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_banded_chain_kkt_solve_is_the_dense_solve(dim):
+    """A chain's KKT system with a mass of reach 1 to 3, grouped into block-tridiagonal
+    form (one group; three groups, the last padded), refined, by the sweeps and by
+    cyclic reduction, and exact by the sweeps, against the dense solve; at reach 1 it
+    is `chain_kkt_solve`'s system."""
+    from lgnn.physics import solvers
+
+    cases = [(1, 4, False, True), (2, 1, True, True), (3, 7, False, True), (3, 7, True, True), (3, 7, False, False)]
+    for reach, n, cyclic, regularised in cases:
+        system, expected = _banded_chain_system(n, dim, reach, seed=10 * n + reach)
+        got = jax.jit(functools.partial(solvers.banded_chain_kkt_solve, regularised=regularised, cyclic=cyclic))(*system)
+        np.testing.assert_allclose(got, expected, atol=1e-11 * np.abs(expected).max(), err_msg=f"{reach=} {n=} {cyclic=}")
+        if reach == 1:
+            band, *rest = system
+            np.testing.assert_allclose(solvers.chain_kkt_solve(band[:, 0], band[:-1, 1], *rest, regularised=True), expected,
+                                       atol=1e-11 * np.abs(expected).max())
 
 
 def test_an_accelerator_eliminates_a_chain_by_cyclic_reduction_unless_it_solves_many_at_once(monkeypatch):

@@ -51,7 +51,7 @@ from lgnn import sharding
 from lgnn.physics.constraints import take_rows
 from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
 from lgnn.physics.local_mass import LOCAL, LocalMass, MassStructure
-from lgnn.physics.solvers import chain_kkt_solve, guarded_spd_solve, regularised_spd_solve, solve_kkt, spd_solve
+from lgnn.physics.solvers import banded_chain_kkt_solve, chain_kkt_solve, guarded_spd_solve, regularised_spd_solve, solve_kkt, spd_solve
 from lgnn.physics.system import System, prepare
 from lgnn.runtime import full_precision_matmuls
 from lgnn.scene import Scene
@@ -75,8 +75,9 @@ class EulerLagrange:
     - `pooled_jacobian(x, v)` (F, P): where the structure is pooled, the transposed
       Jacobian of the summed terms by the velocities (forward products);
     - `local`: the local part's colouring (`System.local_mass`), None unless
-      `structured`; `chain_solve`: the mass matrix is local on a long pinned chain, so
-      the block elimination solves it (`solvers.chain_kkt_solve`)."""
+      `structured`; `chain_solve`: the mass matrix is local (not pooled) on a long
+      pinned chain, so the block elimination solves it (`solvers.chain_kkt_solve` at
+      reach 1, `solvers.banded_chain_kkt_solve` beyond)."""
 
     right_hand_side: Callable[[Array, Array], Array]
     mass_matrix: Callable[[Array, Array], Array]
@@ -134,7 +135,7 @@ def euler_lagrange(scene: Scene, lagrangian: LagrangianFn, mass: MassStructure |
         return local.dense(products) if low_rank is None else local.dense(products) + low_rank
 
     return EulerLagrange(right_hand_side, mass_matrix, mass_products if structured else None,
-                         pooled_jacobian if pooled is not None else None, local, structured and mass == LOCAL and system.long_chain)
+                         pooled_jacobian if pooled is not None else None, local, structured and not mass.pooled and system.long_chain)
 
 
 def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | None = None, *, mass: MassStructure | None = None) -> AccelerationFn:
@@ -152,7 +153,9 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
       `CHAIN_SOLVER_MIN_LINKS` links) is solved by the linear-time block elimination of
       `solvers.chain_kkt_solve` (regularised and refined like `solvers.solve_kkt`), so a
       step costs time linear in the chain's length;
-    - a larger reach: more colours, the dense KKT solve;
+    - a larger reach r: 2r + 1 colours x D products on a chain; a long pinned chain's
+      KKT system, block-banded, by `solvers.banded_chain_kkt_solve` (groups of r
+      links, block-tridiagonal), linear in the length too; elsewhere the dense KKT solve;
     - pooled (LGN's read-out of summed embeddings): the low-rank part from the features'
       Jacobian (forward products on a colouring of the terms' supports), the rest local.
     Declaring a structure the Lagrangian does not have gives wrong accelerations (tests
@@ -168,9 +171,12 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
         if force_fn is not None:
             rhs = rhs + constraints.restrict(force_fn(q, qd))
         if equations.chain_solve:
-            diagonal, upper = equations.local.chain_blocks(equations.mass_products(x, v)[0])
-            u = constraints.link_directions(q)
-            xdd = chain_kkt_solve(diagonal, upper, u, rhs.reshape(-1, constraints.shape[1]), -constraints.jacobian_dot_v(x, v), regularised=True)
+            products, u = equations.mass_products(x, v)[0], constraints.link_directions(q)
+            node_rhs, link_rhs = rhs.reshape(-1, constraints.shape[1]), -constraints.jacobian_dot_v(x, v)
+            if equations.local.reach == 1:
+                xdd = chain_kkt_solve(*equations.local.chain_blocks(products), u, node_rhs, link_rhs, regularised=True)
+            else:
+                xdd = banded_chain_kkt_solve(equations.local.band_blocks(products), u, node_rhs, link_rhs, regularised=True)
             return constraints.embed_velocity(xdd.reshape(-1))
         xdd = solve_kkt(equations.mass_matrix(x, v), constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
         return constraints.embed_velocity(xdd)

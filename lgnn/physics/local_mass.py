@@ -157,6 +157,12 @@ class LocalMass:
         self.diagonal_seeds = self.seed_of[d * block + column]
         self.upper_rows = self.diagonal_rows[:-1]
         self.upper_seeds = self.diagonal_seeds[1:]
+        # Any reach: block (b, k, i, j) is row Db + i of the product of the seed of node
+        # b + 1 + k's column j, where that node exists.
+        block, offset, row, column = np.meshgrid(np.arange(chain_nodes), np.arange(reach + 1), np.arange(d), np.arange(d), indexing="ij")
+        self.band_inside = block + offset < chain_nodes
+        self.band_rows = d * block + row
+        self.band_seeds = self.seed_of[np.minimum(d * (block + offset) + column, len(self.seed_of) - 1)]
 
     def products(self, hvp: Callable[[Array], Array], dtype) -> Array:
         """(S, F) `M @ seed` for every seed, from `hvp(seed) -> M @ seed` (F,)."""
@@ -172,6 +178,12 @@ class LocalMass:
         if self.reach != 1:
             raise ValueError("chain blocks hold a mass matrix of reach 1 only")
         return products[self.diagonal_seeds, self.diagonal_rows], products[self.upper_seeds, self.upper_rows]
+
+    def band_blocks(self, products: Array) -> Array:
+        """(n, reach + 1, D, D) blocks of a chain's mass matrix: block k of row b couples
+        node b+1 with node b+1+k, zero past the chain's end
+        (`solvers.banded_chain_kkt_solve`)."""
+        return jnp.where(self.band_inside, products[self.band_seeds, self.band_rows], 0.0)
 
 
 class PooledJacobian:

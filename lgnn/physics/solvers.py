@@ -381,6 +381,71 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
     return refine(solve, residual, solution, KKT_REFINEMENT_STEPS)[:, :d]
 
 
+def banded_chain_kkt_solve(band_mass: Array, u: Array, node_rhs: Array, link_rhs: Array, *, regularised: bool = False,
+                           cyclic: bool | None = None) -> Array:
+    """`chain_kkt_solve` for a mass matrix that couples nodes up to r links apart:
+    `band_mass` (n, r+1, D, D), block k of row b coupling node b+1 with node b+1+k (zero
+    past the chain's end); `u`, `node_rhs`, `link_rhs` and the result as there.
+
+    Over the (D+1)-blocks of `chain_kkt_solve` (node b+1's acceleration, link b's
+    multiplier) the KKT matrix is block-banded with r blocks on each side, so groups of
+    r consecutive blocks make it block-tridiagonal with r (D+1)-square blocks (padded
+    with identity blocks to whole groups). That system is eliminated as the chain's
+    (`chain_sweeps` or `cyclic_reduction`, the groups' blocks inverted by LU),
+    equilibrated by the mass scale, regularised and refined as in `chain_kkt_solve`.
+    The groups' pivots are Schur complements on whole groups, each link's row beside its
+    own node: nonsingular for a positive definite mass, as the chain's are."""
+    n, width, d = band_mass.shape[0], band_mass.shape[1], u.shape[1]
+    reach, e, dtype = width - 1, d + 1, u.dtype
+    groups = -(-n // reach)
+    size, side = groups * reach, reach * e
+    scale = jnp.trace(band_mass[:, 0], axis1=1, axis2=2).mean() / d
+    band_mass, node_rhs = band_mass / scale, node_rhs / scale
+    eps = KKT_REGULARISATION if regularised else 0.0
+
+    def couplings(eps_value):
+        # (size, r+1, D+1, D+1): block a of the KKT matrix with block a+k.
+        c = jnp.zeros((size, width, e, e), dtype).at[:n, :, :d, :d].set(band_mass)
+        c = c.at[:n, 0, :d, d].set(-u).at[:n, 0, d, :d].set(-u).at[:n, 0, d, d].set(-eps_value)
+        c = c.at[:n - 1, 1, :d, d].set(u[1:])
+        return c.at[n:, 0].set(jnp.eye(e, dtype=dtype))
+
+    # Static maps from the couplings to the groups' blocks: within group g, block (i, j)
+    # is coupling (g r + min(i, j), |j - i|), transposed below the diagonal; from group
+    # g to g+1, block (i, j) is coupling (g r + i, r + j - i) where j <= i, else zero.
+    g, i, j = np.meshgrid(np.arange(groups), np.arange(reach), np.arange(reach), indexing="ij")
+    within_source, within_offset, below = g * reach + np.minimum(i, j), np.abs(j - i), j < i
+    across_source, across_offset, across = (g * reach + i)[:-1], np.minimum(reach + j - i, reach)[:-1], (j <= i)[:-1]
+
+    def grouped(blocks):
+        # (G, r, r, D+1, D+1) -> (G, r (D+1), r (D+1)).
+        return jnp.swapaxes(blocks, 2, 3).reshape(blocks.shape[0], side, side)
+
+    def tridiagonal(c):
+        inside = c[within_source, within_offset]
+        inside = jnp.where(below[..., None, None], jnp.swapaxes(inside, -1, -2), inside)
+        return grouped(inside), grouped(jnp.where(across[..., None, None], c[across_source, across_offset], 0.0))
+
+    diagonal, upper = tridiagonal(couplings(eps))
+    rhs = jnp.zeros((size, e), dtype).at[:n, :d].set(node_rhs).at[:n, d].set(link_rhs).reshape(groups, side)
+    if cyclic if cyclic is not None else chain_elimination() == "cyclic":
+        factored = cyclic_reduction(diagonal, upper, jnp.linalg.inv)
+        solution, solve = factored.solve(rhs), factored.solve
+    else:
+        solution, solve = chain_sweeps(diagonal, upper, rhs, jnp.linalg.inv)
+    if regularised:
+        exact, _ = tridiagonal(couplings(0.0))
+
+        def residual(solution):
+            product = jnp.einsum("bij,bj->bi", exact, solution)
+            product = product.at[:-1].add(jnp.einsum("bij,bj->bi", upper, solution[1:]))
+            product = product.at[1:].add(jnp.einsum("bji,bj->bi", upper, solution[:-1]))
+            return rhs - product
+
+        solution = refine(solve, residual, solution, KKT_REFINEMENT_STEPS)
+    return solution.reshape(size, e)[:n, :d]
+
+
 def chain_sweeps(diagonal: Array, upper: Array, rhs: Array, inverse_block: Callable[[Array], Array]) -> tuple[Array, Callable[[Array], Array]]:
     """`(solution, solve)`: the symmetric block-tridiagonal system of `cyclic_reduction`'s
     arguments solved for `rhs` (n, R) by two sweeps along the chain, `lax.scan`s
