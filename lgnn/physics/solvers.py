@@ -370,15 +370,7 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
     if not regularised:
         return solution[:, :d]
     exact = blocks(0.0)
-
-    def residual(solution):
-        # Against the exact system: K y = D_b y_b + U_b y_b+1 + U_b-1^T y_b-1.
-        product = jnp.einsum("bij,bj->bi", exact, solution)
-        product = product.at[:-1].add(jnp.einsum("bij,bj->bi", upper, solution[1:]))
-        product = product.at[1:].add(jnp.einsum("bji,bj->bi", upper, solution[:-1]))
-        return rhs - product
-
-    return refine(solve, residual, solution, KKT_REFINEMENT_STEPS)[:, :d]
+    return refine(solve, lambda y: rhs - block_tridiagonal_product(exact, upper, y), solution, KKT_REFINEMENT_STEPS)[:, :d]
 
 
 def banded_chain_kkt_solve(band_mass: Array, u: Array, node_rhs: Array, link_rhs: Array, *, regularised: bool = False,
@@ -435,15 +427,17 @@ def banded_chain_kkt_solve(band_mass: Array, u: Array, node_rhs: Array, link_rhs
         solution, solve = chain_sweeps(diagonal, upper, rhs, jnp.linalg.inv)
     if regularised:
         exact, _ = tridiagonal(couplings(0.0))
-
-        def residual(solution):
-            product = jnp.einsum("bij,bj->bi", exact, solution)
-            product = product.at[:-1].add(jnp.einsum("bij,bj->bi", upper, solution[1:]))
-            product = product.at[1:].add(jnp.einsum("bji,bj->bi", upper, solution[:-1]))
-            return rhs - product
-
-        solution = refine(solve, residual, solution, KKT_REFINEMENT_STEPS)
+        solution = refine(solve, lambda y: rhs - block_tridiagonal_product(exact, upper, y), solution, KKT_REFINEMENT_STEPS)
     return solution.reshape(size, e)[:n, :d]
+
+
+def block_tridiagonal_product(diagonal: Array, upper: Array, x: Array) -> Array:
+    """`K x` for the symmetric block-tridiagonal `K` of `cyclic_reduction`'s arguments
+    and `x` (n, R): `D_b x_b + U_b x_b+1 + U_b-1^T x_b-1`, the residual of the chain
+    solves' refinement."""
+    product = jnp.einsum("bij,bj->bi", diagonal, x)
+    product = product.at[:-1].add(jnp.einsum("bij,bj->bi", upper, x[1:]))
+    return product.at[1:].add(jnp.einsum("bji,bj->bi", upper, x[:-1]))
 
 
 def chain_sweeps(diagonal: Array, upper: Array, rhs: Array, inverse_block: Callable[[Array], Array]) -> tuple[Array, Callable[[Array], Array]]:
