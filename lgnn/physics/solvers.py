@@ -361,11 +361,7 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
     diagonal = blocks(eps)
     rhs = jnp.concatenate([node_rhs, link_rhs[:, None]], axis=1)
 
-    if cyclic if cyclic is not None else chain_elimination() == "cyclic":
-        factored = cyclic_reduction(diagonal, upper, inverse_block)
-        solution, solve = factored.solve(rhs), factored.solve
-    else:
-        solution, solve = chain_sweeps(diagonal, upper, rhs, inverse_block)
+    solution, solve = eliminate_chain(diagonal, upper, rhs, inverse_block, cyclic)
 
     if not regularised:
         return solution[:, :d]
@@ -420,11 +416,7 @@ def banded_chain_kkt_solve(band_mass: Array, u: Array, node_rhs: Array, link_rhs
 
     diagonal, upper = tridiagonal(couplings(eps))
     rhs = jnp.zeros((size, e), dtype).at[:n, :d].set(node_rhs).at[:n, d].set(link_rhs).reshape(groups, side)
-    if cyclic if cyclic is not None else chain_elimination() == "cyclic":
-        factored = cyclic_reduction(diagonal, upper, jnp.linalg.inv)
-        solution, solve = factored.solve(rhs), factored.solve
-    else:
-        solution, solve = chain_sweeps(diagonal, upper, rhs, jnp.linalg.inv)
+    solution, solve = eliminate_chain(diagonal, upper, rhs, jnp.linalg.inv, cyclic)
     if regularised:
         exact, _ = tridiagonal(couplings(0.0))
         solution = refine(solve, lambda y: rhs - block_tridiagonal_product(exact, upper, y), solution, KKT_REFINEMENT_STEPS)
@@ -438,6 +430,17 @@ def block_tridiagonal_product(diagonal: Array, upper: Array, x: Array) -> Array:
     product = jnp.einsum("bij,bj->bi", diagonal, x)
     product = product.at[:-1].add(jnp.einsum("bij,bj->bi", upper, x[1:]))
     return product.at[1:].add(jnp.einsum("bji,bj->bi", upper, x[:-1]))
+
+
+def eliminate_chain(diagonal: Array, upper: Array, rhs: Array, inverse_block: Callable[[Array], Array],
+                    cyclic: bool | None) -> tuple[Array, Callable[[Array], Array]]:
+    """`(solution, solve)` of a symmetric block-tridiagonal system (`cyclic_reduction`'s
+    arguments) for `rhs`: by cyclic reduction where `cyclic`, else by `chain_sweeps`
+    (None: `chain_elimination`'s choice); `solve` reuses the factorisation."""
+    if cyclic if cyclic is not None else chain_elimination() == "cyclic":
+        factored = cyclic_reduction(diagonal, upper, inverse_block)
+        return factored.solve(rhs), factored.solve
+    return chain_sweeps(diagonal, upper, rhs, inverse_block)
 
 
 def chain_sweeps(diagonal: Array, upper: Array, rhs: Array, inverse_block: Callable[[Array], Array]) -> tuple[Array, Callable[[Array], Array]]:
