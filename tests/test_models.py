@@ -536,9 +536,10 @@ def test_cli_train_and_zero_shot_rollout(tmp_path, capsys, tiny_dataset):
 # Each kind of declared mass structure, on scenes where the solve takes it (fewer
 # products than coordinates): reach 1 (T1; on chain100 the block elimination, after a
 # message-passing layer), reach 3 (T1; on chain100 the banded block elimination), and
-# LGN's pooled one, on a chain and on T1's truss, whose colourings are no chain's.
+# LGN's pooled one, on a chain and on T1's truss, whose colourings are no chain's, and
+# on chain100-3d (the banded elimination with the low-rank part by Woodbury).
 STRUCTURED_MASS_CASES = [("lgnn", "T1"), ("lgnn-mp1", "chain100"), ("lgnn-mp2", "T1"), ("lgnn-mp2", "chain100"), ("lgn", "chain16"),
-                         ("lgn", "T1")]
+                         ("lgn", "T1"), ("lgn", "chain100-3d")]
 
 
 @pytest.mark.parametrize(("name", "scene_name"), STRUCTURED_MASS_CASES)

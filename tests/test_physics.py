@@ -582,10 +582,12 @@ def test_cyclic_reduction_solves_the_chains_kkt_system_as_the_sweeps_do(dim):
     np.testing.assert_allclose(batched[1], sweeps, atol=1e-13 * np.abs(sweeps).max())
 
 
-def _banded_chain_system(n: int, dim: int, reach: int, seed: int):
+def _banded_chain_system(n: int, dim: int, reach: int, seed: int, rank: int = 0):
     """A pinned chain's KKT system whose random positive definite mass couples nodes up
     to `reach` links apart: `(band, u, node_rhs, link_rhs)` for `banded_chain_kkt_solve`
-    and the dense solve's node accelerations."""
+    and the dense solve's node accelerations. With `rank`, the mass also has a dense
+    term `factor core factor^T` of that rank, `core` symmetric and indefinite, and the
+    system's first item is `(band, u, node_rhs, link_rhs, (factor (n, D, P), core))`."""
     rng = np.random.default_rng(seed)
     node = np.arange(n * dim) // dim
     mass = rng.normal(size=(n * dim, n * dim))
@@ -594,6 +596,10 @@ def _banded_chain_system(n: int, dim: int, reach: int, seed: int):
     for b in range(n):
         for k in range(min(reach + 1, n - b)):
             band[b, k] = mass[dim * b:dim * (b + 1), dim * (b + k):dim * (b + k + 1)]
+    if rank:
+        factor, core = rng.normal(size=(n * dim, rank)), rng.normal(size=(rank, rank))
+        core = core + core.T
+        mass = mass + factor @ core @ factor.T
     u = rng.normal(size=(n, dim))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     jac = np.zeros((n, n * dim))
@@ -604,6 +610,8 @@ def _banded_chain_system(n: int, dim: int, reach: int, seed: int):
     node_rhs, link_rhs = rng.normal(size=(n, dim)), rng.normal(size=n)
     kkt = np.block([[mass, jac.T], [jac, np.zeros((n, n))]])
     expected = np.linalg.solve(kkt, np.concatenate([node_rhs.ravel(), link_rhs]))[:n * dim].reshape(n, dim)
+    if rank:
+        return (band, u, node_rhs, link_rhs, (factor.reshape(n, dim, rank), core)), expected
     return (band, u, node_rhs, link_rhs), expected
 
 
@@ -624,6 +632,21 @@ def test_banded_chain_kkt_solve_is_the_dense_solve(dim):
             band, *rest = system
             np.testing.assert_allclose(solvers.chain_kkt_solve(band[:, 0], band[:-1, 1], *rest, regularised=True), expected,
                                        atol=1e-11 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_banded_chain_kkt_solve_with_a_low_rank_term_is_the_dense_solve(dim):
+    """The banded solve with an indefinite dense low-rank term added to the mass (LGN's
+    pooled read-out), by the Woodbury identity: exact, and regularised and refined by
+    both eliminations, against the dense solve; with one group and with several."""
+    from lgnn.physics import solvers
+
+    for reach, n, rank, cyclic, regularised in [(3, 7, 4, False, False), (3, 7, 4, False, True), (3, 7, 4, True, True), (2, 1, 3, False, True),
+                                                (1, 9, 2, True, True)]:
+        (*system, low_rank), expected = _banded_chain_system(n, dim, reach, seed=10 * n + reach + rank, rank=rank)
+        solve = functools.partial(solvers.banded_chain_kkt_solve, regularised=regularised, cyclic=cyclic, low_rank=low_rank)
+        got = jax.jit(solve)(*system)
+        np.testing.assert_allclose(got, expected, atol=1e-10 * np.abs(expected).max(), err_msg=f"{reach=} {n=} {cyclic=} {regularised=}")
 
 
 def test_an_accelerator_eliminates_a_chain_by_cyclic_reduction_unless_it_solves_many_at_once(monkeypatch):

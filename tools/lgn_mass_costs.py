@@ -4,6 +4,7 @@ alternatives would cost, and whether a trained LGN's mass matrix would allow the
     python tools/lgn_mass_costs.py parts --scene chain100 --batch 300
     python tools/lgn_mass_costs.py solves --batch 300
     python tools/lgn_mass_costs.py definiteness --scene chain100 --every 100
+    python tools/lgn_mass_costs.py agreement --scene chain100 --every 100
 
 - `parts`: milliseconds per batched call (compile apart, median of `--rounds`) of each
   piece of `physics.acceleration_fn` with LGN's declared mass structure
@@ -12,7 +13,9 @@ alternatives would cost, and whether a trained LGN's mass matrix would allow the
   the pooled Jacobian's forward products, the mass products (the local part's
   Hessian-vector products with the pooled low-rank part, which holds the Jacobian's
   products again), the whole mass matrix, the regularised KKT solve, and the whole
-  acceleration.
+  acceleration; on a long chain, whose acceleration takes the banded elimination with
+  the Woodbury correction, also the whole acceleration with the mass matrix assembled
+  and the dense KKT solve instead.
 - `solves`: the same batch of random systems of the sizes of chain100 (200 free
   coordinates, 100 rods) and chain100-3d (300, 100): the KKT matrix's LU and the
   refined solve as `solvers.solve_kkt` does them, against factorisations that need
@@ -23,6 +26,13 @@ alternatives would cost, and whether a trained LGN's mass matrix would allow the
   `--scene`; every `--every` frames, how many states are finite, and of those how many
   have a mass matrix over the free coordinates that is not positive definite (its
   Cholesky factorisation fails), and the smallest ratio of its extreme eigenvalues.
+- `agreement`: the same rollouts (`--states` of the initial conditions, `--duration`);
+  every `--every` frames, the accelerations `models.acceleration_fn` gives (on a long
+  chain the banded elimination with the Woodbury correction) against the dense path's
+  (`physics.acceleration_fn` of the Lagrangian: forward-differentiated mass matrix,
+  dense KKT LU), at the same states: the largest difference over the states, each
+  relative to its state's largest acceleration, and at how many finite states the
+  mass matrix is not positive definite.
 
 Prints the environment first, then one line per measurement.
 """
@@ -32,11 +42,13 @@ import time
 from lgnn import runtime
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-parser.add_argument("what", choices=("parts", "solves", "definiteness"))
+parser.add_argument("what", choices=("parts", "solves", "definiteness", "agreement"))
 parser.add_argument("--scene", default="chain100")
 parser.add_argument("--batch", type=int, default=300)
 parser.add_argument("--rounds", type=int, default=7, help="timed calls after the compiling one")
-parser.add_argument("--every", type=int, default=100, help="definiteness: frames between the states checked")
+parser.add_argument("--every", type=int, default=100, help="definiteness, agreement: frames between the states checked")
+parser.add_argument("--states", type=int, default=None, help="definiteness, agreement: the first this many initial conditions (default all)")
+parser.add_argument("--duration", type=float, default=None, help="definiteness, agreement: seconds rolled out (default the profile's)")
 args = parser.parse_args()
 runtime.configure()
 
@@ -104,6 +116,13 @@ def parts() -> None:
     timed("mass matrix", jax.vmap(restricted(equations.mass_matrix)), qs, qds)
     timed("regularised KKT solve", jax.vmap(solve), qs, qds, masses)
     timed("whole acceleration", jax.vmap(models.acceleration_fn(config, params, scene)), qs, qds)
+    if equations.chain_solve:
+        def dense_solve(q, qd):
+            x, v = constraints.restrict(q), constraints.restrict(qd)
+            m = equations.mass_matrix(x, v)
+            return solvers.solve_kkt(m, constraints.jacobian(x), equations.right_hand_side(x, v), -constraints.jacobian_dot_v(x, v))
+
+        timed("whole acceleration, the mass matrix assembled and the dense KKT solve instead", jax.vmap(dense_solve), qs, qds)
 
 
 def solves() -> None:
@@ -125,7 +144,11 @@ def solves() -> None:
         timed(f"{label} | one solve with M's Cholesky factor", jax.vmap(lambda c, b: jax.scipy.linalg.cho_solve((c, True), b)), factor, rhs)
 
 
-def definiteness() -> None:
+def trained_rollouts():
+    """`(scene, loaded, runs)`: the committed checkpoints' 3 seeds of LGN rolled out on
+    `--scene` from the evaluation's initial conditions, as the evaluate stage does."""
+    import dataclasses
+
     from lgnn.bench import grid
     from lgnn.bench.stages.evaluate import evaluation_initial_states
     from lgnn.engines.rollouts import batched_rollouts
@@ -137,15 +160,24 @@ def definiteness() -> None:
     loaded = [checkpoints.load_model(f"results/benchmark/checkpoints/lgn-{trained_on}-s{seed}.npz") for seed in range(3)]
     model = loaded[0][0]
     states = evaluation_initial_states(profile, scene)
+    states = type(states)(*(a[:args.states] for a in states))
+    simulation = profile.evaluate.simulation(args.scene)
+    if args.duration is not None:
+        simulation = dataclasses.replace(simulation, duration=args.duration)
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for _, params in loaded))
-    runs = batched_rollouts(scene, profile.evaluate.simulation(args.scene), models.AccelerationFactory(model), states, stacked,
+    runs = batched_rollouts(scene, simulation, models.AccelerationFactory(model), states, stacked,
                             integration=profile.evaluate.integration, stacked=True)
     print(f"LGN ({trained_on}) on {args.scene}: {len(states.q)} initial conditions, {runs.q.shape[2]} frames; "
-          f"rollouts {runs.run_s:.1f} s + compile {runs.compile_s:.1f} s for 3 seeds")
+          f"rollouts {runs.run_s:.1f} s + compile {runs.compile_s:.1f} s for 3 seeds", flush=True)
+    return scene, loaded, runs
+
+
+def definiteness() -> None:
+    scene, loaded, runs = trained_rollouts()
     print("| seed | frame | finite states | of them, M not positive definite | smallest eigenvalue / largest |")
     print("|---|---|---|---|---|")
     free = np.asarray(physics.prepare(scene).constraints.free)
-    for seed, (_, params) in enumerate(loaded):
+    for seed, (model, params) in enumerate(loaded):
         mass = physics.mass_matrix_fn(models.lagrangian_fn(model, params, scene))
 
         def check(q, qd):
@@ -160,4 +192,26 @@ def definiteness() -> None:
             print(f"| {seed} | {frame} | {int(finite.sum())} | {int((finite & ~cholesky).sum())} | {smallest} |", flush=True)
 
 
-{"parts": parts, "solves": solves, "definiteness": definiteness}[args.what]()
+def agreement() -> None:
+    scene, loaded, runs = trained_rollouts()
+    print("| seed | frame | finite states | of them, M not positive definite | largest relative difference | median |")
+    print("|---|---|---|---|---|---|")
+    free = np.asarray(physics.prepare(scene).constraints.free)
+    for seed, (model, params) in enumerate(loaded):
+        lagrangian = models.lagrangian_fn(model, params, scene)
+        structured, dense = models.acceleration_fn(model, params, scene), physics.acceleration_fn(scene, lagrangian)
+        mass = physics.mass_matrix_fn(lagrangian)
+
+        def compare(q, qd):
+            a, b = structured(q, qd), dense(q, qd)
+            cholesky = jnp.linalg.cholesky(mass(q, qd)[np.ix_(free, free)])
+            return jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)), jnp.all(jnp.isfinite(b)), jnp.all(jnp.isfinite(cholesky))
+
+        compared = jax.jit(jax.vmap(compare))
+        for frame in range(0, runs.q.shape[2], args.every):
+            difference, finite, cholesky = (np.asarray(a) for a in compared(jnp.asarray(runs.q[seed, :, frame]), jnp.asarray(runs.qd[seed, :, frame])))
+            largest, median = (f"{f(difference[finite]):.2g}" if finite.any() else "-" for f in (np.max, np.median))
+            print(f"| {seed} | {frame} | {int(finite.sum())} | {int((finite & ~cholesky).sum())} | {largest} | {median} |", flush=True)
+
+
+{"parts": parts, "solves": solves, "definiteness": definiteness, "agreement": agreement}[args.what]()

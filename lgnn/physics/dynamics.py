@@ -71,13 +71,14 @@ class EulerLagrange:
       `structured`, else by forward differentiation, one product per coordinate;
     - `mass_products(x, v)`: where `structured`, `(products (S, F), low_rank)`: the
       local part's products with its colouring's seeds, and the pooled read-out's
-      dense low-rank part (F, F) or None;
+      low-rank part `J^T H J` as its factors `(J^T (F, P), H (P, P))` (the features'
+      transposed Jacobian and the read-out's curvature), or None;
     - `pooled_jacobian(x, v)` (F, P): where the structure is pooled, the transposed
       Jacobian of the summed terms by the velocities (forward products);
     - `local`: the local part's colouring (`System.local_mass`), None unless
-      `structured`; `chain_solve`: the mass matrix is local (not pooled) on a long
-      pinned chain, so the block elimination solves it (`solvers.chain_kkt_solve` at
-      reach 1, `solvers.banded_chain_kkt_solve` beyond)."""
+      `structured`; `chain_solve`: the mass matrix is structured on a long pinned
+      chain, so the block elimination solves it (`solvers.chain_kkt_solve` at reach 1,
+      `solvers.banded_chain_kkt_solve` beyond or with a pooled low-rank part)."""
 
     right_hand_side: Callable[[Array, Array], Array]
     mass_matrix: Callable[[Array, Array], Array]
@@ -123,7 +124,7 @@ def euler_lagrange(scene: Scene, lagrangian: LagrangianFn, mass: MassStructure |
         # The local sum weighted by the read-out's slope at this state, held fixed.
         grad_local = jax.grad(lambda w: jnp.dot(jnp.sum(terms(x, w), 0), jax.lax.stop_gradient(slope)))
         products = local.products(lambda seed: jax.jvp(grad_local, (v,), (seed,))[1], x.dtype)
-        return products, jacobian_t @ curvature @ jacobian_t.T
+        return products, (jacobian_t, curvature)
 
     def pooled_jacobian(x, v):
         return pooled.transposed(jax.linearize(lambda w: terms(x, w), v)[1], x.dtype)
@@ -132,10 +133,13 @@ def euler_lagrange(scene: Scene, lagrangian: LagrangianFn, mass: MassStructure |
         if local is None:
             return jax.jacfwd(grad_v, argnums=1)(x, v)
         products, low_rank = mass_products(x, v)
-        return local.dense(products) if low_rank is None else local.dense(products) + low_rank
+        if low_rank is None:
+            return local.dense(products)
+        jacobian_t, curvature = low_rank
+        return local.dense(products) + jacobian_t @ curvature @ jacobian_t.T
 
     return EulerLagrange(right_hand_side, mass_matrix, mass_products if structured else None,
-                         pooled_jacobian if pooled is not None else None, local, structured and not mass.pooled and system.long_chain)
+                         pooled_jacobian if pooled is not None else None, local, structured and system.long_chain)
 
 
 def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | None = None, *, mass: MassStructure | None = None) -> AccelerationFn:
@@ -157,7 +161,9 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
       KKT system, block-banded, by `solvers.banded_chain_kkt_solve` (groups of r
       links, block-tridiagonal), linear in the length too; elsewhere the dense KKT solve;
     - pooled (LGN's read-out of summed embeddings): the low-rank part from the features'
-      Jacobian (forward products on a colouring of the terms' supports), the rest local.
+      Jacobian (forward products on a colouring of the terms' supports), the rest local;
+      on a long pinned chain the banded elimination with the low-rank part added by the
+      Woodbury identity (`solvers.woodbury`), never the dense matrix.
     Declaring a structure the Lagrangian does not have gives wrong accelerations (tests
     compare every declared structure with the dense path). The equations' pieces are
     `euler_lagrange`'s.
@@ -171,12 +177,14 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
         if force_fn is not None:
             rhs = rhs + constraints.restrict(force_fn(q, qd))
         if equations.chain_solve:
-            products, u = equations.mass_products(x, v)[0], constraints.link_directions(q)
-            node_rhs, link_rhs = rhs.reshape(-1, constraints.shape[1]), -constraints.jacobian_dot_v(x, v)
-            if equations.local.reach == 1:
+            (products, low_rank), u = equations.mass_products(x, v), constraints.link_directions(q)
+            d = constraints.shape[1]
+            node_rhs, link_rhs = rhs.reshape(-1, d), -constraints.jacobian_dot_v(x, v)
+            if equations.local.reach == 1 and low_rank is None:
                 xdd = chain_kkt_solve(*equations.local.chain_blocks(products), u, node_rhs, link_rhs, regularised=True)
             else:
-                xdd = banded_chain_kkt_solve(equations.local.band_blocks(products), u, node_rhs, link_rhs, regularised=True)
+                factors = None if low_rank is None else (low_rank[0].reshape(-1, d, low_rank[0].shape[-1]), low_rank[1])
+                xdd = banded_chain_kkt_solve(equations.local.band_blocks(products), u, node_rhs, link_rhs, regularised=True, low_rank=factors)
             return constraints.embed_velocity(xdd.reshape(-1))
         xdd = solve_kkt(equations.mass_matrix(x, v), constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
         return constraints.embed_velocity(xdd)

@@ -370,7 +370,7 @@ def chain_kkt_solve(diagonal_mass: Array, upper_mass: Array, u: Array, node_rhs:
 
 
 def banded_chain_kkt_solve(band_mass: Array, u: Array, node_rhs: Array, link_rhs: Array, *, regularised: bool = False,
-                           cyclic: bool | None = None) -> Array:
+                           cyclic: bool | None = None, low_rank: tuple[Array, Array] | None = None) -> Array:
     """`chain_kkt_solve` for a mass matrix that couples nodes up to r links apart:
     `band_mass` (n, r+1, D, D), block k of row b coupling node b+1 with node b+1+k (zero
     past the chain's end); `u`, `node_rhs`, `link_rhs` and the result as there.
@@ -382,12 +382,27 @@ def banded_chain_kkt_solve(band_mass: Array, u: Array, node_rhs: Array, link_rhs
     (`chain_sweeps` or `cyclic_reduction`, the groups' blocks inverted by LU),
     equilibrated by the mass scale, regularised and refined as in `chain_kkt_solve`.
     The groups' pivots are Schur complements on whole groups, each link's row beside its
-    own node: nonsingular for a positive definite mass, as the chain's are."""
+    own node: nonsingular for a positive definite mass, as the chain's are.
+
+    `low_rank = (factor (n, D, P), core (P, P))` adds `factor core factor^T` to the
+    mass (LGN's pooled read-out: the features' Jacobian and the read-out's curvature,
+    `physics.euler_lagrange`). It is solved by the Woodbury identity on top of the
+    banded elimination, P more solves with its factorisation and a P-square LU, and
+    refined against the whole system, so the mass is never assembled (a dense KKT LU
+    costs O((F + K)^3)). The banded part must itself be regular: a learned mass can be
+    indefinite, and where the banded part alone is near-singular the refinement
+    (against the exact system) is what recovers the accuracy."""
     n, width, d = band_mass.shape[0], band_mass.shape[1], u.shape[1]
     reach, e, dtype = width - 1, d + 1, u.dtype
     groups = -(-n // reach)
     size, side = groups * reach, reach * e
-    scale = jnp.trace(band_mass[:, 0], axis1=1, axis2=2).mean() / d
+    trace = jnp.trace(band_mass[:, 0], axis1=1, axis2=2).sum()
+    if low_rank is not None:
+        factor, core = low_rank
+        # Equilibrated by the whole mass's mean diagonal, as `solve_kkt` does.
+        flat = factor.reshape(n * d, -1)
+        trace = trace + jnp.sum(core * (flat.T @ flat))
+    scale = trace / (n * d)
     band_mass, node_rhs = band_mass / scale, node_rhs / scale
     eps = KKT_REGULARISATION if regularised else 0.0
 
@@ -417,10 +432,44 @@ def banded_chain_kkt_solve(band_mass: Array, u: Array, node_rhs: Array, link_rhs
     diagonal, upper = tridiagonal(couplings(eps))
     rhs = jnp.zeros((size, e), dtype).at[:n, :d].set(node_rhs).at[:n, d].set(link_rhs).reshape(groups, side)
     solution, solve = eliminate_chain(diagonal, upper, rhs, jnp.linalg.inv, cyclic)
+    low_rank_product = None
+    if low_rank is not None:
+        # The factor in the KKT layout (zero in the links' rows), (G, r (D+1), P).
+        border = jnp.zeros((size, e, factor.shape[-1]), dtype).at[:n, :d].set(factor).reshape(groups, side, -1)
+        solve, low_rank_product = woodbury(solve, border, core / scale)
+        solution = solve(rhs)
     if regularised:
         exact, _ = tridiagonal(couplings(0.0))
-        solution = refine(solve, lambda y: rhs - block_tridiagonal_product(exact, upper, y), solution, KKT_REFINEMENT_STEPS)
+
+        def residual(y):
+            r = rhs - block_tridiagonal_product(exact, upper, y)
+            return r if low_rank_product is None else r - low_rank_product(y)
+
+        solution = refine(solve, residual, solution, KKT_REFINEMENT_STEPS)
     return solution.reshape(size, e)[:n, :d]
+
+
+def woodbury(solve: Callable[[Array], Array], border: Array, core: Array) -> tuple[Callable[[Array], Array], Callable[[Array], Array]]:
+    """`(solve', product)` for the system `K + B C B^T`, from `solve` (`r -> K^-1 r`, `r`
+    of `border`'s leading shape), `border` `B` (..., P) and `core` `C` (P, P):
+    `product(y) = B C B^T y` and, by the Woodbury identity,
+    `solve'(r) = y - K^-1 B (I + C B^T K^-1 B)^-1 C B^T y` with `y = K^-1 r`: P solves
+    by `solve` once, a P-square LU, then one solve per call. `C` is never inverted, so
+    it may be singular or indefinite; `I + C B^T K^-1 B` is regular exactly where `K +
+    B C B^T` is (given `K`)."""
+    axes = tuple(range(border.ndim - 1))
+
+    def transposed_product(y):
+        return jnp.tensordot(border, y, axes=(axes, axes))
+
+    columns = jax.vmap(solve, in_axes=-1, out_axes=-1)(border)
+    capacitance = jax.scipy.linalg.lu_factor(jnp.eye(core.shape[0], dtype=core.dtype) + core @ jnp.tensordot(border, columns, axes=(axes, axes)))
+
+    def corrected_solve(r):
+        y = solve(r)
+        return y - columns @ jax.scipy.linalg.lu_solve(capacitance, core @ transposed_product(y))
+
+    return corrected_solve, lambda y: border @ (core @ transposed_product(y))
 
 
 def block_tridiagonal_product(diagonal: Array, upper: Array, x: Array) -> Array:

@@ -5,6 +5,8 @@ compiling call, as one JSON line.
     python results/gpu/sweeps/chain_rollouts.py --unroll 10 --scene chain100 --states 100 --duration 0.1
     python results/gpu/sweeps/chain_rollouts.py --dense ...   # the dense solves instead of the chain's
     python results/gpu/sweeps/chain_rollouts.py --chain-elimination cyclic ...   # cyclic reduction instead of the sweeps
+    python results/gpu/sweeps/chain_rollouts.py --checkpoint results/benchmark/checkpoints/lgn-chain4-s0.npz \
+        --no-truth --save lgn-s0.npz ...   # another model alone, its positions kept to compare solves
 
 `--unroll` sets `lgnn.physics.solvers.ACCELERATOR_SWEEP_UNROLL` before anything
 compiles; `--dense` raises `system.CHAIN_SOLVER_MIN_LINKS` past the chain and gives the
@@ -23,6 +25,8 @@ parser.add_argument("--duration", type=float, default=0.1)
 parser.add_argument("--chain-elimination", choices=("sweeps", "cyclic"), default=None,
                     help="how chain_kkt_solve eliminates, on any platform (default: solvers.chain_elimination's choice)")
 parser.add_argument("--checkpoint", default="results/benchmark/checkpoints/lgnn-chain4-s0.npz", help="the LGNN (lgnn-chain4-3d-s0 for a 3D chain)")
+parser.add_argument("--no-truth", action="store_true", help="time the checkpoint's model only")
+parser.add_argument("--save", default=None, help="write the model's positions (states, frames, N, D) to this .npz")
 args = parser.parse_args()
 configure()
 
@@ -58,9 +62,12 @@ model, params = load_model(args.checkpoint)
 truth = Unparametrised(schur_truth if args.dense else vectorised_true_acceleration_fn)
 row = dict(scene=args.scene, states=args.states, duration=args.duration, unroll=solvers.sweep_unroll(), dense=args.dense,
            chain_elimination=solvers.chain_elimination(), backend=jax.default_backend())
-for label, factory, p in (("lgnn", models.AccelerationFactory(model), params), ("truth", truth, None)):
+row["checkpoint"] = args.checkpoint
+for label, factory, p in (("lgnn", models.AccelerationFactory(model), params), ("truth", truth, None))[:1 if args.no_truth else 2]:
     runs = [batched_rollouts(scene, config, factory, states, p, integration=Integration("rk4", project=True), chunk=args.states) for _ in range(3)]
     row[f"{label}_compile_s"] = round(runs[0].compile_s, 2)
     row[f"{label}_run_s"] = [round(r.run_s, 3) for r in runs[1:]]
     row[f"{label}_final_abs_sum"] = float(np.abs(runs[-1].q[:, -1]).sum())
+    if label == "lgnn" and args.save:
+        np.savez(args.save, q=np.asarray(runs[-1].q))
 print(json.dumps(row), flush=True)
