@@ -11,7 +11,7 @@ import pytest
 from lgnn import integrate, physics
 from lgnn.scene import is_pinned_chain, scene_from_dict, scene_to_json
 from lgnn.scene import chain, get_scene, sample_initial_states, scene_names
-from lgnn.scene.catalogue import double_pinned_chain, free_triangle, pendulum, pinned_triangle
+from lgnn.scene.catalogue import double_pinned_chain, free_triangle, pendulum, pinned_triangle, spatial_chain
 
 
 def random_state(scene, seed=0, speed=1.0):
@@ -744,12 +744,36 @@ def test_euler_lagranges_structured_mass_matrix_is_the_dense_one(name):
     np.testing.assert_allclose(local.right_hand_side(x, v), dense.right_hand_side(x, v), rtol=1e-12, atol=1e-12)
 
 
-def test_local_mass_colouring_needs_2_reach_plus_1_colours_for_any_chain():
+def test_local_mass_colouring_needs_2_reach_plus_1_colours_for_any_chain_and_reach_plus_1_for_a_long_one():
     for n in (4, 40, 400):
         scene = chain(n)
-        assert physics.prepare(scene).local_mass().n_colours == 3
-        for reach in (2, 3):
-            assert physics.prepare(scene).local_mass(reach).n_colours == min(2 * reach + 1, n)
+        long = physics.prepare(scene).long_chain
+        assert long == (n == 400)
+        for reach in (1, 2, 3):
+            assert physics.prepare(scene).local_mass(reach).n_colours == (reach + 1 if long else min(2 * reach + 1, n))
+
+
+@pytest.mark.parametrize(("links", "dim", "reach"), [(300, 2, 1), (300, 2, 3), (100, 3, 2), (81, 3, 3)])
+def test_a_long_chains_mass_is_recovered_from_reach_plus_1_colours(links, dim, reach):
+    """`ChainBandMass`: a random symmetric mass matrix of `reach` on a long pinned
+    chain, from its products with the reach + 1 colours' seeds, as its band blocks and
+    dense, to round-off, however long the residue classes' sums."""
+    from lgnn.physics.local_mass import ChainBandMass
+
+    scene = chain(links) if dim == 2 else spatial_chain(links)
+    local = physics.prepare(scene).local_mass(reach)
+    assert isinstance(local, ChainBandMass) and local.n_colours == reach + 1
+    free = len(physics.prepare(scene).constraints.free)
+    node = np.arange(free) // dim
+    rng = np.random.default_rng(links + reach)
+    a = rng.normal(size=(free, free))
+    mass = np.where(np.abs(node[:, None] - node[None, :]) <= reach, a + a.T, 0.0)
+    products = jax.jit(lambda m: local.products(lambda seed: m @ seed, m.dtype))(mass)
+    np.testing.assert_allclose(jax.jit(local.dense)(products), mass, rtol=0, atol=1e-13 * np.abs(mass).max())
+    blocks = np.asarray(jax.jit(local.band_blocks)(products))
+    for b, k in [(0, 0), (links // 2, reach), (links - 1 - reach, reach), (links - 1, 0)]:
+        np.testing.assert_allclose(blocks[b, k], mass[dim * b:dim * (b + 1), dim * (b + k):dim * (b + k + 1)], atol=1e-13 * np.abs(mass).max())
+    assert not blocks[links - 1, 1:].any()
 
 
 # ---------------------------------------------------------------------------------

@@ -153,13 +153,16 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
     that is fewer (`uses_mass_structure`):
     - `LOCAL` (reach 1: only nodes that share a link are coupled, true of the exact rods
       and of LGNN's per-link energies): a few Hessian-vector products on a colouring of
-      the nodes (3 colours x D products for any chain), and a chain pinned at node 0 (from
-      `CHAIN_SOLVER_MIN_LINKS` links) is solved by the linear-time block elimination of
+      the nodes (3 colours x D products for any chain; 2 on a long one, where the
+      matrix's symmetry recovers the rest, `local_mass.ChainBandMass`), and a chain
+      pinned at node 0 (from `CHAIN_SOLVER_MIN_LINKS` links) is solved by the
+      linear-time block elimination of
       `solvers.chain_kkt_solve` (regularised and refined like `solvers.solve_kkt`), so a
       step costs time linear in the chain's length;
-    - a larger reach r: 2r + 1 colours x D products on a chain; a long pinned chain's
-      KKT system, block-banded, by `solvers.banded_chain_kkt_solve` (groups of r
-      links, block-tridiagonal), linear in the length too; elsewhere the dense KKT solve;
+    - a larger reach r: 2r + 1 colours x D products on a chain (r + 1 on a long one);
+      a long pinned chain's KKT system, block-banded, by
+      `solvers.banded_chain_kkt_solve` (groups of r links, block-tridiagonal), linear
+      in the length too; elsewhere the dense KKT solve;
     - pooled (LGN's read-out of summed embeddings): the low-rank part from the features'
       Jacobian (forward products on a colouring of the terms' supports), the rest local;
       on a long pinned chain the banded elimination with the low-rank part added by the

@@ -1,14 +1,16 @@
 """A mass matrix with graph structure, assembled from a few derivative products.
 
-Contract: `LocalMass(scene, constraints, reach)` holds static NumPy index arrays (a node
-colouring and the maps from products to blocks); its methods are pure JAX functions.
+Contract: `LocalMass(scene, constraints, reach)` and `ChainBandMass(constraints, reach)`
+hold static NumPy index arrays (a node colouring and the maps from products to blocks);
+their methods are pure JAX functions.
 `MassStructure` is what a Lagrangian declares about its mass matrix `d2L/dqd2`:
 
 - local (`reach`): the mass matrix couples a node only with nodes at most `reach`
   links away (1: with itself and the nodes it shares a link with, as the exact rods and
   LGNN's per-link energies do). `M` is then recovered from one Hessian-vector product
   per (colour, coordinate) instead of one per coordinate: 3 x D for any chain at reach 1,
-  (2 reach + 1) x D at any reach, whatever the chain's length.
+  (2 reach + 1) x D at any reach, whatever the chain's length (`LocalMass`); on a long
+  pinned chain (reach + 1) x D, its symmetry used (`ChainBandMass`).
 - pooled (`terms`, `supports`, `readout`): `L = readout(p)` of features `p(q, qd)` (P,)
   that are a sum of local terms `terms(q, qd)` (T, P), term t depending on the
   velocities of the nodes `supports[t]` only, as LGN's read-out of its summed node and
@@ -149,20 +151,6 @@ class LocalMass:
         for node, group in coupled_to.items():
             adjacent[node, list(group)] = True
         self.coupled = adjacent[np.ix_(node_of, node_of)]
-        # A chain pinned at node 0 has free coordinates Db + i for node b + 1, so its
-        # block (b, i, j) is row Db + i of the product of column Db + j's seed (reach 1).
-        chain_nodes = len(constraints.free) // d
-        block, row, column = np.meshgrid(np.arange(chain_nodes), np.arange(d), np.arange(d), indexing="ij")
-        self.diagonal_rows = d * block + row
-        self.diagonal_seeds = self.seed_of[d * block + column]
-        self.upper_rows = self.diagonal_rows[:-1]
-        self.upper_seeds = self.diagonal_seeds[1:]
-        # Any reach: block (b, k, i, j) is row Db + i of the product of the seed of node
-        # b + 1 + k's column j, where that node exists.
-        block, offset, row, column = np.meshgrid(np.arange(chain_nodes), np.arange(reach + 1), np.arange(d), np.arange(d), indexing="ij")
-        self.band_inside = block + offset < chain_nodes
-        self.band_rows = d * block + row
-        self.band_seeds = self.seed_of[np.minimum(d * (block + offset) + column, len(self.seed_of) - 1)]
 
     def products(self, hvp: Callable[[Array], Array], dtype) -> Array:
         """(S, F) `M @ seed` for every seed, from `hvp(seed) -> M @ seed` (F,)."""
@@ -172,18 +160,83 @@ class LocalMass:
         """(F, F) the mass matrix: entry (r, s) is row r of the product of s's seed."""
         return jnp.where(self.coupled, products[self.seed_of[None, :], np.arange(products.shape[1])[:, None]], 0.0)
 
+
+
+class ChainBandMass:
+    """`LocalMass` for a chain pinned at node 0, from (reach + 1) x D Hessian-vector
+    products instead of (2 reach + 1) x D: the mass matrix's symmetry recovers what
+    the fewer colours mix.
+
+    Chain node b (free node b + 1, coordinates Db..Db+D-1) takes colour b mod w, w =
+    reach + 1. Row b of the product with colour (b + k) mod w, coordinate j, then holds
+    `P(b, k) = B(b, k) + B(b - l, l)^T` (l = w - k, for k >= 1 and b >= l), where
+    `B(b, k)` is the D x D block coupling node b with node b + k: the window of nodes
+    coupled to b holds two of that colour, b + k and b + k - w. The diagonal blocks come
+    out alone (k = 0). By symmetry `B(b, k) = P(b, k) - P(b - l, l)^T + B(b - w, k)`,
+    so each block is a sum along its residue class mod w: a cumulative sum, no
+    sequential recovery. Round-off grows with the chain's length over w (the terms
+    summed), tested against the dense matrix on long chains.
+    """
+
+    def __init__(self, constraints: Constraints, reach: int):
+        n_free, d = len(constraints.free), constraints.shape[1]
+        n = n_free // d
+        self.reach, width = reach, reach + 1
+        self.n_colours = min(width, n)
+        self.seeds = np.zeros((self.n_colours * d, n_free))
+        chain_node, coordinate = np.arange(n_free) // d, np.arange(n_free) % d
+        self.seeds[(chain_node % width) * d + coordinate, np.arange(n_free)] = 1.0
+        block, offset, row, column = np.meshgrid(np.arange(n), np.arange(width), np.arange(d), np.arange(d), indexing="ij")
+        # Product (b, k, i, j): row Db + i of the seed of colour (b + k) mod w, coordinate j.
+        self.rows, self.product_seeds = d * block + row, ((block + offset) % width % max(self.n_colours, 1)) * d + column
+        self.inside = (block + offset < n)[..., 0, 0]
+        partner = width - np.arange(width)
+        self.has_partner = (np.arange(width)[None, :] >= 1) & (np.arange(n)[:, None] >= partner[None, :])
+        self.partner_block = np.maximum(np.arange(n)[:, None] - partner[None, :], 0)
+        self.partner_offset = np.minimum(np.broadcast_to(partner, (n, width)), width - 1)
+        # Residue classes: block b is b = g w + s; summed over g.
+        self.groups = -(-n // width)
+        self.n, self.width, self.d = n, width, d
+        # Dense assembly: entry (Db + i, D(b + k) + j) of block (b, k, i, j), inside the
+        # chain; the diagonal blocks (k = 0) apart from those above them.
+        columns = d * (block + offset) + column
+        self.diagonal_entries = (self.rows[:, 0].reshape(-1), columns[:, 0].reshape(-1))
+        above = self.inside.copy()
+        above[:, 0] = False
+        self.above, self.above_entries = above, (self.rows[above].reshape(-1), columns[above].reshape(-1))
+
+    def products(self, hvp: Callable[[Array], Array], dtype) -> Array:
+        """(S, F) `M @ seed` for every seed, from `hvp(seed) -> M @ seed` (F,)."""
+        return jax.vmap(hvp)(jnp.asarray(self.seeds, dtype))
+
+    def band_blocks(self, products: Array) -> Array:
+        """(n, reach + 1, D, D) blocks of the chain's mass matrix: block k of row b
+        couples node b+1 with node b+1+k, zero past the chain's end
+        (`solvers.banded_chain_kkt_solve`)."""
+        mixed = products[self.product_seeds, self.rows]
+        partner = jnp.swapaxes(mixed[self.partner_block, self.partner_offset], -1, -2)
+        differences = mixed - jnp.where(self.has_partner[..., None, None], partner, 0.0)
+        n, width, d = self.n, self.width, self.d
+        padded = jnp.zeros((self.groups * width, width, d, d), products.dtype).at[:n].set(differences)
+        summed = jnp.cumsum(padded.reshape(self.groups, width, width, d, d), axis=0).reshape(-1, width, d, d)[:n]
+        blocks = jnp.concatenate([mixed[:, :1], summed[:, 1:]], axis=1)
+        return jnp.where(self.inside[..., None, None], blocks, 0.0)
+
     def chain_blocks(self, products: Array) -> tuple[Array, Array]:
         """(n, D, D) diagonal and (n-1, D, D) upper (node b with b+1) blocks of a chain
         (reach 1 only: nothing else is nonzero)."""
         if self.reach != 1:
             raise ValueError("chain blocks hold a mass matrix of reach 1 only")
-        return products[self.diagonal_seeds, self.diagonal_rows], products[self.upper_seeds, self.upper_rows]
+        blocks = self.band_blocks(products)
+        return blocks[:, 0], blocks[:-1, 1]
 
-    def band_blocks(self, products: Array) -> Array:
-        """(n, reach + 1, D, D) blocks of a chain's mass matrix: block k of row b couples
-        node b+1 with node b+1+k, zero past the chain's end
-        (`solvers.banded_chain_kkt_solve`)."""
-        return jnp.where(self.band_inside, products[self.band_seeds, self.band_rows], 0.0)
+    def dense(self, products: Array) -> Array:
+        """(F, F) the mass matrix, its blocks below the diagonal the transposes of those
+        above."""
+        blocks = self.band_blocks(products)
+        zeros = jnp.zeros((self.n * self.d,) * 2, products.dtype)
+        above = zeros.at[self.above_entries].set(blocks[self.above].reshape(-1))
+        return zeros.at[self.diagonal_entries].set(blocks[:, 0].reshape(-1)) + above + above.T
 
 
 class PooledJacobian:

@@ -31,7 +31,7 @@ import numpy as np
 from lgnn.errors import SceneError
 from lgnn.physics.constraints import Constraints
 from lgnn.physics.energies import constant_node_mass
-from lgnn.physics.local_mass import LocalMass, PooledJacobian
+from lgnn.physics.local_mass import ChainBandMass, LocalMass, PooledJacobian
 from lgnn.physics.solvers import LinkGram
 from lgnn.scene import Scene, is_pinned_chain
 
@@ -65,10 +65,13 @@ class System:
     def _local_masses(self) -> dict:
         return {}
 
-    def local_mass(self, reach: int = 1) -> LocalMass:
-        """The colouring of a mass matrix coupling nodes at most `reach` links apart."""
+    def local_mass(self, reach: int = 1) -> LocalMass | ChainBandMass:
+        """The colouring of a mass matrix coupling nodes at most `reach` links apart: on
+        a long pinned chain, whose KKT system the block elimination takes, the
+        symmetric one of reach + 1 colours (`ChainBandMass`), elsewhere the general one
+        (`LocalMass`)."""
         if reach not in self._local_masses:
-            self._local_masses[reach] = LocalMass(self.scene, self.constraints, reach)
+            self._local_masses[reach] = ChainBandMass(self.constraints, reach) if self.long_chain else LocalMass(self.scene, self.constraints, reach)
         return self._local_masses[reach]
 
     @functools.cached_property
