@@ -161,7 +161,6 @@ class LocalMass:
         return jnp.where(self.coupled, products[self.seed_of[None, :], np.arange(products.shape[1])[:, None]], 0.0)
 
 
-
 class ChainBandMass:
     """`LocalMass` for a chain pinned at node 0, from (reach + 1) x D Hessian-vector
     products instead of (2 reach + 1) x D: the mass matrix's symmetry recovers what
@@ -187,8 +186,9 @@ class ChainBandMass:
         chain_node, coordinate = np.arange(n_free) // d, np.arange(n_free) % d
         self.seeds[(chain_node % width) * d + coordinate, np.arange(n_free)] = 1.0
         block, offset, row, column = np.meshgrid(np.arange(n), np.arange(width), np.arange(d), np.arange(d), indexing="ij")
-        # Product (b, k, i, j): row Db + i of the seed of colour (b + k) mod w, coordinate j.
-        self.rows, self.product_seeds = d * block + row, ((block + offset) % width % max(self.n_colours, 1)) * d + column
+        # Product (b, k, i, j): row Db + i of the seed of colour (b + k) mod w, coordinate j
+        # (a colour past the last, only where node b + k is past the chain's end, clipped).
+        self.rows, self.product_seeds = d * block + row, np.minimum((block + offset) % width, self.n_colours - 1) * d + column
         self.inside = (block + offset < n)[..., 0, 0]
         partner = width - np.arange(width)
         self.has_partner = (np.arange(width)[None, :] >= 1) & (np.arange(n)[:, None] >= partner[None, :])
