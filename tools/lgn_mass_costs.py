@@ -172,12 +172,22 @@ def trained_rollouts():
     return scene, loaded, runs
 
 
+def checked_frames(loaded, runs, check_for):
+    """For each seed, every `--every` frames: `(seed, frame, results)`, the results of
+    `check_for(model, params)(q, qd)` at each of the rollouts' states (vmapped)."""
+    for seed, (model, params) in enumerate(loaded):
+        checked = jax.jit(jax.vmap(check_for(model, params)))
+        for frame in range(0, runs.q.shape[2], args.every):
+            yield seed, frame, [np.asarray(a) for a in checked(jnp.asarray(runs.q[seed, :, frame]), jnp.asarray(runs.qd[seed, :, frame]))]
+
+
 def definiteness() -> None:
     scene, loaded, runs = trained_rollouts()
     print("| seed | frame | finite states | of them, M not positive definite | smallest eigenvalue / largest |")
     print("|---|---|---|---|---|")
     free = np.asarray(physics.prepare(scene).constraints.free)
-    for seed, (model, params) in enumerate(loaded):
+
+    def check_for(model, params):
         mass = physics.mass_matrix_fn(models.lagrangian_fn(model, params, scene))
 
         def check(q, qd):
@@ -185,11 +195,11 @@ def definiteness() -> None:
             eigenvalues = jnp.linalg.eigvalsh(m)
             return jnp.all(jnp.isfinite(m)), jnp.all(jnp.isfinite(jnp.linalg.cholesky(m))), eigenvalues[0] / eigenvalues[-1]
 
-        checked = jax.jit(jax.vmap(check))
-        for frame in range(0, runs.q.shape[2], args.every):
-            finite, cholesky, ratio = (np.asarray(a) for a in checked(jnp.asarray(runs.q[seed, :, frame]), jnp.asarray(runs.qd[seed, :, frame])))
-            smallest = f"{np.min(ratio[finite]):.3g}" if finite.any() else "-"
-            print(f"| {seed} | {frame} | {int(finite.sum())} | {int((finite & ~cholesky).sum())} | {smallest} |", flush=True)
+        return check
+
+    for seed, frame, (finite, cholesky, ratio) in checked_frames(loaded, runs, check_for):
+        smallest = f"{np.min(ratio[finite]):.3g}" if finite.any() else "-"
+        print(f"| {seed} | {frame} | {int(finite.sum())} | {int((finite & ~cholesky).sum())} | {smallest} |", flush=True)
 
 
 def agreement() -> None:
@@ -197,7 +207,8 @@ def agreement() -> None:
     print("| seed | frame | finite states | of them, M not positive definite | largest relative difference | median |")
     print("|---|---|---|---|---|---|")
     free = np.asarray(physics.prepare(scene).constraints.free)
-    for seed, (model, params) in enumerate(loaded):
+
+    def check_for(model, params):
         lagrangian = models.lagrangian_fn(model, params, scene)
         structured, dense = models.acceleration_fn(model, params, scene), physics.acceleration_fn(scene, lagrangian)
         mass = physics.mass_matrix_fn(lagrangian)
@@ -207,11 +218,11 @@ def agreement() -> None:
             cholesky = jnp.linalg.cholesky(mass(q, qd)[np.ix_(free, free)])
             return jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)), jnp.all(jnp.isfinite(b)), jnp.all(jnp.isfinite(cholesky))
 
-        compared = jax.jit(jax.vmap(compare))
-        for frame in range(0, runs.q.shape[2], args.every):
-            difference, finite, cholesky = (np.asarray(a) for a in compared(jnp.asarray(runs.q[seed, :, frame]), jnp.asarray(runs.qd[seed, :, frame])))
-            largest, median = (f"{f(difference[finite]):.2g}" if finite.any() else "-" for f in (np.max, np.median))
-            print(f"| {seed} | {frame} | {int(finite.sum())} | {int((finite & ~cholesky).sum())} | {largest} | {median} |", flush=True)
+        return compare
+
+    for seed, frame, (difference, finite, cholesky) in checked_frames(loaded, runs, check_for):
+        largest, median = (f"{f(difference[finite]):.2g}" if finite.any() else "-" for f in (np.max, np.median))
+        print(f"| {seed} | {frame} | {int(finite.sum())} | {int((finite & ~cholesky).sum())} | {largest} | {median} |", flush=True)
 
 
 {"parts": parts, "solves": solves, "definiteness": definiteness, "agreement": agreement}[args.what]()
