@@ -431,13 +431,18 @@ def banded_chain_kkt_solve(band_mass: Array, u: Array, node_rhs: Array, link_rhs
 
     diagonal, upper = tridiagonal(couplings(eps))
     rhs = jnp.zeros((size, e), dtype).at[:n, :d].set(node_rhs).at[:n, d].set(link_rhs).reshape(groups, side)
-    solution, solve = eliminate_chain(diagonal, upper, rhs, jnp.linalg.inv, cyclic)
-    low_rank_product = None
+    solution, banded_solve = eliminate_chain(diagonal, upper, rhs, jnp.linalg.inv, cyclic)
+    solve, low_rank_product = banded_solve, None
     if low_rank is not None:
         # The factor in the KKT layout (zero in the links' rows), (G, r (D+1), P).
         border = jnp.zeros((size, e, factor.shape[-1]), dtype).at[:n, :d].set(factor).reshape(groups, side, -1)
-        solve, low_rank_product = woodbury(solve, border, core / scale)
-        solution = solve(rhs)
+        correct, low_rank_product = woodbury(banded_solve, border, core / scale)
+        # The banded solution the elimination already gave, corrected: no second solve.
+        solution = correct(solution)
+
+        def solve(r):
+            return correct(banded_solve(r))
+
     if regularised:
         exact, _ = tridiagonal(couplings(0.0))
 
@@ -450,13 +455,14 @@ def banded_chain_kkt_solve(band_mass: Array, u: Array, node_rhs: Array, link_rhs
 
 
 def woodbury(solve: Callable[[Array], Array], border: Array, core: Array) -> tuple[Callable[[Array], Array], Callable[[Array], Array]]:
-    """`(solve', product)` for the system `K + B C B^T`, from `solve` (`r -> K^-1 r`, `r`
+    """`(correct, product)` for the system `K + B C B^T`, from `solve` (`r -> K^-1 r`, `r`
     of `border`'s leading shape), `border` `B` (..., P) and `core` `C` (P, P):
-    `product(y) = B C B^T y` and, by the Woodbury identity,
-    `solve'(r) = y - K^-1 B (I + C B^T K^-1 B)^-1 C B^T y` with `y = K^-1 r`: P solves
-    by `solve` once, a P-square LU, then one solve per call. `C` is never inverted, so
-    it may be singular or indefinite; `I + C B^T K^-1 B` is regular exactly where `K +
-    B C B^T` is (given `K`)."""
+    `product(y) = B C B^T y` and, by the Woodbury identity, `correct(K^-1 r) = (K + B C
+    B^T)^-1 r`, that is `correct(y) = y - K^-1 B (I + C B^T K^-1 B)^-1 C B^T y`: P
+    solves by `solve` once and a P-square LU here, no solve per call (a caller that
+    already holds `K^-1 r` pays none). `C` is never inverted, so it may be singular or
+    indefinite; `I + C B^T K^-1 B` is regular exactly where `K + B C B^T` is (given
+    `K`)."""
     axes = tuple(range(border.ndim - 1))
 
     def transposed_product(y):
@@ -465,11 +471,10 @@ def woodbury(solve: Callable[[Array], Array], border: Array, core: Array) -> tup
     columns = jax.vmap(solve, in_axes=-1, out_axes=-1)(border)
     capacitance = jax.scipy.linalg.lu_factor(jnp.eye(core.shape[0], dtype=core.dtype) + core @ jnp.tensordot(border, columns, axes=(axes, axes)))
 
-    def corrected_solve(r):
-        y = solve(r)
+    def correct(y):
         return y - columns @ jax.scipy.linalg.lu_solve(capacitance, core @ transposed_product(y))
 
-    return corrected_solve, lambda y: border @ (core @ transposed_product(y))
+    return correct, lambda y: border @ (core @ transposed_product(y))
 
 
 def block_tridiagonal_product(diagonal: Array, upper: Array, x: Array) -> Array:
