@@ -363,6 +363,42 @@ def test_kkt_solve_derivatives_are_those_of_the_exact_solution():
     np.testing.assert_allclose(second(solvers.solve_kkt), second(exact), rtol=1e-8, atol=1e-12)
 
 
+@pytest.mark.parametrize("scene_name", ["chain4-3d", "T1"])
+def test_parametrised_accelerations_differentiate_as_the_ordinary_route(scene_name):
+    """`physics.parametrised_acceleration_fn` takes the derivative by the parameters
+    from the adjoint of the constrained equations: the same accelerations and the same
+    derivatives by the parameters, positions and velocities as differentiating
+    `acceleration_fn` itself, for a Lagrangian whose mass matrix depends on positions
+    and velocities and a force that depends on the parameters."""
+    scene = get_scene(scene_name)
+    exact = physics.lagrangian_fn(scene)
+
+    def build(params):
+        def lagrangian(q, qd):
+            # Exact rods, scaled, plus a coupling of velocities and positions (reach 1).
+            i, j = scene.edge_index.T
+            dq, dqd = q[i] - q[j], qd[i] - qd[j]
+            return params["scale"] * exact(q, qd) + params["coupling"] * jnp.sum(jnp.tanh(jnp.sum(dqd * dqd, -1)) * jnp.cos(jnp.sum(dq, -1)))
+
+        return lagrangian, lambda q, qd: -params["drag"] * qd * jnp.abs(q), physics.LOCAL
+
+    params = {"scale": jnp.asarray(0.7), "coupling": jnp.asarray(0.05), "drag": jnp.asarray(1.3)}
+    q, qd = (jnp.asarray(a) for a in physics.sample_initial_conditions(scene, 2, seed=4))
+    target = jnp.asarray(np.random.default_rng(5).normal(size=q.shape))
+    ours = jax.vmap(physics.parametrised_acceleration_fn(scene, build), in_axes=(None, 0, 0))
+
+    def ordinary(params, q, qd):
+        return jax.vmap(lambda a, b: physics.acceleration_fn(scene, *build(params)[:2], mass=physics.LOCAL)(a, b))(q, qd)
+
+    def loss(accel):
+        return lambda params, q, qd: jnp.sum(jnp.sin(accel(params, q, qd) * target))
+
+    np.testing.assert_allclose(ours(params, q, qd), ordinary(params, q, qd), rtol=1e-12, atol=1e-12)
+    theirs_grads = jax.jit(jax.grad(loss(ordinary), argnums=(0, 1, 2)))(params, q, qd)
+    for got, want in zip(jax.tree.leaves(jax.jit(jax.grad(loss(ours), argnums=(0, 1, 2)))(params, q, qd)), jax.tree.leaves(theirs_grads)):
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * max(1.0, float(jnp.max(jnp.abs(want)))))
+
+
 # ---------------------------------------------------------------------------------
 # The structured ground-truth solvers and the structured projection
 # ---------------------------------------------------------------------------------

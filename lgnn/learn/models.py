@@ -770,15 +770,36 @@ def _learned_drag_fn(config: ModelConfig, params: dict, scene: Scene):
 def acceleration_fn(config: ModelConfig, params: dict, scene: Scene) -> physics.AccelerationFn:
     """`accel(q, qd) -> qdd` (N, D) of the model on `scene` (any size for graph models)."""
     check_compatible(config, scene)
-    spec = config.spec
+    params = _constant_statistics(params)
+    if not config.spec.is_lagrangian:
+        return config.spec.acceleration(config, params, scene)
+    lagrangian, drag, mass = _lagrangian_parts(config, params, scene)
+    return physics.acceleration_fn(scene, lagrangian, drag, mass=mass)
+
+
+def trainable_acceleration_fn(config: ModelConfig, scene: Scene) -> Callable:
+    """`accel(params, q, qd) -> qdd` (N, D): `acceleration_fn(config, params, scene)(q,
+    qd)` with the parameters an argument, what training differentiates. A
+    Lagrangian model's derivative by them comes from the adjoint of the constrained
+    equations (`physics.parametrised_acceleration_fn`): the same gradient, fewer
+    operations."""
+    check_compatible(config, scene)
+    if not config.spec.is_lagrangian:
+        return lambda params, q, qd: acceleration_fn(config, params, scene)(q, qd)
+    accel = physics.parametrised_acceleration_fn(scene, lambda params: _lagrangian_parts(config, params, scene))
+    return lambda params, q, qd: accel(_constant_statistics(params), q, qd)
+
+
+def _constant_statistics(params):
+    """`params` with its statistics constants: no gradient reaches them, whoever differentiates."""
     trainable, statistics = split_statistics(params)
-    # Constants: no gradient reaches them, whoever differentiates.
-    params = join_statistics(trainable, None if statistics is None else jax.lax.stop_gradient(statistics))
-    if not spec.is_lagrangian:
-        return spec.acceleration(config, params, scene)
-    lagrangian = lagrangian_fn(config, params, scene)
-    mass = None if spec.mass is None else spec.mass(config, params, scene)
-    return physics.acceleration_fn(scene, lagrangian, _learned_drag_fn(config, params, scene), mass=mass)
+    return join_statistics(trainable, None if statistics is None else jax.lax.stop_gradient(statistics))
+
+
+def _lagrangian_parts(config: ModelConfig, params: dict, scene: Scene) -> tuple:
+    """`(lagrangian, drag force or None, mass structure or None)` of a Lagrangian model."""
+    mass = None if config.spec.mass is None else config.spec.mass(config, params, scene)
+    return lagrangian_fn(config, params, scene), _learned_drag_fn(config, params, scene), mass
 
 
 def mass_matrix_fn(config: ModelConfig, params: dict, scene: Scene):

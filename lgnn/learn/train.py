@@ -251,9 +251,10 @@ def optimizer(config: TrainConfig, weight_decay: float = 0.0) -> optax.GradientT
 def loss_fn(model: models.ModelConfig, scene: Scene):
     """`loss(params, q, qd, qdd)`: mean squared acceleration error over a batch (B, N, D)."""
 
+    accel = jax.vmap(models.trainable_acceleration_fn(model, scene), in_axes=(None, 0, 0))
+
     def loss(params, q, qd, qdd):
-        accel = jax.vmap(models.acceleration_fn(model, params, scene))
-        return jnp.mean((accel(q, qd) - qdd) ** 2)
+        return jnp.mean((accel(params, q, qd) - qdd) ** 2)
 
     return loss
 

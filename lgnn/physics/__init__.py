@@ -35,6 +35,7 @@ from lgnn.physics.dynamics import (
     acceleration_fn,
     euler_lagrange,
     mass_matrix_fn,
+    parametrised_acceleration_fn,
     true_acceleration_fn,
     uses_mass_structure,
     vectorised_true_acceleration_fn,

@@ -176,9 +176,7 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
 
     def accel(q, qd):
         x, v = constraints.restrict(q), constraints.restrict(qd)
-        rhs = equations.right_hand_side(x, v)
-        if force_fn is not None:
-            rhs = rhs + constraints.restrict(force_fn(q, qd))
+        rhs = _forces(equations, constraints, force_fn, x, v, q, qd)
         if equations.chain_solve:
             (products, low_rank), u = equations.mass_products(x, v), constraints.link_directions(q)
             d = constraints.shape[1]
@@ -189,10 +187,93 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
                 factors = None if low_rank is None else (low_rank[0].reshape(-1, d, low_rank[0].shape[-1]), low_rank[1])
                 xdd = banded_chain_kkt_solve(equations.local.band_blocks(products), u, node_rhs, link_rhs, regularised=True, low_rank=factors)
             return constraints.embed_velocity(xdd.reshape(-1))
-        xdd = solve_kkt(equations.mass_matrix(x, v), constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v))
+        xdd = solve_kkt(*_dense_system(equations, constraints, x, v, rhs))
         return constraints.embed_velocity(xdd)
 
     return full_precision_matmuls(accel)
+
+
+def _forces(equations: EulerLagrange, constraints, force_fn: ForceFn | None, x: Array, v: Array, q: Array, qd: Array) -> Array:
+    """The right-hand side `Pi - C qd + F` over the free coordinates."""
+    rhs = equations.right_hand_side(x, v)
+    return rhs if force_fn is None else rhs + constraints.restrict(force_fn(q, qd))
+
+
+def _dense_system(equations: EulerLagrange, constraints, x: Array, v: Array, rhs: Array) -> tuple[Array, Array, Array, Array]:
+    """`solve_kkt`'s arguments for the equations at free coordinates `x`, `v` with
+    forces `rhs`: the mass matrix, the constraint Jacobian, `rhs`, `-Adot v`."""
+    return equations.mass_matrix(x, v), constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v)
+
+
+def parametrised_acceleration_fn(scene: Scene, build: Callable) -> Callable[[object, Array, Array], Array]:
+    """`accel(params, q, qd) -> qdd`: `acceleration_fn(scene, lagrangian, force_fn,
+    mass=mass)(q, qd)` for `(lagrangian, force_fn, mass) = build(params)`, whose
+    derivative by `params` (what training takes) comes from the adjoint of the
+    constrained equations instead of differentiating through the solve and the
+    mass matrix's Hessian.
+
+    Why: with `K [a; mu] = [f; r]` (`K` the symmetric KKT matrix of `M`, `A`; `f = Pi -
+    C qd + F`; `r` free of the parameters), a cotangent `abar` of `a` pulls back to
+    `lam^T (df - dM a)` with `K [lam; nu] = [abar; 0]`: the derivative by the
+    parameters of the scalar `S = lam^T f - lam^T M a` at fixed `lam`, `a`, `x`, `v`.
+    Its Lagrangian terms are directional derivatives of `L`: `lam^T Pi = DL (lam, 0)`
+    and `lam^T (C qd + M a) = D2L[(0, lam), (qd, a)]`, two nested forward products
+    along single directions. The ordinary route differentiates the Hessian (one
+    product per coordinate, each through a reverse pass) in reverse: third derivatives
+    of the network along every column. The same gradient to round-off
+    (tests/test_physics.py), from one more KKT solve and the reverse pass of `S`; an
+    LGN training epoch on one GPU took 1.8x less time (results/gpu/training/README.md).
+
+    The derivatives by `q` and `qd` are the ordinary ones (traced only where taken:
+    training does not take them). Where `acceleration_fn` solves a long chain by
+    elimination, the whole function is the ordinary one."""
+    constraints = prepare(scene).constraints
+
+    def equations_of(params):
+        lagrangian, force_fn, mass = build(params)
+        return force_fn, euler_lagrange(scene, lagrangian, mass)
+
+    def ordinary(params, q, qd):
+        lagrangian, force_fn, mass = build(params)
+        return acceleration_fn(scene, lagrangian, force_fn, mass=mass)(q, qd)
+
+    @full_precision_matmuls
+    def forward(params, q, qd):
+        force_fn, equations = equations_of(params)
+        x, v = constraints.restrict(q), constraints.restrict(qd)
+        mass, jacobian, rhs, accel_rhs = _dense_system(equations, constraints, x, v, _forces(equations, constraints, force_fn, x, v, q, qd))
+        xdd = solve_kkt(mass, jacobian, rhs, accel_rhs)
+        return constraints.embed_velocity(xdd), (params, q, qd, xdd, mass, jacobian)
+
+    @full_precision_matmuls
+    def backward(residuals, qdd_bar):
+        params, q, qd, xdd, mass, jacobian = residuals
+        x, v = constraints.restrict(q), constraints.restrict(qd)
+        # K is symmetric: the adjoint system is K itself.
+        lam = solve_kkt(mass, jacobian, constraints.restrict(qdd_bar), jnp.zeros(jacobian.shape[0], xdd.dtype))
+
+        def pulled_back(params):  # S = lam^T f - lam^T M a, at fixed lam, a, x, v
+            lagrangian, force_fn, _ = build(params)
+            reduced = lambda y, w: lagrangian(constraints.embed(y), constraints.embed_velocity(w))  # noqa: E731
+            along_lam = lambda y, w: jax.jvp(lambda w_: reduced(y, w_), (w,), (lam,))[1]  # noqa: E731  DL (0, lam)
+            generalised = jax.jvp(lambda y: reduced(y, v), (x,), (lam,))[1]
+            inertial = jax.jvp(along_lam, (x, v), (v, xdd))[1]
+            total = generalised - inertial
+            return total if force_fn is None else total + jnp.dot(lam, constraints.restrict(force_fn(q, qd)))
+
+        params_bar = jax.grad(pulled_back)(params)
+        q_bar, qd_bar = jax.vjp(lambda q_, qd_: ordinary(params, q_, qd_), q, qd)[1](qdd_bar)
+        return params_bar, q_bar, qd_bar
+
+    adjoint = jax.custom_vjp(lambda params, q, qd: forward(params, q, qd)[0])
+    adjoint.defvjp(forward, backward)
+
+    def accel(params, q, qd):
+        if equations_of(params)[1].chain_solve:
+            return ordinary(params, q, qd)
+        return adjoint(params, q, qd)
+
+    return accel
 
 
 def uses_mass_structure(scene: Scene, mass: MassStructure) -> bool:
