@@ -55,7 +55,10 @@ def measurements(paths):
             if "environment" in row:
                 env = row["environment"]
                 continue
-            yield os.path.basename(path)[:-6], row, f"{env.get('device', '?').split(';')[0]}, {env.get('commit', '?')}"
+            # An A/B measurement's lines name their variant (and round) of the code.
+            variant = " ".join(str(row[k]) for k in ("variant", "round") if k in row)
+            label = os.path.basename(path)[:-6] + (f" ({variant})" if variant else "")
+            yield label, row, f"{env.get('device', '?').split(';')[0]}, {env.get('commit', '?')}"
 
 
 def _epoch_cells(row) -> list:

@@ -1,0 +1,34 @@
+# The measurements of this folder, on one GPU, from the repository's root, with the
+# wheels of jraph and mujoco installed. `old` is the package before the adjoint
+# (commit c3e9dbc), `new` the working tree's.
+#
+#   bash results/gpu/training/adjoint/run.sh ab chain4-3d "lgn lgnn" "clnn lgnn-notebook gns" > loop-h200-3d-ab.jsonl
+#   bash results/gpu/training/adjoint/run.sh ab chain4 "lgn lgnn-mp2" "lgnn lgnn-mp1 clnn lgnn-notebook gns" > loop-h200-2d-ab.jsonl
+#   bash results/gpu/training/adjoint/run.sh alone chain4-3d "lgn lgnn clnn lgnn-notebook gns" > alone-h200-3d.jsonl
+#   bash results/gpu/training/adjoint/run.sh alone chain4 "lgn lgnn-mp2 lgnn lgnn-mp1 clnn lgnn-notebook gns" > alone-h200-2d.jsonl
+#
+# Each JSON line of an A/B run is tagged with its variant and round (the environment
+# line is printed once). The tables: tools/training_throughput.py --summarise.
+set -e
+MODE=$1 SCENE=$2
+loop() {  # loop SEEDS MODELS...
+    local seeds=$1; shift
+    python3 tools/training_throughput.py --loop --checkpoints --models "$@" --scene "$SCENE" --seed-counts "$seeds" --per-call 10 --epochs 20 | grep '^{'
+}
+tag() {  # tag VARIANT ROUND: the variant and round added to each measurement line
+    python3 -c 'import json, sys
+for line in sys.stdin:
+    row = json.loads(line)
+    if "environment" in row:
+        print(line, end="") if sys.argv[3] == "first" else None
+        continue
+    print(json.dumps({"variant": sys.argv[1], **({"round": int(sys.argv[2])} if sys.argv[2] != "-" else {}), **row}))' "$@"
+}
+if [ "$MODE" = alone ]; then loop 1 $3; exit; fi
+OLD=$(mktemp -d) && git archive c3e9dbc lgnn | tar -x -C "$OLD"
+first=first
+for round in 1 2; do
+    loop 3 $3 | tag new $round $first; first=no
+    PYTHONPATH="$OLD:$PYTHONPATH" loop 3 $3 | tag old $round no
+done
+[ -n "$4" ] && loop 3 $4 | tag new - no
