@@ -161,7 +161,7 @@ def test_unknown_model_and_clnn_size_are_clear_errors():
         models.acceleration_fn(config, models.init(jax.random.PRNGKey(0), config), get_scene("chain8"))
 
 
-@pytest.mark.parametrize("name", ["lgnn", "clnn"])
+@pytest.mark.parametrize("name", ["lgnn", "clnn", "lgn"])
 def test_loss_gradient_matches_finite_differences(name):
     scene = get_scene("chain4")
     config = models.ModelConfig.for_scene(name, scene)

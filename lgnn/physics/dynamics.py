@@ -221,8 +221,8 @@ def parametrised_acceleration_fn(scene: Scene, build: Callable) -> Callable[[obj
     along single directions. The ordinary route differentiates the Hessian (one
     product per coordinate, each through a reverse pass) in reverse: third derivatives
     of the network along every column. The same gradient to round-off
-    (tests/test_physics.py), from one more KKT solve and the reverse pass of `S`; an
-    LGN training epoch on one GPU took 1.8x less time (results/gpu/training/README.md).
+    (tests/test_physics.py), from one more KKT solve and the reverse pass of `S`: LGN
+    trained 1.8x faster on one GPU, LGNN 2.2x (results/gpu/training/README.md).
 
     The derivatives by `q` and `qd` are the ordinary ones (traced only where taken:
     training does not take them). Where `acceleration_fn` solves a long chain by
