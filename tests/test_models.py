@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import types
 
 import jax
 import jax.numpy as jnp
@@ -377,6 +378,29 @@ def test_dataset_layout_and_exact_targets(tiny_dataset):
     qdd = jax.vmap(physics.true_acceleration_fn(scene))(ds.q[:7], ds.qd[:7])
     np.testing.assert_allclose(ds.qdd[:7], qdd, rtol=0, atol=1e-12)
     assert np.all(ds.qd[ds.trajectory == 0][0] == 0)  # released from rest
+
+
+def test_an_accelerator_integrates_each_draw_in_one_call(monkeypatch):
+    """On an accelerator `data.generate` integrates each draw's trajectories in one call
+    (a rollout there is latency-bound): the same data as a CPU's calls of `chunk`,
+    with 7 trajectories that no chunk of 3 divides and 2 varied draws."""
+    config = dataclasses.replace(TINY_DATA, n_trajectories=14, varied_draws=2, chunk=3, duration=0.05)
+    calls = []
+    compiled = data._compiled
+
+    def counted(*args):
+        run, targets = compiled(*args)
+        return lambda q, qd: calls.append(len(q)) or run(q, qd), targets
+
+    monkeypatch.setattr(data, "_compiled", counted)
+    on_cpu, cpu_calls = data.generate(config), list(calls)
+    calls.clear()
+    # Only the data module sees an accelerator (the solvers' choices stay the CPU's).
+    monkeypatch.setattr(data, "sharding", types.SimpleNamespace(**{**vars(data.sharding), "platform": lambda: "gpu"}))
+    on_accelerator = data.generate(config)
+    assert (cpu_calls, calls) == ([3, 3, 3] * 2, [7, 7])
+    for key in data.ARRAY_KEYS:
+        np.testing.assert_array_equal(getattr(on_accelerator, key), getattr(on_cpu, key))
 
 
 def test_corrupt_or_stale_cache_is_regenerated(tmp_path, capsys):

@@ -72,7 +72,8 @@ class DataConfig:
     train_fraction: float = 0.75
     # Seed of the initial conditions and of the split.
     seed: int = 0
-    # Trajectories integrated per vmapped chunk (progress granularity; not in the key).
+    # Trajectories integrated per vmapped call on a CPU (the progress bar's steps; an
+    # accelerator integrates each draw's trajectories in one call); not in the key.
     chunk: int = 10
     # 0: the scene itself. K > 0: K draws of a planar chain as long as the scene, its
     # links' properties by the varied-chain rule (module docstring), the trajectories
@@ -167,8 +168,11 @@ def generate(config: DataConfig, progress: bool = False) -> Dataset:
             # Draw k's initial conditions from seed + 1000 k: without draws, the data seed itself.
             initial_q, initial_qd = physics.benchmark_initial_states(scene, per_draw, config.seed + 1000 * k)
             # One batch shape for every call (the last batch padded): one compile, sharded
-            # over every local device.
-            size = sharding.padded_size(min(config.chunk, per_draw))
+            # over every local device. On an accelerator a rollout is latency-bound, so a
+            # call of 10 trajectories takes about as long as one of 100: chain4's data
+            # took 10 calls of about 1.4 s each after an 11 s compile on one H200
+            # (results/gpu/training/README.md); there the whole draw is one call.
+            size = sharding.padded_size(per_draw if sharding.platform() != "cpu" else min(config.chunk, per_draw))
             for start in range(0, per_draw, size):
                 take = min(size, per_draw - start)
                 frames = run(*(sharding.pad_batch(a[start : start + take], size) for a in (initial_q, initial_qd)))
