@@ -187,8 +187,7 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
                 factors = None if low_rank is None else (low_rank[0].reshape(-1, d, low_rank[0].shape[-1]), low_rank[1])
                 xdd = banded_chain_kkt_solve(equations.local.band_blocks(products), u, node_rhs, link_rhs, regularised=True, low_rank=factors)
             return constraints.embed_velocity(xdd.reshape(-1))
-        xdd = solve_kkt(*_dense_system(equations, constraints, x, v, rhs))
-        return constraints.embed_velocity(xdd)
+        return constraints.embed_velocity(_dense_solve(equations, constraints, x, v, rhs)[0])
 
     return full_precision_matmuls(accel)
 
@@ -199,10 +198,12 @@ def _forces(equations: EulerLagrange, constraints, force_fn: ForceFn | None, x: 
     return rhs if force_fn is None else rhs + constraints.restrict(force_fn(q, qd))
 
 
-def _dense_system(equations: EulerLagrange, constraints, x: Array, v: Array, rhs: Array) -> tuple[Array, Array, Array, Array]:
-    """`solve_kkt`'s arguments for the equations at free coordinates `x`, `v` with
-    forces `rhs`: the mass matrix, the constraint Jacobian, `rhs`, `-Adot v`."""
-    return equations.mass_matrix(x, v), constraints.jacobian(x), rhs, -constraints.jacobian_dot_v(x, v)
+def _dense_solve(equations: EulerLagrange, constraints, x: Array, v: Array, rhs: Array) -> tuple[Array, Array, Array]:
+    """`(xdd, M, A)`: the accelerations over the free coordinates `x`, `v` with forces
+    `rhs`, from the dense KKT solve of the mass matrix `M` and constraint Jacobian `A`
+    (which the adjoint solves again, `parametrised_acceleration_fn`)."""
+    mass, jacobian = equations.mass_matrix(x, v), constraints.jacobian(x)
+    return solve_kkt(mass, jacobian, rhs, -constraints.jacobian_dot_v(x, v)), mass, jacobian
 
 
 def parametrised_acceleration_fn(scene: Scene, build: Callable) -> Callable[[object, Array, Array], Array]:
@@ -241,8 +242,7 @@ def parametrised_acceleration_fn(scene: Scene, build: Callable) -> Callable[[obj
     def forward(params, q, qd):
         force_fn, equations = equations_of(params)
         x, v = constraints.restrict(q), constraints.restrict(qd)
-        mass, jacobian, rhs, accel_rhs = _dense_system(equations, constraints, x, v, _forces(equations, constraints, force_fn, x, v, q, qd))
-        xdd = solve_kkt(mass, jacobian, rhs, accel_rhs)
+        xdd, mass, jacobian = _dense_solve(equations, constraints, x, v, _forces(equations, constraints, force_fn, x, v, q, qd))
         return constraints.embed_velocity(xdd), (params, q, qd, xdd, mass, jacobian)
 
     @full_precision_matmuls

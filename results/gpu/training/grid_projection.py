@@ -53,11 +53,15 @@ for job in training_jobs(profile):
     groups.setdefault(job.group, []).append(job)
 
 
+def rate_scene(job) -> str:
+    """The scene whose measured rate stands for `job`'s (a varied or drag chain4 takes
+    chain4's: the same network on the same graph)."""
+    return "chain4" if job.scene in ("chain4-varied", "chain4-drag") else job.scene
+
+
 def rate_alone(job) -> float | None:
-    """The packed rate of `job`'s model on its training scene (a varied or drag chain4
-    takes chain4's rate: the same network on the same graph)."""
-    scene = "chain4" if job.scene in ("chain4-varied", "chain4-drag") else job.scene
-    return rates.get((job.model, scene))
+    """The packed rate of `job`'s model on its training scene (`rate_scene`)."""
+    return rates.get((job.model, rate_scene(job)))
 
 
 if args.shared:
@@ -91,8 +95,7 @@ for group, jobs in groups.items():
         print(f"| {group} | {epochs} | not measured | | |")
         continue
     projected[group] = epochs / rate / 60
-    scene = "chain4" if job.scene in ("chain4-varied", "chain4-drag") else job.scene
-    print(f"| {group} | {epochs} | {rate:g} | {job.model} on {scene} | {projected[group]:.1f} |")
+    print(f"| {group} | {epochs} | {rate:g} | {job.model} on {rate_scene(job)} | {projected[group]:.1f} |")
 longest = max(projected, key=projected.get)
 print(f"\nProjected groups: {len(projected)}; one after another {sum(projected.values()):.0f} minutes; "
       f"the longest, {longest}, {projected[longest]:.1f} minutes.")
