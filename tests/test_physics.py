@@ -363,14 +363,42 @@ def test_kkt_solve_derivatives_are_those_of_the_exact_solution():
     np.testing.assert_allclose(second(solvers.solve_kkt), second(exact), rtol=1e-8, atol=1e-12)
 
 
-@pytest.mark.parametrize("scene_name", ["chain4-3d", "T1"])
+def test_tangent_basis_is_a_complete_qr_of_the_jacobians_transpose():
+    """`solvers.tangent_basis`: orthonormal range and null bases with `A N = 0` and
+    `A^T = Y R`, R upper triangular to round-off, on a random full-rank Jacobian."""
+    from lgnn.physics import solvers
+
+    jac = jnp.asarray(np.random.default_rng(3).normal(size=(4, 9)))
+    range_basis, upper, null_basis = solvers.tangent_basis(jac)
+    basis = np.concatenate([range_basis, null_basis], 1)
+    np.testing.assert_allclose(basis.T @ basis, np.eye(9), atol=1e-14)
+    np.testing.assert_allclose(jac @ null_basis, 0, atol=1e-14)
+    np.testing.assert_allclose(range_basis @ upper, jac.T, atol=1e-14)
+    np.testing.assert_allclose(np.tril(upper, -1), 0, atol=1e-14)  # (solve_triangular reads only the upper part)
+
+
+def test_constraint_rows_independent_everywhere_only_without_cycles():
+    """`Constraints.always_independent`: the kept links with the pins taken as one
+    ground node form a forest (chains, a pendulum, a rope pinned at one end), never a
+    structure with a cycle through links or the ground (a rope pinned at both ends, a
+    triangle pinned at two corners, a free triangle, the tensegrities)."""
+    independent = {name: physics.prepare(get_scene(name)).constraints.always_independent
+                   for name in ("chain4", "chain4-3d", "chain8-mixed", "pendulum", "rope-3d", "double-pinned",
+                                "pinned-triangle", "free-triangle", "T1", "net4x4-3d")}
+    assert independent == {"chain4": True, "chain4-3d": True, "chain8-mixed": True, "pendulum": True, "rope-3d": True,
+                           "double-pinned": False, "pinned-triangle": False, "free-triangle": False, "T1": False, "net4x4-3d": False}
+
+
+@pytest.mark.parametrize("scene_name", ["chain4", "chain4-3d", "T1"])
 def test_parametrised_accelerations_differentiate_as_the_ordinary_route(scene_name):
     """`physics.parametrised_acceleration_fn` takes the derivative by the parameters
     from the adjoint of the constrained equations: the same accelerations and the same
     derivatives by the parameters, positions and velocities as differentiating
     `acceleration_fn` itself, for a Lagrangian whose mass matrix depends on positions
-    and velocities and a force that depends on the parameters."""
+    and velocities and a force that depends on the parameters. On the chains its
+    forward solve is in the constraints' tangent space, on T1 (a cycle) the KKT solve."""
     scene = get_scene(scene_name)
+    assert physics.uses_tangent_solve(scene, physics.LOCAL) == (scene_name != "T1")
     exact = physics.lagrangian_fn(scene)
 
     def build(params):

@@ -38,6 +38,7 @@ from lgnn.physics.dynamics import (
     parametrised_acceleration_fn,
     true_acceleration_fn,
     uses_mass_structure,
+    uses_tangent_solve,
     vectorised_true_acceleration_fn,
 )
 from lgnn.physics.energies import (
@@ -91,6 +92,7 @@ __all__ = [
     "sample_states",
     "true_acceleration_fn",
     "uses_mass_structure",
+    "uses_tangent_solve",
     "vectorised_true_acceleration_fn",
     "velocity_constraint_violation",
 ]

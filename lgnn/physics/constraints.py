@@ -112,6 +112,29 @@ class Constraints:
         return np.sort(candidate[pivots[:rank]])
 
     @functools.cached_property
+    def always_independent(self) -> bool:
+        """Whether the kept rows are independent at *every* configuration with links of
+        nonzero length, not only at a generic one: the kept links, every pinned node
+        taken as one ground node, form a forest. Ordered from the ground, each link's row
+        is then the only one with a block (its unit vector) at its far node, so `A` has
+        full row rank everywhere; a cycle (a truss, a rope pinned at both ends) can lose
+        it (a taut rope, a self-stressed tensegrity)."""
+        ground = -1
+        root = {node: ground for node in np.flatnonzero(~self.free_mask.any(1))}
+
+        def find(node):
+            while root.setdefault(node, node) != node:
+                node = root[node]
+            return node
+
+        for i, j in self.edge_index[self.links]:
+            a, b = find(int(i)), find(int(j))
+            if a == b:
+                return False
+            root[max(a, b)] = min(a, b)
+        return True
+
+    @functools.cached_property
     def redundant(self) -> np.ndarray:
         """Indices of the links dropped as redundant (the complement of `links`)."""
         return np.setdiff1d(np.arange(len(self.lengths_all)), self.links)

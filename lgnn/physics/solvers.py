@@ -186,6 +186,26 @@ def solve_kkt(mass: Array, jac: Array, force: Array, accel_rhs: Array) -> Array:
     return jax.lax.custom_linear_solve(lambda solution: kkt @ solution, rhs, refined_solve(False), transpose_solve=refined_solve(True))[:n]
 
 
+def tangent_basis(jac: Array) -> tuple[Array, Array, Array]:
+    """`(range_basis (F, K), upper (K, K), null_basis (F, F - K))` of a Jacobian `jac`
+    (K, F) of full row rank: the complete QR `jac^T = [range_basis, null_basis] [upper;
+    0]`, so `null_basis` spans the motions that keep the constraints and both bases are
+    orthonormal. By K Householder reflections written out one after another (K is
+    static and small where it is used), each a few elementwise products and sums that
+    fuse with their neighbours, where a QR is library calls of its own."""
+    k, n = jac.shape
+    reduced, reflected = jac.T, jnp.eye(n, dtype=jac.dtype)  # H_k ... H_1 jac^T and H_k ... H_1
+    for column in range(k):
+        head = reduced[column:, column]
+        norm = jnp.sqrt(jnp.sum(head * head))
+        # The reflection's vector, signed away from cancellation.
+        vector = head.at[0].add(jnp.where(head[0] >= 0, norm, -norm))
+        vector = vector / jnp.sqrt(jnp.sum(vector * vector))
+        reduced = reduced.at[column:].add(-2 * vector[:, None] * jnp.sum(vector[:, None] * reduced[column:], 0))
+        reflected = reflected.at[column:].add(-2 * vector[:, None] * jnp.sum(vector[:, None] * reflected[column:], 0))
+    return reflected[:k].T, reduced[:k], reflected[k:].T
+
+
 def cholesky_solve_fn(matrix: Array) -> tuple[Callable[[Array], Array], Array]:
     """`(solve, pivots)` of a symmetric positive definite `matrix` (K, K): `r -> matrix^-1 r`
     for `r` (K,) or (K, R), by a Cholesky factorisation made once, and the factor's
