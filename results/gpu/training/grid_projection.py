@@ -38,14 +38,17 @@ parser.add_argument("--shared", help="the jobs' rates while the groups shared th
 args = parser.parse_args()
 
 # Rows of a variant other than the new one (an A/B measurement's "old") are not this
-# code's rates; of repeated rounds the slowest is taken.
+# code's rates; of repeated rounds the slowest is taken. A later file's rate for a
+# model and scene replaces an earlier file's (a newer measurement of some models).
 rates = {}
 for path in args.rates:
+    measured = {}
     for line in open(path):
         row = json.loads(line)
         if row.get("seeds") == 3 and row.get("variant", "new") == "new":
             key = (row["model"], row["scene"])
-            rates[key] = min(rates.get(key, float("inf")), row["epochs_per_s"])
+            measured[key] = min(measured.get(key, float("inf")), row["epochs_per_s"])
+    rates.update(measured)
 
 profile = load_profile("full")
 groups = {}

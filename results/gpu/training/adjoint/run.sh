@@ -1,6 +1,6 @@
 # The measurements of this folder, on one GPU, from the repository's root, with the
 # wheels of jraph and mujoco installed. `old` is the package before the adjoint
-# (commit c3e9dbc), `new` the working tree's.
+# (commit c3e9dbc; OLD_COMMIT or OLD_TREE choose another), `new` the working tree's.
 #
 #   bash results/gpu/training/adjoint/run.sh ab chain4-3d "lgn lgnn" "clnn lgnn-notebook gns" > loop-h200-3d-ab.jsonl
 #   bash results/gpu/training/adjoint/run.sh ab chain4 "lgn lgnn-mp2" "lgnn lgnn-mp1 clnn lgnn-notebook gns" > loop-h200-2d-ab.jsonl
@@ -18,7 +18,7 @@ set -e
 MODE=$1 SCENE=$2  # SCENE: with `share`, the seconds
 loop() {  # loop SEEDS MODELS...
     local seeds=$1; shift
-    python3 tools/training_throughput.py --loop --checkpoints --models "$@" --scene "$SCENE" --seed-counts "$seeds" --per-call 10 --epochs 20 | grep '^{'
+    python3 tools/training_throughput.py --loop --checkpoints --models "$@" --scene "$SCENE" --seed-counts "$seeds" --per-call 10 --epochs 20 | grep --line-buffered '^{'
 }
 tag() {  # tag VARIANT ROUND: the variant and round added to each measurement line
     python3 -c 'import json, sys
@@ -40,7 +40,8 @@ if [ "$MODE" = share ]; then
     python3 results/gpu/training/adjoint/shared_rates_from_checkpoints.py "$OUTDIR"
     exit
 fi
-OLD=$(mktemp -d) && git archive c3e9dbc lgnn | tar -x -C "$OLD"
+# `old`: the package at OLD_COMMIT (default c3e9dbc), or the copy of one in OLD_TREE.
+if [ -n "$OLD_TREE" ]; then OLD=$OLD_TREE; else OLD=$(mktemp -d) && git archive "${OLD_COMMIT:-c3e9dbc}" lgnn | tar -x -C "$OLD"; fi
 first=first
 for round in 1 2; do
     loop 3 $3 | tag new $round $first; first=no
