@@ -29,10 +29,9 @@ import functools
 import os
 from pathlib import Path
 
-import jax
 import numpy as np
 
-from lgnn import metrics
+from lgnn import metrics, sharding
 from lgnn.bench.grid import ROLLOUTS_PER_CALL
 from lgnn.bench.tables import write_table
 from lgnn.engines import ENGINES, get_engine
@@ -78,7 +77,7 @@ def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config
                             for name in REFERENCES}
     # The params are an argument of the compiled program: another checkpoint of the
     # same model config compiles nothing.
-    chunk = CPU_CHUNK if jax.default_backend() == "cpu" else None
+    chunk = CPU_CHUNK if sharding.platform() == "cpu" else None
     runs = batched_rollouts(scene, config, models.AccelerationFactory(model), states, params, integration=integration, chunk=chunk,
                             label=f"{model.name} on {scene.name}", progress=progress)
     references = {name: when_done() for name, when_done in references_when_done.items()}
