@@ -191,7 +191,7 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
 
     def accel(q, qd):
         x, v = constraints.restrict(q), constraints.restrict(qd)
-        rhs = _forces(equations, constraints, force_fn, x, v, q, qd)
+        rhs = _with_forces(equations.right_hand_side(x, v), constraints, force_fn, q, qd)
         if equations.chain_solve:
             (products, low_rank), u = equations.mass_products(x, v), constraints.link_directions(q)
             d = constraints.shape[1]
@@ -207,9 +207,9 @@ def acceleration_fn(scene: Scene, lagrangian: LagrangianFn, force_fn: ForceFn | 
     return full_precision_matmuls(accel)
 
 
-def _forces(equations: EulerLagrange, constraints, force_fn: ForceFn | None, x: Array, v: Array, q: Array, qd: Array) -> Array:
-    """The right-hand side `Pi - C qd + F` over the free coordinates."""
-    rhs = equations.right_hand_side(x, v)
+def _with_forces(rhs: Array, constraints, force_fn: ForceFn | None, q: Array, qd: Array) -> Array:
+    """`rhs` (F,) plus the non-conservative and external forces `F` of `force_fn` at the
+    node states `q`, `qd`, over the free coordinates: `Pi - C qd + F` from `Pi - C qd`."""
     return rhs if force_fn is None else rhs + constraints.restrict(force_fn(q, qd))
 
 
@@ -241,8 +241,7 @@ def _tangent_solve(equations: EulerLagrange, constraints, force_fn: ForceFn | No
     range_basis, upper, null_basis = tangent_basis(jacobian)
     particular = range_basis @ jax.scipy.linalg.solve_triangular(upper, -constraints.jacobian_dot_v(x, v), trans="T")
     remainder, mass_null = equations.tangent_products(x, v, particular, null_basis)
-    if force_fn is not None:
-        remainder = remainder + constraints.restrict(force_fn(q, qd))
+    remainder = _with_forces(remainder, constraints, force_fn, q, qd)
     factors = jax.scipy.linalg.lu_factor(null_basis.T @ mass_null)
     return particular + null_basis @ jax.scipy.linalg.lu_solve(factors, null_basis.T @ remainder), null_basis, factors
 
@@ -295,7 +294,8 @@ def parametrised_acceleration_fn(scene: Scene, build: Callable) -> Callable[[obj
         if tangent:
             xdd, *system_factors = _tangent_solve(equations, constraints, force_fn, x, v, q, qd)
         else:
-            xdd, *system_factors = _dense_solve(equations, constraints, x, v, _forces(equations, constraints, force_fn, x, v, q, qd))
+            rhs = _with_forces(equations.right_hand_side(x, v), constraints, force_fn, q, qd)
+            xdd, *system_factors = _dense_solve(equations, constraints, x, v, rhs)
         return constraints.embed_velocity(xdd), (params, q, qd, xdd, tuple(system_factors))
 
     @full_precision_matmuls
