@@ -171,6 +171,24 @@ def scheduled(config: TrainConfig, steps_per_epoch: int) -> TrainConfig:
     )
 
 
+def batch_scaled(config: TrainConfig, batch_size: int) -> TrainConfig:
+    """`config` (resolved by `scheduled`) at another batch size by the batch rule: a
+    batch `k` times as large takes the peak rate times sqrt(k) (Adam's square-root
+    scaling, which keeps the update's noise as it was) and the warm-up and decay in
+    Adam steps divided by k, so the schedule is the same in epochs; the epoch budget,
+    the patience and the plateau rule are in epochs and stay. The rate's floor stays,
+    capped at the new peak. results/gpu/training/batch_rule/README.md measures it."""
+    _check_scheduled(config)
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+        raise ConfigError(f"batch size must be a whole number >= 1, got {batch_size!r}")
+    k = batch_size / config.batch_size
+    rate = config.learning_rate * k**0.5
+    return dataclasses.replace(
+        config, batch_size=batch_size, learning_rate=rate, warmup_steps=round(config.warmup_steps / k),
+        decay_steps=max(1, round(config.decay_steps / k)), min_learning_rate=min(config.min_learning_rate, rate),
+    )
+
+
 def _check_scheduled(config: TrainConfig) -> None:
     if config.learning_rate is None or config.warmup_steps is None:
         raise ConfigError("the learning rate or warm-up is left to the schedule rule: resolve it with train.scheduled(config, steps_per_epoch)")
