@@ -1,14 +1,19 @@
-"""Convergence per GPU-second at the protocol's batch and at a batch of the batch rule
-(`lgnn.learn.train.batch_scaled`): each model's full-profile job, its seeds packed in
-one program as the benchmark trains them, from scratch for a wall-clock budget (the
-first call's compilation included), one JSON line per model with each seed's running
-best validation MSE against its training seconds.
+"""Convergence per GPU-second of the training protocol and of rules that would change
+its batch size or learning rate: at a batch of the batch rule
+(`lgnn.learn.train.batch_scaled`), and with schedule settings overridden (`--set`).
+Each model's full-profile job, its seeds packed in one program as the benchmark trains
+them, from scratch for a wall-clock budget (the first call's compilation included):
+one JSON line per model with each seed's running best validation MSE against its
+epochs and training seconds.
 
     # One process per GPU, started together, so both batches are timed in one run:
     M="lgn:200 lgnn-mp2:110 lgnn:80 clnn:40 gns:40"
     CUDA_VISIBLE_DEVICES=0 python tools/batch_rule.py --scene chain4 --batch 100 --models $M > protocol-chain4.jsonl &
     CUDA_VISIBLE_DEVICES=1 python tools/batch_rule.py --scene chain4 --batch 750 --models $M > rule-chain4.jsonl &
     wait
+    # The schedule 3x as fast: every rate x3, every duration in Adam steps / 3
+    python tools/batch_rule.py --scene chain4 --models $M --label fast3 \
+        --set learning_rate=3e-3 warmup_steps=333 decay_steps=25000 min_learning_rate=3e-5 > fast3-chain4.jsonl
 
     # The table, with the committed checkpoints' plateaus (trained at the protocol's batch)
     python tools/batch_rule.py --summarise results/gpu/training/batch_rule/*.jsonl --reference results/benchmark/checkpoints
@@ -32,6 +37,8 @@ parser.add_argument("--models", nargs="+", default=["lgnn:60"], metavar="MODEL:S
 parser.add_argument("--scene", default="chain4", help="training scene of the jobs (the paper track's)")
 parser.add_argument("--batch", type=int, default=100, help="batch size; the rate and schedule follow the batch rule")
 parser.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "lgnn-datasets"), help="dataset cache directory")
+parser.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE", help="TrainConfig fields to override after the batch rule")
+parser.add_argument("--label", help="the variant's name in the table (default: the protocol, or its batch)")
 parser.add_argument("--every", type=int, default=10, help="epochs per device call, and between the points kept")
 parser.add_argument("--summarise", nargs="+", metavar="JSONL", help="print the table of these outputs instead of measuring")
 parser.add_argument("--reference", help="--summarise: a folder of the benchmark's checkpoints (MODEL-SCENE-sK.npz), trained at the protocol's batch")
@@ -52,6 +59,18 @@ def budgets(specs: list[str]) -> list[tuple[str, float]]:
     return out
 
 
+def overrides(config, settings: list[str]):
+    """`config` with `--set FIELD=VALUE`s, each value of its field's type."""
+    changes = {}
+    for setting in settings:
+        field, _, value = setting.partition("=")
+        current = getattr(config, field, None)
+        if not value or field not in {f.name for f in dataclasses.fields(config)}:
+            raise SystemExit(f"error: --set {setting!r}: name a TrainConfig field and its value")
+        changes[field] = int(value) if isinstance(current, int) and not isinstance(current, bool) else float(value)
+    return dataclasses.replace(config, **changes)
+
+
 def measure(models: list[tuple[str, float]]):
     runtime.configure()
     from lgnn.bench.grid import get_profile, training_jobs
@@ -67,15 +86,18 @@ def measure(models: list[tuple[str, float]]):
             raise SystemExit(f"error: the full profile trains no {name} on {args.scene}")
         scene, model, data_config, protocol = job_settings(profile, jobs[0])
         dataset = data.load_or_generate(data_config, args.data)
-        config = dataclasses.replace(train.batch_scaled(protocol, args.batch), minutes=seconds / 60, checkpoint_every=args.every)
+        config = overrides(train.batch_scaled(protocol, args.batch), args.set)
+        is_protocol = config == protocol
+        config = dataclasses.replace(config, minutes=seconds / 60, checkpoint_every=args.every)
         with runtime.precision("float64"):
             states = train.train_seeds(model, [dataclasses.replace(config, seed=j.seed) for j in jobs], dataset, scene)
-        row = dict(model=name, scene=args.scene, batch=config.batch_size, learning_rate=config.learning_rate, warmup_steps=config.warmup_steps,
-                   decay_steps=config.decay_steps, protocol_batch=protocol.batch_size, seeds=[j.seed for j in jobs], seconds=seconds,
-                   epochs=[s.epoch for s in states], stop=[train.stop_reason(s, config) for s in states],
-                   curves=[_curve(s.history) for s in states])
+        variant = args.label or ("protocol" if is_protocol else f"batch {config.batch_size}")
+        row = dict(model=name, scene=args.scene, variant=variant, protocol=is_protocol, batch=config.batch_size, learning_rate=config.learning_rate,
+                   warmup_steps=config.warmup_steps, decay_steps=config.decay_steps, min_learning_rate=config.min_learning_rate,
+                   seeds=[j.seed for j in jobs], seconds=seconds, epochs=[s.epoch for s in states],
+                   stop=[train.stop_reason(s, config) for s in states], curves=[_curve(s.history) for s in states])
         print(json.dumps(row), flush=True)
-        print(f"{name} on {args.scene}, batch {config.batch_size}: {states[0].epoch} epochs in {states[0].elapsed_s:.0f} s, "
+        print(f"{name} on {args.scene}, {variant}: {states[0].epoch} epochs in {states[0].elapsed_s:.0f} s, "
               f"best {np.median([s.best_val for s in states]):.3g}", file=sys.stderr, flush=True)
 
 
@@ -87,11 +109,13 @@ def _curve(history) -> list:
 
 
 def _median_curve(row) -> np.ndarray:
-    """`(epoch, median over seeds of the best MSE so far, seconds)` rows: packed seeds
-    share one clock, so the epochs line up while every seed runs."""
-    n = min(len(c) for c in row["curves"])
-    curves = np.array([c[:n] for c in row["curves"]], dtype=float)
-    return np.column_stack([curves[0, :, 0], np.median(curves[:, :, 1], axis=0), curves[0, :, 2]])
+    """`(epoch, median over seeds of the best MSE so far, seconds)` rows on the longest
+    seed's points: packed seeds share one clock, and a seed that has stopped keeps its
+    best."""
+    curves = [np.array(c, dtype=float) for c in row["curves"]]
+    longest = max(curves, key=len)
+    best = [np.concatenate([c[:, 1], np.full(len(longest) - len(c), c[-1, 1])]) for c in curves]
+    return np.column_stack([longest[:, 0], np.median(best, axis=0), longest[:, 2]])
 
 
 def _at(curve: np.ndarray, seconds: float) -> float | None:
@@ -111,7 +135,8 @@ def _rate(curve: np.ndarray) -> float:
 
 
 def _reference(model: str, scene: str):
-    """(median plateau MSE, median epochs) of the committed checkpoints, or None."""
+    """(median plateau MSE, median epochs, median curve) of the committed checkpoints
+    (trained by the protocol; their clock is not this run's), or None."""
     if not args.reference:
         return None
     from lgnn.learn import train
@@ -120,7 +145,8 @@ def _reference(model: str, scene: str):
     if not all(os.path.exists(p) for p in paths):
         return None
     states = [train.load_checkpoint(p)[0] for p in paths]
-    return float(np.median([s.best_val for s in states])), int(np.median([s.epoch for s in states]))
+    curve = _median_curve({"curves": [_curve([(*e[:3], 0.0) for e in s.history]) for s in states]})
+    return float(np.median([s.best_val for s in states])), int(np.median([s.epoch for s in states])), curve
 
 
 def _cell(value, digits=3) -> str:
@@ -128,27 +154,35 @@ def _cell(value, digits=3) -> str:
 
 
 def summarise(paths):
+    """One row per run: its rate, its median MSE at READ_AT_S seconds and at its end,
+    the seconds it took to the protocol run's end MSE (where one ran), and, against the
+    committed checkpoints (`--reference`), their median MSE at the run's last epoch (the
+    protocol's at equal cost where the batch is the protocol's) and the epochs the run
+    took to their plateau MSE."""
     rows = [json.loads(line) for path in paths for line in open(path) if '"curves"' in line]
-    pairs = {}
+    groups = {}
     for row in rows:
-        pairs.setdefault((row["scene"], row["model"]), {})[row["batch"] == row["protocol_batch"]] = row
-    print("| scene | model | batch | rate | epochs/s | " + " | ".join(f"MSE at {s} s" for s in READ_AT_S)
-          + " | budget s | epochs | MSE at the end | s to the protocol's end MSE | stopped by | committed plateau MSE (epochs) |")
-    print("|" + "---|" * (11 + len(READ_AT_S)))
-    for (scene, model), pair in sorted(pairs.items()):
-        protocol = pair.get(True)
+        groups.setdefault((row["scene"], row["model"]), []).append(row)
+    print("| scene | model | variant | batch | peak rate | epochs/s | " + " | ".join(f"MSE at {s} s" for s in READ_AT_S)
+          + " | budget s | epochs | MSE at the end | stopped by | s to the protocol run's end MSE | committed MSE at that epoch"
+          + " | epochs to the committed plateau MSE | committed plateau MSE (epochs) |")
+    print("|" + "---|" * (15 + len(READ_AT_S)))
+    for (scene, model), group in sorted(groups.items()):
+        protocol = next((r for r in group if r.get("protocol", r["batch"] == r.get("protocol_batch"))), None)
         target = _median_curve(protocol)[-1, 1] if protocol else None
         reference = _reference(model, scene)
-        for is_protocol in (True, False):
-            row = pair.get(is_protocol)
-            if row is None:
-                continue
+        for row in sorted(group, key=lambda r: r is not protocol):
             curve = _median_curve(row)
-            stops = sorted({s or "budget" for s in row["stop"]})
-            cells = [scene, model, str(row["batch"]), f"{row['learning_rate']:.3g}", f"{_rate(curve):.1f}",
+            stops = sorted({(s or "budget").split(" (")[0] for s in row["stop"]})
+            to_target = _seconds_to(curve, target) if target is not None and row is not protocol else None
+            to_plateau = at_epoch = None
+            if reference is not None:
+                at_epoch = float(reference[2][min(np.searchsorted(reference[2][:, 0], curve[-1, 0]), len(reference[2]) - 1), 1])
+                reached = np.nonzero(curve[:, 1] <= reference[0])[0]
+                to_plateau = int(curve[reached[0], 0]) if len(reached) else None
+            cells = [scene, model, row.get("variant", "protocol" if row is protocol else f"batch {row['batch']}"), str(row["batch"]), f"{row['learning_rate']:.3g}", f"{_rate(curve):.1f}",
                      *(_cell(_at(curve, s)) for s in READ_AT_S), f"{row['seconds']:g}", str(int(np.median(row["epochs"]))),
-                     _cell(curve[-1, 1]), _cell(_seconds_to(curve, target) if target is not None and not is_protocol else None),
-                     "; ".join(s.split(" (")[0] for s in stops),
+                     _cell(curve[-1, 1]), "; ".join(stops), _cell(to_target), _cell(at_epoch), "" if to_plateau is None else str(to_plateau),
                      f"{reference[0]:.3g} ({reference[1]})" if reference else ""]
             print("| " + " | ".join(cells) + " |")
 
