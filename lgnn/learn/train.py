@@ -173,11 +173,12 @@ def scheduled(config: TrainConfig, steps_per_epoch: int) -> TrainConfig:
 
 def batch_scaled(config: TrainConfig, batch_size: int) -> TrainConfig:
     """`config` (resolved by `scheduled`) at another batch size by the batch rule: a
-    batch `k` times as large takes the peak rate times sqrt(k) (Adam's square-root
-    scaling, which keeps the update's noise as it was) and the warm-up and decay in
-    Adam steps divided by k, so the schedule is the same in epochs; the epoch budget,
-    the patience and the plateau rule are in epochs and stay. The rate's floor stays,
-    capped at the new peak. results/gpu/training/batch_rule/README.md measures it."""
+    batch `k` times as large takes the peak rate times sqrt(k) (the square-root
+    scaling rule for Adam) and the warm-up and decay in Adam steps divided by k, so
+    the schedule is the same in epochs; the epoch budget, the patience and the plateau
+    rule are in epochs and stay. The rate's floor stays, capped at the new peak.
+    Measured against the protocol per GPU-second, and not adopted:
+    results/gpu/training/batch_rule/README.md."""
     _check_scheduled(config)
     if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
         raise ConfigError(f"batch size must be a whole number >= 1, got {batch_size!r}")
