@@ -67,7 +67,10 @@ def overrides(config, settings: list[str]):
         current = getattr(config, field, None)
         if not value or field not in {f.name for f in dataclasses.fields(config)}:
             raise SystemExit(f"error: --set {setting!r}: name a TrainConfig field and its value")
-        changes[field] = int(value) if isinstance(current, int) and not isinstance(current, bool) else float(value)
+        try:
+            changes[field] = int(value) if isinstance(current, int) and not isinstance(current, bool) else float(value)
+        except ValueError:
+            raise SystemExit(f"error: --set {setting!r}: {value!r} is not a number of {field}'s kind") from None
     return dataclasses.replace(config, **changes)
 
 
@@ -79,6 +82,7 @@ def measure(models: list[tuple[str, float]]):
     from lgnn.provenance import environment
 
     profile = get_profile("full")
+    overrides(train.TrainConfig(), args.set)  # the fields' names, before minutes of data generation
     print(json.dumps({"environment": environment()}), flush=True)
     for name, seconds in models:
         jobs = [j for j in training_jobs(profile) if j.model == name and j.scene == args.scene and not j.varied_draws]
