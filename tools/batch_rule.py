@@ -32,14 +32,21 @@ import numpy as np
 
 from lgnn import runtime
 
+
+def _positive(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"a whole number >= 1, not {text!r}")
+    return int(text)
+
+
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("--models", nargs="+", default=["lgnn:60"], metavar="MODEL:SECONDS")
 parser.add_argument("--scene", default="chain4", help="training scene of the jobs (the paper track's)")
-parser.add_argument("--batch", type=int, default=100, help="batch size; the rate and schedule follow the batch rule")
+parser.add_argument("--batch", type=_positive, default=100, help="batch size; the rate and schedule follow the batch rule")
 parser.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "lgnn-datasets"), help="dataset cache directory")
 parser.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE", help="TrainConfig fields to override after the batch rule")
 parser.add_argument("--label", help="the variant's name in the table (default: the protocol, or its batch)")
-parser.add_argument("--every", type=int, default=10, help="epochs per device call, and between the points kept")
+parser.add_argument("--every", type=_positive, default=10, help="epochs per device call, and between the points kept")
 parser.add_argument("--summarise", nargs="+", metavar="JSONL", help="print the table of these outputs instead of measuring")
 parser.add_argument("--reference", help="--summarise: a folder of the benchmark's checkpoints (MODEL-SCENE-sK.npz), trained at the protocol's batch")
 args = parser.parse_args()
@@ -53,9 +60,12 @@ def budgets(specs: list[str]) -> list[tuple[str, float]]:
     for spec in specs:
         name, _, seconds = spec.partition(":")
         try:
-            out.append((name, float(seconds or 60)))
+            budget = float(seconds or 60)
         except ValueError:
-            raise SystemExit(f"error: --models {spec!r}: name a model and its seconds, as lgn:200") from None
+            budget = float("nan")
+        if not 0 < budget < float("inf"):
+            raise SystemExit(f"error: --models {spec!r}: name a model and its seconds (> 0), as lgn:200")
+        out.append((name, budget))
     return out
 
 
@@ -194,4 +204,9 @@ def summarise(paths):
 if args.summarise:
     summarise(args.summarise)
 else:
-    measure(budgets(args.models))
+    from lgnn.errors import ConfigError
+
+    try:
+        measure(budgets(args.models))
+    except ConfigError as err:
+        raise SystemExit(f"error: {err}") from None
