@@ -11,6 +11,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _tool(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "tools" / "batch_rule.py"), *args], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                          capture_output=True, text=True, timeout=300)
+
+
 def _row(variant, protocol, curves, stop):
     return {"model": "lgnn", "scene": "chain4", "variant": variant, "protocol": protocol, "batch": 100, "learning_rate": 1e-3,
             "seeds": [0, 1, 2], "seconds": 3.0, "epochs": [int(c[-1][0]) for c in curves], "stop": stop, "curves": curves}
@@ -25,8 +30,7 @@ def test_the_table_takes_medians_over_seeds_and_times_the_variant_to_the_protoco
     fast = _row("fast", False, [[[10, 0.6, 1.0], [20, 0.4, 1.5], [30, 0.3, 2.0]]] * 3, ["minutes cap"] * 3)
     path = tmp_path / "runs.jsonl"
     path.write_text("\n".join(json.dumps(r) for r in ({"environment": {}}, fast, protocol)) + "\n")
-    done = subprocess.run([sys.executable, str(ROOT / "tools" / "batch_rule.py"), "--summarise", str(path)], cwd=ROOT,
-                          env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=120)
+    done = _tool("--summarise", str(path))
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
     header = [c.strip() for c in lines[0].strip("|").split("|")]
@@ -42,7 +46,6 @@ def test_the_table_takes_medians_over_seeds_and_times_the_variant_to_the_protoco
 
 def test_a_setting_that_is_not_a_training_field_is_refused_in_one_line_before_any_data(tmp_path):
     for setting, error in (("learning_rat=3e-3", "name a TrainConfig field and its value"), ("decay_steps=abc", "'abc' is not a number of decay_steps's kind")):
-        done = subprocess.run([sys.executable, str(ROOT / "tools" / "batch_rule.py"), "--models", "lgnn:1", "--data", str(tmp_path / "data"), "--set", setting],
-                              cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=300)
+        done = _tool("--models", "lgnn:1", "--data", str(tmp_path / "data"), "--set", setting)
         assert done.returncode != 0 and done.stderr.strip().splitlines() == [f"error: --set {setting!r}: {error}"]
     assert not (tmp_path / "data").exists()

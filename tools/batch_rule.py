@@ -53,6 +53,8 @@ args = parser.parse_args()
 
 # The times at which the table reads each run's validation MSE.
 READ_AT_S = (30, 60, 120)
+# The columns of a curve's points (`_curve`, `_median_curve`).
+EPOCH, MSE, SECONDS = 0, 1, 2
 
 
 def budgets(specs: list[str]) -> list[tuple[str, float]]:
@@ -128,24 +130,27 @@ def _median_curve(row) -> np.ndarray:
     best."""
     curves = [np.array(c, dtype=float) for c in row["curves"]]
     longest = max(curves, key=len)
-    best = [np.concatenate([c[:, 1], np.full(len(longest) - len(c), c[-1, 1])]) for c in curves]
-    return np.column_stack([longest[:, 0], np.median(best, axis=0), longest[:, 2]])
+    best = [np.concatenate([c[:, MSE], np.full(len(longest) - len(c), c[-1, MSE])]) for c in curves]
+    return np.column_stack([longest[:, EPOCH], np.median(best, axis=0), longest[:, SECONDS]])
 
 
-def _at(curve: np.ndarray, seconds: float) -> float | None:
-    """The median best MSE reached by `seconds` (None before the first point)."""
-    index = np.searchsorted(curve[:, 2], seconds, side="right") - 1
-    return None if index < 0 else float(curve[index, 1])
+def _reached_by(curve: np.ndarray, value: float, column: int) -> float | None:
+    """The median best MSE at the last point whose `column` (EPOCH or SECONDS) is at
+    most `value` (None before the first point)."""
+    index = np.searchsorted(curve[:, column], value, side="right") - 1
+    return None if index < 0 else float(curve[index, MSE])
 
 
-def _seconds_to(curve: np.ndarray, target: float) -> float | None:
-    reached = np.nonzero(curve[:, 1] <= target)[0]
-    return None if not len(reached) else float(curve[reached[0], 2])
+def _first_reaching(curve: np.ndarray, target: float, column: int) -> float | None:
+    """The `column` (EPOCH or SECONDS) of the first point whose median best MSE is at
+    most `target` (None if none is)."""
+    reached = np.nonzero(curve[:, MSE] <= target)[0]
+    return None if not len(reached) else float(curve[reached[0], column])
 
 
 def _rate(curve: np.ndarray) -> float:
     """Epochs per second after the first device call (compilation apart)."""
-    return (curve[-1, 0] - curve[0, 0]) / (curve[-1, 2] - curve[0, 2]) if len(curve) > 1 else float("nan")
+    return (curve[-1, EPOCH] - curve[0, EPOCH]) / (curve[-1, SECONDS] - curve[0, SECONDS]) if len(curve) > 1 else float("nan")
 
 
 def _reference(model: str, scene: str):
@@ -183,20 +188,19 @@ def summarise(paths):
     print("|" + "---|" * (15 + len(READ_AT_S)))
     for (scene, model), group in sorted(groups.items()):
         protocol = next((r for r in group if r.get("protocol", r["batch"] == r.get("protocol_batch"))), None)
-        target = _median_curve(protocol)[-1, 1] if protocol else None
+        target = _median_curve(protocol)[-1, MSE] if protocol else None
         reference = _reference(model, scene)
         for row in sorted(group, key=lambda r: r is not protocol):
             curve = _median_curve(row)
             stops = sorted({(s or "budget").split(" (")[0] for s in row["stop"]})
-            to_target = _seconds_to(curve, target) if target is not None and row is not protocol else None
+            to_target = _first_reaching(curve, target, SECONDS) if target is not None and row is not protocol else None
             to_plateau = at_epoch = None
             if reference is not None:
-                at_epoch = float(reference[2][min(np.searchsorted(reference[2][:, 0], curve[-1, 0]), len(reference[2]) - 1), 1])
-                reached = np.nonzero(curve[:, 1] <= reference[0])[0]
-                to_plateau = int(curve[reached[0], 0]) if len(reached) else None
+                at_epoch = _reached_by(reference[2], curve[-1, EPOCH], EPOCH)
+                to_plateau = _first_reaching(curve, reference[0], EPOCH)
             cells = [scene, model, row.get("variant", "protocol" if row is protocol else f"batch {row['batch']}"), str(row["batch"]), f"{row['learning_rate']:.3g}", f"{_rate(curve):.1f}",
-                     *(_cell(_at(curve, s)) for s in READ_AT_S), f"{row['seconds']:g}", str(int(np.median(row["epochs"]))),
-                     _cell(curve[-1, 1]), "; ".join(stops), _cell(to_target), _cell(at_epoch), "" if to_plateau is None else str(to_plateau),
+                     *(_cell(_reached_by(curve, s, SECONDS)) for s in READ_AT_S), f"{row['seconds']:g}", str(int(np.median(row["epochs"]))),
+                     _cell(curve[-1, MSE]), "; ".join(stops), _cell(to_target), _cell(at_epoch), "" if to_plateau is None else str(int(to_plateau)),
                      f"{reference[0]:.3g} ({reference[1]})" if reference else ""]
             print("| " + " | ".join(cells) + " |")
 
