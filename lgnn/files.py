@@ -92,27 +92,32 @@ def check_regular_input(path: str | os.PathLike, what: str) -> Path:
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path in the target's directory; rename it over `path` on success."""
+    """Yield a temporary path in the target's directory; rename it over `path` on success.
+    The temporary file is removed however the body ends: everything after its creation
+    runs under the cleanup, so a Ctrl-C (a KeyboardInterrupt at any bytecode) leaves it
+    only if it lands inside `mkstemp` between the file's creation and its return."""
     path = check_writable(path)
+    tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    except OSError as err:
-        # os.access says yes to root on read-only or special file systems
-        raise ConfigError(f"cannot write in {path.parent}: {err.strerror}") from None
-    os.close(fd)
-    # mkstemp creates 0600; give the result the permissions of an ordinary new file
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
-    try:
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+        except OSError as err:
+            # os.access says yes to root on read-only or special file systems
+            raise ConfigError(f"cannot write in {path.parent}: {err.strerror}") from None
+        os.close(fd)
+        # mkstemp creates 0600; give the result the permissions of an ordinary new file
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         yield Path(tmp)
         os.replace(tmp, path)
     except OSError as err:
         # a full disk, a quota, a vanished directory: one line, and no partial file
         raise ConfigError(f"cannot write {path}: {err.strerror or err}") from None
     finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:

@@ -568,6 +568,21 @@ def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "a temporary file was left"
 
 
+def test_a_ctrl_c_just_after_the_temporary_file_is_made_leaves_nothing(tmp_path, monkeypatch):
+    """`files.atomic_path`: an interrupt between the temporary file's creation and the
+    body (here at its permissions) removes it, and the target is never written; the
+    random moments above found such a file left once."""
+    from lgnn import files
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "chmod", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        files.write_text_atomic(tmp_path / "out.txt", "whole")
+    assert list(tmp_path.iterdir()) == []
+
+
 _INTERRUPTED_COMPILATION = """
 import os, signal, sys, threading
 signal.signal(signal.SIGINT, signal.default_int_handler)  # (as at a terminal: _AT_A_TERMINAL)
