@@ -36,6 +36,14 @@ if SHARED_JAX_CACHE_ENV not in os.environ or "PYTEST_XDIST_WORKER" not in os.env
     atexit.register(shutil.rmtree, os.environ[SHARED_JAX_CACHE_ENV], ignore_errors=True)
 os.environ[COMPILATION_CACHE_ENV] = os.environ[SHARED_JAX_CACHE_ENV]
 enable_compilation_cache()
+# Where `bench/`'s quick profile writes its records and resumes from (`bench/conftest.py`):
+# a folder of this test run's, made by its first process as the compilation cache is and
+# shared by its workers, never the user's `lgnn-out/` (which `lgnn benchmark` wrote and a
+# test run must neither read nor touch). `pytest bench/ --bench-out DIR` names another.
+TEST_BENCH_OUT_ENV = "LGNN_TEST_BENCH_OUT"
+if TEST_BENCH_OUT_ENV not in os.environ or "PYTEST_XDIST_WORKER" not in os.environ:
+    os.environ[TEST_BENCH_OUT_ENV] = tempfile.mkdtemp(prefix="lgnn-test-bench-")
+    atexit.register(shutil.rmtree, os.environ[TEST_BENCH_OUT_ENV], ignore_errors=True)
 
 import pytest  # noqa: E402
 
