@@ -106,8 +106,9 @@ def rk4(accel, dt: float, project: Projection | None = None) -> Integrator:
     microseconds the loop costs a fifth of it (one 12-link chain's exact step on a CPU,
     11.4 to 14.1 us, results/cpu_vs_mujoco.md): there the stages are written out
     (`written_out_rk4`, `integrator(..., cheap_steps=True)`). Either way the sums run in
-    the written-out formula's order, `k1 + 2 k2 + 2 k3 + k4`: the same step to the last
-    bit (tests/test_integrate.py)."""
+    the written-out formula's order, `k1 + 2 k2 + 2 k3 + k4`: the same step, to the
+    round-off by which two compiled programs may fuse it differently (2 ulps,
+    tests/test_integrate.py)."""
 
     def step(carry: Carry) -> Carry:
         (q, qd), _, q_low = carry

@@ -84,6 +84,7 @@ def test_load_model_needs_neither_the_optimiser_nor_the_training_settings(tmp_pa
     odd = _with_meta(path, tmp_path / "odd.npz", train_config={"optimiser_of_the_future": 1})
     loaded, best = load_model(odd)
     assert loaded == model
+    # Exact: read back from the file the same initialisation (one process, same key) wrote.
     for a, b in zip(jax.tree.leaves(best), jax.tree.leaves(train.initial_state(model, train.TrainConfig()).best_params)):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(CheckpointError, match="checkpoint settings are invalid"):
@@ -166,10 +167,12 @@ def test_converted_checkpoints_roll_out_bit_identically(tmp_path):
     assert new[1]["converted_from"] == {"format": 1, "sha256": records.file_digest(source / "lgnn.npz")}
     assert new[1]["environment"] == {"commit": "format-1"} and new[0].history == old[0].history == state.history
     for a, b in zip(jax.tree.leaves(old[0]), jax.tree.leaves(new[0])):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, b)  # the conversion copies each leaf's bytes
     # What records made from the checkpoint key on: unchanged by the conversion.
     assert checkpoints.content_digest(source / "lgnn.npz") == checkpoints.content_digest(target / "lgnn.npz")
     runs = [models.rollout(*load_model(path), scene, SHORT) for path in (source / "lgnn.npz", target / "lgnn.npz")]
+    # Exact: one compiled rollout (cached per config) run twice in this process on
+    # bit-equal parameters.
     np.testing.assert_array_equal(runs[0].q, runs[1].q)
     np.testing.assert_array_equal(runs[0].qd, runs[1].qd)
     # Never into the source folder.

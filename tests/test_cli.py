@@ -122,6 +122,7 @@ def test_a_mujoco_run_flagged_unstable_keeps_the_frames_before_it(capsys, tmp_pa
     assert 1 < len(kept.t) and kept.t[-1] < kept.metadata["diverged"]["time"] and np.isfinite(kept.q).all()
     settings = kept.metadata["config"]
     config = SimulationConfig(dt=settings["dt"], frame_dt=settings["frame_dt"], duration=kept.t[-1])
+    # Exact: MuJoCo C's own steps (no compiled program of ours) rerun in this process.
     np.testing.assert_array_equal(kept.q, lm.rollout(scene_from_dict(described), config, form=kept.metadata["engine"]["form"]).q[0])
 
 

@@ -52,6 +52,7 @@ def test_sampled_states_of_a_closed_loop_satisfy_its_constraints_and_differ():
 
 def test_pinned_chains_keep_the_papers_sampler():
     scene = get_scene("chain4")
+    # Exact: `sample_states` calls this very sampler with this key.
     np.testing.assert_array_equal(physics.sample_states(scene, 2, 3).q, np.asarray(sample_initial_states(scene, jax.random.PRNGKey(3), 2).q))
 
 

@@ -34,7 +34,7 @@ def test_energy_drift_is_the_maximum_over_frames_over_a_scale_that_cannot_vanish
     # weight x size + size^2 per unit time^2 with size = 2 (links) + 2 (extent): m (g s + s^2)
     assert np.isclose(scale, 2 * (10 * 4 + 16))
     # E0 = 0 gives a finite drift; the largest excursion counts, not the last frame's
-    assert metrics.energy_drift(scene, Frames(q, qd, [0.0, 3.0, 1.0])) == 3.0 / scale
+    assert metrics.energy_drift(scene, Frames(q, qd, [0.0, 3.0, 1.0])) == 3.0 / scale  # exact: one NumPy division of the same scale
     assert np.isnan(metrics.energy_drift(scene, Frames(q[:0], qd[:0], [])))
 
 
@@ -119,12 +119,14 @@ def test_a_diverged_rollout_scores_each_metric_maximum_from_its_divergence_frame
     assert set(scores) == set(metrics.METRICS)
     for name, errors in scores.items():
         assert errors.shape == (2, len(t) - 1), name
-        np.testing.assert_array_equal(errors[1, :5], errors[0, :5])  # frames 1..5: t > 0, before divergence
+        # Frames 1..5: t > 0, before divergence; exact: equal inputs in one call.
+        np.testing.assert_array_equal(errors[1, :5], errors[0, :5])
     np.testing.assert_allclose(scores["node_rms_error"][0], 1e-3, rtol=1e-9)
     expected = np.linalg.norm(predicted[0] - q[0], axis=(-1, -2)) / (np.linalg.norm(predicted[0], axis=(-1, -2)) + np.linalg.norm(q[0], axis=(-1, -2)))
     np.testing.assert_allclose(scores["rollout_error"][0], expected[1:], rtol=1e-12)
     assert (scores["rollout_error"][1, 5:] == 1.0).all() and (scores["energy_error"][1, 5:] == 1.0).all()
     assert (scores["node_rms_error"][1, 5:] == metrics.diverged_node_error(scene, predicted[1, 0])).all()
+    # Exact: the shift along x leaves chain4's larger extent, along y, as it was.
     assert metrics.diverged_node_error(scene, predicted[1, 0]) == metrics.EXPLOSION_FACTOR * size
 
 

@@ -109,7 +109,7 @@ def test_rendered_model_reproduces_nodes(name, form):
     data = mujoco.MjData(compiled.model)
     mujoco.mj_kinematics(compiled.model, data)
     np.testing.assert_allclose(data.site_xpos[compiled.node_site, :2], s.nodes, rtol=0, atol=1e-12)
-    np.testing.assert_array_equal(data.site_xpos[compiled.node_site, 2], 0.0)
+    np.testing.assert_array_equal(data.site_xpos[compiled.node_site, 2], 0.0)  # exact: in-plane offsets, z hinges
 
 
 @pytest.mark.parametrize(("name", "form"), [(name, "nested") for name in ["chain8", "chain4-varied", "tree", "free", "loop6", "T1"]]
@@ -333,6 +333,7 @@ def test_rollout_batch_equals_single():
     batch = lm.rollout(s, config, State(np.asarray(states.q), np.asarray(states.qd)), threads=2)
     for k in range(3):
         one = lm.rollout(s, config, State(np.asarray(states.q)[k : k + 1], np.asarray(states.qd)[k : k + 1]))
+        # Exact: MuJoCo C steps each world by the same `mj_step`, whatever the batch or threads.
         np.testing.assert_array_equal(batch.q[k], one.q[0])
 
 
@@ -346,6 +347,7 @@ def test_rollout_in_several_calls_equals_one_call(monkeypatch):
     states = State(np.asarray(states.q), np.asarray(states.qd))
     whole = lm.rollout(s, config, states)
     monkeypatch.setattr(lm, "ROLLOUT_BUFFER_VALUES", 3 * 10 * 9 * 7)  # 7 frames a call: 50 = 7 x 7 + 1
+    # Exact: MuJoCo C's steps, each call from the full physics state the last one left.
     np.testing.assert_array_equal(lm.rollout(s, config, states).q, whole.q)
 
 
@@ -520,7 +522,7 @@ def test_every_engine_agrees_with_the_lagrangian_engine(name):
     ours, reference = engine_chain4(name), engine_chain4("lagrangian")
     assert get_engine(name).name == name
     assert ours.q.shape == ours.qd.shape == (3, 251, 5, 2) and ours.energy.shape == (3, 251) and ours.t.shape == (251,)
-    np.testing.assert_array_equal(ours.t, reference.t)
+    np.testing.assert_array_equal(ours.t, reference.t)  # both `np.arange(frames) * frame_dt`
     assert np.max(np.abs(ours.q - reference.q)) <= 1e-10
     assert np.max(np.abs(ours.energy - reference.energy)) <= 1e-10
     member = ours.member(1)
@@ -534,6 +536,7 @@ def test_mujoco_engine_is_the_c_rollout_with_energies():
     states = batch_of_one(s.initial_state)
     traj = get_engine("mujoco").rollout(s, config, states)
     nodes = lm.rollout(s, config, states)
+    # Exact: the same MuJoCo C run twice in this process (no compiled program of ours).
     np.testing.assert_array_equal(traj.q, nodes.q)
     np.testing.assert_array_equal(traj.qd, nodes.qd)
     assert traj.metadata["engine"]["name"] == "mujoco" and traj.metadata["engine"]["dtype"] == "float64"

@@ -106,6 +106,7 @@ def test_a_new_builtin_and_the_same_scene_as_a_file_start_alike(tmp_path, monkey
         path.write_text(scene_to_json(hammock()))
         builtin, from_file = (evaluation_initial_states(profile, get_scene(source)) for source in ("hammock", str(path)))
         assert len(builtin.q) == expected
+        # Exact: equal scenes share the sampler's program (cached per scene content).
         np.testing.assert_array_equal(builtin.q, from_file.q)
         np.testing.assert_array_equal(builtin.qd, from_file.qd)
     monkeypatch.delitem(CATALOGUE, "hammock")

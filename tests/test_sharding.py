@@ -129,7 +129,8 @@ def test_a_chunk_that_runs_out_of_device_memory_is_halved_and_the_last_one_is_a_
 
     monkeypatch.setattr(rollouts, "_run", limited)
     halved = batched_rollouts(scene, CONFIG, TRUE, states, integration=Integration(), chunk=8, label="halved").q
-    np.testing.assert_array_equal(halved, whole)
+    # Chunks of 2 and of 8 are two compiled programs: round-off apart (as above).
+    np.testing.assert_allclose(halved, whole, rtol=0, atol=1e-13)
     assert "halved: out of device memory with 5 initial conditions per call; retrying with 2" in capsys.readouterr().err
     monkeypatch.setattr(rollouts, "_run", lambda *args: limited(*args, limit=0))
     with pytest.raises(SimulationError, match="^none: out of device memory even with 1 rollouts per call"):

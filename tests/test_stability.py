@@ -108,7 +108,7 @@ def test_diverging_large_step_stops_at_the_first_bad_frame():
     with pytest.raises(SimulationError) as info:
         simulate(get_scene("chain4"), SimulationConfig(1e-2, 1e-2, 10.0), integration=Integration("verlet", project=False))
     err = info.value
-    assert err.time == row["time_to_failure"]
+    assert err.time == row["time_to_failure"]  # exact: a frame's time, its index times frame_dt
     partial = err.trajectory
     assert len(partial.t) == round(err.time / 1e-2) and np.isfinite(partial.q).all() and np.isfinite(partial.energy).all()
 

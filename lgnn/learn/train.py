@@ -30,8 +30,8 @@ MSE falls from 1e4-1e6 to ~20); the warm-up lets Adam's moments settle first. Th
 Adam is invariant to the scale of the loss, and the targets (O(10) with gravity 10)
 keep MSE comparable with the paper's. After every `checkpoint_every` epochs the whole training state (params,
 best params, Adam state, epoch, losses) is written atomically to `out`, so an
-interrupted run resumed from it (`resume=True`) reaches exactly the same result as an
-uninterrupted one.
+interrupted run resumed from it (`resume=True`) reaches the uninterrupted run's result
+to round-off (the same arithmetic, in programs compiled for the two budgets).
 
 A model's spec may carry its own recipe (`models.ModelSpec`): AdamW's weight decay in
 place of Adam, Gaussian noise on the training inputs' free-node velocities (a fraction
