@@ -43,12 +43,13 @@ rather than a warning: a warning is easy to miss in a long log.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import signal
 import sys
 import threading
-from typing import Callable, ContextManager
+from typing import Callable, ContextManager, Iterator
 
 from lgnn.errors import ConfigError
 
@@ -185,6 +186,24 @@ def precision(dtype: str = "float64") -> ContextManager:
     if dtype not in ("float64", "float32"):
         raise ConfigError(f"unknown dtype {dtype!r} (choose from float64, float32)")
     return jax.enable_x64(dtype == "float64")
+
+
+@contextlib.contextmanager
+def xla_optimisations_off(off: bool = True) -> Iterator[None]:
+    """Within: programs compiled with most of XLA's optimisation passes off (JAX's
+    `jax_disable_most_optimizations`) where `off`, else as the process had it; the
+    process's setting is restored after. Compiling is then faster and running slower:
+    for programs that run for milliseconds. The arithmetic is IEEE either way; fusing
+    or not may round a reduction differently, to round-off."""
+    import jax
+
+    before = jax.config.read("jax_disable_most_optimizations")
+    if off:
+        jax.config.update("jax_disable_most_optimizations", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", before)
 
 
 def full_precision_matmuls(fn: Callable) -> Callable:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lgnn.bench import claims, store
+from lgnn.bench import claims, run_record, store
 
 # A process computing three records through `claims.each_once`: each computation is
 # logged (one line appended to `done.log`: pid and item), takes a second, and writes
@@ -169,3 +169,6 @@ def test_two_benchmark_processes_on_one_folder_run_each_task_once(tmp_path, tiny
     assert both.count("ground truth chain4:") == 1, both
     assert both.count("evaluate gns s0 on chain4: rollout error") == 1, both
     assert not list(out.rglob("*.claim*"))
+    # Each says what it cost in the run record, neither losing the other's entry.
+    record = run_record.read(out)
+    assert [i["outcome"] for i in record["invocations"]] == ["completed", "completed"]

@@ -471,6 +471,12 @@ class Profile:
     # reused where their settings key matches, the report merges both
     # (`lgnn.bench.store.Layout`). None: the output folder alone.
     base: str | None = None
+    # Compile with most of XLA's optimisation passes off (JAX's
+    # `jax_disable_most_optimizations`) for the whole run: where every program runs for
+    # milliseconds (the quick profile), the passes cost more than they save. They change
+    # no result beyond round-off (the quick profile's tables agree to every printed
+    # digit either way, docs/benchmark.md). Not in any record key.
+    disable_xla_optimisations: bool = False
 
 
 # The shipped profiles: TOML files in `lgnn/bench/profiles/` (`load_profile`).

@@ -15,6 +15,9 @@ once (`lgnn.bench.parallel`), or, with the "ray" executor, as tasks of a Ray clu
 With a profile's `base` (a results folder read in place, `lgnn.bench.store.layout`),
 `run` runs `BASE_STAGES` unless told otherwise: what puts a model beside the base's
 rows; the base's speed, scaling and mass records are read, not remade.
+
+Each call appends what it cost (commit, versions, device, wall seconds per stage) to
+`OUT/benchmark/run.json` (`lgnn.bench.run_record`).
 """
 
 from __future__ import annotations
@@ -26,9 +29,9 @@ from typing import Any, Callable
 
 from lgnn.bench import report
 from lgnn.bench.grid import Pair, Profile, TrainingJob, evaluation_pairs, evaluation_scenes, training_jobs
-from lgnn.bench import store
+from lgnn.bench import run_record, store
 from lgnn.bench.parallel import run_split
-from lgnn.runtime import release_compiled_programs
+from lgnn.runtime import release_compiled_programs, xla_optimisations_off
 from lgnn.bench.stages.evaluate import evaluate_group, evaluate_scene, truth_cost, truth_recorded
 from lgnn.bench.stages.external import check_predictions, evaluate_external, read_predictions
 from lgnn.bench.stages.mass import mass_matrices
@@ -276,11 +279,13 @@ def run(profile: Profile, out: Path | None = None, stages=None, jobs: list[str] 
                        [s for s in evaluation_scenes(profile) if not scenes or s in scenes], bool(scenes), progress, workers, profile_argv, command,
                        executor, tuple(stages))
     out.mkdir(parents=True, exist_ok=True)
-    with _executor_session(executor, address):
+    with xla_optimisations_off(profile.disable_xla_optimisations), run_record.recording(out, command) as timed, \
+            _executor_session(executor, address):
         for stage in list(STAGES.values()):
             if stage.name in stages:
-                stage.run(request)
-                release_compiled_programs()  # a long run's compiles (`lgnn.runtime.MAPPINGS_KEPT`)
+                with timed(stage.name):
+                    stage.run(request)
+                    release_compiled_programs()  # a long run's compiles (`lgnn.runtime.MAPPINGS_KEPT`)
     return out
 
 
