@@ -103,7 +103,8 @@ def test_training_lowers_the_loss_and_keeps_the_statistics_into_the_checkpoint(t
     state = train.train(model, config, tiny_dataset, scene, out=tmp_path / "strong.npz")
     assert state.best_val < before / 2
     # Training filled the statistics in once and never stepped them (AdamW's weight
-    # decay included): equal to the training set's, bit for bit, in the latest and best params.
+    # decay included): equal to the training set's, bit for bit, in the latest and best params
+    # (the same function of the same states, in this process, then only carried along).
     for params in (state.params, state.best_params):
         for name, value in statistics.items():
             np.testing.assert_array_equal(params[models.STATISTICS][name], value)
@@ -141,3 +142,31 @@ def test_statistics_of_another_shape_than_inits_placeholders_are_refused():
     with pytest.raises(ConfigError, match="placeholders of its statistics"):
         models.with_statistics(params, {"velocity_mean": jnp.zeros(3)})
 
+
+
+@pytest.mark.parametrize("name", ["gns-10-128", "cgnode"])
+def test_the_message_passing_steps_written_out_are_the_loop_to_round_off(monkeypatch, tiny_dataset, name):
+    """On an accelerator the processor's steps are written out (`processor_unroll`), on
+    a CPU looped: the same network, so the same accelerations and gradients to round-off
+    (both run here, on the CPU, the unrolled one forced)."""
+    from lgnn.learn import strong_gns
+
+    scene = get_scene("chain4")
+    config = models.ModelConfig.for_scene(name, scene, **SMALL)
+    params = models.init(jax.random.PRNGKey(3), config)
+    q, qd = _moving_states(scene)
+
+    def loss(params):
+        return jnp.sum(jax.vmap(models.acceleration_fn(config, params, scene))(q, qd) ** 2)
+
+    def unrolled_steps() -> set[str]:
+        # (A function of its own each time: JAX caches the trace of one function object.)
+        return {word for word in str(jax.make_jaxpr(lambda p: loss(p))(params)).split() if word.startswith("unroll=")}
+
+    assert not strong_gns.processor_unroll() and unrolled_steps() == {"unroll=1"}  # the CPU loops
+    looped = jax.jit(jax.value_and_grad(loss))(params)
+    monkeypatch.setattr(strong_gns, "processor_unroll", lambda: True)
+    assert unrolled_steps() == {f"unroll={config.message_passing}"}
+    unrolled = jax.jit(jax.value_and_grad(loss))(params)
+    for a, b in zip(jax.tree.leaves(looped), jax.tree.leaves(unrolled)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * float(np.max(np.abs(a))))

@@ -38,6 +38,7 @@ import numpy as np
 
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
 from lgnn.scene import Scene
+from lgnn.sharding import platform
 
 # The recipe's node-type embedding size (learning_to_simulate: 16).
 TYPE_EMBEDDING = 16
@@ -47,6 +48,19 @@ FREE, PINNED = 0, 1
 HIDDEN_LAYERS = 2
 # LayerNorm's epsilon (haiku's and flax's default).
 LAYER_NORM_EPS = 1e-5
+
+
+def processor_unroll() -> bool:
+    """Whether the message-passing steps are written out in the compiled program rather
+    than looped over their stacked parameters: on an accelerator, where each loop
+    iteration (forward, and again backward) costs a launch and a wait for the host and
+    a step's arithmetic takes microseconds. Measured on one H200, 3 seeds packed, batch
+    100, float64 (results/gpu/training/README.md, "The message-passing loop"): an epoch
+    of gns-10-128 0.325 -> 0.255 s (its floor, `gns_floor.py`, 0.260), of cgnode 0.341 ->
+    0.271 s, for 2.6x the compile time (13 -> 34 s); on a CPU the loop stays, whose
+    steps are arithmetic-bound and whose compile time is most of a short run. The same
+    arithmetic either way, to round-off."""
+    return platform() != "cpu"
 
 
 def statistics(config, scene: Scene, q, qd, qdd) -> dict:
@@ -154,7 +168,7 @@ def acceleration(config, params: dict, scene: Scene):
             h = h + _apply_mlp(step["node_mlp"], jnp.concatenate([h, received], -1))
             return (h, e), None
 
-        (h, _), _ = jax.lax.scan(message_passing, (h, e), params["processor"])
+        (h, _), _ = jax.lax.scan(message_passing, (h, e), params["processor"], unroll=processor_unroll())
         normalised = _apply_mlp(params["decoder"], h)
         return (normalised * stats["acceleration_std"] + stats["acceleration_mean"]) * free
 
