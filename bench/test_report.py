@@ -206,6 +206,30 @@ def test_training_table_says_why_each_run_stopped():
     assert report._stopped_by(state([1.0, 0.5, 0.4]), config) == "not finished: cut off, resumable"
 
 
+def test_runs_the_protocols_rules_did_not_end_are_named_at_the_top(tmp_path):
+    """A checkpoint whose run stopped short of the epoch budget and the plateau rule (a
+    wall-clock cap it was trained under, an interrupted job) is named in the report's
+    opening warning, by model and training scene; one that ended is not."""
+    import dataclasses
+
+    from lgnn.bench import store
+    from lgnn.learn import models, train
+    from lgnn.scene import get_scene
+
+    profile = dataclasses.replace(grid.PROFILES["full"], seeds=(0,), models=("lgnn", "gns"), tracks=("paper",))
+    for model_name, epochs in (("lgnn", 3), ("gns", profile.training.train.epochs)):
+        job = grid.TrainingJob(model_name, grid.TRAINING_SCENE, 0)
+        model, config = models.ModelConfig.for_scene(model_name, get_scene(job.scene)), profile.training.train
+        path = store.Layout(tmp_path).checkpoint(job)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        history = [(k + 1, 1.0, 1.0 / (k + 1), 0.0) for k in range(3)]
+        state = train.initial_state(model, config)._replace(best_val=1 / 3, epoch=epochs, best_epoch=3, history=history)
+        train.save_checkpoint(path, state, model, config)
+    (line, _) = report._cut_off_lines(profile, tmp_path)
+    assert line.startswith("**Training cut off.**") and "lgnn (chain4; 1 run)" in line and "gns (" not in line
+    assert report._cut_off_lines(dataclasses.replace(profile, models=("gns",)), tmp_path) == []
+
+
 def test_default_lgnn_is_read_from_the_training_records(tmp_path):
     """Per training scene, the variant with the lowest geometric mean over seeds of the
     best validation MSE. Planar: mp1 (1e-3 and 1e-5, mean 1e-4) against lgnn's 2e-4; a

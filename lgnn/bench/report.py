@@ -637,6 +637,24 @@ QUICK_WARNING = ("**Not results.** This profile checks that the pipeline runs: i
                  "Numbers: `lgnn benchmark --full`, or the committed `results/`.")
 
 
+def _cut_off_lines(profile: Profile, out: Path) -> list[str]:
+    """A warning naming the checkpoints whose training the protocol's rules (epoch
+    budget, plateau) did not end: cut off by a wall-clock cap they were trained under,
+    or by an interrupted run. Their rows rank what that training learned, not the
+    protocol's; a full run resumes or retrains them. Nothing where every run ended."""
+    cut: dict[str, list[TrainingJob]] = {}
+    for job, state in load_checkpoints(profile, out):
+        if stop_reason(state, train_config(profile, job)) is None:
+            cut.setdefault(job.model, []).append(job)
+    if not cut:
+        return []
+    named = [f"{model} ({'; '.join(dict.fromkeys(j.trained_on for j in jobs))}; {len(jobs)} run{'s' if len(jobs) > 1 else ''})"
+             for model, jobs in cut.items()]
+    return [f"**Training cut off.** These runs stopped before the training protocol's rules ended them (the epoch budget or "
+            f"the plateau rule; the training table says where each stopped): {', '.join(named)}. Their rows rank what that "
+            "training learned, not what the protocol's would: `lgnn benchmark --full --stage train` resumes or retrains them.", ""]
+
+
 def banner(profile: Profile) -> list[str]:
     """The report's opening warning, from what was run, not the profile's name:
     `QUICK_WARNING` unless the evaluation settings and training data are the full
@@ -780,6 +798,7 @@ def readme(profile: Profile, out: Path, records: tuple, summary, speed_rows, mas
         + "; ".join(envs) + ".",
         "",
         *banner(p),
+        *_cut_off_lines(p, out),
         "## Settings",
         "",
         f"- Training: {t.data.n_trajectories} trajectories of {t.data.duration:g} s, a state every {t.data.sample_dt:g} s (75:25 split), "
