@@ -889,10 +889,25 @@ def _add_gpu_truth_parser(commands) -> None:
     parser.set_defaults(run=_cmd_gpu_truth)
 
 
+class _VersionAction(argparse.Action):
+    """`--version`: the versions every result records (`lgnn.provenance`), read only
+    when asked (package metadata takes tens of milliseconds)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from lgnn import provenance
+
+        print(f"{provenance.versions()}; commit {provenance.commit()}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     from lgnn.engines import ENGINES
 
     parser = _Parser(prog="lgnn", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action=_VersionAction, help="print lgnn's version, commit and its dependencies' versions, and exit")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     scenes = commands.add_parser("scenes", help="list the built-in scenes, their tags, initial states and whether the benchmark evaluates them")

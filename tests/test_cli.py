@@ -584,3 +584,16 @@ def test_lgnn_train_and_the_full_benchmark_read_one_copy_of_the_training_data(tm
     benchmark_data = grid.PROFILES["full"].training.data_for("chain4")
     assert store.Layout(tmp_path / "out").datasets == data.default_cache_dir()
     assert data.cache_path(data_config, data.default_cache_dir()) == data.cache_path(benchmark_data, store.Layout(tmp_path / "out").datasets)
+
+
+def test_version_names_lgnn_its_commit_and_the_versions_results_record(capsys):
+    from lgnn import provenance
+
+    try:
+        code = main(["--version"])
+    except SystemExit as exit_:
+        code = exit_.code
+    out = capsys.readouterr().out
+    assert code == 0 and out.strip() == f"{provenance.versions()}; commit {provenance.commit()}"
+    for package in ("lgnn", "jax", "jaxlib", "mujoco", "numpy"):
+        assert f"{package} " in out
