@@ -256,3 +256,19 @@ def test_the_notebook_takes_a_model_file_to_its_leaderboard_row(tmp_path, monkey
     assert {"my-notebook-model", "gns"} <= set(summary[summary["metric"] == "rollout_error"]["model"])
     leaderboard = (tmp_path / "tiny-out" / "LEADERBOARD.md").read_text()
     assert "my-notebook-model" in leaderboard and "| gns" in leaderboard
+
+
+def test_the_license_and_citation_files_say_what_the_package_and_readme_say():
+    """LICENSE is the MIT licence pyproject.toml names; CITATION.cff is valid CFF naming
+    the suite and the paper the README cites."""
+    import tomllib
+
+    yaml = pytest.importorskip("yaml")
+    root = Path(__file__).resolve().parents[1]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    assert project["license"] == "MIT" and (root / "LICENSE").read_text().startswith("MIT License")
+    citation = yaml.safe_load((root / "CITATION.cff").read_text())
+    assert citation["cff-version"] == "1.2.0" and citation["version"] == project["version"] and citation["license"] == "MIT"
+    paper = citation["preferred-citation"]
+    assert paper["title"] in (root / "README.md").read_text() and paper["year"] == 2022
+    assert [a["family-names"] for a in paper["authors"]] == ["Bhattoo", "Ranu", "Krishnan"]
