@@ -170,3 +170,19 @@ def test_the_message_passing_steps_written_out_are_the_loop_to_round_off(monkeyp
     unrolled = jax.jit(jax.value_and_grad(loss))(params)
     for a, b in zip(jax.tree.leaves(looped), jax.tree.leaves(unrolled)):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * float(np.max(np.abs(a))))
+
+
+def test_a_model_with_input_noise_trains_in_float32(tiny_dataset):
+    """The recipe's velocity noise is drawn and scaled in the states' precision: in
+    float32 (`train_seeds` under `runtime.precision("float32")`) it trains, in float32."""
+    from lgnn import runtime
+
+    scene = get_scene("chain4")
+    model = models.ModelConfig.for_scene("gns-10-128", scene, **SMALL)
+    assert model.spec.velocity_noise > 0
+    config = train.TrainConfig(learning_rate=3e-3, epochs=2, warmup_steps=2)
+    train.train_seeds(model, [config], tiny_dataset, scene)  # float64 first: its program cached, as in a precision study
+    with runtime.precision("float32"):
+        (state,) = train.train_seeds(model, [config], tiny_dataset, scene)
+    assert state.epoch == 2 and np.isfinite(state.best_val)
+    assert {leaf.dtype for leaf in jax.tree.leaves(state.params)} == {np.dtype("float32")}

@@ -303,7 +303,9 @@ def _epoch(model, scenes: tuple[Scene, ...], config: TrainConfig):
             for k, (q, qd, qdd) in enumerate(draw_batches):
                 if model.spec.velocity_noise:
                     noise_key = key if n_draws == 1 else jax.random.fold_in(key, k)
-                    qd = qd + noise_std * free * jax.random.normal(noise_key, qd.shape, qd.dtype)
+                    # In the states' precision: a float64 constant beside float32 states is refused.
+                    scale = jnp.asarray(noise_std, qd.dtype) * jnp.asarray(free, qd.dtype)
+                    qd = qd + scale * jax.random.normal(noise_key, qd.shape, qd.dtype)
                 total = total + losses[k](models.join_statistics(p, statistics), q, qd, qdd)
             return total / n_draws
 
