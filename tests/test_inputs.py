@@ -394,7 +394,7 @@ def test_an_output_naming_a_device_is_refused_not_replaced(tmp_path, capsys):
 # Generated inputs (hypothesis): whatever the input, one of two answers
 # ---------------------------------------------------------------------------------
 
-from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+from hypothesis import HealthCheck, example, given, settings, strategies as st  # noqa: E402
 
 from lgnn.engines.base import SimulationConfig  # noqa: E402
 from lgnn.errors import ConfigError  # noqa: E402
@@ -473,6 +473,7 @@ CHECKPOINT_PATHS = st.sampled_from(["epoch", "best_epoch", "best_val", "history"
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(key=CHECKPOINT_PATHS, value=JSON_VALUES)
+@example(key="elapsed_s", value=10**400)  # an integer beyond every float (hypothesis found it: OverflowError)
 def test_generated_checkpoint_edits_are_read_or_refused_in_one_line(tmp_path_factory, capsys, key, value):
     folder = tmp_path_factory.mktemp("checkpoint")
     checkpoint(set_key(key, value))(folder / "k.npz")

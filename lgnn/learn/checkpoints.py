@@ -112,7 +112,10 @@ def meta_problem(meta: dict, arrays: dict) -> str | None:
         return isinstance(value, (int, float)) and not isinstance(value, bool)
 
     def number(value) -> bool:
-        return real(value) and math.isfinite(value)
+        try:
+            return real(value) and math.isfinite(value)
+        except OverflowError:  # an integer beyond every float
+            return False
 
     for key in ("model", "train_config"):
         if not isinstance(meta.get(key), dict):
