@@ -23,7 +23,8 @@ def test_each_run_appends_its_stages_times_and_the_top_level_sums_them(tmp_path,
     assert list(first["stages"]) == ["train", "evaluate"] and list(second["stages"]) == ["evaluate", "report"]
     for invocation in record["invocations"]:
         assert invocation["outcome"] == "completed" and invocation["commit"] == provenance.commit()
-        assert 0 < sum(invocation["stages"].values()) <= invocation["wall_s"]
+        # Each time is rounded to the millisecond, so the stages' sum may pass the wall time by half a millisecond each.
+        assert 0 < sum(invocation["stages"].values()) <= invocation["wall_s"] + 5e-4 * len(invocation["stages"])
         assert invocation["started"] <= invocation["ended"]
     assert record["wall_s"] == pytest.approx(first["wall_s"] + second["wall_s"], abs=2e-3)
     assert record["stages"]["evaluate"] == pytest.approx(first["stages"]["evaluate"] + second["stages"]["evaluate"], abs=2e-3)
