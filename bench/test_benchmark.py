@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from lgnn import metrics
-from lgnn.bench import grid, report, store
+from lgnn.bench import grid, store
+from lgnn.bench.report import readme as report_readme, summary as report_summary
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.bench.stages import train as train_stage
@@ -302,8 +303,8 @@ def test_report(profile, out):
     for pair in grid.evaluation_pairs(profile):
         assert f"| {pair.scene} |" in text
     # A quick report says its ranking and timings are no results; the full one does not.
-    assert (report.QUICK_WARNING in text) == (profile.name != "full")
-    for name in (report.SUMMARY, report.CURVES, "speed_error.csv", "mass_matrix.csv"):
+    assert (report_readme.QUICK_WARNING in text) == (profile.name != "full")
+    for name in (report_summary.SUMMARY, report_summary.CURVES, "speed_error.csv", "mass_matrix.csv"):
         assert (out / "benchmark" / name).stat().st_size > 0
     performance = (out / "performance.md").read_text()
     assert "Lagrangian / MuJoCo" in performance and "Cost per step against chain length" in performance

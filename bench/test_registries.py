@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from lgnn import metrics, physics
-from lgnn.bench import grid, report, store
+from lgnn.bench import grid, store
+from lgnn.bench.report import figures as report_figures, readme as report_readme, summary as report_summary
 from lgnn.bench.stages import evaluate
 from lgnn.engines import ENGINES
 from lgnn.learn import models, train
@@ -66,17 +67,17 @@ def test_a_registered_metric_and_reference_engine_reach_records_and_report(regis
     # The twin at dt 1e-3 (RK4, projected) is the ground truth's own integrator: it agrees.
     assert metrics.summarise(truth[f"truth_vs_{TWIN}/per_ic_log"])[0] < 1e-6
     # The report: a table of each, the twin a column beside the rollout error.
-    summary, curves = report.tables(*((evaluate.load_truths(profile, tmp_path), evaluate.load_pairs(profile, tmp_path))), profile.evaluate.references)
-    text = "\n".join(report._summary_sections(profile, summary, {}))
+    summary, curves = report_summary.tables(*((evaluate.load_truths(profile, tmp_path), evaluate.load_pairs(profile, tmp_path))), profile.evaluate.references)
+    text = "\n".join(report_readme._summary_sections(profile, summary, {}))
     assert "## Largest node error against the Lagrangian ground truth (planar" in text
     assert f"## Rollout error against {TWIN} (planar" in text
-    rollout = report.summary_markdown(summary, "rollout_error", references=profile.evaluate.references)
+    rollout = report_summary.summary_markdown(summary, "rollout_error", references=profile.evaluate.references)
     assert rollout.splitlines()[0].split(" | ")[-1] == f"Lagrangian vs {TWIN} |"
     row = rollout.splitlines()[2].split(" | ")
     assert row[0] == "| chain4" and row[-1].endswith(" |") and "e-" in row[-1]
-    largest = report.summary_markdown(summary, "max_node_error", references=profile.evaluate.references)
+    largest = report_summary.summary_markdown(summary, "max_node_error", references=profile.evaluate.references)
     assert largest.splitlines()[0].split(" | ")[1:] == ["cheat-registries", "rest", "chaos floor |"]
-    assert "largest node error (geometric mean)" in report.error_axis_labels().values()
+    assert "largest node error (geometric mean)" in report_figures.error_axis_labels().values()
     assert set(curves[curves.model == "cheat-registries"].metric) == {"rollout_error", "node_rms_error", "energy_error", "max_node_error",
                                                                      f"rollout_error_vs_{TWIN}"}
 

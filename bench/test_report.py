@@ -11,13 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgnn.bench import grid, report
+from lgnn.bench import grid
+
+from lgnn.bench.report import figures as report_figures, performance as report_performance, readme as report_readme, summary as report_summary
 from lgnn.bench.stages import evaluate
 from lgnn.errors import ConfigError
 
 # What records of the default settings hold: rollout_error, node_rms_error, energy_error,
 # rollout_error_vs_mujoco.
-RECORDED = tuple(m.name for m in evaluate.recorded_metrics(report.DEFAULT_REFERENCES))
+RECORDED = tuple(m.name for m in evaluate.recorded_metrics(report_summary.DEFAULT_REFERENCES))
 
 ROOT = Path(__file__).resolve().parents[1]
 T = np.array([0.01, 0.02])
@@ -62,8 +64,8 @@ def _row(table: str, scene: str) -> dict:
 
 def test_rest_rms_error_and_its_ratio_to_the_chaos_floor():
     truths = {"chain4": _truth(True, False), "chain8": _truth(True, True)}
-    summary, curves = report.tables(truths, [_pair("chain4", True), _pair("chain8", True)])
-    rms = report.summary_markdown(summary, "node_rms_error")
+    summary, curves = report_summary.tables(truths, [_pair("chain4", True), _pair("chain8", True)])
+    rms = report_summary.summary_markdown(summary, "node_rms_error")
     chain4 = _row(rms, "chain4")
     # The model's 1e-3 against the floor's 2e-4; the rest baseline's 3e-2.
     assert chain4["lgnn"] == "1.00e-03 [1.00e-03, 1.00e-03] (1 seed), 5x floor" and chain4["chaos floor"] == "2.00e-04"
@@ -71,27 +73,27 @@ def test_rest_rms_error_and_its_ratio_to_the_chaos_floor():
     ratio = summary[(summary.statistic == "chaos_floor_ratio") & (summary.scene == "chain4") & (summary.model == "lgnn")]
     assert np.isclose(ratio.value.item(), 5.0)
     for metric in ("rollout_error", "energy_error", "rollout_error_vs_mujoco"):
-        assert _row(report.summary_markdown(summary, metric), "chain4")["rest"] == "3.00e-02 [3.00e-02, 3.00e-02]"
+        assert _row(report_summary.summary_markdown(summary, metric), "chain4")["rest"] == "3.00e-02 [3.00e-02, 3.00e-02]"
 
 
 def test_no_chaos_floor_number_where_a_perturbed_run_diverged():
     truths = {"chain8": _truth(True, True)}
-    summary, curves = report.tables(truths, [_pair("chain8", True)])
+    summary, curves = report_summary.tables(truths, [_pair("chain8", True)])
     floor = summary[(summary.scene == "chain8") & summary.metric.isin(["chaos_floor", "chaos_floor_node_rms_error"])]
     assert set(floor.statistic) == {"initial_conditions", "diverged", "first_divergence_s"}, "no value, no interval"
     assert (curves.metric == "rollout_error").any() and not curves.metric.isin(["chaos_floor", "chaos_floor_node_rms_error"]).any()
     assert not (summary.statistic == "chaos_floor_ratio").any()
     for metric, column in (("rollout_error", "chaos floor"), ("node_rms_error", "chaos floor"), ("rollout_error_vs_mujoco", "chaos floor")):
-        row = _row(report.summary_markdown(summary, metric), "chain8")
+        row = _row(report_summary.summary_markdown(summary, metric), "chain8")
         assert row[column] == "diverged (1 of 2 perturbed runs, first at 0.5 s)"
-    assert _row(report.summary_markdown(summary, "node_rms_error"), "chain8")["lgnn"] == "1.00e-03 [1.00e-03, 1.00e-03] (1 seed)"
+    assert _row(report_summary.summary_markdown(summary, "node_rms_error"), "chain8")["lgnn"] == "1.00e-03 [1.00e-03, 1.00e-03] (1 seed)"
 
 
 def test_records_without_the_new_metrics_read_not_computed():
-    summary, _ = report.tables({"chain4": _truth(False, False)}, [_pair("chain4", False)])
-    row = _row(report.summary_markdown(summary, "node_rms_error"), "chain4")
+    summary, _ = report_summary.tables({"chain4": _truth(False, False)}, [_pair("chain4", False)])
+    row = _row(report_summary.summary_markdown(summary, "node_rms_error"), "chain4")
     assert row["lgnn"] == row["rest"] == row["chaos floor"] == "not computed"
-    row = _row(report.summary_markdown(summary, "rollout_error"), "chain4")
+    row = _row(report_summary.summary_markdown(summary, "rollout_error"), "chain4")
     assert row["lgnn"].startswith("1.00e-03 [") and row["rest"] == "not computed" and row["chaos floor"] == "1.00e-05"
 
 
@@ -101,16 +103,16 @@ def test_the_committed_full_records_render_with_the_new_columns_not_computed():
     profile = dataclasses.replace(grid.PROFILES["full"], scenes=("chain4", "T2-slack", grid.SPATIAL_TRAINING_SCENE))
     out = ROOT / "results"
     truths = evaluate.load_truths(profile, out)
-    summary, _ = report.tables(truths, evaluate.load_pairs(profile, out))
+    summary, _ = report_summary.tables(truths, evaluate.load_pairs(profile, out))
     for metric in RECORDED:
-        table = report.summary_markdown(summary, metric)
+        table = report_summary.summary_markdown(summary, metric)
         assert "nan" not in table.lower()
         for scene in truths:
             row = _row(table, scene)
             assert row["rest"] in ("not computed", "") or "e-" in row["rest"]
     # Committed numbers are read as results/README.md shows them: LGNN on chain4 and
     # T2-slack, over its three seeds.
-    table = report.summary_markdown(summary, "rollout_error")
+    table = report_summary.summary_markdown(summary, "rollout_error")
     row = _row(table, "chain4")
     assert row["lgnn"].startswith("2.05e-05 [1.66e-05, 2.58e-05] (3 seeds)") and row["chaos floor"] == "1.10e-05"
     assert _row(table, "T2-slack")["lgnn"].startswith("4.21e-04")
@@ -130,8 +132,8 @@ def test_error_figures_label_their_axes_legend_every_model_and_title_what_they_s
             for scene, model in (("chain4", "lgnn"), ("chain4", "gns"), ("chain4", "gns (unprojected)"), ("chain4-drag", "lgnn drag"))
             for metric in ("rollout_error", "energy_error") for stat in ("gmean", "low", "high") for t in (0.1, 0.2)]
     figures = []
-    monkeypatch.setattr(report, "_savefig", lambda fig, path: figures.append(fig))
-    assert report._plot_error_vs_time(pd.DataFrame(rows), ["chain4", "chain8", "chain4-drag"], tmp_path / "x.png", "each")
+    monkeypatch.setattr(report_figures, "_savefig", lambda fig, path: figures.append(fig))
+    assert report_figures._plot_error_vs_time(pd.DataFrame(rows), ["chain4", "chain8", "chain4-drag"], tmp_path / "x.png", "each")
     (fig,) = figures
     axes = fig.get_axes()
     assert len(axes) == 4 and all(ax.get_legend() is None for ax in axes)
@@ -139,7 +141,7 @@ def test_error_figures_label_their_axes_legend_every_model_and_title_what_they_s
     assert [text.get_text() for text in legend.get_texts()] == ["LGNN", "GNS", "gns (unprojected)", "lgnn drag"]
     lines = {line.get_label(): line for line in axes[0].get_lines()}
     assert lines["gns (unprojected)"].get_color() == lines["GNS"].get_color() and lines["gns (unprojected)"].get_linestyle() == "--"
-    assert [ax.get_ylabel() for ax in axes if ax.get_ylabel()] == list(report.error_axis_labels().values())
+    assert [ax.get_ylabel() for ax in axes if ax.get_ylabel()] == list(report_figures.error_axis_labels().values())
     title = fig._suptitle.get_text()
     assert "chain4, chain4-drag" in title and "chain8" not in title and "1 means diverged" in title
 
@@ -154,10 +156,10 @@ def test_several_seeds_give_one_cell_over_seeds_and_initial_conditions():
         for metric in RECORDED:
             arrays.update(_metric(metric, [value, value]))
         pairs.append((grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, seed), "chain4"), (arrays, {})))
-    summary, _ = report.tables({"chain4": _truth(True, False)}, pairs)
-    cell = _row(report.summary_markdown(summary, "rollout_error"), "chain4")["lgnn"]
+    summary, _ = report_summary.tables({"chain4": _truth(True, False)}, pairs)
+    cell = _row(report_summary.summary_markdown(summary, "rollout_error"), "chain4")["lgnn"]
     assert cell.startswith("3.16e-04 [1.00e-04, 1.00e-03] (1 diverged, first at 0.5 s) (2 seeds)"), cell
-    assert set(summary[summary.model == "lgnn"].seed) == {0, 1, report.ALL_SEEDS}
+    assert set(summary[summary.model == "lgnn"].seed) == {0, 1, report_summary.ALL_SEEDS}
 
 
 def test_missing_pairs_say_not_evaluated_and_unconverged_references_not_rankable():
@@ -172,21 +174,21 @@ def test_missing_pairs_say_not_evaluated_and_unconverged_references_not_rankable
         arrays.update(_metric(metric, [1e-3, 1e-3]))
     pairs = [(grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), "chain4"), (arrays, {}))]
     pairs.append((grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), "T3"), (arrays, {})))
-    summary, _ = report.tables({"chain4": _truth(True, False), "T3": _truth(True, False)}, pairs)
+    summary, _ = report_summary.tables({"chain4": _truth(True, False), "T3": _truth(True, False)}, pairs)
     rows = [dict(scene="T3", note="singular at rest", verdict="not-converged", displacement="0.05"),
             dict(scene="T3", note="", verdict="", displacement="0.05"),
             dict(scene="T3-slack", note="", verdict="asymptotic", displacement="0.047")]
     unrankable = convergence.unrankable(rows)
     assert list(unrankable) == ["T3"] and "unknown" in unrankable["T3"]
-    table = report.summary_markdown(summary, "rollout_error", {("T3", "lgnn"), ("chain4", "lgnn")}, unrankable)
+    table = report_summary.summary_markdown(summary, "rollout_error", {("T3", "lgnn"), ("chain4", "lgnn")}, unrankable)
     assert _row(table, "T3 (not rankable)")["lgnn"] == "not rankable"
     assert _row(table, "T3 (not rankable)")["rest"] == "not rankable"
     assert _row(table, "chain4")["lgnn"].startswith("1.00e-03")
-    assert _row(report.summary_markdown(summary, "rollout_error"), "T3")["lgnn"].startswith("1.00e-03")
+    assert _row(report_summary.summary_markdown(summary, "rollout_error"), "T3")["lgnn"].startswith("1.00e-03")
     without = summary[(summary.scene != "T3") | (summary.model != "lgnn")]
-    assert _row(report.summary_markdown(without, "rollout_error", {("T3", "lgnn")}), "T3")["lgnn"] == "not evaluated"
+    assert _row(report_summary.summary_markdown(without, "rollout_error", {("T3", "lgnn")}), "T3")["lgnn"] == "not evaluated"
     # A scene of the grid with no record at all is a row of its own, not left out.
-    table = report.summary_markdown(summary, "rollout_error", {("chain8", "lgnn")}, None, ["chain4", "chain8"])
+    table = report_summary.summary_markdown(summary, "rollout_error", {("chain8", "lgnn")}, None, ["chain4", "chain8"])
     assert _row(table, "chain8")["lgnn"] == "not evaluated"
 
 
@@ -201,9 +203,9 @@ def test_training_table_says_why_each_run_stopped():
         best = int(np.argmin(losses))
         return train.TrainState({}, (), {}, float(losses[best]), best + 1, len(losses), history)
 
-    assert report._stopped_by(state(list(np.geomspace(1, 1e-3, 100))), config) == "epoch budget"
-    assert report._stopped_by(state([1.0, 0.5] + [0.499] * 20), config) == "plateau (best improved by under 1% in epochs 12-22)"
-    assert report._stopped_by(state([1.0, 0.5, 0.4]), config) == "not finished: cut off, resumable"
+    assert report_readme._stopped_by(state(list(np.geomspace(1, 1e-3, 100))), config) == "epoch budget"
+    assert report_readme._stopped_by(state([1.0, 0.5] + [0.499] * 20), config) == "plateau (best improved by under 1% in epochs 12-22)"
+    assert report_readme._stopped_by(state([1.0, 0.5, 0.4]), config) == "not finished: cut off, resumable"
 
 
 def test_runs_the_protocols_rules_did_not_end_are_named_at_the_top(tmp_path):
@@ -225,9 +227,9 @@ def test_runs_the_protocols_rules_did_not_end_are_named_at_the_top(tmp_path):
         history = [(k + 1, 1.0, 1.0 / (k + 1), 0.0) for k in range(3)]
         state = train.initial_state(model, config)._replace(best_val=1 / 3, epoch=epochs, best_epoch=3, history=history)
         train.save_checkpoint(path, state, model, config)
-    (line, _) = report._cut_off_lines(profile, tmp_path)
+    (line, _) = report_readme._cut_off_lines(profile, tmp_path)
     assert line.startswith("**Training cut off.**") and "lgnn (chain4; 1 run)" in line and "gns (" not in line
-    assert report._cut_off_lines(dataclasses.replace(profile, models=("gns",)), tmp_path) == []
+    assert report_readme._cut_off_lines(dataclasses.replace(profile, models=("gns",)), tmp_path) == []
 
 
 def test_default_lgnn_is_read_from_the_training_records(tmp_path):
@@ -260,7 +262,7 @@ def test_default_lgnn_is_read_from_the_training_records(tmp_path):
     chosen, scores = train_stage.default_lgnn(profile, tmp_path, spatial)
     assert chosen == "lgnn" and set(scores) == {"lgnn", "lgnn-notebook"}
     assert np.isclose(scores["lgnn"], 1e-2) and np.isclose(scores["lgnn-notebook"], 1.0)
-    lines = report._training_lines(profile, tmp_path)
+    lines = report_readme._training_lines(profile, tmp_path)
     assert any("Default LGNN (trained on chain4" in line and "**lgnn-mp1**" in line for line in lines)
     assert any("Default LGNN in 3D (trained on chain4-3d" in line and "**lgnn**" in line for line in lines)
 
@@ -288,8 +290,8 @@ def test_a_drag_scene_record_scores_the_exact_physics_without_drag(tmp_path):
         # (errors of 1e-12-1e-8 over 0.02 s: a vmapped and a single run agree to ~1e-6 of them)
         np.testing.assert_allclose(arrays[f"{evaluate.NO_DRAG}/rollout_error/per_ic_log"][c], np.mean(np.log(errors)), rtol=1e-7)
         assert errors.min() > 1e-12
-    summary, _ = report.tables({"chain4-drag": (arrays, meta)}, [])
-    assert _row(report.summary_markdown(summary, "rollout_error"), "chain4-drag")[report.EXACT_NO_DRAG].startswith(
+    summary, _ = report_summary.tables({"chain4-drag": (arrays, meta)}, [])
+    assert _row(report_summary.summary_markdown(summary, "rollout_error"), "chain4-drag")[report_summary.EXACT_NO_DRAG].startswith(
         f"{np.exp(arrays[f'{evaluate.NO_DRAG}/rollout_error/per_ic_log'].mean()):.2e}")
 
 
@@ -316,13 +318,13 @@ def test_the_planar_and_spatial_grids_get_tables_of_their_own():
     truths = {scene: _truth(True, False) for scene in ("chain4", "chain8", "chain4-3d", "tensegrity-3d")}
     pairs = [_pair("chain4", True), _pair("chain8", True), _pair("chain4-3d", True, SPATIAL_JOB),
              _pair("chain4-3d", True, SPATIAL_JOB, projected=False), _pair("tensegrity-3d", True, SPATIAL_JOB, projected=False)]
-    summary, _ = report.tables(truths, pairs)
-    text = "\n".join(report._summary_sections(profile, summary, {}))
-    for metric, heading in report.summary_tables():
+    summary, _ = report_summary.tables(truths, pairs)
+    text = "\n".join(report_readme._summary_sections(profile, summary, {}))
+    for metric, heading in report_summary.summary_tables():
         planar = _section(text, f"{heading} (planar: trained on chain4)")
         spatial = _section(text, f"{heading} (3D: trained on chain4-3d)")
         head = lambda table: table.strip().splitlines()[0].strip("|").split(" | ")  # noqa: E731
-        truth_columns = [title for _, title in report.truth_columns(metric)]
+        truth_columns = [title for _, title in report_summary.truth_columns(metric)]
         assert [c.strip() for c in head(planar)] == ["scene", "lgnn", "rest", *truth_columns]
         assert [c.strip() for c in head(spatial)] == ["scene", "gns", "gns (unprojected)", "rest", *truth_columns]
         assert [_row(planar, s)["scene"] for s in ("chain4", "chain8")] and "3d" not in planar
@@ -350,9 +352,9 @@ def test_a_3d_snapshot_figure_shows_each_model_and_mujoco_from_the_front_and_fro
              (grid.Pair(JOB, "chain4"), ({"snapshot/model": np.zeros((6, 5, 2))}, {})),
              (grid.Pair(dataclasses.replace(SPATIAL_JOB, seed=1), "chain4-3d"), ({"snapshot/model": truth_q}, {}))]
     figures = []
-    save = report._savefig
-    monkeypatch.setattr(report, "_savefig", lambda fig, path: (figures.append(fig), save(fig, path)))
-    assert report._plot_snapshots("chain4-3d", truths, pairs, tmp_path / "snapshots.png")
+    save = report_figures._savefig
+    monkeypatch.setattr(report_figures, "_savefig", lambda fig, path: (figures.append(fig), save(fig, path)))
+    assert report_figures._plot_snapshots("chain4-3d", truths, pairs, tmp_path / "snapshots.png")
     assert (tmp_path / "snapshots.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     (fig,) = figures
     axes = np.array(fig.get_axes()).reshape(2, 10)
@@ -388,7 +390,7 @@ def test_performance_puts_each_3d_chain_beside_the_planar_one_and_their_ratio():
             _speed_row("chain4-3d", "lagrangian", 7.0, dt=1e-5)]
     scaling = {"rows": [_size_row("lagrangian", 4, 1e-5, 2), _size_row("lagrangian", 16, 4e-5, 2),
                         _size_row("lagrangian", 4, 3e-5, 3), _size_row("lagrangian", 16, 2.4e-4, 3)]}
-    text = report.performance_markdown(profile, rows, scaling)
+    text = report_performance.performance_markdown(profile, rows, scaling)
     third = text[text.index("## The third dimension's cost"):]
     assert "| chain4, chain4-3d | lagrangian | 0.05 | 0.2 | 4 | — |" in third
     assert "| chain4, chain4-3d | mujoco | 0.04 | 0.1 | 2.5 | nested, nested |" in third
@@ -406,11 +408,11 @@ def test_a_scaling_record_made_before_3d_rows_reads_as_planar_and_old_speed_rows
     profile = grid.PROFILES["full"]
     rows = [_speed_row("chain4", "lagrangian", 0.05), {**_speed_row("chain4", "mujoco", 0.04), "form": None}]
     del rows[1]["form"]
-    text = report.performance_markdown(profile, rows, {"rows": [_size_row("mujoco", 4, 1e-5), _size_row("mujoco", 16, 2e-5)]})
+    text = report_performance.performance_markdown(profile, rows, {"rows": [_size_row("mujoco", 4, 1e-5), _size_row("mujoco", 16, 2e-5)]})
     assert _row(text, "chain4")["MuJoCo C MJCF form"] == "not recorded"
     # A 3D record timed elsewhere: its ratios say so, and the old record's form is not guessed.
     spatial = [{**_speed_row("chain4-3d", solver, wall, form="nested"), "device": "a GPU host"} for solver, wall in (("lagrangian", 0.1), ("mujoco", 0.08))]
-    third = report.performance_markdown(profile, rows + spatial)
+    third = report_performance.performance_markdown(profile, rows + spatial)
     assert "| chain4, chain4-3d | mujoco | 0.04 | 0.08 | 2 (different machines) | not recorded, nested |" in third
     assert "| mujoco | planar | 1e-05 | 2e-05 |" in text
     assert "| mujoco | 3D |" not in text and "3D / planar" not in text and "## The third dimension" not in text
@@ -450,13 +452,13 @@ def test_a_model_added_to_a_profiles_grid_gets_a_colour_and_place_of_its_own():
     mine = (grid.GridEntry("mine", grid.TRAINING_SCENE, ("chain4",)), grid.GridEntry("yours", grid.TRAINING_SCENE, ("chain4",)))
     profile = dataclasses.replace(grid.get_profile("quick"), grid=(*grid.GRID, *mine), models=None)
     order = grid.model_order(profile)
-    assert order[: len(report.MODEL_ORDER)] == report.MODEL_ORDER == ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn",
+    assert order[: len(report_summary.MODEL_ORDER)] == report_summary.MODEL_ORDER == ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn",
                                                                        "gns-10-128", "cgnode", "chgn", "chnn")
-    assert order[len(report.MODEL_ORDER):] == ("mine", "yours")
-    colors = report.model_colors(order)
-    assert {model: colors[model] for model in report.COLORS} == report.COLORS
-    assert colors["mine"] not in report.COLORS.values() and colors["yours"] not in report.COLORS.values()
-    assert colors["mine"] != colors["yours"] and report.model_colors(order) == colors
+    assert order[len(report_summary.MODEL_ORDER):] == ("mine", "yours")
+    colors = report_figures.model_colors(order)
+    assert {model: colors[model] for model in report_figures.COLORS} == report_figures.COLORS
+    assert colors["mine"] not in report_figures.COLORS.values() and colors["yours"] not in report_figures.COLORS.values()
+    assert colors["mine"] != colors["yours"] and report_figures.model_colors(order) == colors
 
 
 def test_a_scene_no_declared_figure_draws_gets_one_from_the_grid():
@@ -479,8 +481,8 @@ def test_several_seeds_are_drawn_one_line_each(monkeypatch, tmp_path):
     rows = [dict(scene="chain4", model="lgnn", seed=seed, metric=metric, statistic=stat, t=t, value=1e-3 * (seed + 1))
             for seed in (0, 1, 2) for metric in ("rollout_error", "energy_error") for stat in ("gmean", "low", "high") for t in (0.1, 0.2, 0.3)]
     figures = []
-    monkeypatch.setattr(report, "_savefig", lambda fig, path: figures.append(fig))
-    assert report._plot_error_vs_time(pd.DataFrame(rows), ["chain4"], tmp_path / "x.png", "chain4")
+    monkeypatch.setattr(report_figures, "_savefig", lambda fig, path: figures.append(fig))
+    assert report_figures._plot_error_vs_time(pd.DataFrame(rows), ["chain4"], tmp_path / "x.png", "chain4")
     (fig,) = figures
     for ax in fig.get_axes():
         lines = ax.get_lines()
@@ -492,7 +494,7 @@ def test_several_seeds_are_drawn_one_line_each(monkeypatch, tmp_path):
 def test_the_settings_say_how_each_evaluated_scene_starts():
     """From each scene's initial-state policy: the rope (a pinned chain) is sampled, the
     net and the trusses keep their own state (the prose once said the rope did too)."""
-    text = report._initial_states_text(grid.get_profile("full"))
+    text = report_readme._initial_states_text(grid.get_profile("full"))
     sampled, own = text.split("; their own state, one initial condition: ")
     assert "rope-3d" in sampled and "chain4-3d" in sampled
     assert own.split(", ") == ["T1", "T2-slack", "T3-slack", "net4x4-3d", "tensegrity-3d"]

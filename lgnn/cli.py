@@ -751,7 +751,8 @@ def _cmd_leaderboard(args) -> None:
     import json
     from pathlib import Path
 
-    from lgnn.bench import grid, report
+    from lgnn.bench import grid
+    from lgnn.bench.report import leaderboard
     from lgnn.bench.store import default_out, layout
 
     if sum(map(bool, (args.full, args.profile, args.config))) > 1:
@@ -762,7 +763,7 @@ def _cmd_leaderboard(args) -> None:
     if not out.is_dir():
         raise ConfigError(f"results folder {out} does not exist (lgnn benchmark writes it)")
     layout(profile, out)
-    path = report.write_leaderboard(profile, out, "lgnn " + " ".join(args.argv))
+    path = leaderboard.write_leaderboard(profile, out, "lgnn " + " ".join(args.argv))
     print(f"wrote {path}")
 
 

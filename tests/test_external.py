@@ -11,7 +11,8 @@ import pandas as pd
 import pytest
 
 from lgnn import physics
-from lgnn.bench import grid, report, store
+from lgnn.bench import grid, store
+from lgnn.bench.report import summary as report_summary
 from lgnn.bench.stages import evaluate, external
 from lgnn.cli import main
 from lgnn.engines import get_engine
@@ -68,7 +69,7 @@ def test_exported_initial_conditions_rolled_out_elsewhere_are_scored_against_the
         record = store.Layout(out).external_record(name, "chain4")
         assert evaluate.has_arrays(store.load(record), evaluate.pair_needs(profile))
     assert [pair.label for pair, _ in external.load_externals(profile, out)] == ["exact-sim (external)", "heavier-sim (external)"]
-    summary = pd.read_csv(out / "benchmark" / report.SUMMARY, comment="#")
+    summary = pd.read_csv(out / "benchmark" / report_summary.SUMMARY, comment="#")
     cell = lambda model, statistic, metric="rollout_error": summary[(summary.model == model) & (summary.metric == metric)  # noqa: E731
                                                                    & (summary.statistic == statistic)].value.item()
     assert cell("exact-sim (external)", "gmean") < 1e-9 and cell("exact-sim (external)", "diverged") == 0

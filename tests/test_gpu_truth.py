@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from lgnn import physics
-from lgnn.bench import gpu_truth, report
+from lgnn.bench import gpu_truth
+from lgnn.bench.report import performance as report_performance
 from lgnn.bench.grid import get_profile
 from lgnn.bench.tables import write_table
 from lgnn.cli import main
@@ -209,7 +210,7 @@ def test_performance_reads_the_gpu_truth_tables(tmp_path):
     assert np.isnan(large["ratio"]) and not large["meets_goal"] and "out of device memory" in large["note"]
     # Each comparison names the GPU of the run(s) it is made of, read from the tables' headers.
     assert small["machine"] == "1x Test GPU (gpu)" and large["machine"] == "1x Older GPU (gpu)"
-    text = report.performance_markdown(get_profile("full"), [], None, tmp_path)
+    text = report_performance.performance_markdown(get_profile("full"), [], None, tmp_path)
     section = text.split("## Ground truth on GPUs against MuJoCo's GPU engines")[1]
     assert "| chain4 | 8 | 3.00e+06 | 2.00e-06 | mjx float32 maximal | 1.00e+06 | 1.00e-05 | 3 | yes |" in section
     assert "| chain4 | 64 | 5.00e+07 |" in section and "| — | — |" in section

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import pytest
 
 from lgnn import physics
-from lgnn.bench import grid, report
+from lgnn.bench import grid
+from lgnn.bench.report import leaderboard, readme as report_readme
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate
 from lgnn.cli import main
@@ -98,16 +99,16 @@ def test_add_entries_extend_the_grid_with_their_own_seeds_and_budget(tmp_path):
 
 def test_the_banner_says_what_was_run_not_the_profiles_name(tmp_path):
     quick = grid.load_profile("quick")
-    assert report.banner(quick) == [report.QUICK_WARNING, ""]
+    assert report_readme.banner(quick) == [report_readme.QUICK_WARNING, ""]
     # The full grid trains every entry by the one protocol (epochs and the plateau rule,
     # no wall clock): no entry on a smaller budget.
-    assert report.banner(grid.PROFILES["full"]) == []
+    assert report_readme.banner(grid.PROFILES["full"]) == []
     assert all(entry.epochs is None and entry.minutes is None for entry in grid.GRID)
     # Full evaluation settings under another name (the paper's track), one model on a
     # short budget: named, no "Not results".
     short = grid.load_profile("full", ["name=mine", 'tracks=["paper"]', "add.epochs=20", "add.seeds=[0]"], add=(f"{__name__}:OWN",))
-    (text, _) = report.banner(short)
-    assert "smaller budget" in text and "scaled-leaderboard (20 epochs; chain4; seed 0)" in text and report.QUICK_WARNING not in text
+    (text, _) = report_readme.banner(short)
+    assert "smaller budget" in text and "scaled-leaderboard (20 epochs; chain4; seed 0)" in text and report_readme.QUICK_WARNING not in text
     assert "lgnn (" not in text and "lgn (" not in text  # the paper's models keep the full recipe
 
 
@@ -136,7 +137,7 @@ def test_base_results_made_with_other_evaluation_settings_are_named_never_mixed_
     assert evaluate.unmatched_base_pairs(longer, out) == grid.evaluation_pairs(longer)
     evaluate.evaluate_group(longer, grid.evaluation_pairs(longer), out, progress=False)
     assert not out.exists() and evaluate.load_pairs(longer, out) == []  # nothing rolled out, nothing written
-    (line,) = report._unmatched_lines(longer, out)
+    (line,) = report_readme._unmatched_lines(longer, out)
     assert line.startswith("**Not compared:** 1 evaluation(s)") and "cheat-leaderboard" in line
 
 
@@ -173,13 +174,13 @@ def test_a_cell_without_a_record_says_why():
     is "—". The committed leaderboard has every pair of its grid."""
     from pathlib import Path
 
-    board = next(b for heading, _, b in report.leaderboards(grid.evaluation_pairs(grid.PROFILES["full"])) if heading.startswith("planar: "))
+    board = next(b for heading, _, b in leaderboard.leaderboards(grid.evaluation_pairs(grid.PROFILES["full"])) if heading.startswith("planar: "))
     clnn = next(p for p in board if p.job.model == "clnn")
     lgnn = next(p for p in board if p.job.model == "lgnn" and p.scene == "chain8")
-    assert report._missing_cell(lgnn.label, "chain8", board) == report.NOT_EVALUATED
-    assert report._missing_cell(clnn.label, "chain8", board) == report.FIXED_SIZE_CELL
-    assert report._missing_cell("mine (external)", "chain8", board) == "—"
+    assert leaderboard._missing_cell(lgnn.label, "chain8", board) == leaderboard.NOT_EVALUATED
+    assert leaderboard._missing_cell(clnn.label, "chain8", board) == leaderboard.FIXED_SIZE_CELL
+    assert leaderboard._missing_cell("mine (external)", "chain8", board) == "—"
     committed = (Path(__file__).resolve().parents[1] / "results" / "LEADERBOARD.md").read_text()
     rows = [line for line in committed.splitlines() if line.startswith("| ")]
-    assert not any(f"| {report.NOT_EVALUATED} |" in row for row in rows)
-    assert all(row.count(report.FIXED_SIZE_CELL) == 6 for row in rows if row.split(" | ")[1] in ("clnn", "chnn"))
+    assert not any(f"| {leaderboard.NOT_EVALUATED} |" in row for row in rows)
+    assert all(row.count(leaderboard.FIXED_SIZE_CELL) == 6 for row in rows if row.split(" | ")[1] in ("clnn", "chnn"))

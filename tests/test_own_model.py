@@ -8,6 +8,7 @@ import jax.numpy as jnp
 
 from lgnn import physics
 from lgnn.bench import grid, report
+from lgnn.bench.report import summary as report_summary
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate
 from lgnn.cli import main
@@ -41,7 +42,7 @@ def test_a_model_defined_outside_the_package_runs_through_the_benchmark(tmp_path
     readme = report.write(profile, out).read_text()
     header = next(line for line in readme.splitlines() if line.startswith("| scene |"))
     assert "scaled-truth" in header.split("|")[2] and "| chain4 | " in readme
-    assert "scaled-truth" in set(report.tables(evaluate.load_truths(profile, out), [(pair, record)])[0]["model"])
+    assert "scaled-truth" in set(report_summary.tables(evaluate.load_truths(profile, out), [(pair, record)])[0]["model"])
     assert (out / "figures" / "error_vs_time_chain4_8_16.png").exists()
 
 

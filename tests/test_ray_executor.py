@@ -17,7 +17,9 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
-from lgnn.bench import claims, grid, report  # noqa: E402
+from lgnn.bench import claims, grid  # noqa: E402
+
+from lgnn.bench.report import summary as report_summary
 from lgnn.bench.stages import evaluate  # noqa: E402
 from lgnn.cli import main  # noqa: E402
 from lgnn.learn import train  # noqa: E402
@@ -92,7 +94,7 @@ def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_execu
     assert len(list((cache / "datasets" / "ground-truth").glob("chain4-*.npz"))) == 1
     assert not list(shared.rglob("*.claim*")) and not list(cache.rglob("*.claim*"))
 
-    summaries = [pd.read_csv(out / "benchmark" / report.SUMMARY, keep_default_na=False) for out in (shared, local)]
+    summaries = [pd.read_csv(out / "benchmark" / report_summary.SUMMARY, keep_default_na=False) for out in (shared, local)]
     assert list(summaries[0].columns) == list(summaries[1].columns) and len(summaries[0]) == len(summaries[1])
     for column in summaries[0].columns:
         if column != "value":

@@ -155,7 +155,8 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     and labels of their own; the full profile has both tracks, the paper's alone on
     request; a leaderboard and tables of their own rank them, their scenes in the
     track's order; an unknown track is one line."""
-    from lgnn.bench import grid, report
+    from lgnn.bench import grid
+    from lgnn.bench.report import leaderboard, summary as report_summary
     from lgnn.bench.stages.train import job_settings
 
     paper = grid.load_profile("full", ['tracks=["paper"]'])
@@ -174,7 +175,7 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     assert grid.TrainingJob("lgnn", "chain4-varied", 0) in grid.training_jobs(both)
     pairs = grid.evaluation_pairs(both)
     assert {p.scene for p in pairs if p.job.track == grid.TRANSFER_TRACK} == {*grid.TRANSFER_TRACK_SCENES, *grid.SPATIAL_TRANSFER_TRACK_SCENES}
-    boards = {heading: board for heading, _, board in report.leaderboards(pairs)}
+    boards = {heading: board for heading, _, board in leaderboard.leaderboards(pairs)}
     transfer_heading = "planar, transfer track: trained on chain4-varied, 5 draws"
     spatial_heading = "3D, transfer track: trained on chain4-3d-varied, 5 draws"
     assert set(boards) == {"planar: trained on chain4", "3D: trained on chain4-3d", transfer_heading, spatial_heading}
@@ -184,15 +185,15 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     assert not any(p.job.varied_draws for p in boards["planar: trained on chain4"])
     # The track's tables list its scenes as its entries declare them (its training chain
     # first), the paper's tables theirs.
-    assert report.scene_groups(["T1", "chain8-varied", "chain4-varied", "chain4"], grid.TRANSFER_TRACK)[2] == [
+    assert report_summary.scene_groups(["T1", "chain8-varied", "chain4-varied", "chain4"], grid.TRANSFER_TRACK)[2] == [
         "chain4-varied", "chain8-varied", "T1", "chain4"]
-    assert report.scene_groups(["chain4-varied", "T1", "chain4"])[2] == ["chain4", "T1", "chain4-varied"]
+    assert report_summary.scene_groups(["chain4-varied", "T1", "chain4"])[2] == ["chain4", "T1", "chain4-varied"]
     # A table's rows (summary, curves) by track: an external prediction stays with the paper's.
     import pandas as pd
 
     table = pd.DataFrame({"model": ["lgnn", "lgnn (chain4-varied, 5 draws)", "mine (external)", "rest"]})
-    assert list(report.track_rows(table, pairs, grid.PAPER_TRACK)["model"]) == ["lgnn", "mine (external)", "rest"]
-    assert list(report.track_rows(table, pairs, grid.TRANSFER_TRACK)["model"]) == ["lgnn (chain4-varied, 5 draws)", "mine (external)", "rest"]
+    assert list(report_summary.track_rows(table, pairs, grid.PAPER_TRACK)["model"]) == ["lgnn", "mine (external)", "rest"]
+    assert list(report_summary.track_rows(table, pairs, grid.TRANSFER_TRACK)["model"]) == ["lgnn (chain4-varied, 5 draws)", "mine (external)", "rest"]
     # The committed report: each track's tables apart, no transfer model among the paper's.
     sections = (Path(__file__).resolve().parents[1] / "results" / "README.md").read_text().split("\n## ")
     paper_table = next(s for s in sections if s.startswith("Rollout error against the Lagrangian ground truth (planar: trained on chain4"))

@@ -51,7 +51,7 @@ def test_only_arrays_scored_against_a_stale_mujoco_reference_are_removed(tmp_pat
 
 @pytest.mark.parametrize("scene", ["chain8", "chain4"])
 def test_records_keep_the_curves_and_snapshots_the_report_draws_and_nothing_else_changes(tmp_path, scene):
-    from lgnn.bench import report
+    from lgnn.bench.report import summary as report_summary
 
     tool = _tool()
     frame_dt, frames = 1e-3, 1000
@@ -65,7 +65,7 @@ def test_records_keep_the_curves_and_snapshots_the_report_draws_and_nothing_else
     path.parent.mkdir(parents=True)
     environment = {"commit": "abc", "versions": "old", "device": "cpu"}
     records.save(path, arrays, meta, environment=environment)
-    drawn_before = report._curve_rows("chain4", "lgnn", 0, "rollout_error", arrays, "rollout_error")
+    drawn_before = report_summary._curve_rows("chain4", "lgnn", 0, "rollout_error", arrays, "rollout_error")
     assert tool.upgrade(tmp_path) == [path]
     kept, kept_meta = records.read(path)
     assert kept_meta == {**meta, "environment": environment}
@@ -76,5 +76,5 @@ def test_records_keep_the_curves_and_snapshots_the_report_draws_and_nothing_else
     # The report draws chain8's snapshots (grid.SNAPSHOT_SCENES), none of chain4.
     assert scene in grid.SNAPSHOT_SCENES and np.array_equal(kept["snapshot/model"], arrays["snapshot/model"]) or (
         scene not in grid.SNAPSHOT_SCENES and "snapshot/model" not in kept)
-    assert report._curve_rows("chain4", "lgnn", 0, "rollout_error", kept, "rollout_error") == drawn_before
+    assert report_summary._curve_rows("chain4", "lgnn", 0, "rollout_error", kept, "rollout_error") == drawn_before
     assert tool.upgrade(tmp_path) == [], "a second run changes nothing"
