@@ -15,6 +15,7 @@ from lgnn.bench import grid
 
 from lgnn.bench.report import figures as report_figures, performance as report_performance, readme as report_readme, summary as report_summary
 from lgnn.bench.stages import evaluate
+from lgnn.bench.stages import train as train_stage
 from lgnn.errors import ConfigError
 
 # What records of the default settings hold: rollout_error, node_rms_error, energy_error,
@@ -227,9 +228,9 @@ def test_runs_the_protocols_rules_did_not_end_are_named_at_the_top(tmp_path):
         history = [(k + 1, 1.0, 1.0 / (k + 1), 0.0) for k in range(3)]
         state = train.initial_state(model, config)._replace(best_val=1 / 3, epoch=epochs, best_epoch=3, history=history)
         train.save_checkpoint(path, state, model, config)
-    (line, _) = report_readme._cut_off_lines(profile, tmp_path)
+    (line, _) = report_readme._cut_off_lines(profile, train_stage.load_checkpoints(profile, tmp_path))
     assert line.startswith("**Training cut off.**") and "lgnn (chain4; 1 run)" in line and "gns (" not in line
-    assert report_readme._cut_off_lines(dataclasses.replace(profile, models=("gns",)), tmp_path) == []
+    assert report_readme._cut_off_lines(dataclasses.replace(profile, models=("gns",)), train_stage.load_checkpoints(dataclasses.replace(profile, models=("gns",)), tmp_path)) == []
 
 
 def test_default_lgnn_is_read_from_the_training_records(tmp_path):
@@ -241,7 +242,6 @@ def test_default_lgnn_is_read_from_the_training_records(tmp_path):
     import dataclasses
 
     from lgnn.bench import store
-    from lgnn.bench.stages import train as train_stage
     from lgnn.learn import models, train
     from lgnn.scene import get_scene
 
@@ -262,7 +262,7 @@ def test_default_lgnn_is_read_from_the_training_records(tmp_path):
     chosen, scores = train_stage.default_lgnn(profile, tmp_path, spatial)
     assert chosen == "lgnn" and set(scores) == {"lgnn", "lgnn-notebook"}
     assert np.isclose(scores["lgnn"], 1e-2) and np.isclose(scores["lgnn-notebook"], 1.0)
-    lines = report_readme._training_lines(profile, tmp_path)
+    lines = report_readme._training_lines(profile, tmp_path, train_stage.load_checkpoints(profile, tmp_path))
     assert any("Default LGNN (trained on chain4" in line and "**lgnn-mp1**" in line for line in lines)
     assert any("Default LGNN in 3D (trained on chain4-3d" in line and "**lgnn**" in line for line in lines)
 

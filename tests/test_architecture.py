@@ -181,3 +181,35 @@ def test_ray_is_imported_only_to_run_on_ray():
               "print('ray' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", script], cwd=PACKAGE.parent, capture_output=True, text=True, check=True)
     assert out.stdout.strip().splitlines()[-1] == "False"
+
+
+def _modules_in_layer_table() -> tuple[set[str], tuple[str, ...]]:
+    """The modules ARCHITECTURE.md's layer table names: each `lgnn.X` of a row's modules
+    cell, and the names after it, read as its modules (`name`, or `name/*` for a
+    package and everything in it); names before any `lgnn.X` are `lgnn`'s own."""
+    import re
+
+    text = (PACKAGE.parent / "ARCHITECTURE.md").read_text()
+    table = text.split("## Layers", 1)[1].split("\n## ", 1)[0]
+    named, packages = set(), []
+    for row in table.splitlines()[2:]:
+        cells = row.split(" | ")
+        if len(cells) < 3:
+            continue
+        parent = "lgnn"
+        for token in re.findall(r"`([^`]+)`", cells[1]):
+            if token.startswith("lgnn.") or token == "lgnn":
+                parent = token
+                named.add(token)
+            elif token.endswith("/*"):
+                packages.append(f"{parent}.{token[:-2].replace('/', '.')}")
+            elif re.fullmatch(r"[a-z_][a-z0-9_/]*", token):
+                named.add(f"{parent}.{token.replace('/', '.')}")
+    return named, tuple(packages)
+
+
+def test_the_layer_table_of_architecture_md_names_every_module():
+    named, packages = _modules_in_layer_table()
+    missing = [module for module in MODULES if module != "lgnn" and module not in named
+               and not any(module == package or module.startswith(package + ".") for package in packages)]
+    assert not missing, f"ARCHITECTURE.md's layer table does not name {missing}: add each to its layer's row"

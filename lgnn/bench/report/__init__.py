@@ -21,6 +21,7 @@ from lgnn.bench.stages.external import load_externals
 from lgnn.bench.stages.mass import load_mass
 from lgnn.bench.stages.scaling import load_scaling
 from lgnn.bench.stages.speed import speed_rows as load_speed_rows
+from lgnn.bench.stages.train import load_checkpoints
 from lgnn.bench.report.summary import CURVES, MASS_COLUMNS, SUMMARY, provenance_columns, tables
 from lgnn.bench.tables import write_csv
 from lgnn.files import write_text_atomic
@@ -76,7 +77,9 @@ def write(profile: Profile, out: Path, sections=(), command: str | None = None) 
                bench_dir / "mass_matrix.csv")
     figures = draw(profile, out / "figures", truths, pairs, externals, curves, speed_rows, mass_records)
     path = out / "README.md"
-    write_text_atomic(path, readme_markdown(profile, out, (truths, pairs + externals), summary, speed_rows, mass_records, figures, env,
+    # Each checkpoint read once, for the training table, its warnings and the leaderboard.
+    checkpoints = load_checkpoints(profile, out)
+    write_text_atomic(path, readme_markdown(profile, out, (truths, pairs + externals), checkpoints, summary, speed_rows, mass_records, figures, env,
                                             stage_sections(profile, out, sections), command))
-    write_text_atomic(out / LEADERBOARD, leaderboard_markdown(profile, out, summary, env, command))
+    write_text_atomic(out / LEADERBOARD, leaderboard_markdown(profile, out, summary, checkpoints, env, command))
     return path

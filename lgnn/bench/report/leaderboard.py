@@ -35,7 +35,7 @@ def write_leaderboard(profile: Profile, out: Path, command: str | None = None) -
     out = Path(out)
     summary, _ = tables(load_truths(profile, out), load_pairs(profile, out) + load_externals(profile, out), profile.evaluate.references)
     path = out / LEADERBOARD
-    write_text_atomic(path, leaderboard_markdown(profile, out, summary, env, command))
+    write_text_atomic(path, leaderboard_markdown(profile, out, summary, load_checkpoints(profile, out), env, command))
     return path
 
 
@@ -58,7 +58,7 @@ def _ranks(values: dict[str, float]) -> dict[str, int]:
     return {model: 1 + ordered.index(value) for model, value in values.items()}
 
 
-def _trained(profile: Profile, out: Path) -> dict[str, tuple[str, str]]:
+def _trained(profile: Profile, out: Path, checkpoints: list) -> dict[str, tuple[str, str]]:
     """`{job label: (parameters, training)}` of the profile's trained models with checkpoints:
     learned parameters of the best epoch (training-set statistics apart) and the median
     over seeds of the recorded training minutes, with the device (GPU-minutes only on a
@@ -67,7 +67,7 @@ def _trained(profile: Profile, out: Path) -> dict[str, tuple[str, str]]:
 
     layout = store.layout(profile, out)
     found: dict[str, list] = {}
-    for job, state in load_checkpoints(profile, out):
+    for job, state in checkpoints:
         meta, _ = checkpoint_files.read(layout.found(layout.checkpoint(job)))
         found.setdefault(job.label, []).append((job, state, meta))
     result = {}
@@ -116,7 +116,7 @@ def _missing_cell(label: str, scene: str, board: list[Pair]) -> str:
     return FIXED_SIZE_CELL if fixed else "—"
 
 
-def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, command: str | None = None) -> str:
+def leaderboard_markdown(profile: Profile, out: Path, summary, checkpoints: list, env: dict, command: str | None = None) -> str:
     """`LEADERBOARD.md`: per leaderboard (`leaderboards`: each dimension's paper track
     and transfer track), one row per model it ranks and per external prediction, the rollout error
     cell of README.md's table on each scene of the grid with its rank there, parameters,
@@ -124,7 +124,7 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, env: dict, comman
     unrankable = unrankable_scenes(out)
     wide = (summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
             if not summary.empty else None)
-    trained = _trained(profile, out)
+    trained = _trained(profile, out, checkpoints)
     shown = "lgnn leaderboard" + (" --full" if profile.name == "full" else f" (profile {profile.name})")
     lines = [f"# Leaderboard ({profile.name} profile)", "",
              f"Written by `{command or shown}` from the benchmark's records (`benchmark/runs/` of this folder"

@@ -24,7 +24,7 @@ from lgnn.bench.grid import (
 )
 from lgnn.bench.report.performance import speed_markdown
 from lgnn.bench.stages.evaluate import CURVE_DT, unmatched_base_pairs
-from lgnn.bench.stages.train import default_lgnn, load_checkpoints
+from lgnn.bench.stages.train import default_lgnn
 from lgnn.bench.report.summary import (
     DIMENSION_NAMES,
     EXACT_NO_DRAG,
@@ -52,9 +52,9 @@ def _stopped_by(state, config) -> str:
     return stop_reason(state, config) or "not finished: cut off, resumable"
 
 
-def _training_lines(profile: Profile, out: Path) -> list[str]:
+def _training_lines(profile: Profile, out: Path, checkpoints: list) -> list[str]:
+    """The training table of `checkpoints` (`stages.train.load_checkpoints`) and each dimension's default LGNN."""
     lines = ["| model | training scene | seed | epochs | minutes | best validation MSE (epoch) | stopped by |", "|---|---|---|---|---|---|---|"]
-    checkpoints = load_checkpoints(profile, out)
     for job, state in checkpoints:
         lines.append(f"| {job.model} | {job.scene} | {job.seed} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) "
                      f"| {_stopped_by(state, train_config(profile, job))} |")
@@ -98,13 +98,13 @@ QUICK_WARNING = ("**Not results.** This profile checks that the pipeline runs: i
                  "Numbers: `lgnn benchmark --full`, or the committed `results/`.")
 
 
-def _cut_off_lines(profile: Profile, out: Path) -> list[str]:
+def _cut_off_lines(profile: Profile, checkpoints: list) -> list[str]:
     """A warning naming the checkpoints whose training the protocol's rules (epoch
     budget, plateau) did not end: cut off by a wall-clock cap they were trained under,
     or by an interrupted run. Their rows rank what that training learned, not the
     protocol's; a full run resumes or retrains them. Nothing where every run ended."""
     cut: dict[str, list[TrainingJob]] = {}
-    for job, state in load_checkpoints(profile, out):
+    for job, state in checkpoints:
         if stop_reason(state, train_config(profile, job)) is None:
             cut.setdefault(job.model, []).append(job)
     if not cut:
@@ -218,7 +218,7 @@ def _initial_states_text(profile: Profile) -> str:
     return "; ".join(f"{how[policy]}: {', '.join(scenes)}" for policy, scenes in by_policy.items())
 
 
-def readme_markdown(profile: Profile, out: Path, records: tuple, summary, speed_rows, mass_records, figures: list[str], env: dict[str, str],
+def readme_markdown(profile: Profile, out: Path, records: tuple, checkpoints: list, summary, speed_rows, mass_records, figures: list[str], env: dict[str, str],
            stage_lines: list[str] = (), command: str | None = None) -> str:
     p, t, e = profile, profile.training, profile.evaluate
     envs = sorted(set(summary["device"])) if not summary.empty else []
@@ -236,7 +236,7 @@ def readme_markdown(profile: Profile, out: Path, records: tuple, summary, speed_
         + "; ".join(envs) + ".",
         "",
         *banner(p),
-        *_cut_off_lines(p, out),
+        *_cut_off_lines(p, checkpoints),
         "## Settings",
         "",
         f"- Training: {t.data.n_trajectories} trajectories of {t.data.duration:g} s, a state every {t.data.sample_dt:g} s (75:25 split), "
@@ -274,7 +274,7 @@ def readme_markdown(profile: Profile, out: Path, records: tuple, summary, speed_
         "",
         "## Training",
         "",
-        *_training_lines(p, out),
+        *_training_lines(p, out, checkpoints),
         "",
         *_external_lines(records[1]),
         *_summary_sections(p, summary, unrankable),
