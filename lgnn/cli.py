@@ -8,36 +8,26 @@ thread counts, XLA flags) is done here, at the entry point.
 
 from __future__ import annotations
 
-import signal
-import threading
+from lgnn.interrupts import EXIT_INTERRUPTED, HeldWhileLoading, run_interruptibly
 
 # A Ctrl-C while this module loads, before `main` takes SIGINT, is remembered here and
 # answered by `main` (one line, exit 130), not raised as a traceback from an import.
-_INTERRUPTED_WHILE_LOADING: list[int] = []
-_HOLDS_SIGINT_WHILE_LOADING = threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.default_int_handler
-if _HOLDS_SIGINT_WHILE_LOADING:
-    signal.signal(signal.SIGINT, lambda signum, frame: _INTERRUPTED_WHILE_LOADING.append(signum))
-try:
-    import _thread
+_LOADING = HeldWhileLoading()
+with _LOADING:
     import argparse
-    import contextlib
     import dataclasses
     import math
     import os
     import re
     import sys
-    import time
 
     from lgnn.errors import ConfigError, LgnnError, SimulationError
-finally:
-    if _HOLDS_SIGINT_WHILE_LOADING:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 # Exit statuses (docs/cli.md, "Behaviour common to every command").
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3  # a simulation or rollout diverged; the frames before it are kept
-EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT, as shells report it)
+# EXIT_INTERRUPTED (130, Ctrl-C) is `lgnn.interrupts`'.
 # `lgnn convergence --halvings`: dt / 2^20 is a millionth of the coarsest step, already
 # more steps than a run finishes in a day.
 MAX_HALVINGS = 20
@@ -946,131 +936,13 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command `argv` (default: the process's arguments); its exit status.
 
     Ctrl-C at any moment, while JAX loads or compiles included, is one line and exit
-    130 (one dropped inside a callback is delivered again).
-
-    A Ctrl-C during an XLA compilation is held until that compilation ends. JAX waits
-    for a compilation interruptibly, but the compilation itself goes on in XLA's thread
-    pool, and nothing cancels or waits for it: leaving then destroyed the backend (its
-    devices) and LLVM's static state under the running compiler thread, a segmentation
-    fault after "lgnn: interrupted". "lgnn: interrupted" is printed at once; a second
-    Ctrl-C during the compilation leaves at once, without Python's shutdown.
+    130 (`lgnn.interrupts.run_interruptibly`: one during an XLA compilation is held
+    until that compilation ends; a second one leaves at once).
     """
-    default_hook = sys.unraisablehook
-    received, loading = _INTERRUPTED_WHILE_LOADING[:], []  # Ctrl-Cs; a C extension loads
-    _INTERRUPTED_WHILE_LOADING.clear()
-    owed, askers, announced, finished = [], [], [], threading.Event()
-
-    def ask_again():
-        # A Ctrl-C taken but not raised yet, delivered again a moment later from another
-        # thread; `main` waits for these threads before it gives SIGINT back.
-        owed.append(True)
-        askers.append(threading.Thread(target=_interrupt_main_later, args=(finished,), daemon=True))
-        askers[-1].start()
-
-    def redeliver_interrupts(unraisable):
-        # Ctrl-C landing in a callback Python cannot raise from (JAX's garbage-collection
-        # hook, a __del__) is printed and dropped: deliver it again once the main thread
-        # is out of the callback.
-        if isinstance(unraisable.exc_value, KeyboardInterrupt):
-            ask_again()
-        else:
-            default_hook(unraisable)
-
-    def on_interrupt(signum, frame):
-        if owed:
-            owed.pop()  # delivered again, not a new Ctrl-C
-        else:
-            received.append(signum)
-        if finished.is_set():
-            return
-        if _inside_compilation(frame):
-            if len(received) > 1:  # a second Ctrl-C: leave now, without Python's shutdown
-                sys.stdout.flush()
-                os._exit(EXIT_INTERRUPTED)
-            if not announced:
-                announced.append(_say_interrupted())
-            ask_again()  # raised once the compilation has returned
-            return
-        if not loading:
-            raise KeyboardInterrupt
-
-    @contextlib.contextmanager
-    def interrupts_after_loading():
-        # numpy's and jaxlib's C initialisation print the traceback of an exception
-        # raised inside it before failing the import: a Ctrl-C while they load is held
-        # until they have (a second or two), then raised.
-        loading.append(True)
-        try:
-            yield
-        finally:
-            loading.clear()
-        if received:
-            raise KeyboardInterrupt
-
-    # Ctrl-C as Python takes it, but remembered: one inside a C extension's
-    # initialisation comes out as the ImportError it caused. A SIGINT handler someone
-    # else set (or SIG_IGN, inherited) is left alone.
-    own_handler = threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    if own_handler:
-        signal.signal(signal.SIGINT, on_interrupt)
-    sys.unraisablehook = redeliver_interrupts
-    code = None  # None: interrupted
-    try:
-        if received:
-            raise KeyboardInterrupt
-        code = _run(argv, interrupts_after_loading)
-    except KeyboardInterrupt:
-        pass
-    except Exception:
-        if not received:
-            raise  # a bug in lgnn, shown as one
-    finally:
-        finished.set()
-        for asker in askers:  # signal.signal first runs what they asked for (quietly)
-            asker.join()
-        sys.unraisablehook = default_hook
-        if own_handler:
-            signal.signal(signal.SIGINT, signal.default_int_handler)
-    if code is not None and not announced:
-        return code
-    if not announced:  # announced: a held Ctrl-C, which the command outran
-        _say_interrupted()
-    _forget_interrupted_source_text()
-    return EXIT_INTERRUPTED
+    return run_interruptibly(lambda interrupts_after_loading: _run(argv, interrupts_after_loading), _LOADING.take())
 
 
-def _say_interrupted() -> bool:
-    print("lgnn: interrupted", file=sys.stderr, flush=True)
-    return True
-
-
-def _forget_interrupted_source_text() -> None:
-    # CPython remembers a KeyboardInterrupt that left an `exec` or `eval` of source text
-    # (dataclasses and namedtuple build their methods so while modules import) and ends
-    # the process by SIGINT at exit, whatever `main` returned. Evaluating source text
-    # again clears the memory.
-    exec("pass")
-
-
-def _inside_compilation(frame) -> bool:
-    """Whether the Python frame `frame` waits on an XLA compilation (JAX's compiler)."""
-    while frame is not None:
-        code = frame.f_code
-        if code.co_name.startswith("backend_compile") and code.co_filename.endswith(_JAX_COMPILER):
-            return True
-        frame = frame.f_back
-    return False
-
-
-_JAX_COMPILER = os.path.join("jax", "_src", "compiler.py")
-
-
-def _interrupt_main_later(finished: threading.Event) -> None:
-    if not finished.wait(0.05):
-        _thread.interrupt_main()
-
-
-def _run(argv: list[str] | None, interrupts_after_loading=contextlib.nullcontext) -> int:
+def _run(argv: list[str] | None, interrupts_after_loading) -> int:
     from lgnn.runtime import accept_interrupts_if_child, configure, enable_compilation_cache
 
     with interrupts_after_loading():
