@@ -219,27 +219,9 @@ def _trajectory_out(path: str):
     return checked
 
 
-def _save_rollout(run, out):
-    """`run()`'s trajectory saved to `out`; if it diverges, the frames before the
-    failure are saved, flagged `diverged` in the metadata, and the error says so."""
-    from lgnn.errors import SimulationError
-
-    try:
-        trajectory = run()
-    except SimulationError as err:
-        if err.trajectory is None or len(err.trajectory.t) == 0:
-            raise
-        partial = err.trajectory
-        partial = dataclasses.replace(partial, metadata={**partial.metadata, "diverged": {"time": err.time, "error": str(err)}})
-        partial.save(out)
-        raise SimulationError(f"{err}; kept the {len(partial.t)} frames before it in {out} (metadata 'diverged')",
-                              time=err.time, trajectory=partial) from None
-    trajectory.save(out)
-    return trajectory
-
-
 def _cmd_simulate(args) -> None:
     from lgnn.engines import batch_of_one, get_engine
+    from lgnn.engines.base import save_rollout
     from lgnn.metrics import energy_drift
     from lgnn.scene import get_scene
 
@@ -247,7 +229,7 @@ def _cmd_simulate(args) -> None:
     _trajectory_out(args.out)
     engine = get_engine(args.engine, dtype=args.dtype, progress=not args.quiet, form=args.form, integration=_integration(args))
     scene = get_scene(args.scene)
-    trajectory = _save_rollout(lambda: engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0), args.out)
+    trajectory = save_rollout(lambda: engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0), args.out)
     # A JAX engine's trajectory names its integration; a MuJoCo engine steps by its own RK4.
     integrator = trajectory.metadata["integration"]["integrator"] if "integration" in trajectory.metadata else "MuJoCo's RK4"
     print(
@@ -443,7 +425,7 @@ def _cmd_train(args) -> None:
 
 
 def _cmd_rollout(args) -> None:
-    from lgnn.engines.base import Integration
+    from lgnn.engines.base import Integration, save_rollout
     from lgnn.learn import checkpoints, models, train
     from lgnn.scene import get_scene
     from lgnn.metrics import energy_drift
@@ -458,7 +440,7 @@ def _cmd_rollout(args) -> None:
     if differences:
         print(f"lgnn: warning: {scene.name} differs from the scene {model.name} was trained on: {'; '.join(differences)}", file=sys.stderr)
     integration = _integration(args) or Integration()
-    trajectory = _save_rollout(lambda: models.rollout(model, params, scene, config, integration=integration, progress=not args.quiet),
+    trajectory = save_rollout(lambda: models.rollout(model, params, scene, config, integration=integration, progress=not args.quiet),
                                args.out)
     print(f"{model.name} on {scene.name}: {len(trajectory.t)} frames over {config.duration:g} s; "
           f"true energy drift {energy_drift(scene, trajectory):.2e}; wrote {args.out}")
