@@ -258,19 +258,10 @@ def _cmd_mjcf(args) -> None:
     out = Path(args.dir)
     if not out.is_dir():
         raise ConfigError(f"MJCF directory does not exist: {out}")
-    files = mjcf.builtin_files((args.form,) if args.form else mjcf.FORMS)
-    stale = []
-    for name, text in files.items():
-        path = out / name
-        if args.check:
-            if not path.exists() or path.read_text() != text:
-                stale.append(str(path))
-        else:
-            path.parent.mkdir(exist_ok=True)
-            write_text_atomic(path, text)
+    count, stale = mjcf.write_builtin_files(out, (args.form,) if args.form else mjcf.FORMS, check=args.check)
     if stale:
         raise ConfigError(f"MJCF files differ from what the code renders: {', '.join(stale)} (run: lgnn mjcf)")
-    print(f"{'checked' if args.check else 'wrote'} {len(files)} MJCF files in {out}")
+    print(f"{'checked' if args.check else 'wrote'} {count} MJCF files in {out}")
 
 
 def _cmd_crosscheck(args) -> None:
