@@ -370,20 +370,14 @@ def _add_convergence_parser(commands) -> None:
     parser.set_defaults(run=_cmd_convergence)
 
 
-def train_recipe():
-    """The training settings `lgnn train` starts from: the full profile's
-    (`lgnn.bench.grid.PROFILES["full"].training`: data, batch, learning rate and its
-    schedule, plateau rule), so its checkpoint is trained as the committed ones are."""
-    from lgnn.bench.grid import PROFILES
-
-    return PROFILES["full"].training
-
-
 def train_settings(args):
     """`(DataConfig, TrainConfig)` of `lgnn train`'s arguments: the full profile's
-    recipe (`train_recipe`) with the options given. The data are the profile's for the
-    scene (seed 0 whatever `--seed`, as the benchmark's); `--seed` seeds the parameters
-    and shuffles; the checkpoint is written every `checkpoint_every` epochs, the recipe's."""
+    recipe (`lgnn.bench.api.train_recipe`) with the options given. The data are the
+    profile's for the scene (seed 0 whatever `--seed`, as the benchmark's); `--seed`
+    seeds the parameters and shuffles; the checkpoint is written every
+    `checkpoint_every` epochs, the recipe's."""
+    from lgnn.bench.api import train_recipe
+
     recipe = train_recipe()
     data_config = dataclasses.replace(recipe.data_for(args.scene), n_trajectories=args.trajectories, varied_draws=args.varied_draws)
     config = dataclasses.replace(recipe.train, learning_rate=args.lr, batch_size=args.batch_size, epochs=args.epochs, minutes=args.minutes,
@@ -438,6 +432,7 @@ def _cmd_rollout(args) -> None:
 
 
 def _add_train_parser(commands) -> None:
+    from lgnn.bench.api import train_recipe
     from lgnn.learn.models import model_names
 
     recipe = train_recipe()

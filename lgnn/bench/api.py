@@ -1,5 +1,5 @@
-"""The benchmark from Python (a notebook's way in): `train`, `evaluate`, `benchmark` and
-`load_results`, exported as `lgnn.train`, `lgnn.evaluate`, `lgnn.benchmark` and
+"""The benchmark from Python (a notebook's way in): `train` (from `train_recipe`, the
+full profile's), `evaluate`, `benchmark` and `load_results`, exported as `lgnn.train`, `lgnn.evaluate`, `lgnn.benchmark` and
 `lgnn.load_results` (imported on first use: `import lgnn` stays light).
 
 Each does what its command does, with the same defaults and checks (bad input is an
@@ -19,6 +19,15 @@ from lgnn.errors import ConfigError
 RESULT_TABLES = {"summary": "summary.csv.gz", "curves": "curves.csv.gz", "speed": "speed_error.csv", "mass": "mass_matrix.csv"}
 
 
+def train_recipe():
+    """The training settings `train` and `lgnn train` start from: the full profile's
+    (`lgnn.bench.grid.PROFILES["full"].training`: data, batch, learning rate and its
+    schedule, plateau rule), so their checkpoints are trained as the committed ones are."""
+    from lgnn.bench.grid import PROFILES
+
+    return PROFILES["full"].training
+
+
 def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: int | None = None, seed: int = 0,
           minutes: float | None = None, trajectories: int | None = None, varied_draws: int = 0, link_features: bool = False, resume: bool = False,
           cache_dir: str | os.PathLike | None = None, progress: bool = False):
@@ -29,12 +38,11 @@ def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: 
     that many varied draws of the chain (`lgnn train --varied-draws`), and
     `link_features` gives the model each link's mass, inertia ratio and length
     (`--link-features`). Returns the final training state (`best_val`, `best_epoch`, `epoch`, ...)."""
-    from lgnn.bench.grid import PROFILES
     from lgnn.learn import data, models
     from lgnn.learn import train as training
     from lgnn.scene import get_scene
 
-    recipe = PROFILES["full"].training
+    recipe = train_recipe()
     if Path(out).exists() and not resume:
         raise ConfigError(f"{out} exists: resume=True to continue training it, or choose another out")
     data_config = dataclasses.replace(recipe.data_for(scene), varied_draws=varied_draws, **({"n_trajectories": trajectories} if trajectories else {}))
