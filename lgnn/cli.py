@@ -246,7 +246,8 @@ def _cmd_mjcf(args) -> None:
     from lgnn.scene import get_scene
 
     if args.scene is not None:
-        text = mjcf.render(get_scene(args.scene), args.dt, args.form or "nested")
+        form = {"form": args.form} if args.form else {}  # none: the renderer's default (nested)
+        text = mjcf.render(get_scene(args.scene), args.dt, **form)
         if args.out in (None, "-"):
             sys.stdout.write(text)
         else:
@@ -266,14 +267,14 @@ def _cmd_mjcf(args) -> None:
 
 def _cmd_crosscheck(args) -> None:
     from lgnn.bench import crosscheck as cc
-    from lgnn.bench.tables import write_table
     from lgnn.engines import ENGINES, get_engine
     from lgnn.files import check_writable, out_dir
     from lgnn.scene import get_scene
 
     command = "lgnn " + " ".join(args.argv)
     args.out_dir = out_dir(args.out_dir)
-    check_writable(f"{args.out_dir}/engines_speed_error.md" if args.speed else f"{args.out_dir}/crosscheck.md")
+    stem = cc.SPEED_STEM if args.speed else cc.CROSSCHECK_STEM
+    check_writable(f"{args.out_dir}/{stem}.md")
     engines = tuple(args.engines.split(","))
     parsed = [cc.engine_spec(spec) for spec in engines]
     if {name for name, _ in parsed} - set(ENGINES) or not engines:
@@ -283,12 +284,9 @@ def _cmd_crosscheck(args) -> None:
     if args.speed and any(form for _, form in parsed):
         raise ConfigError(f"--engines: --speed takes engine names only (each MuJoCo engine in its own form), got {args.engines!r}")
     if args.speed:
-        rows = cc.speed_error(args.scenes or ["chain4", "chain16", "chain100", "T1"], engines, dts=tuple(args.speed_dts), batches=tuple(args.batch),
+        rows = cc.speed_error(args.scenes or list(cc.SPEED_SCENES), engines, dts=tuple(args.speed_dts), batches=tuple(args.batch),
                               batch_dts=tuple(args.batch_dts), mjx_max_depth=args.mjx_max_depth, max_steps=args.max_steps, dtype=args.dtype)
-        columns = ["scene", "engine", "form", "batch", "dt", "dtype", "steps_per_s", "compile_s", "max_node_error", "note"]
-        notes = [f"speed: steps/s = batch x steps / run time (compile apart), RK4, horizon 0.1 s, JAX engines in {args.dtype}",
-                 "error: max node error after 0.1 s (single state) vs MuJoCo C RK4 at dt 1e-6"]
-        stem, title = "engines_speed_error", "Engines: speed against error"
+        cc.write_speed_error(rows, args.out_dir, command, args.dtype)
     else:
         config = _simulation_config(args)
         rows = []
@@ -296,16 +294,14 @@ def _cmd_crosscheck(args) -> None:
             scene = get_scene(name)
             rows += cc.crosscheck(scene, config, engines, args.mjx_max_depth, progress=True, integration=_integration(args))
             # Rows name the scene, not the argument (a scene file's path).
-            print("\n".join(f"{r['scene']:8s} {r['engine']:18s} {r['form']:16s} {r['metric']:22s} {r['value']:.3e} {r['note']}" for r in rows if r["scene"] == scene.name))
-        columns = ["scene", "engine", "form", "metric", "value", "note"]
-        notes = [f"RK4, dt {config.dt:g}, {config.duration:g} s, float64; MuJoCo loops: connect, solref 2 dt, solimp 0.9999",
-                 "form: the MJCF form each MuJoCo engine ran (nested: joint coordinates; maximal: a body per link, connect joints)"]
-        stem, title = "crosscheck", "Cross-check of the ground-truth engines"
-    write_table(rows, columns, f"{args.out_dir}/{stem}.csv", f"{args.out_dir}/{stem}.md", title, cc.header(command), notes)
+            print("\n".join(cc.row_line(row) for row in rows if row["scene"] == scene.name))
+        cc.write_crosscheck(rows, args.out_dir, command, config)
     print(f"wrote {args.out_dir}/{stem}.csv and .md")
 
 
 def _add_mujoco_commands(commands) -> None:
+    from lgnn.bench.crosscheck import DEFAULT_ENGINES, SCENES
+    from lgnn.engines.base import DTYPES
     from lgnn.engines.mjcf import FORMS
 
     mjcf = commands.add_parser("mjcf", help="render a scene's MJCF, or every built-in's into mjcf/")
@@ -317,8 +313,8 @@ def _add_mujoco_commands(commands) -> None:
     mjcf.add_argument("--check", action="store_true", help="fail if a file differs from the rendered text")
     mjcf.set_defaults(run=_cmd_mjcf)
     check = commands.add_parser("crosscheck", help="run every engine on the same scenes and compare them")
-    check.add_argument("scenes", nargs="*", help="built-in names or scene files (default: chain4 chain8 chain16 chain100 T1 T2 T3)")
-    check.add_argument("--engines", default="lagrangian,mujoco,mjx",
+    check.add_argument("scenes", nargs="*", help=f"built-in names or scene files (default: {' '.join(SCENES)})")
+    check.add_argument("--engines", default=",".join(DEFAULT_ENGINES),
                        help="comma-separated engines, each NAME or NAME:FORM (e.g. mujoco:nested,mujoco:maximal: both MJCF forms in one table)")
     check.add_argument("--mjx-max-depth", type=_nonnegative_int, help="skip MJX on deeper trees (default: skip none)")
     check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")
@@ -326,7 +322,7 @@ def _add_mujoco_commands(commands) -> None:
     check.add_argument("--batch", type=_positive_int, nargs="+", default=[100], help="--speed: batch sizes of the batched runs (default 100)")
     check.add_argument("--batch-dts", type=_positive_float, nargs="+", default=[1e-4], help="--speed: steps of the batched runs (default 1e-4)")
     check.add_argument("--max-steps", type=_positive_int, default=25_000, help="--speed: skip JAX runs over 16x this many link-steps")
-    check.add_argument("--dtype", choices=("float64", "float32"), default="float64", help="--speed: precision of the JAX engines")
+    check.add_argument("--dtype", choices=DTYPES, default=DTYPES[0], help="--speed: precision of the JAX engines")
     check.add_argument("--out-dir", default=None, help="output directory (default: ./lgnn-out; the committed tables are results/)")
     _add_simulation_options(check)
     check.set_defaults(run=_cmd_crosscheck)
@@ -837,7 +833,7 @@ def _add_gpu_truth_parser(commands) -> None:
     parser.add_argument("--steps", type=_positive_int, default=default.steps, help="RK4 steps; the error is after the last")
     parser.add_argument("--dt", type=_positive_float, default=default.dt, help="integration step (s)")
     parser.add_argument("--repeats", type=_positive_int, default=default.repeats, help="timed runs per engine and batch (the spread)")
-    parser.add_argument("--form", choices=FORMS, default=default.form, help="MJCF form of the MuJoCo engines (default nested)")
+    parser.add_argument("--form", choices=FORMS, default=default.form, help=f"MJCF form of the MuJoCo engines (default {default.form})")
     parser.add_argument("--seed", type=int, default=default.seed, help="initial states' seed")
     parser.add_argument("--out", required=True, help="output directory: gpu_truth_<scene><suffix>.csv and .md")
     parser.add_argument("--suffix", type=_file_name_part, default="", help="appended to the file names (e.g. _mjx for a call of its own)")
@@ -861,6 +857,13 @@ class _VersionAction(argparse.Action):
         parser.exit()
 
 
+def _of_engines(field: str) -> list[str]:
+    """Every value of the registered engines' `field` (`EngineEntry.dtypes`, `.forms`), in order."""
+    from lgnn.engines import ENGINES
+
+    return list(dict.fromkeys(value for entry in ENGINES.values() for value in getattr(entry, field)))
+
+
 def build_parser() -> argparse.ArgumentParser:
     from lgnn.engines import ENGINES
 
@@ -881,9 +884,9 @@ def build_parser() -> argparse.ArgumentParser:
     simulate = commands.add_parser("simulate", help="simulate a scene with a ground-truth engine")
     simulate.add_argument("scene", help="built-in scene name or scene JSON file")
     simulate.add_argument("--engine", default="lagrangian", choices=list(ENGINES), help="ground-truth engine (default: lagrangian)")
-    simulate.add_argument("--dtype", choices=["float64", "float32"], default=None,
+    simulate.add_argument("--dtype", choices=_of_engines("dtypes"), default=None,
                           help="precision of the engine (default: its own, float64 but MuJoCo Warp's float32); one it lacks is refused")
-    simulate.add_argument("--form", choices=["auto", "nested", "maximal"], help="MuJoCo engines: MJCF form (default auto: the engine's choice)")
+    simulate.add_argument("--form", choices=_of_engines("forms"), help="MuJoCo engines: MJCF form (default auto: the engine's choice)")
     _add_simulation_options(simulate)
     simulate.add_argument("--out", required=True, help="output .npz file")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar")
