@@ -81,15 +81,28 @@ def benchmark(profile: str | os.PathLike = "quick", out: str | os.PathLike | Non
     file, `settings` its `KEY=VALUE` overrides, `add_models` (`--add-model`),
     `predictions` (`--add-predictions`), `with_results` (`--with-results`); the output
     folder (default the profile's). `load_results(that folder)` reads its tables."""
+    from lgnn.bench.run import run
+
+    chosen = benchmark_profile(profile, settings=settings, add_models=add_models, predictions=predictions, with_results=with_results)
+    return run(chosen, out, tuple(stages) if stages else None, progress=progress)
+
+
+def benchmark_profile(profile: str | os.PathLike = "quick", *, settings=(), add_models=(), predictions=(), with_results: str | os.PathLike | None = None):
+    """The `lgnn.bench.grid.Profile` that `benchmark`, `lgnn benchmark` and `lgnn
+    leaderboard` run: `profile` a shipped name or a config file with its `KEY=VALUE`
+    `settings`, `add_models` added to its grid, `predictions` files to score and
+    `with_results` a results folder to rank beside. Those paths (and an added model's
+    `file.py`) are relative to the working directory, never to a config's folder (as
+    the config's own `base` and models are)."""
     import json
 
     from lgnn.bench import grid
-    from lgnn.bench.run import run
 
     overrides = [*settings, *([f"base={json.dumps(str(Path(with_results).resolve()))}"] if with_results else [])]
-    chosen = grid.load_profile(profile, overrides, tuple(add_models))
-    chosen = dataclasses.replace(chosen, predictions=(*chosen.predictions, *(str(Path(p).resolve()) for p in predictions)))
-    return run(chosen, out, tuple(stages) if stages else None, progress=progress)
+    added = tuple(f"{Path(code).resolve()}:{name}" if code.endswith(".py") else model
+                  for model in add_models for code, _, name in (model.rpartition(":"),))
+    chosen = grid.load_profile(profile, overrides, added)
+    return dataclasses.replace(chosen, predictions=(*chosen.predictions, *(str(Path(p).resolve()) for p in predictions)))
 
 
 def load_results(folder: str | os.PathLike = "results", table: str = "summary"):

@@ -5,35 +5,25 @@
 
 from __future__ import annotations
 
-import dataclasses
-
-from lgnn.cli.options import add_profile_options, positive_int
+from lgnn.cli.options import add_profile_options, positive_int, profile_source
 from lgnn.errors import ConfigError
 
 
 def _cmd_benchmark(args) -> None:
-    import json
     from pathlib import Path
 
-    from lgnn.bench import grid
+    from lgnn.bench.api import benchmark_profile
     from lgnn.bench.run import STAGES, run
     from lgnn.bench.store import default_out
     from lgnn.files import check_out_dir
 
-    if sum(map(bool, (args.full, args.profile, args.config))) > 1:
-        raise ConfigError("give one of --config, --profile and --full")
+    source = profile_source(args)
     if args.out_dir:
         check_out_dir(args.out_dir)
-    overrides = list(args.set or ()) + ([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])
     # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
-    # --with-results as an absolute path: a config's own `base` is relative to the config, this one to here.
-    overrides += [f"base={json.dumps(str(Path(args.with_results).resolve()))}"] if args.with_results else []
-    # An --add-model file likewise: relative to here, not to a config's directory.
-    added = tuple(f"{Path(code).resolve()}:{name}" if code.endswith(".py") else model
-                  for model in args.add_model or () for code, _, name in (model.rpartition(":"),))
-    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides, added)
-    # Predictions files relative to here; the child processes of --workers never score them (the parent does).
-    profile = dataclasses.replace(profile, predictions=(*profile.predictions, *(str(Path(p).resolve()) for p in args.add_predictions or ())))
+    # The child processes of --workers never score the predictions (the parent does).
+    profile = benchmark_profile(source, settings=[*(args.set or ()), *([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])],
+                                add_models=args.add_model or (), predictions=args.add_predictions or (), with_results=args.with_results)
     stages = None if args.stage is None else tuple(STAGES) if args.stage == "all" else (args.stage,)
     print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
     # What selects this profile, for the child processes of --workers.
@@ -86,16 +76,13 @@ def _add_benchmark_parser(commands) -> None:
 
 
 def _cmd_leaderboard(args) -> None:
-    import json
     from pathlib import Path
 
-    from lgnn.bench import grid, report
+    from lgnn.bench import report
+    from lgnn.bench.api import benchmark_profile
     from lgnn.bench.store import default_out, layout
 
-    if sum(map(bool, (args.full, args.profile, args.config))) > 1:
-        raise ConfigError("give one of --config, --profile and --full")
-    overrides = list(args.set or ()) + ([f"base={json.dumps(str(Path(args.with_results).resolve()))}"] if args.with_results else [])
-    profile = grid.load_profile(args.config or args.profile or ("full" if args.full else "quick"), overrides)
+    profile = benchmark_profile(profile_source(args), settings=args.set or (), with_results=args.with_results)
     out = Path(args.out_dir) if args.out_dir else default_out(profile)
     if not out.is_dir():
         raise ConfigError(f"results folder {out} does not exist (lgnn benchmark writes it)")

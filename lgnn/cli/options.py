@@ -173,3 +173,10 @@ def add_profile_options(parser, full_help: str, set_help: str) -> None:
     parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
     parser.add_argument("--config", help="a benchmark config file (TOML; docs/benchmark.md, 'Configs')")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE", help=set_help)
+
+
+def profile_source(args) -> str:
+    """The profile `add_profile_options`' options choose: a config file, a shipped name, or quick."""
+    if sum(map(bool, (args.full, args.profile, args.config))) > 1:
+        raise ConfigError("give one of --config, --profile and --full")
+    return args.config or args.profile or ("full" if args.full else "quick")
