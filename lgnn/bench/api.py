@@ -1,5 +1,5 @@
-"""The benchmark from Python (a notebook's way in): `train`, `evaluate`, `benchmark` and
-`load_results`, exported as `lgnn.train`, `lgnn.evaluate`, `lgnn.benchmark` and
+"""The benchmark from Python (a notebook's way in): `train` (from `train_recipe`, the
+full profile's), `evaluate`, `benchmark` and `load_results`, exported as `lgnn.train`, `lgnn.evaluate`, `lgnn.benchmark` and
 `lgnn.load_results` (imported on first use: `import lgnn` stays light).
 
 Each does what its command does, with the same defaults and checks (bad input is an
@@ -19,6 +19,15 @@ from lgnn.errors import ConfigError
 RESULT_TABLES = {"summary": "summary.csv.gz", "curves": "curves.csv.gz", "speed": "speed_error.csv", "mass": "mass_matrix.csv"}
 
 
+def train_recipe():
+    """The training settings `train` and `lgnn train` start from: the full profile's
+    (`lgnn.bench.grid.PROFILES["full"].training`: data, batch, learning rate and its
+    schedule, plateau rule), so their checkpoints are trained as the committed ones are."""
+    from lgnn.bench.grid import PROFILES
+
+    return PROFILES["full"].training
+
+
 def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: int | None = None, seed: int = 0,
           minutes: float | None = None, trajectories: int | None = None, varied_draws: int = 0, link_features: bool = False, resume: bool = False,
           cache_dir: str | os.PathLike | None = None, progress: bool = False):
@@ -29,12 +38,11 @@ def train(model: str, out: str | os.PathLike, scene: str = "chain4", *, epochs: 
     that many varied draws of the chain (`lgnn train --varied-draws`), and
     `link_features` gives the model each link's mass, inertia ratio and length
     (`--link-features`). Returns the final training state (`best_val`, `best_epoch`, `epoch`, ...)."""
-    from lgnn.bench.grid import PROFILES
     from lgnn.learn import data, models
     from lgnn.learn import train as training
     from lgnn.scene import get_scene
 
-    recipe = PROFILES["full"].training
+    recipe = train_recipe()
     if Path(out).exists() and not resume:
         raise ConfigError(f"{out} exists: resume=True to continue training it, or choose another out")
     data_config = dataclasses.replace(recipe.data_for(scene), varied_draws=varied_draws, **({"n_trajectories": trajectories} if trajectories else {}))
@@ -73,15 +81,28 @@ def benchmark(profile: str | os.PathLike = "quick", out: str | os.PathLike | Non
     file, `settings` its `KEY=VALUE` overrides, `add_models` (`--add-model`),
     `predictions` (`--add-predictions`), `with_results` (`--with-results`); the output
     folder (default the profile's). `load_results(that folder)` reads its tables."""
+    from lgnn.bench.run import run
+
+    chosen = benchmark_profile(profile, settings=settings, add_models=add_models, predictions=predictions, with_results=with_results)
+    return run(chosen, out, tuple(stages) if stages else None, progress=progress)
+
+
+def benchmark_profile(profile: str | os.PathLike = "quick", *, settings=(), add_models=(), predictions=(), with_results: str | os.PathLike | None = None):
+    """The `lgnn.bench.grid.Profile` that `benchmark`, `lgnn benchmark` and `lgnn
+    leaderboard` run: `profile` a shipped name or a config file with its `KEY=VALUE`
+    `settings`, `add_models` added to its grid, `predictions` files to score and
+    `with_results` a results folder to rank beside. Those paths (and an added model's
+    `file.py`) are relative to the working directory, never to a config's folder (as
+    the config's own `base` and models are)."""
     import json
 
     from lgnn.bench import grid
-    from lgnn.bench.run import run
 
     overrides = [*settings, *([f"base={json.dumps(str(Path(with_results).resolve()))}"] if with_results else [])]
-    chosen = grid.load_profile(profile, overrides, tuple(add_models))
-    chosen = dataclasses.replace(chosen, predictions=(*chosen.predictions, *(str(Path(p).resolve()) for p in predictions)))
-    return run(chosen, out, tuple(stages) if stages else None, progress=progress)
+    added = tuple(f"{Path(code).resolve()}:{name}" if code.endswith(".py") else model
+                  for model in add_models for code, _, name in (model.rpartition(":"),))
+    chosen = grid.load_profile(profile, overrides, added)
+    return dataclasses.replace(chosen, predictions=(*chosen.predictions, *(str(Path(p).resolve()) for p in predictions)))
 
 
 def load_results(folder: str | os.PathLike = "results", table: str = "summary"):

@@ -24,7 +24,8 @@
   `ModelEngine`) integrates: its integrator and whether it projects onto the
   constraints after each step; a field of those engines, never of the settings. The
   MuJoCo engines take none (they integrate with MuJoCo's RK4).
-- `Trajectory`: the NumPy result of a rollout, and its `.npz` file.
+- `Trajectory`: the NumPy result of a rollout, and its `.npz` file; `save_rollout`
+  saves a rollout's, or the frames before its divergence, flagged so.
 """
 
 from __future__ import annotations
@@ -33,12 +34,12 @@ import dataclasses
 import json
 import os
 import zipfile
-from typing import ClassVar
+from typing import Callable, ClassVar
 
 import numpy as np
 
 from lgnn import integrate, physics
-from lgnn.errors import ConfigError, check_number
+from lgnn.errors import ConfigError, SimulationError, check_number
 from lgnn.files import atomic_path, check_regular_input
 from lgnn.integrate import INTEGRATORS, Integrator, Projection
 from lgnn.scene import Scene, State
@@ -166,6 +167,25 @@ class Trajectory:
         if problem:
             raise ConfigError(f"{path}: not a valid trajectory: {problem}")
         return cls(*arrays, metadata=metadata)
+
+
+def save_rollout(run: Callable[[], Trajectory], path: str | os.PathLike) -> Trajectory:
+    """`run()`'s trajectory saved to `path` and returned. If it diverges (a
+    `SimulationError` carrying frames), the frames before the failure are saved, flagged
+    `diverged` (its time and error) in the metadata, and the error is raised again
+    naming the file; one carrying no frames is raised as it is, nothing written."""
+    try:
+        trajectory = run()
+    except SimulationError as err:
+        if err.trajectory is None or len(err.trajectory.t) == 0:
+            raise
+        partial = err.trajectory
+        partial = dataclasses.replace(partial, metadata={**partial.metadata, "diverged": {"time": err.time, "error": str(err)}})
+        partial.save(path)
+        raise SimulationError(f"{err}; kept the {len(partial.t)} frames before it in {path} (metadata 'diverged')",
+                              time=err.time, trajectory=partial) from None
+    trajectory.save(path)
+    return trajectory
 
 
 def trajectory_problem(t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray, metadata) -> str | None:

@@ -1,6 +1,6 @@
 """MJCF rendering of a scene: pure Python, no `import mujoco` (`lgnn.engines.mujoco`
 compiles the text; `lgnn mjcf` writes the built-in scenes' files into mjcf/, nested,
-and mjcf/maximal/).
+and mjcf/maximal/: `write_builtin_files`).
 
 `render(scene, dt, form)` writes one of two forms (`Form`), each from its
 `scene_layout(scene, form)`:
@@ -57,6 +57,8 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
+import os
+from pathlib import Path
 from typing import Literal, get_args
 from xml.sax.saxutils import escape, quoteattr
 
@@ -470,3 +472,22 @@ def builtin_files(forms: tuple[str, ...] = FORMS) -> dict[str, str]:
         for name in scene_names("mjcf"):
             files[f"{folder}{name}.xml"] = render(CATALOGUE[name].build(), form=form)
     return files
+
+
+def write_builtin_files(directory: str | os.PathLike, forms: tuple[str, ...] = FORMS, *, check: bool = False) -> tuple[int, list[str]]:
+    """Write `builtin_files(forms)` into `directory` (atomically, their subfolders created),
+    or with `check` only compare: `(how many files, the paths missing or differing)`
+    (none without `check`)."""
+    from lgnn.files import write_text_atomic
+
+    files = builtin_files(forms)
+    stale = []
+    for name, text in files.items():
+        path = Path(directory) / name
+        if check:
+            if not path.exists() or path.read_text() != text:
+                stale.append(str(path))
+        else:
+            path.parent.mkdir(exist_ok=True)
+            write_text_atomic(path, text)
+    return len(files), stale

@@ -1,0 +1,135 @@
+"""The commands of the benchmark: `lgnn benchmark`, `leaderboard` and `dataset export`
+(`PARSERS`); each parses its options and calls the library (`lgnn.bench.run`,
+`lgnn.bench.grid`, `lgnn.bench.report`, `lgnn.bench.dataset`).
+"""
+
+from __future__ import annotations
+
+from lgnn.cli.options import add_profile_options, positive_int, profile_source
+from lgnn.errors import ConfigError
+
+
+def _cmd_benchmark(args) -> None:
+    from pathlib import Path
+
+    from lgnn.bench.api import benchmark_profile
+    from lgnn.bench.run import STAGES, run
+    from lgnn.bench.store import default_out
+    from lgnn.files import check_out_dir
+
+    source = profile_source(args)
+    if args.out_dir:
+        check_out_dir(args.out_dir)
+    # --chunk is not an evaluation setting (records stay valid): only how many rollouts share a call.
+    # The child processes of --workers never score the predictions (the parent does).
+    profile = benchmark_profile(source, settings=[*(args.set or ()), *([f"evaluate.chunk={args.chunk}"] if args.chunk is not None else [])],
+                                add_models=args.add_model or (), predictions=args.add_predictions or (), with_results=args.with_results)
+    stages = None if args.stage is None else tuple(STAGES) if args.stage == "all" else (args.stage,)
+    print(f"lgnn benchmark ({profile.name} profile): writing into {Path(args.out_dir) if args.out_dir else default_out(profile)}/", flush=True)
+    # What selects this profile, for the child processes of --workers.
+    profile_argv = ((["--config", args.config] if args.config else []) + (["--profile", args.profile] if args.profile else [])
+                    + (["--full"] if args.full else []) + [arg for value in args.set or () for arg in ("--set", value)]
+                    + (["--chunk", str(args.chunk)] if args.chunk is not None else [])
+                    + [arg for value in args.add_model or () for arg in ("--add-model", value)]
+                    + (["--with-results", args.with_results] if args.with_results else []))
+    out = run(profile, Path(args.out_dir) if args.out_dir else None, stages, args.job, args.scene, progress=not args.quiet,
+              workers=args.workers, profile_argv=profile_argv, command="lgnn " + " ".join(args.argv), executor=args.executor, address=args.address)
+    if "report" in (stages or profile.stages or STAGES):
+        print((out / "README.md").read_text())
+    print(f"wrote {out}/")
+
+
+def _add_benchmark_parser(commands) -> None:
+    from lgnn.bench.run import EXECUTORS, STAGES
+
+    parser = commands.add_parser("benchmark", help="train and evaluate every model on every scene; write results/")
+    add_profile_options(parser, "the full profile (default: the quick one, minutes on a laptop)",
+                         "override a config value, e.g. training.train.epochs=50 or seeds=[0,1,2]; add.KEY=VALUE sets KEY of every "
+                         "added model's grid entry, e.g. add.epochs=20, add.seeds=[0], add.eval_scenes=[chain4,chain8] (repeatable)")
+    parser.add_argument("--add-model", action="append", metavar="FILE.py:ATTR",
+                        help="add a model to the grid (its spec as file.py:attribute or module:attribute, or a registered name), trained "
+                             "on chain4 and evaluated on the planar transfer scenes as the built-in models are (repeatable)")
+    parser.add_argument("--add-predictions", action="append", metavar="FILE.npz",
+                        help="score predictions made outside lgnn from the exported initial conditions (lgnn dataset export) against the "
+                             "same ground truth, as a row 'MODEL (external)' (file format: docs/formats.md, 'Predictions'; repeatable)")
+    parser.add_argument("--with-results", metavar="DIR",
+                        help="rank beside the results in DIR (e.g. the committed results/), read in place, never copied or written: "
+                             "its checkpoints are not retrained, its records are reused where their settings match; runs the train, "
+                             "evaluate and report stages into --out-dir (default ./lgnn-out/PROFILE/). One command from a model file "
+                             "to its leaderboard row: lgnn benchmark --full --add-model my_model.py:SPEC --with-results results")
+    parser.add_argument("--stage", default=None, choices=("all", *STAGES),
+                        help="run one stage (default: the config's stages, else all, resuming finished work)")
+    parser.add_argument("--job", action="append", help="only this training job, e.g. lgnn-chain4-s0 (repeatable)")
+    parser.add_argument("--scene", action="append", help="only this evaluation scene (repeatable)")
+    parser.add_argument("--out-dir", default=None, help="output directory (default: results/ for --full, the committed run it resumes and updates; ./lgnn-out/quick/ otherwise)")
+    parser.add_argument("--chunk", type=positive_int, default=None, help="initial conditions per compiled rollout call (default 25; a GPU wants 100)")
+    parser.add_argument("--workers", type=positive_int, default=1,
+                        help="train each model group and evaluate each (scene, model) in this many processes at once (a GPU or a "
+                             "many-core CPU; logs under OUT/benchmark/logs/)")
+    parser.add_argument("--executor", choices=EXECUTORS, default="local",
+                        help="where training groups and evaluation parts run: local (child processes of this machine, with --workers > 1) "
+                             "or ray (tasks of a Ray cluster, --workers at once; needs pip install 'lgnn[ray]'; docs/cluster.md)")
+    parser.add_argument("--address", default=None,
+                        help="with --executor ray: the Ray cluster, auto (this node's) or HOST:PORT (default: start Ray on this machine)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.set_defaults(run=_cmd_benchmark)
+
+
+def _cmd_leaderboard(args) -> None:
+    from pathlib import Path
+
+    from lgnn.bench.api import benchmark_profile
+    from lgnn.bench.report import leaderboard
+    from lgnn.bench.store import default_out, layout
+
+    profile = benchmark_profile(profile_source(args), settings=args.set or (), with_results=args.with_results)
+    out = Path(args.out_dir) if args.out_dir else default_out(profile)
+    if not out.is_dir():
+        raise ConfigError(f"results folder {out} does not exist (lgnn benchmark writes it)")
+    layout(profile, out)
+    path = leaderboard.write_leaderboard(profile, out, "lgnn " + " ".join(args.argv))
+    print(f"wrote {path}")
+
+
+def _add_leaderboard_parser(commands) -> None:
+    parser = commands.add_parser("leaderboard", help="write LEADERBOARD.md of a results folder from its records (ranks, parameters, training time)")
+    add_profile_options(parser, "the full profile's results (default folder: results/)", "override a config value, as lgnn benchmark's (repeatable)")
+    parser.add_argument("--with-results", metavar="DIR", help="also read the records of DIR in place, as lgnn benchmark --with-results")
+    parser.add_argument("--out-dir", default=None, help="the results folder, read and written into (default: as lgnn benchmark's)")
+    parser.set_defaults(run=_cmd_leaderboard)
+
+
+def _cmd_dataset_export(args) -> None:
+    from lgnn.bench import grid
+    from lgnn.bench.dataset import export_scene
+    from lgnn.files import check_writable
+    from lgnn.learn import data
+
+    from lgnn.learn.export import check_path
+
+    check_path(check_writable(args.out))
+    profile = grid.load_profile(args.config or args.profile, args.set or ())
+    shapes = export_scene(profile, args.scene, args.out, args.cache_dir or data.default_cache_dir(), progress=not args.quiet)
+    print(f"{args.scene}: {shapes['q'][0]} states ({shapes['train'][0]} train, {shapes['val'][0]} validation), "
+          f"{shapes['eval_q0'][0]} evaluation initial conditions ({profile.name} profile); wrote {args.out}")
+
+
+def _add_dataset_parser(commands) -> None:
+    from lgnn.bench import grid
+
+    parser = commands.add_parser("dataset", help="training and evaluation data for other frameworks")
+    sub = parser.add_subparsers(dest="dataset_command", required=True, metavar="SUBCOMMAND")
+    export = sub.add_parser("export", help="write a scene's training data and evaluation initial conditions (.npz or .h5; docs/formats.md)")
+    export.add_argument("--scene", required=True, help="built-in scene name or scene JSON file")
+    export.add_argument("--out", required=True, help="output file: .npz, or .h5 (needs h5py: pip install 'lgnn[hdf5]')")
+    export.add_argument("--profile", choices=grid.PROFILE_NAMES, default="full", help="data and evaluation settings (default: full, the paper's)")
+    export.add_argument("--config", help="a benchmark config file instead of --profile")
+    export.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting, e.g. training.data.n_trajectories=10")
+    export.add_argument("--cache-dir", default=None, help="training data cache (default: as lgnn train's)")
+    export.add_argument("--quiet", action="store_true", help="no progress bar")
+    export.set_defaults(run=_cmd_dataset_export)
+
+
+# `lgnn benchmark`, `leaderboard` and `dataset export`: their parsers' builders, in
+# `lgnn --help`'s order.
+PARSERS = (_add_benchmark_parser, _add_leaderboard_parser, _add_dataset_parser)
