@@ -6,7 +6,7 @@ the user's `lgnn-out/`. `pytest bench/ --benchmark` runs the full profile into
 `results/`, the committed run it resumes and updates, as `lgnn benchmark --full` does.
 `--bench-out DIR` names the folder instead (`pytest bench/ --bench-out lgnn-out/quick`
 checks the records `lgnn benchmark` wrote there, resuming from them). The profiles
-themselves are declared in `lgnn.bench.grid.PROFILES`.
+themselves are declared in `lgnn.bench.profiles.PROFILES`.
 """
 
 import os
@@ -31,7 +31,7 @@ def bench_out(config) -> Path:
     if config.getoption("--bench-out"):
         return Path(config.getoption("--bench-out"))
     if config.getoption("--benchmark"):
-        from lgnn.bench.grid import get_profile
+        from lgnn.bench.profiles import get_profile
         from lgnn.bench.store import default_out
 
         return default_out(get_profile("full"))
@@ -79,7 +79,7 @@ def pytest_sessionstart(session):
 def pytest_terminal_summary(terminalreporter, config):
     """Print the benchmark's summary table after the run if this session wrote the report
     (also under xdist, where the report is written by a worker)."""
-    from lgnn.bench.grid import get_profile
+    from lgnn.bench.profiles import get_profile
 
     profile = get_profile("full" if config.getoption("--benchmark") else "quick")
     readme = bench_out(config) / "README.md"

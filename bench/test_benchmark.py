@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from lgnn import metrics
-from lgnn.bench import grid, store
+from lgnn.bench import grid, profiles, store
 from lgnn.bench.report import readme as report_readme, summary as report_summary
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate, mass, scaling, speed
@@ -29,7 +29,7 @@ from lgnn.learn import data, models, train
 from lgnn.learn.checkpoints import load_model
 from lgnn.scene import get_scene
 
-QUICK, FULL = grid.PROFILES["quick"], grid.PROFILES["full"]
+QUICK, FULL = profiles.PROFILES["quick"], profiles.PROFILES["full"]
 TIMED_SCENES = ("chain4",)
 # Lagrangian RK4 (dt 1e-3) against MuJoCo C (RK4 dt 1e-4) over the evaluation: both
 # converge to the same solution on regular scenes; T2 and T3 start self-stressed, where
@@ -51,7 +51,7 @@ DOES_NOT_LEARN_YET: set[str] = {"lgnn-mp2"}
 
 
 @pytest.fixture(scope="session")
-def profile(full_profile) -> grid.Profile:
+def profile(full_profile) -> profiles.Profile:
     return FULL if full_profile else QUICK
 
 
@@ -62,16 +62,16 @@ def _ids(items):
 def pytest_generate_tests(metafunc):
     profile = FULL if metafunc.config.getoption("--benchmark") else QUICK
     if "job" in metafunc.fixturenames:
-        jobs = grid.training_jobs(profile)
+        jobs = profiles.training_jobs(profile)
         metafunc.parametrize("job", jobs, ids=_ids(jobs))
     if "pair" in metafunc.fixturenames:
-        pairs = grid.evaluation_pairs(profile)
+        pairs = profiles.evaluation_pairs(profile)
         metafunc.parametrize("pair", pairs, ids=_ids(pairs))
     if "timed_pair" in metafunc.fixturenames:
-        pairs = [p for p in grid.evaluation_pairs(profile) if p.scene in TIMED_SCENES and p.projected]
+        pairs = [p for p in profiles.evaluation_pairs(profile) if p.scene in TIMED_SCENES and p.projected]
         metafunc.parametrize("timed_pair", pairs, ids=_ids(pairs))
     if "eval_scene" in metafunc.fixturenames:
-        metafunc.parametrize("eval_scene", grid.evaluation_scenes(profile))
+        metafunc.parametrize("eval_scene", profiles.evaluation_scenes(profile))
     if "speed_scene" in metafunc.fixturenames:
         metafunc.parametrize("speed_scene", profile.speed.scenes)
     if "mass_scene" in metafunc.fixturenames:
@@ -92,7 +92,7 @@ def _time(benchmark, run, rounds: int) -> None:
 
 def test_training(benchmark, record_rate, request, profile, out, job):
     # The job's seeds train together (one compiled program); later seeds reuse the checkpoints.
-    group = [j for j in grid.training_jobs(profile) if (j.model, j.scene) == (job.model, job.scene)]
+    group = [j for j in profiles.training_jobs(profile) if (j.model, j.scene) == (job.model, job.scene)]
     path = train_stage.train_jobs(profile, group, out)[group.index(job)]
     state, meta = train.load_checkpoint(path)
     assert np.isfinite(state.best_val) and state.epoch >= 1
@@ -185,11 +185,11 @@ def test_the_timed_programs_run_from_the_stages_records(profile, out):
     """What test_training and test_rollout_speed time, run once here where they do not
     time (`_time`): an epoch of LGNN's training from its checkpoint, and its first
     evaluation chunk on chain4."""
-    job = grid.lgnn_job(profile)
+    job = profiles.lgnn_job(profile)
     run_epoch, _ = train_stage.timed_epoch_fn(profile, job, out)
     params, _, loss = run_epoch()
     assert np.isfinite(loss) and all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(params))
-    pair = next(p for p in grid.evaluation_pairs(profile) if p.job == job and p.scene in TIMED_SCENES and p.projected)
+    pair = next(p for p in profiles.evaluation_pairs(profile) if p.job == job and p.scene in TIMED_SCENES and p.projected)
     run_chunk, steps = evaluate.timed_rollout_fn(profile, pair, out)
     rollouts = run_chunk()
     assert np.isfinite(rollouts.q).all() and steps > 0
@@ -256,7 +256,7 @@ def test_mass_matrix(profile, out, mass_scene):
     # The learned matrix is banded: nodes farther apart in the graph than one link plus
     # two message-passing hops from each end share no energy term (LGNN's default,
     # no message passing: linked pairs only), so their block is zero to round-off.
-    model, _ = load_model(store.Layout(out).checkpoint(grid.lgnn_job(profile, mass_scene)))
+    model, _ = load_model(store.Layout(out).checkpoint(profiles.lgnn_job(profile, mass_scene)))
     hops = np.full((scene.n_nodes, scene.n_nodes), scene.n_nodes)
     np.fill_diagonal(hops, 0)
     for i, j in np.asarray(scene.edge_index):
@@ -279,9 +279,9 @@ def test_a_3d_chains_mass_matrix_is_the_3d_lgnns_against_the_rods_in_3d(tmp_path
     from lgnn.learn import models
 
     profile = dataclasses.replace(QUICK, mass=dataclasses.replace(QUICK.mass, scenes=("chain4-3d",)))
-    job = grid.lgnn_job(profile, "chain4-3d")
+    job = profiles.lgnn_job(profile, "chain4-3d")
     assert job == grid.TrainingJob("lgnn", grid.SPATIAL_TRAINING_SCENE, 0)
-    assert grid.lgnn_job(profile, "chain8") == grid.lgnn_job(profile) == grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0)
+    assert profiles.lgnn_job(profile, "chain8") == profiles.lgnn_job(profile) == grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0)
     layout, scene = store.Layout(tmp_path), get_scene("chain4-3d")
     model, config = models.ModelConfig.for_scene("lgnn", get_scene(job.scene)), profile.training.train
     layout.checkpoint(job).parent.mkdir(parents=True)
@@ -300,7 +300,7 @@ def test_a_3d_chains_mass_matrix_is_the_3d_lgnns_against_the_rods_in_3d(tmp_path
 def test_report(profile, out):
     run(profile, out, stages=("report",))
     text = (out / "README.md").read_text()
-    for pair in grid.evaluation_pairs(profile):
+    for pair in profiles.evaluation_pairs(profile):
         assert f"| {pair.scene} |" in text
     # A quick report says its ranking and timings are no results; the full one does not.
     assert (report_readme.QUICK_WARNING in text) == (profile.name != "full")

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 
 from lgnn import metrics
-from lgnn.bench import grid, store
+from lgnn.bench import grid, profiles, store
 from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.engines.rollouts import Rollouts
 from lgnn.learn import checkpoints, models, train
 from lgnn.scene import get_scene
 
 ROOT = Path(__file__).resolve().parents[1]
-QUICK = grid.PROFILES["quick"]
+QUICK = profiles.PROFILES["quick"]
 SCENE = "chain4"
 # Values for fields a generic change would not reach (a step for another scene).
 CHANGED = {"scene_dts": ((SCENE, 5e-4),), "references": ("mujoco", "lagrangian")}
@@ -105,13 +105,13 @@ def test_a_stage_key_follows_the_checkpoint_content_not_its_file(tmp_path):
 def test_committed_full_records_match_the_current_settings():
     """Every committed record is found under its current key: the report reproduces
     the committed tables without recomputing (tools/rekey_records.py made them so)."""
-    profile, out = grid.PROFILES["full"], ROOT / "results"
+    profile, out = profiles.PROFILES["full"], ROOT / "results"
     truths = set(evaluate.load_truths(profile, out))
-    committed = [pair for pair in grid.evaluation_pairs(profile) if store.Layout(out).checkpoint(pair.job).exists()]
-    assert {pair.scene for pair in committed} <= truths <= set(grid.evaluation_scenes(profile))
+    committed = [pair for pair in profiles.evaluation_pairs(profile) if store.Layout(out).checkpoint(pair.job).exists()]
+    assert {pair.scene for pair in committed} <= truths <= set(profiles.evaluation_scenes(profile))
     loaded = [pair for pair, _ in evaluate.load_pairs(profile, out)]
     # Every pair of the grid has its record: no cell of the report says "not evaluated".
-    assert set(loaded) == set(committed) == set(grid.evaluation_pairs(profile))
+    assert set(loaded) == set(committed) == set(profiles.evaluation_pairs(profile))
     assert all(speed.load_speed(profile, scene, out) is not None for scene in profile.speed.scenes)
     # The committed scaling record predates the 3D rows: it loads under the planar-only
     # settings it was made with (no 3D lengths leave the key as it was), never as the
@@ -120,7 +120,7 @@ def test_committed_full_records_match_the_current_settings():
                                  throughput_scenes=tuple(s for s in profile.scaling.throughput_scenes if not s.endswith("-3d")))
     assert scaling.load_scaling(profile, out) is not None or scaling.load_scaling(dataclasses.replace(profile, scaling=planar), out) is not None
     # chain16-3d's LGNN (trained on chain4-3d) comes with the spatial grid's GPU run.
-    analysed = [scene for scene in profile.mass.scenes if store.Layout(out).checkpoint(grid.lgnn_job(profile, scene)).exists()]
+    analysed = [scene for scene in profile.mass.scenes if store.Layout(out).checkpoint(profiles.lgnn_job(profile, scene)).exists()]
     assert "chain16" in analysed and len(mass.load_mass(profile, out)) == len(analysed)
 
 
@@ -152,7 +152,7 @@ def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_
 
 
 def test_the_3d_lgnn_enters_the_scaling_key_only_with_3d_lengths(tmp_path):
-    checkpoint = store.Layout(tmp_path).checkpoint(grid.lgnn_job(QUICK, grid.SPATIAL_TRAINING_SCENE))
+    checkpoint = store.Layout(tmp_path).checkpoint(profiles.lgnn_job(QUICK, grid.SPATIAL_TRAINING_SCENE))
     checkpoint.parent.mkdir(parents=True, exist_ok=True)
     planar = dataclasses.replace(QUICK, scaling=dataclasses.replace(QUICK.scaling, spatial_lengths=()))
     assert QUICK.scaling.spatial_lengths

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lgnn import metrics, physics
-from lgnn.bench import grid, store
+from lgnn.bench import grid, profiles, store
 from lgnn.bench.report import figures as report_figures, readme as report_readme, summary as report_summary
 from lgnn.bench.stages import evaluate
 from lgnn.engines import ENGINES
@@ -38,11 +38,11 @@ def _tiny_benchmark(tmp_path):
     """A profile of one pair (the cheating model on chain4) against the twin engine,
     its checkpoint saved; `(profile, pair)`."""
     models.register(CHEAT)
-    evaluate_settings = dataclasses.replace(grid.PROFILES["quick"].evaluate, initial_conditions=2, duration=0.02, mujoco_dt=1e-3,
+    evaluate_settings = dataclasses.replace(profiles.PROFILES["quick"].evaluate, initial_conditions=2, duration=0.02, mujoco_dt=1e-3,
                                             references=(TWIN,))
-    profile = dataclasses.replace(grid.PROFILES["quick"], name="registries", evaluate=evaluate_settings, seeds=(0,), scenes=None,
+    profile = dataclasses.replace(profiles.PROFILES["quick"], name="registries", evaluate=evaluate_settings, seeds=(0,), scenes=None,
                                   train_scenes=None, models=None, grid=(grid.GridEntry(CHEAT.name, "chain4", ("chain4",)),))
-    (pair,) = grid.evaluation_pairs(profile)
+    (pair,) = profiles.evaluation_pairs(profile)
     config = models.ModelConfig(CHEAT.name)
     checkpoint = store.Layout(tmp_path).checkpoint(pair.job)
     checkpoint.parent.mkdir(parents=True)
@@ -86,6 +86,6 @@ def test_an_unknown_reference_engine_is_refused_in_one_line_when_the_profile_loa
     from lgnn.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"^evaluate.references: unknown engine 'nope' \(choose from lagrangian, mujoco") as error:
-        grid.load_profile("quick", ['evaluate.references=["mujoco", "nope"]'])
+        profiles.load_profile("quick", ['evaluate.references=["mujoco", "nope"]'])
     assert "\n" not in str(error.value)
-    assert grid.load_profile("quick", ['evaluate.references=["mjx"]']).evaluate.references == ("mjx",)
+    assert profiles.load_profile("quick", ['evaluate.references=["mjx"]']).evaluate.references == ("mjx",)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgnn.bench import grid
+from lgnn.bench import grid, profiles
 
 from lgnn.bench.report import figures as report_figures, performance as report_performance, readme as report_readme, summary as report_summary
 from lgnn.bench.stages import evaluate
@@ -101,7 +101,7 @@ def test_records_without_the_new_metrics_read_not_computed():
 def test_the_committed_full_records_render_with_the_new_columns_not_computed():
     # Three scenes of the committed run (all of it takes minutes of CI to summarise):
     # the training scene, a stand-in for T2, and the spatial grid's training scene.
-    profile = dataclasses.replace(grid.PROFILES["full"], scenes=("chain4", "T2-slack", grid.SPATIAL_TRAINING_SCENE))
+    profile = dataclasses.replace(profiles.PROFILES["full"], scenes=("chain4", "T2-slack", grid.SPATIAL_TRAINING_SCENE))
     out = ROOT / "results"
     truths = evaluate.load_truths(profile, out)
     summary, _ = report_summary.tables(truths, evaluate.load_pairs(profile, out))
@@ -219,7 +219,7 @@ def test_runs_the_protocols_rules_did_not_end_are_named_at_the_top(tmp_path):
     from lgnn.learn import models, train
     from lgnn.scene import get_scene
 
-    profile = dataclasses.replace(grid.PROFILES["full"], seeds=(0,), models=("lgnn", "gns"), tracks=("paper",))
+    profile = dataclasses.replace(profiles.PROFILES["full"], seeds=(0,), models=("lgnn", "gns"), tracks=("paper",))
     for model_name, epochs in (("lgnn", 3), ("gns", profile.training.train.epochs)):
         job = grid.TrainingJob(model_name, grid.TRAINING_SCENE, 0)
         model, config = models.ModelConfig.for_scene(model_name, get_scene(job.scene)), profile.training.train
@@ -245,7 +245,7 @@ def test_default_lgnn_is_read_from_the_training_records(tmp_path):
     from lgnn.learn import models, train
     from lgnn.scene import get_scene
 
-    profile = dataclasses.replace(grid.PROFILES["full"], seeds=(0, 1), models=grid.LGNN_VARIANTS)
+    profile = dataclasses.replace(profiles.PROFILES["full"], seeds=(0, 1), models=grid.LGNN_VARIANTS)
     spatial = grid.TRAINING_SCENES[3]
     best = {("lgnn", grid.TRAINING_SCENE, 0): 2e-4, ("lgnn", grid.TRAINING_SCENE, 1): 2e-4, ("lgnn-mp1", grid.TRAINING_SCENE, 0): 1e-3,
             ("lgnn-mp1", grid.TRAINING_SCENE, 1): 1e-5, ("lgnn-mp2", grid.TRAINING_SCENE, 0): 1e-6,
@@ -277,7 +277,7 @@ def test_a_drag_scene_record_scores_the_exact_physics_without_drag(tmp_path):
     from lgnn.engines.lagrangian import simulate
     from lgnn.scene import State, get_scene
 
-    quick = grid.PROFILES["quick"]
+    quick = profiles.PROFILES["quick"]
     profile = dataclasses.replace(quick, evaluate=dataclasses.replace(quick.evaluate, initial_conditions=2, duration=0.02, chunk=2))
     arrays, meta = store.load(evaluate.evaluate_scene(profile, "chain4-drag", tmp_path, progress=False))
     scene, truth = get_scene("chain4-drag"), evaluate.ground_truth(profile, "chain4-drag", False)
@@ -312,7 +312,7 @@ def test_the_planar_and_spatial_grids_get_tables_of_their_own():
     names); a 3D pair of the grid without a record is "not evaluated" there."""
     import dataclasses
 
-    profile = dataclasses.replace(grid.PROFILES["quick"], train_scenes=None, scenes=None, models=None, grid=(
+    profile = dataclasses.replace(profiles.PROFILES["quick"], train_scenes=None, scenes=None, models=None, grid=(
         grid.GridEntry("lgnn", grid.TRAINING_SCENE, ("chain4", "chain8")),
         grid.GridEntry("gns", grid.SPATIAL_TRAINING_SCENE, ("tensegrity-3d", "chain4-3d"), unprojected=True)))
     truths = {scene: _truth(True, False) for scene in ("chain4", "chain8", "chain4-3d", "tensegrity-3d")}
@@ -380,7 +380,7 @@ def _size_row(solver: str, n: int, s_per_step: float, dim: int | None = None) ->
 
 
 def test_performance_puts_each_3d_chain_beside_the_planar_one_and_their_ratio():
-    profile = grid.PROFILES["full"]
+    profile = profiles.PROFILES["full"]
     rows = [_speed_row("chain4", "lagrangian", 0.05), _speed_row("chain4", "mujoco", 0.04, form="nested"),
             _speed_row("chain4-3d", "lagrangian", 0.2), _speed_row("chain4-3d", "mujoco", 0.1, form="nested"),
             # learned rows: the median over seeds, each dimension's own model (3D labels name their training scene)
@@ -405,7 +405,7 @@ def test_performance_puts_each_3d_chain_beside_the_planar_one_and_their_ratio():
 
 
 def test_a_scaling_record_made_before_3d_rows_reads_as_planar_and_old_speed_rows_say_form_not_recorded():
-    profile = grid.PROFILES["full"]
+    profile = profiles.PROFILES["full"]
     rows = [_speed_row("chain4", "lagrangian", 0.05), {**_speed_row("chain4", "mujoco", 0.04), "form": None}]
     del rows[1]["form"]
     text = report_performance.performance_markdown(profile, rows, {"rows": [_size_row("mujoco", 4, 1e-5), _size_row("mujoco", 16, 2e-5)]})
@@ -438,10 +438,10 @@ def test_a_registered_stage_is_run_and_reported(tmp_path, monkeypatch):
     assert list(bench_run.STAGES)[-2:] == ["count", "report"]
     with pytest.raises(ConfigError, match="benchmark stage 'count' is already registered"):
         bench_run.register_stage(bench_run.Stage("count", count_scenes))
-    profile = grid.get_profile("quick")
+    profile = profiles.get_profile("quick")
     bench_run.run(profile, tmp_path, stages=("count", "report"), progress=False)
     readme = (tmp_path / "README.md").read_text()
-    assert f"## Scenes counted\n\n{len(grid.evaluation_scenes(profile))} evaluation scenes." in readme
+    assert f"## Scenes counted\n\n{len(profiles.evaluation_scenes(profile))} evaluation scenes." in readme
     assert "Settings of the count stage: `count` = 3." in readme
     assert readme.index("## Scenes counted") < readme.index("## Where each record was made")
 
@@ -450,8 +450,8 @@ def test_a_model_added_to_a_profiles_grid_gets_a_colour_and_place_of_its_own():
     """The built-ins keep their colours and order; each model a profile's grid adds gets
     the next colour no built-in has and a column after them, the same every time."""
     mine = (grid.GridEntry("mine", grid.TRAINING_SCENE, ("chain4",)), grid.GridEntry("yours", grid.TRAINING_SCENE, ("chain4",)))
-    profile = dataclasses.replace(grid.get_profile("quick"), grid=(*grid.GRID, *mine), models=None)
-    order = grid.model_order(profile)
+    profile = dataclasses.replace(profiles.get_profile("quick"), grid=(*grid.GRID, *mine), models=None)
+    order = profiles.model_order(profile)
     assert order[: len(report_summary.MODEL_ORDER)] == report_summary.MODEL_ORDER == ("lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn",
                                                                        "gns-10-128", "cgnode", "chgn", "chnn")
     assert order[len(report_summary.MODEL_ORDER):] == ("mine", "yours")
@@ -465,7 +465,7 @@ def test_a_scene_no_declared_figure_draws_gets_one_from_the_grid():
     """A scene added to a profile's grid is drawn in an error figure named after it, its
     title naming the scene its models were trained on; the built-in groups are kept."""
     entry = grid.GridEntry("lgnn", grid.TRAINING_SCENE, ("chain4", "double-pinned"))
-    figures = grid.error_figures(dataclasses.replace(grid.get_profile("quick"), grid=(entry,), scenes=None, models=None))
+    figures = profiles.error_figures(dataclasses.replace(profiles.get_profile("quick"), grid=(entry,), scenes=None, models=None))
     assert figures[: len(grid.ERROR_FIGURES)] == list(grid.ERROR_FIGURES)
     assert figures[len(grid.ERROR_FIGURES):] == [grid.FigureGroup("error_vs_time_doublepinned.png", ("double-pinned",), grid.TRAINING_SCENE)]
 
@@ -494,7 +494,7 @@ def test_several_seeds_are_drawn_one_line_each(monkeypatch, tmp_path):
 def test_the_settings_say_how_each_evaluated_scene_starts():
     """From each scene's initial-state policy: the rope (a pinned chain) is sampled, the
     net and the trusses keep their own state (the prose once said the rope did too)."""
-    text = report_readme._initial_states_text(grid.get_profile("full"))
+    text = report_readme._initial_states_text(profiles.get_profile("full"))
     sampled, own = text.split("; their own state, one initial condition: ")
     assert "rope-3d" in sampled and "chain4-3d" in sampled
     assert own.split(", ") == ["T1", "T2-slack", "T3-slack", "net4x4-3d", "tensegrity-3d"]
@@ -509,5 +509,5 @@ def test_a_figure_the_report_no_longer_draws_is_removed_and_other_files_are_kept
     figures.mkdir()
     for name in ("error_vs_time_gone.png", "snapshots_gone.png", "mass_matrix.png", "my_own_plot.png", "notes.txt"):
         (figures / name).write_bytes(b"x")
-    bench_run.run(grid.get_profile("quick"), tmp_path, stages=("report",), progress=False)
+    bench_run.run(profiles.get_profile("quick"), tmp_path, stages=("report",), progress=False)
     assert sorted(p.name for p in figures.iterdir()) == ["my_own_plot.png", "notes.txt"]

@@ -36,11 +36,11 @@ def untrained_checkpoint():
     """`untrained_checkpoint(profile, folder, model_name)`: the initial state of the
     profile's one training job, saved where the benchmark keeps its checkpoint under
     `folder` (a model whose parameters need no training, e.g. the true physics)."""
-    from lgnn.bench import grid, store
+    from lgnn.bench import profiles, store
     from lgnn.learn import models, train
 
     def save(profile, folder, model_name: str):
-        (job,) = grid.training_jobs(profile)
+        (job,) = profiles.training_jobs(profile)
         model, config = models.ModelConfig(model_name), train.TrainConfig(learning_rate=1e-3, warmup_steps=1)
         path = store.Layout(folder).checkpoint(job)
         path.parent.mkdir(parents=True)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lgnn.bench import grid, store
+from lgnn.bench import grid, profiles, store
 from lgnn.learn import models, train
 from lgnn.scene import get_scene
 
@@ -19,9 +19,9 @@ ROOT = Path(__file__).resolve().parents[1]
 def _checkpoint(folder: Path, model_name: str, val: np.ndarray) -> None:
     """A chain4 checkpoint of the full profile's job whose run had validation MSE `val`
     at epochs 1..len(val) (untrained parameters: the tool reads the history alone)."""
-    profile = grid.PROFILES["full"]
+    profile = profiles.PROFILES["full"]
     job = grid.TrainingJob(model_name, grid.TRAINING_SCENE, 0)
-    model, config = models.ModelConfig.for_scene(model_name, get_scene(job.scene)), grid.train_config(profile, job)
+    model, config = models.ModelConfig.for_scene(model_name, get_scene(job.scene)), profiles.train_config(profile, job)
     history = [(k + 1, float(v), float(v), float(k)) for k, v in enumerate(val)]
     best = int(np.argmin(val))
     state = train.initial_state(model, config)._replace(best_val=float(val[best]), best_epoch=best + 1, epoch=len(val), history=history)

@@ -185,10 +185,10 @@ def test_committed_checkpoints_are_converted_and_keep_their_content():
     converted by tools/convert_checkpoints.py; the records made from the format-1 files
     load under their keys (bench/test_keys.py), whose `content_digest` is the converted
     file's: the same settings and best parameters."""
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
 
     paper = {"lgnn", "lgnn-mp1", "lgnn-mp2", "lgnn-notebook", "gns", "lgn", "clnn"}
-    papers_grid = {job.name for job in grid.training_jobs(grid.load_profile("full", ['tracks=["paper"]'])) if job.model in paper}
+    papers_grid = {job.name for job in profiles.training_jobs(profiles.load_profile("full", ['tracks=["paper"]'])) if job.model in paper}
     for path in sorted(COMMITTED.glob("*.npz")):
         meta, _ = checkpoints.read(path)
         assert meta["format"] == checkpoints.FORMAT, path.name

@@ -193,11 +193,11 @@ def test_benchmark_workers_evaluate_each_models_seeds_together_scenes_interleave
     scene and (model, training scene), naming that scene and all the model's seeds;
     together exactly the grid's pairs; the first parts all on different scenes (each
     computes its scene's ground truth while the others run)."""
-    from lgnn.bench import grid, run as bench_run
+    from lgnn.bench import profiles, run as bench_run
 
     calls = []
     monkeypatch.setattr(bench_run, "run_split", lambda *args: calls.append(args))
-    profile = grid.get_profile("full")
+    profile = profiles.get_profile("full")
     bench_run.run(profile, tmp_path, stages=["evaluate"], workers=4, profile_argv=["--full"])
     (stage, parts, argv, _, workers, after), = calls
     assert (stage, argv, workers, after) == ("evaluate", ["--full"], 4, ())
@@ -208,8 +208,8 @@ def test_benchmark_workers_evaluate_each_models_seeds_together_scenes_interleave
         assert len(jobs) == len(profile.seeds) and len({j.rsplit("-s", 1)[0] for j in jobs}) == 1, name
         assert name == f"{scene}-{jobs[0].rsplit('-s', 1)[0]}"
         covered |= {(job, scene) for job in jobs}
-    assert covered == {(p.job.name, p.scene) for p in grid.evaluation_pairs(profile)}
-    scenes = grid.evaluation_scenes(profile)
+    assert covered == {(p.job.name, p.scene) for p in profiles.evaluation_pairs(profile)}
+    scenes = profiles.evaluation_scenes(profile)
     first = [args[args.index("--scene") + 1] for args in list(parts.values())[: len(scenes)]]
     assert sorted(first) == sorted(scenes)
 
@@ -218,15 +218,15 @@ def test_benchmark_workers_start_the_costliest_evaluation_parts_first(tmp_path, 
     """Evaluation parts whose checkpoints say how long an epoch took start first, the
     dearest first (seconds per epoch times the scene's nodes); the others follow in the
     interleaved order; an unreadable checkpoint is only a part of unknown cost."""
-    from lgnn.bench import grid, run as bench_run, store
+    from lgnn.bench import grid, profiles, run as bench_run, store
     from lgnn.learn import checkpoints
     from lgnn.scene import get_scene
 
     calls = []
     monkeypatch.setattr(bench_run, "run_split", lambda *args: calls.append(args))
-    profile = grid.get_profile("full")
+    profile = profiles.get_profile("full")
     layout = store.Layout(tmp_path)
-    layout.checkpoint(grid.training_jobs(profile)[0]).parent.mkdir(parents=True)
+    layout.checkpoint(profiles.training_jobs(profile)[0]).parent.mkdir(parents=True)
     for seed, seconds in enumerate((40.0, 50.0, 30.0)):  # LGN's: 5 s an epoch for its slowest seed
         checkpoints.write(layout.checkpoint(grid.TrainingJob("lgn", "chain4", seed)), {}, {}, [(1, 1.0, 1.0, 1.0), (10, 1.0, 1.0, seconds)])
     checkpoints.write(layout.checkpoint(grid.TrainingJob("gns", "chain4", 0)), {}, {}, [(10, 1.0, 1.0, 0.5)])
@@ -234,8 +234,8 @@ def test_benchmark_workers_start_the_costliest_evaluation_parts_first(tmp_path, 
     assert checkpoints.seconds_per_epoch(layout.checkpoint(grid.TrainingJob("lgn", "chain4", 1))) == 5.0
     bench_run.run(profile, tmp_path, stages=["evaluate"], workers=4, profile_argv=["--full"])
     names = list(calls[0][1])
-    lgn_scenes = [p.scene for p in grid.evaluation_pairs(profile) if p.job.name == "lgn-chain4-s0"]
-    gns_scenes = list(dict.fromkeys(p.scene for p in grid.evaluation_pairs(profile) if p.job.name == "gns-chain4-s0"))
+    lgn_scenes = [p.scene for p in profiles.evaluation_pairs(profile) if p.job.name == "lgn-chain4-s0"]
+    gns_scenes = list(dict.fromkeys(p.scene for p in profiles.evaluation_pairs(profile) if p.job.name == "gns-chain4-s0"))
     by_size = lambda scenes: sorted(scenes, key=lambda scene: -get_scene(scene).n_nodes)  # noqa: E731 (stable: ties keep their order)
     known = [f"{scene}-lgn-chain4" for scene in by_size(lgn_scenes)] + [f"{scene}-gns-chain4" for scene in by_size(gns_scenes)]
     assert names[: len(known)] == known
@@ -251,17 +251,17 @@ def test_benchmark_workers_queue_the_ground_truths_behind_the_training_groups(tm
     then runs those still missing (here all: the children are spied on, not run). In one
     process the truth stage leaves the ground truths to a following evaluate stage
     (which computes each beside its models' rollouts) and computes them when alone."""
-    from lgnn.bench import grid, run as bench_run
+    from lgnn.bench import profiles, run as bench_run
 
     calls, scenes_computed = [], []
     monkeypatch.setattr(bench_run, "run_split", lambda *args: calls.append(args))
     monkeypatch.setattr(bench_run, "prepare_datasets", lambda *args: None)
-    profile = grid.get_profile("full")
+    profile = profiles.get_profile("full")
     bench_run.run(profile, tmp_path, stages=["train", "truth"], workers=4, profile_argv=["--full"])
     (stage, groups, _, _, _, after), (truth_stage, truth_parts, _, _, _, truth_after) = calls
-    assert stage == "train" and {job.group for job in grid.training_jobs(profile)} == set(groups)
+    assert stage == "train" and {job.group for job in profiles.training_jobs(profile)} == set(groups)
     ((queued_stage, queued),) = after
-    scenes = grid.evaluation_scenes(profile)
+    scenes = profiles.evaluation_scenes(profile)
     assert queued_stage == "truth" and sorted(queued) == sorted(scenes)
     assert all(args == ["--scene", scene] for scene, args in queued.items())
     assert list(queued)[0] == "chain100-3d" and list(queued).index("chain100") < list(queued).index("chain4")
@@ -276,11 +276,11 @@ def test_benchmark_workers_queue_the_ground_truths_behind_the_training_groups(tm
     # One process.
     monkeypatch.setattr(bench_run, "evaluate_scene", lambda profile, scene, out, progress: scenes_computed.append(scene))
     monkeypatch.setitem(bench_run.STAGES, "evaluate", dataclasses.replace(bench_run.STAGES["evaluate"], run=lambda request: None))
-    quick = grid.get_profile("quick")
+    quick = profiles.get_profile("quick")
     bench_run.run(quick, tmp_path, stages=["truth", "evaluate"], progress=False)
     assert scenes_computed == []
     bench_run.run(quick, tmp_path, stages=["truth"], progress=False)
-    assert scenes_computed == grid.evaluation_scenes(quick)
+    assert scenes_computed == profiles.evaluation_scenes(quick)
 
 
 def test_benchmark_workers_train_groups_in_child_processes_and_name_a_failing_ones_log(capsys, tmp_path, monkeypatch):
@@ -539,7 +539,7 @@ def test_scene_export_takes_every_builtin(capsys):
 def test_scenes_says_which_the_benchmark_evaluates(capsys):
     """The grid's 3D scenes and T2-slack are marked evaluated; T2 (left out of the grid)
     and the hard cases are not; each line gives the scene's tags and initial states."""
-    from lgnn.bench.grid import PROFILES, evaluation_scenes
+    from lgnn.bench.profiles import PROFILES, evaluation_scenes
 
     code, out, _ = run(capsys, "scenes")
     assert code == 0
@@ -556,11 +556,11 @@ def test_lgnn_train_defaults_are_the_full_profiles_recipe():
     """`lgnn train` trains as the full profile trains every model (batch, rate and its
     schedule, plateau rule, data), read from the profile: its checkpoint is comparable
     with the committed ones, and the report's banner names no other training."""
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
     from lgnn.cli import build_parser, train_settings
     from lgnn.learn import train
 
-    full = grid.PROFILES["full"].training
+    full = profiles.PROFILES["full"].training
     data_config, config = train_settings(build_parser().parse_args(["train", "--model", "lgnn", "--out", "x.npz"]))
     assert data_config == full.data_for("chain4")
     assert train.training_key(config) == train.training_key(full.train)
@@ -576,12 +576,12 @@ def test_lgnn_train_and_the_full_benchmark_read_one_copy_of_the_training_data(tm
     """One dataset cache: `lgnn train`'s default data (the full profile's recipe, in the
     user's cache) are the file the full benchmark's train stage reads, whatever its
     output folder, never a second copy under it."""
-    from lgnn.bench import grid, store
+    from lgnn.bench import profiles, store
     from lgnn.cli import build_parser, train_settings
     from lgnn.learn import data
 
     data_config, _ = train_settings(build_parser().parse_args(["train", "--model", "gns", "--out", str(tmp_path / "model.npz")]))
-    benchmark_data = grid.PROFILES["full"].training.data_for("chain4")
+    benchmark_data = profiles.PROFILES["full"].training.data_for("chain4")
     assert store.Layout(tmp_path / "out").datasets == data.default_cache_dir()
     assert data.cache_path(data_config, data.default_cache_dir()) == data.cache_path(benchmark_data, store.Layout(tmp_path / "out").datasets)
 

@@ -1,4 +1,4 @@
-"""Benchmark configs (`lgnn.bench.grid.load_profile`, `lgnn.bench.settings`): the shipped
+"""Benchmark configs (`lgnn.bench.profiles.load_profile`, `lgnn.bench.settings`): the shipped
 profiles are TOML files, any value can be overridden, bad keys and values are one-line
 errors naming them, and a user's config brings its own scenes and models."""
 
@@ -7,21 +7,21 @@ import dataclasses
 import pytest
 
 from lgnn import cli
-from lgnn.bench import grid, settings
+from lgnn.bench import profiles, settings
 from lgnn.errors import ConfigError
 from lgnn.learn import models
 from lgnn.scene import get_scene, scene_to_json
 
 
 def test_overrides_reach_any_value_and_nothing_else():
-    quick = grid.load_profile("quick")
-    changed = grid.load_profile("quick", ["training.train.epochs=50", "seeds=[0,1,2]", "scenes=[chain4,chain8]", "speed.models=none"])
+    quick = profiles.load_profile("quick")
+    changed = profiles.load_profile("quick", ["training.train.epochs=50", "seeds=[0,1,2]", "scenes=[chain4,chain8]", "speed.models=none"])
     assert changed.training.train.epochs == 50 and changed.seeds == (0, 1, 2) and changed.speed.models is None
     assert changed == dataclasses.replace(quick, seeds=(0, 1, 2), speed=dataclasses.replace(quick.speed, models=None),
                                           # the schedule rule follows the new budget (a warm-up of a fifth of its steps)
-                                          training=grid.TrainSettings(quick.training.data, dataclasses.replace(
+                                          training=profiles.TrainSettings(quick.training.data, dataclasses.replace(
                                               quick.training.train, epochs=50, learning_rate=None, warmup_steps=None)))
-    assert grid.load_profile("full") == grid.PROFILES["full"]
+    assert profiles.load_profile("full") == profiles.PROFILES["full"]
 
 
 
@@ -31,9 +31,9 @@ def test_the_schedule_rule_fills_only_what_a_config_leaves_unset():
     still follows the rule; an unresolved config cannot make an optimiser."""
     from lgnn.learn import train
 
-    quick = grid.load_profile("quick").training.train
+    quick = profiles.load_profile("quick").training.train
     assert (quick.learning_rate, quick.warmup_steps) == (train.SHORT_BUDGET_RATE, 6)
-    given = grid.load_profile("quick", ["training.train.learning_rate=0.05"]).training.train
+    given = profiles.load_profile("quick", ["training.train.learning_rate=0.05"]).training.train
     assert (given.learning_rate, given.warmup_steps) == (0.05, 6)
     long = train.scheduled(train.TrainConfig(warmup_steps=7), 750)  # the paper's data and budget
     assert (long.learning_rate, long.warmup_steps) == (train.PAPER_LEARNING_RATE, 7)
@@ -50,7 +50,7 @@ def test_the_schedule_rule_fills_only_what_a_config_leaves_unset():
 ])
 def test_bad_overrides_are_one_line_errors_naming_the_key(override, message):
     with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace(".", r"\.")):
-        grid.load_profile("quick", [override])
+        profiles.load_profile("quick", [override])
 
 
 def test_the_command_line_reports_an_unknown_key_in_one_line(tmp_path, capsys):
@@ -78,12 +78,12 @@ def test_a_users_config_brings_scene_files_and_models(tmp_path, monkeypatch):
         '[[grid]]\nmodel = "my_model.py:SPEC"\ntrain_scene = "chain4"\neval_scenes = ["chain4", "scenes/hammock.json"]\n'
     )
     monkeypatch.chdir(tmp_path / "scenes")  # scene paths are relative to the config, not to here
-    profile = grid.load_profile(config)
+    profile = profiles.load_profile(config)
     assert profile.name == "mine" and profile.stages == ("train", "evaluate")
     assert [e.model for e in profile.grid] == ["my-clnn"] and models.get_spec("my-clnn").hidden == 16
     assert get_scene(profile.grid[0].eval_scenes[1]).name == "hammock"
-    assert [j.name for j in grid.training_jobs(profile)] == ["my-clnn-chain4-s0", "my-clnn-chain4-s1"]
-    assert grid.load_profile(config) == profile  # loading twice registers the same spec
+    assert [j.name for j in profiles.training_jobs(profile)] == ["my-clnn-chain4-s0", "my-clnn-chain4-s1"]
+    assert profiles.load_profile(config) == profile  # loading twice registers the same spec
 
 
 def test_bad_model_references_are_one_line_errors(tmp_path):

@@ -26,7 +26,7 @@ import pytest
 
 import lgnn
 from lgnn import physics
-from lgnn.bench import grid
+from lgnn.bench import profiles
 from lgnn.cli import build_parser
 from lgnn.learn import models
 
@@ -217,7 +217,7 @@ def test_the_scene_file_and_benchmark_config_examples_load(model_dir):
     scene = lgnn.get_scene(str(model_dir / "my-scene.json"))
     assert (scene.n_nodes, scene.n_links, scene.pinned, float(scene.gravity)) == (3, 2, (0,), 10.0)
     # The overrides its first line shows, as `--set` gives them.
-    profile = grid.load_profile(model_dir / "my.toml", ["training.train.epochs=50", "seeds=[0,1,2]"])
+    profile = profiles.load_profile(model_dir / "my.toml", ["training.train.epochs=50", "seeds=[0,1,2]"])
     (entry,) = profile.grid
     assert entry.model == "my-scaled-truth" and entry.train_scene == "chain4"
     assert profile.seeds == (0, 1, 2) and profile.training.train.epochs == 50

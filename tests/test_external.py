@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from lgnn import physics
-from lgnn.bench import grid, store
+from lgnn.bench import profiles, store
 from lgnn.bench.report import summary as report_summary
 from lgnn.bench.stages import evaluate, external
 from lgnn.cli import main
@@ -32,7 +32,7 @@ def _setup(tmp_path, untrained_checkpoint):
     """`(config path, profile, output folder)`: the cheating model's checkpoint in place, untrained."""
     config = tmp_path / "tiny.toml"
     config.write_text(CONFIG)
-    profile = grid.load_profile(config)
+    profile = profiles.load_profile(config)
     out = tmp_path / "out"
     untrained_checkpoint(profile, out, CHEAT.name)
     return config, profile, out

@@ -17,7 +17,7 @@ import pytest
 from lgnn import physics
 from lgnn.bench import gpu_truth
 from lgnn.bench.report import performance as report_performance
-from lgnn.bench.grid import get_profile
+from lgnn.bench.profiles import get_profile
 from lgnn.bench.tables import write_table
 from lgnn.cli import main
 from lgnn.engines import mjwarp

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import pytest
 
 from lgnn import physics
-from lgnn.bench import grid
+from lgnn.bench import grid, profiles
 from lgnn.bench.report import leaderboard, readme as report_readme
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate
@@ -40,7 +40,7 @@ def _committed(tmp_path, untrained_checkpoint):
     and ground-truth records on chain4, and its report; `(config text, folder)`."""
     text = f'[[grid]]\nmodel = "{__name__}:COMMITTED"\ntrain_scene = "chain4"\neval_scenes = ["chain4"]\n' + SETTINGS
     (tmp_path / "committed.toml").write_text(text)
-    profile = grid.load_profile(tmp_path / "committed.toml")
+    profile = profiles.load_profile(tmp_path / "committed.toml")
     base = tmp_path / "results"
     untrained_checkpoint(profile, base, COMMITTED.name)
     run(profile, base, stages=("evaluate", "report"), progress=False)
@@ -83,30 +83,30 @@ def test_a_researchers_model_is_ranked_beside_committed_results_read_in_place(tm
 def test_add_entries_extend_the_grid_with_their_own_seeds_and_budget(tmp_path):
     config = tmp_path / "mine.toml"
     config.write_text(f'profile = "full"\nbase = "results"\n[[add]]\nmodel = "{__name__}:OWN"\nseeds = [0]\nepochs = 20\n')
-    profile = grid.load_profile(config)
+    profile = profiles.load_profile(config)
     # The built-in grid kept whole, the added entry after it with the training scene's transfer scenes.
     assert profile.grid[: len(grid.GRID)] == grid.GRID and profile.grid[-1].eval_scenes == grid.TRANSFER_SCENES
     assert profile.base == str(tmp_path / "results")  # relative to the config
-    jobs = [job for job in grid.training_jobs(profile) if job.model == OWN.name]
-    assert [job.seed for job in jobs] == [0] and len(grid.training_jobs(profile)) == len(grid.training_jobs(grid.PROFILES["full"])) + 1
-    assert grid.train_config(profile, jobs[0]).epochs == 20 and grid.train_config(profile, grid.training_jobs(profile)[0]).epochs == 10_000
+    jobs = [job for job in profiles.training_jobs(profile) if job.model == OWN.name]
+    assert [job.seed for job in jobs] == [0] and len(profiles.training_jobs(profile)) == len(profiles.training_jobs(profiles.PROFILES["full"])) + 1
+    assert profiles.train_config(profile, jobs[0]).epochs == 20 and profiles.train_config(profile, profiles.training_jobs(profile)[0]).epochs == 10_000
     # A shipped profile's model selection keeps the added model.
-    quick = grid.load_profile("quick", ["add.epochs=3"], add=(f"{__name__}:OWN",))
-    assert OWN.name in quick.models and grid.train_config(quick, grid.TrainingJob(OWN.name, "chain4", 0)).epochs == 3
+    quick = profiles.load_profile("quick", ["add.epochs=3"], add=(f"{__name__}:OWN",))
+    assert OWN.name in quick.models and profiles.train_config(quick, grid.TrainingJob(OWN.name, "chain4", 0)).epochs == 3
     with pytest.raises(ConfigError, match="OWN.epochs. must be a whole number"):
-        grid.load_profile("quick", ["add.epochs=0"], add=(f"{__name__}:OWN",))
+        profiles.load_profile("quick", ["add.epochs=0"], add=(f"{__name__}:OWN",))
 
 
 def test_the_banner_says_what_was_run_not_the_profiles_name(tmp_path):
-    quick = grid.load_profile("quick")
+    quick = profiles.load_profile("quick")
     assert report_readme.banner(quick) == [report_readme.QUICK_WARNING, ""]
     # The full grid trains every entry by the one protocol (epochs and the plateau rule,
     # no wall clock): no entry on a smaller budget.
-    assert report_readme.banner(grid.PROFILES["full"]) == []
+    assert report_readme.banner(profiles.PROFILES["full"]) == []
     assert all(entry.epochs is None and entry.minutes is None for entry in grid.GRID)
     # Full evaluation settings under another name (the paper's track), one model on a
     # short budget: named, no "Not results".
-    short = grid.load_profile("full", ["name=mine", 'tracks=["paper"]', "add.epochs=20", "add.seeds=[0]"], add=(f"{__name__}:OWN",))
+    short = profiles.load_profile("full", ["name=mine", 'tracks=["paper"]', "add.epochs=20", "add.seeds=[0]"], add=(f"{__name__}:OWN",))
     (text, _) = report_readme.banner(short)
     assert "smaller budget" in text and "scaled-leaderboard (20 epochs; chain4; seed 0)" in text and report_readme.QUICK_WARNING not in text
     assert "lgnn (" not in text and "lgn (" not in text  # the paper's models keep the full recipe
@@ -114,17 +114,17 @@ def test_the_banner_says_what_was_run_not_the_profiles_name(tmp_path):
 
 def test_the_base_folder_is_never_the_output_folder(tmp_path):
     (tmp_path / "results").mkdir()
-    profile = grid.load_profile("quick", [f'base="{tmp_path / "results"}"'])
+    profile = profiles.load_profile("quick", [f'base="{tmp_path / "results"}"'])
     with pytest.raises(ConfigError, match="read, never written"):
         run(profile, tmp_path / "results", stages=("report",), progress=False)
     with pytest.raises(ConfigError, match="is not a folder"):
-        run(grid.load_profile("quick", [f'base="{tmp_path / "absent"}"']), tmp_path / "out", stages=("report",), progress=False)
+        run(profiles.load_profile("quick", [f'base="{tmp_path / "absent"}"']), tmp_path / "out", stages=("report",), progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["results"]  # nothing written
 
 
 def test_records_read_from_the_base_say_so(tmp_path, untrained_checkpoint):
     _, base = _committed(tmp_path, untrained_checkpoint)
-    profile = grid.load_profile(tmp_path / "committed.toml", [f'base="{base}"'])
+    profile = profiles.load_profile(tmp_path / "committed.toml", [f'base="{base}"'])
     ((pair, (_, meta)),) = evaluate.load_pairs(profile, tmp_path / "elsewhere")
     assert meta["folder"] == str(base) and pair.job.model == COMMITTED.name
     assert evaluate.unmatched_base_pairs(profile, tmp_path / "elsewhere") == []
@@ -132,10 +132,10 @@ def test_records_read_from_the_base_say_so(tmp_path, untrained_checkpoint):
 
 def test_base_results_made_with_other_evaluation_settings_are_named_never_mixed_or_recomputed(tmp_path, untrained_checkpoint):
     _, base = _committed(tmp_path, untrained_checkpoint)
-    longer = grid.load_profile(tmp_path / "committed.toml", [f'base="{base}"', "evaluate.duration=0.03"])
+    longer = profiles.load_profile(tmp_path / "committed.toml", [f'base="{base}"', "evaluate.duration=0.03"])
     out = tmp_path / "mine"
-    assert evaluate.unmatched_base_pairs(longer, out) == grid.evaluation_pairs(longer)
-    evaluate.evaluate_group(longer, grid.evaluation_pairs(longer), out, progress=False)
+    assert evaluate.unmatched_base_pairs(longer, out) == profiles.evaluation_pairs(longer)
+    evaluate.evaluate_group(longer, profiles.evaluation_pairs(longer), out, progress=False)
     assert not out.exists() and evaluate.load_pairs(longer, out) == []  # nothing rolled out, nothing written
     (line,) = report_readme._unmatched_lines(longer, out)
     assert line.startswith("**Not compared:** 1 evaluation(s)") and "cheat-leaderboard" in line
@@ -174,7 +174,7 @@ def test_a_cell_without_a_record_says_why():
     is "—". The committed leaderboard has every pair of its grid."""
     from pathlib import Path
 
-    board = next(b for heading, _, b in leaderboard.leaderboards(grid.evaluation_pairs(grid.PROFILES["full"])) if heading.startswith("planar: "))
+    board = next(b for heading, _, b in leaderboard.leaderboards(profiles.evaluation_pairs(profiles.PROFILES["full"])) if heading.startswith("planar: "))
     clnn = next(p for p in board if p.job.model == "clnn")
     lgnn = next(p for p in board if p.job.model == "lgnn" and p.scene == "chain8")
     assert leaderboard._missing_cell(lgnn.label, "chain8", board) == leaderboard.NOT_EVALUATED

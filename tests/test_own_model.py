@@ -7,7 +7,7 @@ import functools
 import jax.numpy as jnp
 
 from lgnn import physics
-from lgnn.bench import grid, report
+from lgnn.bench import profiles, report
 from lgnn.bench.report import summary as report_summary
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate
@@ -30,9 +30,9 @@ SCALED_TRUTH = ModelSpec(
 def test_a_model_defined_outside_the_package_runs_through_the_benchmark(tmp_path, tiny_benchmark_config):
     config = tiny_benchmark_config(f"{__name__}:SCALED_TRUTH", epochs=15, data_duration=0.2,
                                    train_settings="learning_rate = 0.05\nwarmup_steps = 1\n")
-    profile = grid.load_profile(config)
+    profile = profiles.load_profile(config)
     out = run(profile, tmp_path / "out", progress=False)
-    (job,) = grid.training_jobs(profile)
+    (job,) = profiles.training_jobs(profile)
     state, meta = train.load_checkpoint(out / "benchmark" / "checkpoints" / f"{job.name}.npz")
     assert meta["model"]["name"] == "scaled-truth" and meta["model_source"].endswith(":SCALED_TRUTH")
     assert state.best_val < 0.1 * state.history[0][2]  # it learns towards the truth

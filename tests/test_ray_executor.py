@@ -17,7 +17,7 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
-from lgnn.bench import claims, grid  # noqa: E402
+from lgnn.bench import claims, profiles  # noqa: E402
 
 from lgnn.bench.report import summary as report_summary
 from lgnn.bench.stages import evaluate  # noqa: E402
@@ -58,7 +58,7 @@ def cluster():
 
 
 def _profile():
-    return grid.load_profile("quick", PROFILE_ARGV[1::2])
+    return profiles.load_profile("quick", PROFILE_ARGV[1::2])
 
 
 def _driver(out: Path, address: str, cache: Path) -> subprocess.Popen:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from lgnn.bench import grid, store
+from lgnn.bench import profiles, store
 
 ROOT = Path(__file__).resolve().parents[1]
 # Two of the four quick-profile jobs whose check failed (every model that normalises by
@@ -44,7 +44,7 @@ def test_the_tests_pass_on_the_records_lgnn_benchmark_left_in_a_fresh_home(tmp_p
                            cwd=home, env=env, capture_output=True, text=True, timeout=1200)
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     out = home / "lgnn-out" / "quick"
-    jobs = {job.name: job for job in grid.training_jobs(grid.PROFILES["quick"])}
+    jobs = {job.name: job for job in profiles.training_jobs(profiles.PROFILES["quick"])}
     checkpoints = [store.Layout(out).checkpoint(jobs[name]) for name in JOBS]
     written = [path.read_bytes() for path in checkpoints]
     selected = [f"bench/test_benchmark.py::test_training[{job}]" for job in JOBS]

@@ -249,10 +249,10 @@ def test_the_chaos_floor_runs_the_ground_truths_compiled_program(monkeypatch):
     # The evaluation's ground truth and its chaos floor roll out one batch each with the
     # same dynamics and settings: the floor compiles nothing (a program of its own took
     # 23-35 s to compile for chain100 on a GPU machine's busy host).
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
     from lgnn.bench.stages import evaluate
 
-    profile = grid.load_profile("quick", ["evaluate.duration=0.01", "evaluate.frame_dt=0.005", "evaluate.dt=0.005"])
+    profile = profiles.load_profile("quick", ["evaluate.duration=0.01", "evaluate.frame_dt=0.005", "evaluate.dt=0.005"])
     compiled = []
 
     def counting(*args, **kwargs):

@@ -8,7 +8,7 @@ import pytest
 
 from lgnn import provenance
 from lgnn.bench import run_record
-from lgnn.bench.grid import load_profile
+from lgnn.bench.profiles import load_profile
 from lgnn.bench.run import run
 from lgnn.runtime import BENCHMARK_CHILD
 
@@ -64,10 +64,10 @@ def test_a_profile_that_disables_xla_optimisations_compiles_its_run_so_and_resto
 
     import jax
 
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
     from lgnn.bench import run as bench_run
 
-    assert grid.PROFILES["quick"].disable_xla_optimisations and not grid.PROFILES["full"].disable_xla_optimisations
+    assert profiles.PROFILES["quick"].disable_xla_optimisations and not profiles.PROFILES["full"].disable_xla_optimisations
     seen = []
     monkeypatch.setattr(bench_run, "STAGES", dict(bench_run.STAGES))
     bench_run.register_stage(bench_run.Stage("look", lambda request: seen.append(jax.config.read("jax_disable_most_optimizations"))))
@@ -75,7 +75,7 @@ def test_a_profile_that_disables_xla_optimisations_compiles_its_run_so_and_resto
     jax.config.update("jax_disable_most_optimizations", False)
     try:
         for disable in (True, False):
-            profile = dataclasses.replace(grid.PROFILES["quick"], disable_xla_optimisations=disable)
+            profile = dataclasses.replace(profiles.PROFILES["quick"], disable_xla_optimisations=disable)
             bench_run.run(profile, tmp_path / str(disable), stages=("look",), progress=False)
             assert jax.config.read("jax_disable_most_optimizations") is False
     finally:

@@ -92,7 +92,7 @@ def test_a_new_builtin_and_the_same_scene_as_a_file_start_alike(tmp_path, monkey
     chain: a new non-chain built-in with projected perturbations gets the profile's
     count of sampled states, and its file (same content) the very same ones; an entry
     that keeps its own state gets one initial condition, its file too."""
-    from lgnn.bench.grid import PROFILES
+    from lgnn.bench.profiles import PROFILES
     from lgnn.bench.stages.evaluate import evaluation_initial_states
     from lgnn.scene import CATALOGUE, OWN_STATE, PROJECTED, CatalogueEntry, scene_to_json
     from lgnn.scene.catalogue import double_pinned_chain

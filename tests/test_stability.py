@@ -496,12 +496,12 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
 def test_killed_benchmark_keeps_its_finished_records_and_resumes(tmp_path):
     """`lgnn benchmark` killed at a random moment after its first record: the restarted
     run reuses every record that was finished (not rewritten) and completes the rest."""
-    from lgnn.bench import grid
+    from lgnn.bench import grid, profiles
     from lgnn.bench.stages import evaluate
     from lgnn.bench.store import Layout
 
     out = tmp_path / "out"
-    profile, pair = grid.PROFILES["quick"], grid.Pair(grid.TrainingJob("gns", grid.TRAINING_SCENE, 0), grid.TRAINING_SCENE)
+    profile, pair = profiles.PROFILES["quick"], grid.Pair(grid.TrainingJob("gns", grid.TRAINING_SCENE, 0), grid.TRAINING_SCENE)
     layout = Layout(out)
     layout.checkpoint(pair.job).parent.mkdir(parents=True)
     # Evaluation needs only a checkpoint file: the committed full-profile one will do.

@@ -155,15 +155,15 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     and labels of their own; the full profile has both tracks, the paper's alone on
     request; a leaderboard and tables of their own rank them, their scenes in the
     track's order; an unknown track is one line."""
-    from lgnn.bench import grid
+    from lgnn.bench import grid, profiles
     from lgnn.bench.report import leaderboard, summary as report_summary
     from lgnn.bench.stages.train import job_settings
 
-    paper = grid.load_profile("full", ['tracks=["paper"]'])
-    assert all(job.track == grid.PAPER_TRACK for job in grid.training_jobs(paper))
-    both = grid.PROFILES["full"]
+    paper = profiles.load_profile("full", ['tracks=["paper"]'])
+    assert all(job.track == grid.PAPER_TRACK for job in profiles.training_jobs(paper))
+    both = profiles.PROFILES["full"]
     assert both.tracks == grid.TRACKS
-    transfer = [job for job in grid.training_jobs(both) if job.track == grid.TRANSFER_TRACK]
+    transfer = [job for job in profiles.training_jobs(both) if job.track == grid.TRANSFER_TRACK]
     assert {job.model for job in transfer} == {*grid.LGNN_VARIANTS, "gns", "lgn", "gns-10-128", "cgnode", "chgn"}
     lgnn = next(job for job in transfer if job.model == "lgnn" and job.seed == 0)
     assert (lgnn.name, lgnn.label) == ("lgnn-chain4-varied-draws5-s0", "lgnn (chain4-varied, 5 draws)")
@@ -172,8 +172,8 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     # A model whose rod features are its own inputs needs no flag (and has none).
     assert not job_settings(both, next(job for job in transfer if job.model == "chgn"))[1].link_features
     # The paper's appendix LGNN on the one varied chain stays its own job.
-    assert grid.TrainingJob("lgnn", "chain4-varied", 0) in grid.training_jobs(both)
-    pairs = grid.evaluation_pairs(both)
+    assert grid.TrainingJob("lgnn", "chain4-varied", 0) in profiles.training_jobs(both)
+    pairs = profiles.evaluation_pairs(both)
     assert {p.scene for p in pairs if p.job.track == grid.TRANSFER_TRACK} == {*grid.TRANSFER_TRACK_SCENES, *grid.SPATIAL_TRANSFER_TRACK_SCENES}
     boards = {heading: board for heading, _, board in leaderboard.leaderboards(pairs)}
     transfer_heading = "planar, transfer track: trained on chain4-varied, 5 draws"
@@ -204,7 +204,7 @@ def test_the_transfer_track_is_a_grid_track_of_its_own(tmp_path):
     assert [row.split(" | ")[0].strip("| ") for row in spatial_table.splitlines()[4:11]] == list(grid.SPATIAL_TRANSFER_TRACK_SCENES)
     assert "not evaluated" not in spatial_table and "| cgnode |" in spatial_table.splitlines()[2]
     with pytest.raises(ConfigError, match="setting 'tracks': unknown track 'mine'"):
-        grid.load_profile("full", ['tracks=["mine"]'])
+        profiles.load_profile("full", ['tracks=["mine"]'])
     with pytest.raises(ConfigError, match="'varied_draws' must be a whole number"):
         grid.GridEntry("lgnn", "chain4", ("chain4",), varied_draws=-1)
 
@@ -213,7 +213,7 @@ def test_a_transfer_entry_trains_on_its_draws_and_is_evaluated_on_other_chains(t
     """A profile's transfer entry (GNS, 2 draws) through the benchmark's train and
     evaluate stages: the checkpoint's data are the draws', and the record of a varied
     8-link chain is scored."""
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
     from lgnn.bench.run import run
     from lgnn.bench.stages import evaluate
     from lgnn.learn import checkpoints
@@ -224,9 +224,9 @@ def test_a_transfer_entry_trains_on_its_draws_and_is_evaluated_on_other_chains(t
                       '[training.data]\nn_trajectories = 4\nduration = 0.3\nsample_dt = 0.05\n'
                       '[training.train]\nepochs = 2\npatience = 2\nbatch_size = 4\n'
                       '[evaluate]\ninitial_conditions = 2\nduration = 0.05\nchunk = 2\n')
-    profile = grid.load_profile(config)
+    profile = profiles.load_profile(config)
     run(profile, tmp_path / "out", stages=("train", "evaluate"), progress=False)
-    (job,) = grid.training_jobs(profile)
+    (job,) = profiles.training_jobs(profile)
     meta, _ = checkpoints.read(tmp_path / "out" / "benchmark" / "checkpoints" / f"{job.name}.npz")
     assert meta["data"]["varied_draws"] == 2 and meta["model"]["link_features"]
     ((pair, (arrays, _)),) = evaluate.load_pairs(profile, tmp_path / "out")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lgnn import records
-from lgnn.bench import grid
+from lgnn.bench import grid, profiles
 from lgnn.bench.stages import evaluate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,7 +46,7 @@ def test_only_arrays_scored_against_a_stale_mujoco_reference_are_removed(tmp_pat
     assert set(kept) == expected - {"snapshot/mujoco", "snapshot/truth"} and kept_meta == {**meta, "environment": environment}
     assert tool.upgrade(tmp_path) == [], "a second run changes nothing"
     # The stage recomputes what was removed: the record lacks an array the metrics need.
-    assert "rollout_error_vs_mujoco" in {m.name for m in evaluate.recorded_metrics(grid.PROFILES["quick"].evaluate.references)}
+    assert "rollout_error_vs_mujoco" in {m.name for m in evaluate.recorded_metrics(profiles.PROFILES["quick"].evaluate.references)}
 
 
 @pytest.mark.parametrize("scene", ["chain8", "chain4"])

@@ -88,7 +88,7 @@ def overrides(config, settings: list[str]):
 
 def measure(models: list[tuple[str, float]]):
     runtime.configure()
-    from lgnn.bench.grid import get_profile, training_jobs
+    from lgnn.bench.profiles import get_profile, training_jobs
     from lgnn.bench.stages.train import job_settings
     from lgnn.learn import data, train
     from lgnn.provenance import environment

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lgnn.bench import grid, store
+from lgnn.bench import grid, profiles, store
 from lgnn.learn import checkpoints, train
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -34,9 +34,9 @@ parser.add_argument("--scene", default=grid.TRAINING_SCENE, help="the training s
 parser.add_argument("--budgets", nargs="+", type=int, default=[25, 50, 100, 200, 400, 800, 1600, 3200, 6400])
 args = parser.parse_args()
 
-profile = grid.get_profile("full")
+profile = profiles.get_profile("full")
 layout = store.Layout(Path(args.results))
-jobs = [job for job in grid.training_jobs(profile) if job.scene == args.scene and not job.varied_draws]
+jobs = [job for job in profiles.training_jobs(profile) if job.scene == args.scene and not job.varied_draws]
 if not jobs:
     raise SystemExit(f"no training job of the full profile trains on {args.scene!r} alone")
 
@@ -49,7 +49,7 @@ def best_within(job) -> tuple[callable, str]:
     epochs = np.array([entry[0] for entry in history])
     val = np.array([entry[2] for entry in history])
     running = np.fmin.accumulate(np.where(np.isnan(val), np.inf, val))
-    config = dataclasses.replace(grid.train_config(profile, job), minutes=None)  # the protocol's own rules only
+    config = dataclasses.replace(profiles.train_config(profile, job), minutes=None)  # the protocol's own rules only
     state = train.TrainState(None, None, None, float(running[-1]), int(meta["best_epoch"]), int(epochs[-1]), history, 0.0)
     ended = train.stop_reason(state, config)
 

@@ -149,12 +149,12 @@ def trained_rollouts():
     `--scene` from the evaluation's initial conditions, as the evaluate stage does."""
     import dataclasses
 
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
     from lgnn.bench.stages.evaluate import evaluation_initial_states
     from lgnn.engines.rollouts import batched_rollouts
     from lgnn.learn import checkpoints
 
-    profile = grid.load_profile("full")
+    profile = profiles.load_profile("full")
     scene = get_scene(args.scene)
     trained_on = training_scene(scene).name
     loaded = [checkpoints.load_model(f"results/benchmark/checkpoints/lgn-{trained_on}-s{seed}.npz") for seed in range(3)]

@@ -32,7 +32,7 @@ import lgnn
 lgnn.configure()
 
 from lgnn import records  # noqa: E402
-from lgnn.bench import grid, store  # noqa: E402
+from lgnn.bench import profiles, store  # noqa: E402
 from lgnn.bench.stages import evaluate, mass, scaling, speed  # noqa: E402
 from lgnn.files import write_text_atomic  # noqa: E402
 
@@ -80,11 +80,11 @@ def _keys(key_function, *args) -> tuple[str, str]:
     return old, key_function(*args)
 
 
-def rekey(profile: grid.Profile, out: Path, dry_run: bool = False) -> dict[Path, str]:
+def rekey(profile: profiles.Profile, out: Path, dry_run: bool = False) -> dict[Path, str]:
     """What happened to each checkpoint-keyed record of the profile under `out`."""
     layout = store.layout(profile, out)
     done = {}
-    for pair in grid.evaluation_pairs(profile):
+    for pair in profiles.evaluation_pairs(profile):
         path, checkpoint = layout.pair_record(pair), layout.found(layout.checkpoint(pair.job))
         if path.exists() and checkpoint.exists():
             done[path] = _rekey_arrays(path, *_keys(evaluate.pair_key, profile, pair, checkpoint), dry_run)
@@ -102,7 +102,7 @@ def rekey(profile: grid.Profile, out: Path, dry_run: bool = False) -> dict[Path,
             old, new = _keys(scaling.scaling_key, planar, out)
         done[layout.scaling_record] = _rekey_json(layout.scaling_record, old, new, dry_run)
     for scene in profile.mass.scenes:
-        path, checkpoint = layout.mass_record(scene), layout.found(layout.checkpoint(grid.lgnn_job(profile, scene)))
+        path, checkpoint = layout.mass_record(scene), layout.found(layout.checkpoint(profiles.lgnn_job(profile, scene)))
         if path.exists() and checkpoint.exists():
             done[path] = _rekey_arrays(path, *_keys(mass.mass_key, profile, scene, checkpoint), dry_run)
     for path in sorted((layout.bench / "runs").rglob("*.npz")):
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="output directory (default: the profile's, results/ for --full)")
     parser.add_argument("--dry-run", action="store_true", help="say what would change, change nothing")
     args = parser.parse_args(argv)
-    profile = grid.get_profile("full" if args.full else "quick")
+    profile = profiles.get_profile("full" if args.full else "quick")
     out = Path(args.out) if args.out else store.default_out(profile)
     done = rekey(profile, out, args.dry_run)
     for path, what in done.items():

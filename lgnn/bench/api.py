@@ -21,9 +21,9 @@ RESULT_TABLES = {"summary": "summary.csv.gz", "curves": "curves.csv.gz", "speed"
 
 def train_recipe():
     """The training settings `train` and `lgnn train` start from: the full profile's
-    (`lgnn.bench.grid.PROFILES["full"].training`: data, batch, learning rate and its
+    (`lgnn.bench.profiles.PROFILES["full"].training`: data, batch, learning rate and its
     schedule, plateau rule), so their checkpoints are trained as the committed ones are."""
-    from lgnn.bench.grid import PROFILES
+    from lgnn.bench.profiles import PROFILES
 
     return PROFILES["full"].training
 
@@ -88,7 +88,7 @@ def benchmark(profile: str | os.PathLike = "quick", out: str | os.PathLike | Non
 
 
 def benchmark_profile(profile: str | os.PathLike = "quick", *, settings=(), add_models=(), predictions=(), with_results: str | os.PathLike | None = None):
-    """The `lgnn.bench.grid.Profile` that `benchmark`, `lgnn benchmark` and `lgnn
+    """The `lgnn.bench.profiles.Profile` that `benchmark`, `lgnn benchmark` and `lgnn
     leaderboard` run: `profile` a shipped name or a config file with its `KEY=VALUE`
     `settings`, `add_models` added to its grid, `predictions` files to score and
     `with_results` a results folder to rank beside. Those paths (and an added model's
@@ -96,12 +96,12 @@ def benchmark_profile(profile: str | os.PathLike = "quick", *, settings=(), add_
     the config's own `base` and models are)."""
     import json
 
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
 
     overrides = [*settings, *([f"base={json.dumps(str(Path(with_results).resolve()))}"] if with_results else [])]
     added = tuple(f"{Path(code).resolve()}:{name}" if code.endswith(".py") else model
                   for model in add_models for code, _, name in (model.rpartition(":"),))
-    chosen = grid.load_profile(profile, overrides, added)
+    chosen = profiles.load_profile(profile, overrides, added)
     return dataclasses.replace(chosen, predictions=(*chosen.predictions, *(str(Path(p).resolve()) for p in predictions)))
 
 

@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 
-from lgnn.bench.grid import Profile
+from lgnn.bench.profiles import Profile
 from lgnn.bench.stages.evaluate import evaluation_initial_states, truth_key
 from lgnn.learn import data, export
 from lgnn.scene import get_scene, scene_to_dict

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from lgnn import metrics, sharding
-from lgnn.bench.grid import ROLLOUTS_PER_CALL
+from lgnn.bench.profiles import ROLLOUTS_PER_CALL
 from lgnn.bench.tables import write_table
 from lgnn.engines import ENGINES, get_engine
 from lgnn.engines.base import Integration, SimulationConfig, Trajectory

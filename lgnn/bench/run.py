@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from lgnn.bench import report
-from lgnn.bench.grid import Pair, Profile, TrainingJob, evaluation_pairs, evaluation_scenes, training_jobs
+from lgnn.bench.grid import Pair, TrainingJob
+from lgnn.bench.profiles import Profile, evaluation_pairs, evaluation_scenes, training_jobs
 from lgnn.bench import run_record, store
 from lgnn.bench.parallel import run_split
 from lgnn.runtime import release_compiled_programs, xla_optimisations_off

@@ -29,7 +29,8 @@ from pathlib import Path
 from lgnn import records
 from lgnn.errors import ConfigError
 from lgnn.files import DEFAULT_OUT
-from lgnn.bench.grid import Pair, Profile, TrainingJob
+from lgnn.bench.grid import Pair, TrainingJob
+from lgnn.bench.profiles import Profile
 from lgnn.learn.data import default_cache_dir
 
 # Layout of a stage record's meta; records of another format are recomputed.

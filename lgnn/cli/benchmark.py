@@ -100,7 +100,7 @@ def _add_leaderboard_parser(commands) -> None:
 
 
 def _cmd_dataset_export(args) -> None:
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
     from lgnn.bench.dataset import export_scene
     from lgnn.files import check_writable
     from lgnn.learn import data
@@ -108,21 +108,21 @@ def _cmd_dataset_export(args) -> None:
     from lgnn.learn.export import check_path
 
     check_path(check_writable(args.out))
-    profile = grid.load_profile(args.config or args.profile, args.set or ())
+    profile = profiles.load_profile(args.config or args.profile, args.set or ())
     shapes = export_scene(profile, args.scene, args.out, args.cache_dir or data.default_cache_dir(), progress=not args.quiet)
     print(f"{args.scene}: {shapes['q'][0]} states ({shapes['train'][0]} train, {shapes['val'][0]} validation), "
           f"{shapes['eval_q0'][0]} evaluation initial conditions ({profile.name} profile); wrote {args.out}")
 
 
 def _add_dataset_parser(commands) -> None:
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
 
     parser = commands.add_parser("dataset", help="training and evaluation data for other frameworks")
     sub = parser.add_subparsers(dest="dataset_command", required=True, metavar="SUBCOMMAND")
     export = sub.add_parser("export", help="write a scene's training data and evaluation initial conditions (.npz or .h5; docs/formats.md)")
     export.add_argument("--scene", required=True, help="built-in scene name or scene JSON file")
     export.add_argument("--out", required=True, help="output file: .npz, or .h5 (needs h5py: pip install 'lgnn[hdf5]')")
-    export.add_argument("--profile", choices=grid.PROFILE_NAMES, default="full", help="data and evaluation settings (default: full, the paper's)")
+    export.add_argument("--profile", choices=profiles.PROFILE_NAMES, default="full", help="data and evaluation settings (default: full, the paper's)")
     export.add_argument("--config", help="a benchmark config file instead of --profile")
     export.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting, e.g. training.data.n_trajectories=10")
     export.add_argument("--cache-dir", default=None, help="training data cache (default: as lgnn train's)")

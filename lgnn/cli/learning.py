@@ -99,7 +99,7 @@ def _add_train_parser(commands) -> None:
                         help=f"plateau rule: stop when the best validation MSE has not improved by {default.min_improvement:.0%}% "
                              f"in this many epochs (default {default.patience}, the full profile's)")
     # The full profile's recipe whatever the budget, as the benchmark's `[[add]]` entries
-    # with a budget of their own (`grid.train_config`): a checkpoint comparable with its.
+    # with a budget of their own (`profiles.train_config`): a checkpoint comparable with its.
     parser.add_argument("--lr", type=positive_float, default=default.learning_rate, help=f"peak learning rate (default {default.learning_rate:g}, the full profile's)")
     parser.add_argument("--batch-size", type=positive_int, default=default.batch_size, help=f"default {default.batch_size}, the full profile's")
     parser.add_argument("--message-passing", type=nonnegative_int, default=None, help="message-passing layers (default: the model's)")

@@ -167,10 +167,10 @@ def trajectory_out(path: str):
 
 def add_profile_options(parser, full_help: str, set_help: str) -> None:
     """The options that choose a benchmark profile: --full, --profile, --config, --set."""
-    from lgnn.bench import grid
+    from lgnn.bench import profiles
 
     parser.add_argument("--full", action="store_true", help=full_help)
-    parser.add_argument("--profile", choices=grid.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
+    parser.add_argument("--profile", choices=profiles.PROFILE_NAMES, help="a shipped profile: quick (default) or full (same as --full)")
     parser.add_argument("--config", help="a benchmark config file (TOML; docs/benchmark.md, 'Configs')")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE", help=set_help)
 

@@ -12,7 +12,7 @@ from lgnn.errors import ConfigError
 
 
 def _cmd_scenes(args) -> None:
-    from lgnn.bench.grid import PROFILES, evaluation_scenes
+    from lgnn.bench.profiles import PROFILES, evaluation_scenes
     from lgnn.scene import CATALOGUE, TAGS
 
     evaluated_by = {name: [profile for profile, settings in PROFILES.items() if name in evaluation_scenes(settings)] for name in CATALOGUE}

@@ -16,7 +16,7 @@ MAX_HALVINGS = 20
 
 def _cmd_convergence(args) -> None:
     from lgnn.bench import convergence
-    from lgnn.bench.grid import get_profile
+    from lgnn.bench.profiles import get_profile
     from lgnn.files import check_writable, out_dir
     from lgnn.provenance import environment
     from lgnn.scene import get_scene, scene_names

@@ -514,7 +514,7 @@ def train_seeds(
         raise ConfigError(f"the dataset holds {n_draws} varied draws but {len(scenes)} scenes were given (lgnn.learn.data.draw_scenes)")
 
     # The schedule rule needs the budget, known from here on (the benchmark's profiles
-    # arrive resolved: `lgnn.bench.grid.TrainSettings`).
+    # arrive resolved: `lgnn.bench.profiles.TrainSettings`).
     configs = [scheduled(c, len(dataset.train) // c.batch_size) for c in configs]
     if not configs or any(_optimisation_only(c) != _optimisation_only(configs[0]) or _budget(c) != _budget(configs[0]) for c in configs):
         raise ConfigError("seeds trained together must share every training setting but the seed")

@@ -12,7 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from lgnn.bench.report.figures import draw
-from lgnn.bench.grid import Profile, settings_key
+from lgnn.bench.profiles import Profile
+from lgnn.records import settings_key
 from lgnn.bench.report.leaderboard import LEADERBOARD, leaderboard_markdown
 from lgnn.bench.report.performance import performance_markdown, speed_markdown
 from lgnn.bench.report.readme import readme_markdown
@@ -31,7 +32,7 @@ def stage_sections(profile: Profile, out: Path, sections) -> list[str]:
     """README lines of the registered stages' own sections, in registry order: `sections`
     holds `(name, settings, load, section)` of each stage that has one
     (`lgnn.bench.run.Stage`); each gives its `section(profile, out, load(profile, out))`
-    lines, then every setting its records are keyed on (`grid.settings_key`)."""
+    lines, then every setting its records are keyed on (`lgnn.records.settings_key`)."""
     lines = []
     for name, settings, load, section in sections:
         lines += section(profile, out, None if load is None else load(profile, out))

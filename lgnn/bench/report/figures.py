@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from lgnn import metrics
-from lgnn.bench.grid import SNAPSHOT_SCENES, TRAINING_SCENES, Profile, error_figures, model_order
+from lgnn.bench.grid import SNAPSHOT_SCENES, TRAINING_SCENES
+from lgnn.bench.profiles import Profile, error_figures, model_order
 from lgnn.bench.stages.evaluate import SNAPSHOT_DT
 from lgnn.bench.report.summary import track_rows, without_training_scene
 from lgnn.files import atomic_path
@@ -257,7 +258,7 @@ def _plot_speed_error(rows: list[dict], path: Path, colors: dict[str, str] | Non
 def draw(profile: Profile, figures_dir: Path, truths: dict, pairs: list, externals: list, curves, speed_rows: list[dict],
          mass_records: list) -> list[str]:
     """Draw every figure the records allow under `figures_dir` (an error figure per
-    `grid.error_figures` group, the mass matrices, the snapshots of `SNAPSHOT_SCENES`,
+    `profiles.error_figures` group, the mass matrices, the snapshots of `SNAPSHOT_SCENES`,
     speed against error), remove the ones an earlier report drew and this one does not,
     and return the names drawn, in order."""
     figures = []

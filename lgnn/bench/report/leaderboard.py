@@ -11,7 +11,8 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import store
-from lgnn.bench.grid import PAPER_TRACK, TRAINING_SCENES, TRANSFER_TRACK, Pair, Profile, evaluation_pairs
+from lgnn.bench.grid import PAPER_TRACK, TRAINING_SCENES, TRANSFER_TRACK, Pair
+from lgnn.bench.profiles import Profile, evaluation_pairs
 from lgnn.bench.stages.evaluate import load_pairs, load_truths
 from lgnn.bench.stages.external import load_externals
 from lgnn.bench.stages.train import load_checkpoints

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from lgnn.bench import gpu_truth
-from lgnn.bench.grid import TRAINING_SCENES, Profile
+from lgnn.bench.grid import TRAINING_SCENES
+from lgnn.bench.profiles import Profile
 from lgnn.bench.stability import fit_exponent
 from lgnn.bench.report.summary import DIMENSION_NAMES, number_cell, without_training_scene
 from lgnn.bench.tables import escape_markdown_cell

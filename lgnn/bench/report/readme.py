@@ -7,21 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from lgnn import metrics
-from lgnn.bench.grid import (
-    PAPER_TRACK,
-    PROFILES,
-    TRACKS,
-    TRAINING_SCENES,
-    TRANSFER_TRACK,
-    Profile,
-    TrainingJob,
-    evaluation_pairs,
-    evaluation_scenes,
-    model_order,
-    settings_key,
-    train_config,
-    training_jobs,
-)
+from lgnn.bench.grid import PAPER_TRACK, TRACKS, TRAINING_SCENES, TRANSFER_TRACK, TrainingJob
+from lgnn.bench.profiles import PROFILES, Profile, evaluation_pairs, evaluation_scenes, model_order, train_config, training_jobs
+from lgnn.records import settings_key
 from lgnn.bench.report.performance import speed_markdown
 from lgnn.bench.stages.evaluate import CURVE_DT, unmatched_base_pairs
 from lgnn.bench.stages.train import default_lgnn

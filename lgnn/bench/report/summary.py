@@ -45,13 +45,14 @@ import numpy as np
 
 from lgnn import metrics
 from lgnn.bench import convergence
-from lgnn.bench.grid import EXTERNAL, GRID, PAPER_TRACK, TRACKS, EvaluateSettings, Pair
+from lgnn.bench.grid import EXTERNAL, GRID, PAPER_TRACK, TRACKS, Pair
+from lgnn.bench.profiles import EvaluateSettings
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, TRUTH, curve_frames, recorded_metrics, scene_level_prefix, scene_level_scores, truth_against
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.tables import read_table
 from lgnn.scene import get_scene
 
-# Column order of the built-in grid's models (a profile's own models follow: `grid.model_order`).
+# Column order of the built-in grid's models (a profile's own models follow: `profiles.model_order`).
 MODEL_ORDER = tuple(dict.fromkeys(entry.model for entry in GRID))
 # The rest baseline's model name in the tables (the initial state held).
 REST = "rest"
@@ -267,7 +268,7 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
               [s for s in scenes if s in recorded or s in expected_scenes])
     wide = wide[wide.scene.isin(scenes)]
     models = [m for m in wide["model"].unique() if m not in ("ground truth", REST)]
-    # Models in `order` (a profile's: `grid.model_order`), any other after them by name.
+    # Models in `order` (a profile's: `profiles.model_order`), any other after them by name.
     models.sort(key=lambda m: (order.index(m.split()[0]) if m.split()[0] in order else len(order), m))
     models.append(REST)
     # Which records exist: a model with any metric on a scene; the rest baseline and

@@ -52,7 +52,9 @@ import numpy as np
 
 from lgnn import metrics, physics, records
 from lgnn.bench import claims, store
-from lgnn.bench.grid import SNAPSHOT_SCENES, Pair, Profile, evaluation_pairs, evaluation_scenes, settings_key
+from lgnn.bench.grid import SNAPSHOT_SCENES, Pair
+from lgnn.bench.profiles import Profile, evaluation_pairs, evaluation_scenes
+from lgnn.records import settings_key
 from lgnn.bench.store import Layout, log
 from lgnn.engines import get_engine
 from lgnn.engines.base import SimulationConfig

@@ -45,7 +45,8 @@ import numpy as np
 
 from lgnn import records
 from lgnn.bench import claims, store
-from lgnn.bench.grid import Pair, Profile, evaluation_scenes, external_pair
+from lgnn.bench.grid import Pair, external_pair
+from lgnn.bench.profiles import Profile, evaluation_scenes
 from lgnn.bench.stages import evaluate
 from lgnn.bench.store import log
 from lgnn.errors import ConfigError

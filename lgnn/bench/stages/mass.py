@@ -19,7 +19,9 @@ import numpy as np
 
 from lgnn import physics, records
 from lgnn.bench import store
-from lgnn.bench.grid import Profile, TrainingJob, lgnn_job, settings_key
+from lgnn.bench.grid import TrainingJob
+from lgnn.bench.profiles import Profile, lgnn_job
+from lgnn.records import settings_key
 from lgnn.bench.stages.evaluate import load_truth, truth_key
 from lgnn.bench.store import log
 from lgnn.errors import ConfigError

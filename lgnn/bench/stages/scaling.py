@@ -17,7 +17,9 @@ import numpy as np
 from lgnn import physics, records
 from lgnn.bench import store
 from lgnn.engines import get_engine
-from lgnn.bench.grid import TRAINING_SCENES, Profile, lgnn_job, settings_key
+from lgnn.bench.grid import TRAINING_SCENES
+from lgnn.bench.profiles import Profile, lgnn_job
+from lgnn.records import settings_key
 from lgnn.bench.store import log
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.engines.rollouts import Unparametrised, timed_rollouts

@@ -17,7 +17,9 @@ import numpy as np
 from lgnn import metrics, records
 from lgnn.bench import store
 from lgnn.engines import form_of, get_engine
-from lgnn.bench.grid import TRAINING_SCENES, Profile, TrainingJob, evaluated_jobs, settings_key
+from lgnn.bench.grid import TRAINING_SCENES, TrainingJob
+from lgnn.bench.profiles import Profile, evaluated_jobs
+from lgnn.records import settings_key
 from lgnn.bench.stages.evaluate import evaluation_initial_states
 from lgnn.bench.store import log
 from lgnn.engines.base import SimulationConfig
@@ -29,7 +31,7 @@ from lgnn.scene import State, get_scene, scene_to_dict
 
 def timed_jobs(profile: Profile, scene_name: str, jobs: list[TrainingJob] | None = None) -> list[TrainingJob]:
     """The learned models timed on a scene: those the grid evaluates on it
-    (`grid.evaluated_jobs`: CLNN on its own scene only) trained on the main training
+    (`profiles.evaluated_jobs`: CLNN on its own scene only) trained on the main training
     scene of the scene's dimension (`TRAINING_SCENES`: chain4, chain4-3d), restricted
     to `jobs` if given and to `SpeedSettings.models`."""
     trained_on = TRAINING_SCENES[get_scene(scene_name).dim]

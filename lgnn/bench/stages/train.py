@@ -19,8 +19,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn.bench.grid import LGNN_VARIANTS, TRAINING_SCENE, Profile, TrainingJob, training_jobs
-from lgnn.bench.grid import train_config as train_config_of
+from lgnn.bench.grid import LGNN_VARIANTS, TRAINING_SCENE, TrainingJob
+from lgnn.bench.profiles import Profile, training_jobs
+from lgnn.bench.profiles import train_config as train_config_of
 from lgnn.bench import claims, store
 from lgnn.bench.store import Layout, log
 from lgnn.errors import CheckpointError
