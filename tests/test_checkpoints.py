@@ -102,7 +102,7 @@ def test_a_model_outside_the_registry_loads_with_its_spec(tmp_path, monkeypatch)
     spec = models.register(ModelSpec("checkpoint-test-own", init=lambda key, config: {"s": jnp.array([0.5, -0.5])}, acceleration=_zero_acceleration))
     path = tmp_path / "own.npz"
     _save_initial(path, models.ModelConfig(spec.name))
-    monkeypatch.delitem(models._REGISTRY, spec.name)  # a fresh process: the model's code not imported
+    monkeypatch.delitem(models.registry._REGISTRY, spec.name)  # a fresh process: the model's code not imported
     with pytest.raises(CheckpointError, match="'checkpoint-test-own' is defined outside lgnn.*pass its spec to load_model"):
         load_model(path)
     config, params = load_model(path, spec)

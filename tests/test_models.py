@@ -651,7 +651,7 @@ def test_lgn_terms_depend_on_their_supports_only(scene_name):
     structure = config.spec.mass(config, params, scene)
     q, qd = _moving_state(scene, seed=10)
     graph = graphs.graph_from_state(scene, q, qd, config.vocabulary, config.link_features)
-    np.testing.assert_allclose(structure.terms(q, qd).sum(0), models._lgn_pooled(params, graph), rtol=1e-12)
+    np.testing.assert_allclose(structure.terms(q, qd).sum(0), models.lgn._pooled(params, graph), rtol=1e-12)
     jacobian = np.asarray(jax.jacfwd(structure.terms, argnums=1)(q, qd))  # (T, P, N, D)
     depends = np.abs(jacobian).max(axis=(1, 3)) > 0
     declared = np.zeros_like(depends)

@@ -87,7 +87,7 @@ def test_commands_reading_a_checkpoint_load_its_model_code_when_told(capsys, tmp
         "checkpoint": ["checkpoint", checkpoint],
     }
     for name, argv in commands.items():
-        monkeypatch.delitem(models._REGISTRY, "scaled-truth")  # a fresh process: the checkpoint's code not imported
+        monkeypatch.delitem(models.registry._REGISTRY, "scaled-truth")  # a fresh process: the checkpoint's code not imported
         assert main(argv) == 2, name
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and f"--model-code {reference}" in err, err

@@ -122,7 +122,7 @@ def test_small_ground_truth_batches_run_on_the_host_of_an_accelerator_and_models
         return rollouts.batched_rollouts(*args, **kwargs)
 
     monkeypatch.setattr(lagrangian, "batched_rollouts", recording)
-    monkeypatch.setattr(models, "batched_rollouts", recording)
+    monkeypatch.setattr(models.generic, "batched_rollouts", recording)
     model = models.ModelConfig("lgnn", latent=4, hidden=8)
     params = models.init(jax.random.PRNGKey(0), model)
     small, large = _states(scene, 2), _states(scene, rollouts.HOST_BATCH_MAX + 1)

@@ -1,4 +1,4 @@
-"""The strong GNS (`gns-10-128`, `lgnn.learn.strong_gns`) and the training-set statistics
+"""The strong GNS (`gns-10-128`, `lgnn.learn.models.strong_gns`) and the training-set statistics
 a model normalises by: physics of its predictions, its statistics from training to
 checkpoint, and its recipe (AdamW, input noise). The benchmark trains it through its
 stages (`bench/test_benchmark.py::test_training`, which also checks the statistics a
@@ -149,7 +149,7 @@ def test_the_message_passing_steps_written_out_are_the_loop_to_round_off(monkeyp
     """On an accelerator the processor's steps are written out (`processor_unroll`), on
     a CPU looped: the same network, so the same accelerations and gradients to round-off
     (both run here, on the CPU, the unrolled one forced)."""
-    from lgnn.learn import strong_gns
+    from lgnn.learn.models import strong_gns
 
     scene = get_scene("chain4")
     config = models.ModelConfig.for_scene(name, scene, **SMALL)

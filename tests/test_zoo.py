@@ -12,7 +12,8 @@ import pytest
 from lgnn import physics
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.errors import ConfigError
-from lgnn.learn import cgnode, chgn, chnn, data, models, train
+from lgnn.learn import data, models, train
+from lgnn.learn.models import cgnode, chgn, chnn
 from lgnn.scene import State, get_scene
 
 TINY_DATA = data.DataConfig(n_trajectories=6, duration=0.2, sample_dt=0.01, dt=1e-3)

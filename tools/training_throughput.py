@@ -118,8 +118,7 @@ if args.summarise:
     raise SystemExit
 
 runtime.configure()
-from lgnn.bench.grid import training_jobs  # noqa: E402
-from lgnn.bench.profiles import get_profile
+from lgnn.bench.profiles import get_profile, training_jobs  # noqa: E402
 from lgnn.bench.stages.train import job_settings  # noqa: E402
 from lgnn.learn import data, train  # noqa: E402
 from lgnn.provenance import environment  # noqa: E402

@@ -23,7 +23,7 @@ configure()
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from lgnn.bench.grid import load_profile  # noqa: E402
+from lgnn.bench.profiles import load_profile  # noqa: E402
 from lgnn.bench.stages.evaluate import evaluation_initial_states  # noqa: E402
 from lgnn.engines.rollouts import compiled_programs, params_signature  # noqa: E402
 from lgnn.learn import models  # noqa: E402

@@ -22,7 +22,7 @@ configure()
 
 import numpy as np  # noqa: E402
 
-from lgnn.bench.grid import load_profile  # noqa: E402
+from lgnn.bench.profiles import load_profile  # noqa: E402
 from lgnn.bench.stages.evaluate import evaluation_initial_states  # noqa: E402
 from lgnn.engines import get_engine  # noqa: E402
 from lgnn.engines.base import SimulationConfig  # noqa: E402

@@ -32,7 +32,7 @@ enable_compilation_cache()
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from lgnn.bench.grid import get_profile  # noqa: E402
+from lgnn.bench.profiles import get_profile  # noqa: E402
 from lgnn.bench.stages.evaluate import evaluation_initial_states  # noqa: E402
 from lgnn.engines.rollouts import FRAMES_PER_CALL, batched_rollouts  # noqa: E402
 from lgnn.learn import models  # noqa: E402

@@ -29,8 +29,7 @@ from lgnn.runtime import configure
 
 configure()
 
-from lgnn.bench.grid import training_jobs  # noqa: E402
-from lgnn.bench.profiles import load_profile, train_config
+from lgnn.bench.profiles import load_profile, train_config, training_jobs  # noqa: E402
 from lgnn.learn.train import load_checkpoint  # noqa: E402
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

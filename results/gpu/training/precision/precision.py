@@ -23,8 +23,7 @@ parser.add_argument("--data", default="/tmp/lgnn-datasets")
 args = parser.parse_args()
 
 runtime.configure()
-from lgnn.bench.grid import training_jobs  # noqa: E402
-from lgnn.bench.profiles import get_profile
+from lgnn.bench.profiles import get_profile, training_jobs  # noqa: E402
 from lgnn.bench.stages.train import job_settings  # noqa: E402
 from lgnn.learn import data, train  # noqa: E402
 from lgnn.provenance import environment  # noqa: E402

@@ -13,8 +13,7 @@ from lgnn import runtime
 
 runtime.configure()
 
-from lgnn.bench.grid import training_jobs  # noqa: E402
-from lgnn.bench.profiles import get_profile
+from lgnn.bench.profiles import get_profile, training_jobs  # noqa: E402
 from lgnn.bench.stages.train import job_settings  # noqa: E402
 from lgnn.learn import data  # noqa: E402
 

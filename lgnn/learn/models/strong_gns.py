@@ -3,8 +3,8 @@
 The recipe is Sanchez-Gonzalez et al. 2020 (deepmind-research `learning_to_simulate`)
 as LagrangeBench's GNS-10-128 sets it: encoder, `L` (10) unshared message-passing steps
 with node and edge residuals, decoder; latent 128; every MLP has 2 hidden layers of 128
-and ReLU, with LayerNorm after every MLP except the decoder's. `lgnn.learn.models`
-registers it as `gns-10-128`; the paper's tiny GNS stays `gns`.
+and ReLU, with LayerNorm after every MLP except the decoder's. It registers itself
+as `gns-10-128`; the paper's tiny GNS stays `gns`.
 
 Contract (pure functions; `config` is a `ModelConfig`, read for `latent`, `hidden`,
 `message_passing`, `vocabulary` and `dim`):
@@ -37,6 +37,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
+from lgnn.learn.models import kit
+from lgnn.learn.models.registry import ModelSpec, register
 from lgnn.scene import Scene
 from lgnn.sharding import platform
 
@@ -95,21 +97,18 @@ def _placeholder_statistics(dim: int) -> dict:
 
 
 def _init_mlp(key, n_in: int, hidden: int, n_out: int, layer_norm: bool = True) -> dict:
-    """An MLP `n_in -> hidden x HIDDEN_LAYERS -> n_out` (LeCun-normal weights, zero
-    biases), with LayerNorm's scale and offset when `layer_norm`."""
-    sizes = (n_in, *(hidden,) * HIDDEN_LAYERS, n_out)
-    keys = jax.random.split(key, len(sizes) - 1)
-    mlp = {"layers": [{"w": jax.random.normal(k, (a, b)) / np.sqrt(a), "b": jnp.zeros(b)} for k, a, b in zip(keys, sizes[:-1], sizes[1:])]}
+    """An MLP `n_in -> hidden x HIDDEN_LAYERS -> n_out` (`kit.mlp`), with LayerNorm's
+    scale and offset when `layer_norm`. Its layers sit under `"layers"`, beside
+    `"norm"`, where the kit's MLP is a bare list: checkpoints keep leaves by pytree
+    path, so this wrapper stays."""
+    mlp = {"layers": kit.mlp(key, (n_in, *(hidden,) * HIDDEN_LAYERS, n_out))}
     if layer_norm:
         mlp["norm"] = {"scale": jnp.ones(n_out), "offset": jnp.zeros(n_out)}
     return mlp
 
 
 def _apply_mlp(mlp: dict, x):
-    *hidden, last = mlp["layers"]
-    for layer in hidden:
-        x = jax.nn.relu(x @ layer["w"] + layer["b"])
-    x = x @ last["w"] + last["b"]
+    x = kit.apply_mlp(mlp["layers"], x, jax.nn.relu)
     if "norm" not in mlp:
         return x
     mean = jnp.mean(x, -1, keepdims=True)
@@ -173,3 +172,11 @@ def acceleration(config, params: dict, scene: Scene):
         return (normalised * stats["acceleration_std"] + stats["acceleration_mean"]) * free
 
     return accel
+
+
+# The GNS-10-128 recipe's sizes, LagrangeBench's AdamW weight decay (1e-8) and noise of
+# 5e-4 of the normalised velocities (the recipe's 3e-4..7e-4).
+GNS_10_128 = register(ModelSpec(
+    "gns-10-128", init, acceleration=acceleration, statistics=statistics,
+    latent=128, hidden=128, message_passing=10, weight_decay=1e-8, velocity_noise=5e-4,
+))

@@ -49,7 +49,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from lgnn.learn import strong_gns
+from lgnn.learn.models import strong_gns
+from lgnn.learn.models.registry import ModelSpec, register
 from lgnn.physics.solvers import chain_kkt_solve, solve_kkt
 from lgnn.physics.system import prepare
 from lgnn.runtime import full_precision_matmuls
@@ -115,3 +116,11 @@ def acceleration(config, params: dict, scene: Scene):
         return solve(m, q, qd, m @ network(q, qd))
 
     return accel
+
+
+# The strong GNS's network and recipe, its accelerations made to satisfy the
+# constraints in the rods' mass metric.
+CGNODE = register(ModelSpec(
+    "cgnode", init, acceleration=acceleration, statistics=statistics,
+    latent=128, hidden=128, message_passing=10, weight_decay=1e-8, velocity_noise=5e-4,
+))

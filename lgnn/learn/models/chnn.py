@@ -41,11 +41,11 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from lgnn import physics
-from lgnn.learn import chgn
 from lgnn.learn.graphs import edge_type_indices
+from lgnn.learn.models import chgn, kit
+from lgnn.learn.models.registry import ModelSpec, register
 from lgnn.scene import Scene
 
 statistics = chgn.statistics
@@ -57,9 +57,7 @@ def init(key, config) -> dict:
     potential MLP LeCun-normal with zero biases."""
     k_potential, k_mass = jax.random.split(key)
     n, hidden = config.n_nodes, config.hidden
-    sizes = (n * config.dim, hidden, hidden, 1)
-    keys = jax.random.split(k_potential, len(sizes) - 1)
-    potential = [{"w": jax.random.normal(k, (a, b)) / np.sqrt(a), "b": jnp.zeros(b)} for k, a, b in zip(keys, sizes[:-1], sizes[1:])]
+    potential = kit.mlp(k_potential, (n * config.dim, hidden, hidden, 1))
     params = {
         "mass_factor": chgn.SOFTPLUS_ONE * jnp.eye(n) + 1e-3 * jnp.tril(jax.random.normal(k_mass, (n, n)), -1),
         "potential": potential,
@@ -87,10 +85,7 @@ def _potential_fn(config, params: dict, scene: Scene):
 
     def potential(q):
         x = (q / stats["length_scale"]).reshape(-1)
-        *hidden, last = params["potential"]
-        for layer in hidden:
-            x = jax.nn.softplus(x @ layer["w"] + layer["b"])
-        return (x @ last["w"] + last["b"])[0] * stats["energy_scale"]
+        return kit.apply_mlp(params["potential"], x, jax.nn.softplus)[0] * stats["energy_scale"]
 
     return potential
 
@@ -117,3 +112,7 @@ def acceleration(config, params: dict, scene: Scene):
     with the learned drag on drag scenes, zero at the pins."""
     drag = None if "drag" not in params else physics.drag_force_fn(scene, params["drag"][edge_type_indices(scene, config.vocabulary)])
     return chgn.constrained_hamiltonian_fn(scene, node_mass_fn(config, params, scene), hamiltonian_fn(config, params, scene), drag)
+
+
+# CLNN's potential width (the paper's 128) for the MLP it parallels.
+CHNN = register(ModelSpec("chnn", init, acceleration=acceleration, statistics=statistics, hidden=128, fixed_size=True))

@@ -68,8 +68,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics
-from lgnn.learn.cgnode import constrained_solve_fn, node_mass
 from lgnn.learn.graphs import edge_type_indices, graph_from_state
+from lgnn.learn.models import kit
+from lgnn.learn.models.cgnode import constrained_solve_fn, node_mass
+from lgnn.learn.models.registry import ModelSpec, register
 from lgnn.scene import Scene
 
 # Node types of the potential's one-hot: free, pinned.
@@ -98,15 +100,12 @@ def statistics(config, scene: Scene, q, qd, qdd) -> dict:
 
 
 def _mlp(key, n_in: int, hidden: int, n_out: int) -> list:
-    """One hidden layer (LeCun-normal weights, zero biases)."""
-    k1, k2 = jax.random.split(key)
-    return [{"w": jax.random.normal(k1, (n_in, hidden)) / np.sqrt(n_in), "b": jnp.zeros(hidden)},
-            {"w": jax.random.normal(k2, (hidden, n_out)) / np.sqrt(hidden), "b": jnp.zeros(n_out)}]
+    """One hidden layer (`kit.mlp`)."""
+    return kit.mlp(key, (n_in, hidden, n_out))
 
 
 def _apply_mlp(layers: list, x):
-    first, last = layers
-    return jax.nn.softplus(x @ first["w"] + first["b"]) @ last["w"] + last["b"]
+    return kit.apply_mlp(layers, x, jax.nn.softplus)
 
 
 def _rod_inputs(config) -> int:
@@ -245,3 +244,9 @@ def acceleration(config, params: dict, scene: Scene):
     with the learned drag on drag scenes (module docstring), zero at the pins."""
     drag = None if "drag" not in params else physics.drag_force_fn(scene, params["drag"][edge_type_indices(scene, config.vocabulary)])
     return constrained_hamiltonian_fn(scene, _mass_fn(config, params, scene), hamiltonian_fn(config, params, scene), drag)
+
+
+# LGNN's sizes (the paper's appendix) and recipe for the energy model it parallels; an
+# acceleration model to the library, since its dynamics are the constrained Hamiltonian
+# equations, not the Euler-Lagrange solve.
+CHGN = register(ModelSpec("chgn", init, acceleration=acceleration, statistics=statistics, latent=5, hidden=10, message_passing=0))
