@@ -25,7 +25,7 @@ from lgnn.bench.report import readme as report_readme, summary as report_summary
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.bench.stages import train as train_stage
-from lgnn.learn import data, models, train
+from lgnn.learn import data, models, protocol, train
 from lgnn.learn.checkpoints import load_model
 from lgnn.scene import get_scene
 
@@ -45,7 +45,7 @@ FLOOR_DIVERGES = {"T2", "T3"}
 LEARNS = 0.75
 # Models whose quick-profile training does not learn yet. Strict: the test fails once
 # one learns, so its entry is removed then. (LGNN learns since the quick profile's 30
-# steps peak at train.SHORT_BUDGET_RATE: 0.70 of the untrained model's MSE; LGNN with
+# steps peak at protocol.SHORT_BUDGET_RATE: 0.70 of the untrained model's MSE; LGNN with
 # the paper's two message-passing layers reaches 0.76 in those 30 steps.)
 DOES_NOT_LEARN_YET: set[str] = {"lgnn-mp2"}
 
@@ -97,7 +97,7 @@ def test_training(benchmark, record_rate, request, profile, out, job):
     state, meta = train.load_checkpoint(path)
     assert np.isfinite(state.best_val) and state.epoch >= 1
     run_epoch, steps = train_stage.timed_epoch_fn(profile, job, out)
-    assert steps == train.adam_steps_per_epoch(profile.training.data, profile.training.train)  # the schedule rule's count
+    assert steps == protocol.adam_steps_per_epoch(profile.training.data, profile.training.train)  # the schedule rule's count
     _time(benchmark, run_epoch, rounds=3)
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)
     # Training learns: far below the untrained model (same initial parameters) on the

@@ -15,7 +15,7 @@ from lgnn import metrics
 from lgnn.bench import grid, profiles, store
 from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.engines.rollouts import Rollouts
-from lgnn.learn import checkpoints, models, train
+from lgnn.learn import checkpoints, models, protocol, train
 from lgnn.scene import get_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,7 +27,7 @@ CHANGED = {"scene_dts": ((SCENE, 5e-4),), "references": ("mujoco", "lagrangian")
 
 def _checkpoint(path: Path, seed: int = 0, **train_settings) -> Path:
     """An untrained true-physics checkpoint at `path` (parameters drawn from `seed`)."""
-    model, config = models.ModelConfig("lgnn"), train.TrainConfig(seed=seed, **train_settings)
+    model, config = models.ModelConfig("lgnn"), protocol.TrainConfig(seed=seed, **train_settings)
     train.save_checkpoint(path, train.initial_state(model, config), model, config)
     return path
 

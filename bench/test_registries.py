@@ -14,7 +14,7 @@ from lgnn.bench import grid, profiles, store
 from lgnn.bench.report import figures as report_figures, readme as report_readme, summary as report_summary
 from lgnn.bench.stages import evaluate
 from lgnn.engines import ENGINES
-from lgnn.learn import models, train
+from lgnn.learn import models, protocol, train
 
 # LagrangeBench's cheating model under a name of its own (one spec per name and process),
 # with a parameter it does not use (the evaluate stage stacks a model's seeds' parameters).
@@ -46,7 +46,7 @@ def _tiny_benchmark(tmp_path):
     config = models.ModelConfig(CHEAT.name)
     checkpoint = store.Layout(tmp_path).checkpoint(pair.job)
     checkpoint.parent.mkdir(parents=True)
-    train.save_checkpoint(checkpoint, train.initial_state(config, train.TrainConfig()), config, train.TrainConfig())
+    train.save_checkpoint(checkpoint, train.initial_state(config, protocol.TrainConfig()), config, protocol.TrainConfig())
     return profile, pair
 
 

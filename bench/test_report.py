@@ -195,14 +195,14 @@ def test_missing_pairs_say_not_evaluated_and_unconverged_references_not_rankable
 
 def test_training_table_says_why_each_run_stopped():
     """Epoch budget, plateau (no 1 % gain in `patience` epochs), or cut off and resumable."""
-    from lgnn.learn import train
+    from lgnn.learn import protocol
 
-    config = train.TrainConfig(learning_rate=1e-3, warmup_steps=1, epochs=100, patience=10, min_improvement=0.01)
+    config = protocol.TrainConfig(learning_rate=1e-3, warmup_steps=1, epochs=100, patience=10, min_improvement=0.01)
 
     def state(losses):
         history = [(k + 1, 0.0, v, 0.0) for k, v in enumerate(losses)]
         best = int(np.argmin(losses))
-        return train.TrainState({}, (), {}, float(losses[best]), best + 1, len(losses), history)
+        return protocol.TrainState({}, (), {}, float(losses[best]), best + 1, len(losses), history)
 
     assert report_readme._stopped_by(state(list(np.geomspace(1, 1e-3, 100))), config) == "epoch budget"
     assert report_readme._stopped_by(state([1.0, 0.5] + [0.499] * 20), config) == "plateau (best improved by under 1% in epochs 12-22)"

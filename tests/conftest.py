@@ -37,11 +37,11 @@ def untrained_checkpoint():
     profile's one training job, saved where the benchmark keeps its checkpoint under
     `folder` (a model whose parameters need no training, e.g. the true physics)."""
     from lgnn.bench import profiles, store
-    from lgnn.learn import models, train
+    from lgnn.learn import models, protocol, train
 
     def save(profile, folder, model_name: str):
         (job,) = profiles.training_jobs(profile)
-        model, config = models.ModelConfig(model_name), train.TrainConfig(learning_rate=1e-3, warmup_steps=1)
+        model, config = models.ModelConfig(model_name), protocol.TrainConfig(learning_rate=1e-3, warmup_steps=1)
         path = store.Layout(folder).checkpoint(job)
         path.parent.mkdir(parents=True)
         train.save_checkpoint(path, train.initial_state(model, config), model, config)

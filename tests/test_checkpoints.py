@@ -15,7 +15,7 @@ import pytest
 from lgnn import records
 from lgnn.engines.base import SimulationConfig
 from lgnn.errors import CheckpointError
-from lgnn.learn import checkpoints, data, models, train
+from lgnn.learn import checkpoints, data, models, protocol, train
 from lgnn.learn.checkpoints import load_model
 from lgnn.learn.models import ModelSpec
 from lgnn.scene import get_scene
@@ -42,7 +42,7 @@ RENAMED = ModelSpec(
 )
 
 
-def _save_initial(path, model, config=train.TrainConfig()):
+def _save_initial(path, model, config=protocol.TrainConfig()):
     train.save_checkpoint(path, train.initial_state(model, config), model, config)
 
 
@@ -85,7 +85,7 @@ def test_load_model_needs_neither_the_optimiser_nor_the_training_settings(tmp_pa
     loaded, best = load_model(odd)
     assert loaded == model
     # Exact: read back from the file the same initialisation (one process, same key) wrote.
-    for a, b in zip(jax.tree.leaves(best), jax.tree.leaves(train.initial_state(model, train.TrainConfig()).best_params)):
+    for a, b in zip(jax.tree.leaves(best), jax.tree.leaves(train.initial_state(model, protocol.TrainConfig()).best_params)):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(CheckpointError, match="checkpoint settings are invalid"):
         train.load_checkpoint(odd)  # resuming needs them
@@ -117,9 +117,9 @@ def test_training_stores_checkpoints_the_kept_copies_are_compressed_the_history_
     """Training's checkpoints are stored (fast to write every few epochs), the slimmer
     copies kept for good deflated; both hold the history as an array."""
     model = models.ModelConfig.for_scene("lgnn", get_scene("chain4"))
-    state = train.initial_state(model, train.TrainConfig())._replace(history=[(1, 2.0, 3.0, 4.5), (2, 1.5, 2.5)], epoch=2)
+    state = train.initial_state(model, protocol.TrainConfig())._replace(history=[(1, 2.0, 3.0, 4.5), (2, 1.5, 2.5)], epoch=2)
     path, kept = tmp_path / "c.npz", tmp_path / "kept.npz"
-    train.save_checkpoint(path, state, model, train.TrainConfig())
+    train.save_checkpoint(path, state, model, protocol.TrainConfig())
     checkpoints.for_inference(path, kept)
     for written, compression in ((path, zipfile.ZIP_STORED), (kept, zipfile.ZIP_DEFLATED)):
         with zipfile.ZipFile(written) as archive:
@@ -130,12 +130,12 @@ def test_training_stores_checkpoints_the_kept_copies_are_compressed_the_history_
         assert train.load_checkpoint(written)[0].history == state.history
 
 
-def _write_format_1(path, state: train.TrainState, model, config):
+def _write_format_1(path, state: protocol.TrainState, model, config):
     """A checkpoint as format 1 wrote it: leaves `prefix/k` in flatten order, the
     history in the meta, arrays uncompressed."""
     arrays = {f"{prefix}/{k}": np.asarray(leaf) for prefix, tree in (("params", state.params), ("best", state.best_params), ("opt", state.opt_state))
               for k, leaf in enumerate(jax.tree.leaves(tree))}
-    meta = {"format": 1, "lgnn": "0", "model": model.to_dict(), "train": train.training_key(config), "train_config": config.__dict__,
+    meta = {"format": 1, "lgnn": "0", "model": model.to_dict(), "train": protocol.training_key(config), "train_config": config.__dict__,
             "data": None, "epoch": state.epoch, "best_epoch": state.best_epoch, "best_val": state.best_val, "history": state.history,
             "elapsed_s": state.elapsed_s}
     records.save(path, arrays, meta, environment={"commit": "format-1"})
@@ -151,7 +151,7 @@ def test_converted_checkpoints_roll_out_bit_identically(tmp_path):
     scene = get_scene("chain4")
     # GNS: the cheapest model to compile; the format does not depend on the model.
     model = models.ModelConfig.for_scene("gns", scene)
-    config = train.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
+    config = protocol.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
     state = train.train(model, config, _tiny_dataset(scene), scene)
     source, target = tmp_path / "old", tmp_path / "new"
     source.mkdir()
@@ -226,7 +226,7 @@ def _briefly_trained(tmp_path, name: str):
     for 2 epochs on chain4's tiny dataset, its checkpoint `tmp_path / "whole.npz"`."""
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene(name, scene)
-    config = train.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
+    config = protocol.TrainConfig(learning_rate=1e-2, batch_size=4, epochs=2, warmup_steps=1)
     path = tmp_path / "whole.npz"
     return scene, model, config, path, train.train(model, config, _tiny_dataset(scene), scene, out=path)
 

@@ -558,18 +558,18 @@ def test_lgnn_train_defaults_are_the_full_profiles_recipe():
     with the committed ones, and the report's banner names no other training."""
     from lgnn.bench import profiles
     from lgnn.cli import build_parser, train_settings
-    from lgnn.learn import train
+    from lgnn.learn import protocol
 
     full = profiles.PROFILES["full"].training
     data_config, config = train_settings(build_parser().parse_args(["train", "--model", "lgnn", "--out", "x.npz"]))
     assert data_config == full.data_for("chain4")
-    assert train.training_key(config) == train.training_key(full.train)
+    assert protocol.training_key(config) == protocol.training_key(full.train)
     assert (config.epochs, config.patience, config.min_improvement, config.minutes) == (
         full.train.epochs, full.train.patience, full.train.min_improvement, full.train.minutes)
     data_config, config = train_settings(build_parser().parse_args(["train", "--model", "gns", "--scene", "chain8", "--seed", "2",
                                                                      "--epochs", "20", "--out", "x.npz"]))
     assert data_config == full.data_for("chain8") and config.seed == 2 and config.epochs == 20
-    assert train.training_key(config) | {"seed": 0} == train.training_key(full.train)
+    assert protocol.training_key(config) | {"seed": 0} == protocol.training_key(full.train)
 
 
 def test_lgnn_train_and_the_full_benchmark_read_one_copy_of_the_training_data(tmp_path):

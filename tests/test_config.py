@@ -29,16 +29,16 @@ def test_the_schedule_rule_fills_only_what_a_config_leaves_unset():
     """`learning_rate` and `warmup_steps` left None follow the budget (30 Adam steps:
     the short-budget rate, a warm-up of a fifth); a value given is kept, the other
     still follows the rule; an unresolved config cannot make an optimiser."""
-    from lgnn.learn import train
+    from lgnn.learn import protocol
 
     quick = profiles.load_profile("quick").training.train
-    assert (quick.learning_rate, quick.warmup_steps) == (train.SHORT_BUDGET_RATE, 6)
+    assert (quick.learning_rate, quick.warmup_steps) == (protocol.SHORT_BUDGET_RATE, 6)
     given = profiles.load_profile("quick", ["training.train.learning_rate=0.05"]).training.train
     assert (given.learning_rate, given.warmup_steps) == (0.05, 6)
-    long = train.scheduled(train.TrainConfig(warmup_steps=7), 750)  # the paper's data and budget
-    assert (long.learning_rate, long.warmup_steps) == (train.PAPER_LEARNING_RATE, 7)
+    long = protocol.scheduled(protocol.TrainConfig(warmup_steps=7), 750)  # the paper's data and budget
+    assert (long.learning_rate, long.warmup_steps) == (protocol.PAPER_LEARNING_RATE, 7)
     with pytest.raises(ConfigError, match="schedule rule"):
-        train.optimizer(train.TrainConfig())
+        protocol.optimizer(protocol.TrainConfig())
 
 @pytest.mark.parametrize("override, message", [
     ("training.train.epoch=5", "unknown setting 'training.train.epoch'"),

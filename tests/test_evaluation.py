@@ -13,7 +13,7 @@ from lgnn.bench import evaluation
 from lgnn.cli import main
 from lgnn.engines.base import SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import simulate
-from lgnn.learn import models, train
+from lgnn.learn import models, protocol, train
 from lgnn.scene import get_scene, sample_initial_states
 from lgnn.scene.catalogue import double_pinned_chain
 
@@ -102,7 +102,7 @@ def _cheat_checkpoint(tmp_path):
     models.register(CHEAT)
     config = models.ModelConfig("cheat-evaluate")
     checkpoint = tmp_path / "cheat.npz"
-    train.save_checkpoint(checkpoint, train.initial_state(config, train.TrainConfig()), config, train.TrainConfig())
+    train.save_checkpoint(checkpoint, train.initial_state(config, protocol.TrainConfig()), config, protocol.TrainConfig())
     return checkpoint
 
 

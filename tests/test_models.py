@@ -10,7 +10,7 @@ import numpy as np
 import optax
 import pytest
 
-from lgnn.learn import data, graphs, models, train
+from lgnn.learn import checkpoints, data, graphs, models, protocol, train
 from lgnn.learn.checkpoints import load_model
 from lgnn import physics, records
 from lgnn.cli import main
@@ -447,7 +447,7 @@ def test_lgnn_training_does_not_blow_up_in_its_first_epochs(tiny_dataset, seed):
     by 1e4 on chain4: issue 13.)"""
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene("lgnn", scene)
-    config = train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, epochs=30, seed=seed, warmup_steps=100)  # 450 steps
+    config = protocol.TrainConfig(learning_rate=protocol.PAPER_LEARNING_RATE, epochs=30, seed=seed, warmup_steps=100)  # 450 steps
     evaluate = train.evaluate_fn(model, scene)
     val = tuple(a[tiny_dataset.val] for a in (tiny_dataset.q, tiny_dataset.qd, tiny_dataset.qdd))
     initial = evaluate(train.initial_state(model, config).params, *val)
@@ -458,20 +458,20 @@ def test_lgnn_training_does_not_blow_up_in_its_first_epochs(tiny_dataset, seed):
 
 
 def test_schedule_warms_up_decays_and_legacy_checkpoints_keep_plain_adam():
-    config = train.TrainConfig(learning_rate=1e-3, warmup_steps=100, decay_steps=1000, decay_rate=0.5, min_learning_rate=1e-4)
-    schedule = train.learning_rate_schedule(config)
+    config = protocol.TrainConfig(learning_rate=1e-3, warmup_steps=100, decay_steps=1000, decay_rate=0.5, min_learning_rate=1e-4)
+    schedule = protocol.learning_rate_schedule(config)
     assert float(schedule(0)) == 0.0 and float(schedule(50)) == pytest.approx(5e-4)
     assert float(schedule(1100)) == pytest.approx(5e-4) and float(schedule(10**6)) == pytest.approx(1e-4)
-    legacy = train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, **train.LEGACY_OPTIMISATION)
-    assert train.learning_rate_schedule(legacy) == legacy.learning_rate
+    legacy = protocol.TrainConfig(learning_rate=protocol.PAPER_LEARNING_RATE, **protocol.LEGACY_OPTIMISATION)
+    assert protocol.learning_rate_schedule(legacy) == legacy.learning_rate
     params = {"w": jnp.ones(3)}
     plain = optax.adam(1e-3)
-    assert jax.tree.structure(train.optimizer(legacy).init(params)) == jax.tree.structure(plain.init(params))
+    assert jax.tree.structure(protocol.optimizer(legacy).init(params)) == jax.tree.structure(plain.init(params))
     # Clipping: after steady unit gradients a spike of 1e9 moves the parameters by the
     # learning rate, as a unit gradient does (plain Adam's step then depends on the
     # spike through its moment estimates: 0.48x here, up to 3x later in training).
     def spike_step(clip_norm):
-        opt = train.optimizer(dataclasses.replace(config, warmup_steps=0, decay_rate=1.0, clip_norm=clip_norm))
+        opt = protocol.optimizer(dataclasses.replace(config, warmup_steps=0, decay_rate=1.0, clip_norm=clip_norm))
         state = opt.init(params)
         for _ in range(10):
             _, state = opt.update({"w": jnp.array([1.0, 0.0, 0.0])}, state, params)
@@ -480,31 +480,31 @@ def test_schedule_warms_up_decays_and_legacy_checkpoints_keep_plain_adam():
     assert spike_step(1.0) == pytest.approx(1e-3, rel=1e-6)
     assert abs(spike_step(None) - 1e-3) > 1e-4
     with pytest.raises(ConfigError):
-        train.TrainConfig(decay_rate=1.5)
+        protocol.TrainConfig(decay_rate=1.5)
 
 
 def test_batch_rule_keeps_the_schedule_in_epochs_and_scales_the_rate_by_the_square_root():
-    protocol = train.scheduled(train.TrainConfig(batch_size=100, epochs=10_000, patience=200, min_improvement=0.01), 75)
-    rule = train.batch_scaled(protocol, 750)
+    protocol = protocol.scheduled(protocol.TrainConfig(batch_size=100, epochs=10_000, patience=200, min_improvement=0.01), 75)
+    rule = protocol.batch_scaled(protocol, 750)
     assert rule.learning_rate == pytest.approx(1e-3 * 7.5**0.5) and rule.batch_size == 750
     assert (rule.epochs, rule.patience, rule.min_improvement, rule.seed) == (protocol.epochs, protocol.patience, protocol.min_improvement, protocol.seed)
     # The rate after any number of epochs is sqrt(7.5) times the protocol's (10 and 75
     # Adam steps an epoch), until both reach the floor, to the rounding of the warm-up's
     # 1000 / 7.5 steps (1 % inside it, and the decay starts 1/30 epoch earlier).
-    protocol_rate, rule_rate = train.learning_rate_schedule(protocol), train.learning_rate_schedule(rule)
+    protocol_rate, rule_rate = protocol.learning_rate_schedule(protocol), protocol.learning_rate_schedule(rule)
     for epoch, rel in ((0.4, 1e-2), (6, 1e-2), (14, 1e-4), (100, 1e-4), (1000, 1e-4), (2500, 1e-4)):
         assert float(rule_rate(round(10 * epoch))) == pytest.approx(7.5**0.5 * float(protocol_rate(round(75 * epoch))), rel=rel)
     assert float(rule_rate(10**7)) == float(protocol_rate(10**7)) == protocol.min_learning_rate
-    assert train.batch_scaled(protocol, 100) == protocol
+    assert protocol.batch_scaled(protocol, 100) == protocol
     # Smaller batches: the floor never exceeds the peak.
-    small = train.batch_scaled(protocol, 1)
+    small = protocol.batch_scaled(protocol, 1)
     assert small.min_learning_rate <= small.learning_rate
-    train.learning_rate_schedule(small)
+    protocol.learning_rate_schedule(small)
     for bad in (0, -5, 2.5, True):
         with pytest.raises(ConfigError, match="batch size"):
-            train.batch_scaled(protocol, bad)
+            protocol.batch_scaled(protocol, bad)
     with pytest.raises(ConfigError, match="schedule rule"):
-        train.batch_scaled(train.TrainConfig(), 750)
+        protocol.batch_scaled(protocol.TrainConfig(), 750)
 
 
 def test_checkpoint_round_trip_and_resume_are_exact(tiny_dataset, tmp_path):
@@ -512,7 +512,7 @@ def test_checkpoint_round_trip_and_resume_are_exact(tiny_dataset, tmp_path):
     # GNS: the checkpoint and the resume are the point, not the model, and its training
     # compiles in a fraction of LGNN's.
     model = models.ModelConfig.for_scene("gns", scene)
-    config = train.TrainConfig(learning_rate=1e-2, epochs=4, warmup_steps=train.WARMUP_STEPS)
+    config = protocol.TrainConfig(learning_rate=1e-2, epochs=4, warmup_steps=protocol.WARMUP_STEPS)
     whole = train.train(model, config, tiny_dataset, scene, out=tmp_path / "whole.npz")
     loaded, meta = train.load_checkpoint(tmp_path / "whole.npz")
     for a, b in zip(jax.tree.leaves((whole.params, whole.opt_state, whole.best_params)), jax.tree.leaves((loaded.params, loaded.opt_state, loaded.best_params))):
@@ -520,7 +520,7 @@ def test_checkpoint_round_trip_and_resume_are_exact(tiny_dataset, tmp_path):
     assert loaded.history == whole.history and meta["epoch"] == 4
     # Interrupted after 2 epochs, then resumed to 4.
     part = tmp_path / "part.npz"
-    train.train(model, train.TrainConfig(learning_rate=1e-2, epochs=2, warmup_steps=train.WARMUP_STEPS), tiny_dataset, scene, out=part)
+    train.train(model, protocol.TrainConfig(learning_rate=1e-2, epochs=2, warmup_steps=protocol.WARMUP_STEPS), tiny_dataset, scene, out=part)
     resumed = train.train(model, config, tiny_dataset, scene, out=part, resume=True)
     # Everything but the wall-clock seconds (summed over both runs, and each epoch's
     # time in the history) is the same (below).
@@ -541,12 +541,12 @@ def test_checkpoint_round_trip_and_resume_are_exact(tiny_dataset, tmp_path):
         else:
             np.testing.assert_array_equal(b, a)
     with pytest.raises(CheckpointError, match=r"other settings \(train.learning_rate: checkpoint 0.01, now 0.001\)"):
-        train.train(model, train.TrainConfig(learning_rate=1e-3, epochs=5, warmup_steps=train.WARMUP_STEPS), tiny_dataset, scene, out=part, resume=True)
+        train.train(model, protocol.TrainConfig(learning_rate=1e-3, epochs=5, warmup_steps=protocol.WARMUP_STEPS), tiny_dataset, scene, out=part, resume=True)
 
 
 def test_corrupt_or_mismatched_checkpoint_is_one_clear_error(tmp_path):
     model = models.ModelConfig("lgnn")
-    config = train.TrainConfig()
+    config = protocol.TrainConfig()
     path = tmp_path / "ckpt.npz"
     train.save_checkpoint(path, train.initial_state(model, config), model, config)
     (tmp_path / "short.npz").write_bytes(path.read_bytes()[:200])
@@ -584,7 +584,7 @@ def test_cli_train_and_zero_shot_rollout(tmp_path, capsys, tiny_dataset):
     common = ["--scene", "chain4", "--trajectories", "2", "--epochs", "1", "--cache-dir", str(tmp_path), "--quiet"]
     assert main(["train", "--model", "lgnn", *common, "--out", str(ckpt)]) == 0
     # CLNN's refusal needs its checkpoint, not its training: its initial state.
-    clnn_model, clnn_config = models.ModelConfig.for_scene("clnn", get_scene("chain4")), train.TrainConfig(learning_rate=1e-3, warmup_steps=1)
+    clnn_model, clnn_config = models.ModelConfig.for_scene("clnn", get_scene("chain4")), protocol.TrainConfig(learning_rate=1e-3, warmup_steps=1)
     train.save_checkpoint(clnn, train.initial_state(clnn_model, clnn_config), clnn_model, clnn_config)
     out = tmp_path / "roll.npz"
     assert main(["rollout", "--model", str(ckpt), "chain8", "--dt", "1e-3", "--duration", "0.05", "--out", str(out), "--quiet"]) == 0
@@ -697,12 +697,12 @@ def test_physics_differences_from_the_training_scene():
     """A rollout on a scene with other gravity, drag, link masses or lengths is flagged;
     a longer chain of the same links (generalisation) is not."""
     meta = {"data": {"scene": "chain4"}}
-    assert train.physics_differences(meta, get_scene("chain8")) == []
-    assert any(d.startswith("drag") for d in train.physics_differences(meta, get_scene("chain4-drag")))
-    assert any(d.startswith("link masses") for d in train.physics_differences(meta, get_scene("chain4-varied")))
+    assert checkpoints.physics_differences(meta, get_scene("chain8")) == []
+    assert any(d.startswith("drag") for d in checkpoints.physics_differences(meta, get_scene("chain4-drag")))
+    assert any(d.startswith("link masses") for d in checkpoints.physics_differences(meta, get_scene("chain4-varied")))
     # T1's shortest links are 5x shorter than any the model saw.
-    assert any(d.startswith("link lengths {0.2, ") and d.endswith("(trained on {1})") for d in train.physics_differences(meta, get_scene("T1")))
-    assert train.physics_differences({"data": None}, get_scene("chain4-varied")) == []
+    assert any(d.startswith("link lengths {0.2, ") and d.endswith("(trained on {1})") for d in checkpoints.physics_differences(meta, get_scene("T1")))
+    assert checkpoints.physics_differences({"data": None}, get_scene("chain4-varied")) == []
 
 
 def test_seeds_trained_together_equal_separate_runs(tiny_dataset, tmp_path):
@@ -710,7 +710,7 @@ def test_seeds_trained_together_equal_separate_runs(tiny_dataset, tmp_path):
     (params, losses, checkpoints), and resumes from seeds at different epochs."""
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene("gns", scene)  # (as above: the seeds are the point)
-    configs = [train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, epochs=2, warmup_steps=10, seed=seed) for seed in (0, 1)]
+    configs = [protocol.TrainConfig(learning_rate=protocol.PAPER_LEARNING_RATE, epochs=2, warmup_steps=10, seed=seed) for seed in (0, 1)]
     alone = [train.train(model, config, tiny_dataset, scene) for config in configs]
     outs = [tmp_path / "s0.npz", tmp_path / "s1.npz"]
     train.train(model, dataclasses.replace(configs[0], epochs=1), tiny_dataset, scene, out=outs[0])  # seed 0 one epoch ahead
@@ -734,7 +734,7 @@ def test_epochs_run_several_per_call_stop_where_they_would_one_at_a_time(tiny_da
     `stop_reason` agrees that it stopped there and not one epoch earlier."""
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene("gns", scene)
-    config = train.TrainConfig(**{"learning_rate": 1e-2, "epochs": 40, "warmup_steps": 1, "patience": 500, **rule})
+    config = protocol.TrainConfig(**{"learning_rate": 1e-2, "epochs": 40, "warmup_steps": 1, "patience": 500, **rule})
     one = train.train(model, config, tiny_dataset, scene)
     four = train.train(model, dataclasses.replace(config, checkpoint_every=4), tiny_dataset, scene, out=tmp_path / "four.npz")
     assert 1 < four.epoch < 40 and four.epoch % 4 and four.epoch == one.epoch
@@ -745,7 +745,7 @@ def test_epochs_run_several_per_call_stop_where_they_would_one_at_a_time(tiny_da
     before = four.history[:-1]
     best = min(before, key=lambda h: h[2])
     earlier = four._replace(epoch=four.epoch - 1, history=before, best_epoch=best[0], best_val=best[2])
-    assert train.stop_reason(four, config) and not train.stop_reason(earlier, config)
+    assert protocol.stop_reason(four, config) and not protocol.stop_reason(earlier, config)
 
 
 def test_plateau_rule_stops_when_the_best_stops_improving_by_a_fraction():
@@ -755,14 +755,14 @@ def test_plateau_rule_stops_when_the_best_stops_improving_by_a_fraction():
     def state(val):
         history = [(e, 0.0, v, 0.0) for e, v in enumerate(val, 1)]
         best = int(np.argmin(val))
-        return train.TrainState({}, (), {}, float(val[best]), best + 1, len(val), history)
+        return protocol.TrainState({}, (), {}, float(val[best]), best + 1, len(val), history)
 
-    config = train.TrainConfig(patience=2, min_improvement=0.01)
+    config = protocol.TrainConfig(patience=2, min_improvement=0.01)
     flat = state([10.0, 5.0, 4.98, 4.97, 4.965])  # 0.7 % from epoch 2 to 4, 0.3 % from 3 to 5
-    assert train.plateaued(flat, config) and train.stop_reason(flat, config) == "plateau (best improved by under 1% in epochs 3-5)"
-    assert not train.finished(state([10.0, 5.0, 4.98, 4.97]), dataclasses.replace(config, patience=3))  # 10 -> 4.97 in epochs 1-4
-    assert not train.finished(flat, dataclasses.replace(config, min_improvement=0.0))  # best at 5
+    assert protocol.plateaued(flat, config) and protocol.stop_reason(flat, config) == "plateau (best improved by under 1% in epochs 3-5)"
+    assert not protocol.finished(state([10.0, 5.0, 4.98, 4.97]), dataclasses.replace(config, patience=3))  # 10 -> 4.97 in epochs 1-4
+    assert not protocol.finished(flat, dataclasses.replace(config, min_improvement=0.0))  # best at 5
     steady = state(list(300.0 * 0.995 ** np.arange(300)))
-    assert not train.finished(steady, train.TrainConfig(patience=200, min_improvement=0.01))
+    assert not protocol.finished(steady, protocol.TrainConfig(patience=200, min_improvement=0.01))
     stalled = state(list(300.0 * 0.995 ** np.arange(100)) + [182.0] * 201)
-    assert train.stop_reason(stalled, train.TrainConfig(patience=200, min_improvement=0.01)).startswith("plateau")
+    assert protocol.stop_reason(stalled, protocol.TrainConfig(patience=200, min_improvement=0.01)).startswith("plateau")

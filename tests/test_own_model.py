@@ -71,13 +71,13 @@ def test_lgnn_train_takes_a_model_reference(capsys, tmp_path, monkeypatch):
 def test_commands_reading_a_checkpoint_load_its_model_code_when_told(capsys, tmp_path, monkeypatch):
     """`lgnn rollout`, `lgnn evaluate` and `lgnn checkpoint` on a checkpoint of one's own
     model: without its code one line naming the option, with `--model-code` they run."""
-    from lgnn.learn import models
+    from lgnn.learn import models, protocol
     from lgnn.scene import get_scene
 
     reference = f"{__name__}:SCALED_TRUTH"
     models.load_spec(reference)
     model = models.ModelConfig.for_scene("scaled-truth", get_scene("chain4"))
-    config = train.TrainConfig(learning_rate=train.PAPER_LEARNING_RATE, warmup_steps=1)
+    config = protocol.TrainConfig(learning_rate=protocol.PAPER_LEARNING_RATE, warmup_steps=1)
     checkpoint = tmp_path / "own.npz"
     train.save_checkpoint(checkpoint, train.initial_state(model, config), model, config)
     short = ["--duration", "0.01", "--quiet"]

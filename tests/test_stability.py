@@ -25,7 +25,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from lgnn.learn import data, models, train
+from lgnn.learn import data, models, protocol, train
 from lgnn.learn.checkpoints import load_model
 from lgnn import physics, records
 from lgnn.bench import stability
@@ -237,7 +237,7 @@ def test_bad_scene_files_through_the_cli(tmp_path, capsys, name):
 def test_bad_names_and_numbers_are_one_line(tmp_path, capsys, argv, words):
     ckpt = tmp_path / "ok.npz"
     model = models.ModelConfig("lgnn")
-    train.save_checkpoint(ckpt, train.initial_state(model, train.TrainConfig()), model, train.TrainConfig())
+    train.save_checkpoint(ckpt, train.initial_state(model, protocol.TrainConfig()), model, protocol.TrainConfig())
     argv = [a.format(tmp=tmp_path) for a in argv]
     if argv[0] != "frobnicate":
         argv += ["--out", str(tmp_path / ("x.md" if argv[0] == "stability" else "x.npz"))]
@@ -258,7 +258,7 @@ def test_unwritable_outputs(tmp_path, capsys, out, words):
 def checkpoints(tmp_path_factory):
     """A valid LGNN checkpoint and broken variants of it."""
     tmp = tmp_path_factory.mktemp("ckpt")
-    model, config = models.ModelConfig("lgnn"), train.TrainConfig()
+    model, config = models.ModelConfig("lgnn"), protocol.TrainConfig()
     good = tmp / "good.npz"
     train.save_checkpoint(good, train.initial_state(model, config), model, config)
     raw = good.read_bytes()
@@ -483,7 +483,7 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     # would recompute the same losses): its first history entry carries a sentinel.
     marked = killed._replace(history=[(1, -1.0, killed.history[0][2])] + killed.history[1:])
     model = models.ModelConfig.from_dict(meta["model"])
-    train.save_checkpoint(ckpt, marked, model, train.TrainConfig(**meta["train_config"]), data.DataConfig(**meta["data"]))
+    train.save_checkpoint(ckpt, marked, model, protocol.TrainConfig(**meta["train_config"]), data.DataConfig(**meta["data"]))
     short = [a if a != str(epochs) else str(killed.epoch + 5) for a in argv] + ["--resume"]
     finished = subprocess.run(short, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     assert finished.returncode == 0, finished.stderr

@@ -13,7 +13,7 @@ import pytest
 
 from lgnn import physics
 from lgnn.errors import ConfigError
-from lgnn.learn import checkpoints, data, models, train
+from lgnn.learn import checkpoints, data, models, protocol, train
 from lgnn.scene import get_scene
 
 TINY_DATA = data.DataConfig(n_trajectories=6, duration=0.2, sample_dt=0.01, dt=1e-3)
@@ -96,7 +96,7 @@ def test_loss_gradient_matches_finite_differences_and_skips_the_statistics(tiny_
 def test_training_lowers_the_loss_and_keeps_the_statistics_into_the_checkpoint(tiny_dataset, tmp_path):
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene("gns-10-128", scene, **SMALL)
-    config = train.TrainConfig(learning_rate=3e-3, epochs=6, warmup_steps=5)  # 6 x 12 AdamW steps
+    config = protocol.TrainConfig(learning_rate=3e-3, epochs=6, warmup_steps=5)  # 6 x 12 AdamW steps
     statistics = models.training_statistics(model, scene, *_training_arrays(tiny_dataset))
     val = tuple(a[tiny_dataset.val] for a in (tiny_dataset.q, tiny_dataset.qd, tiny_dataset.qdd))
     before = train.evaluate_fn(model, scene)(train.initial_state(model, config, statistics).params, *val)
@@ -123,12 +123,12 @@ def test_the_recipe_adds_velocity_noise_and_weight_decay(tiny_dataset):
     scene = get_scene("chain4")
     spec = models.get_spec("gns-10-128")
     quiet = models.register(dataclasses.replace(spec, name="gns-10-128-quiet", velocity_noise=0.0))
-    config = train.TrainConfig(learning_rate=3e-3, epochs=1, warmup_steps=5)
+    config = protocol.TrainConfig(learning_rate=3e-3, epochs=1, warmup_steps=5)
     noisy_run, quiet_run = (train.train(models.ModelConfig.for_scene(s.name, scene, **SMALL), config, tiny_dataset, scene) for s in (spec, quiet))
     # Same seed, same data, same shuffles: only the noise on the inputs differs.
     assert noisy_run.history[0][1] != quiet_run.history[0][1]
     # AdamW: a step with zero gradients still shrinks the weights, by rate x decay.
-    adamw = train.optimizer(dataclasses.replace(config, warmup_steps=0, decay_rate=1.0), weight_decay=0.5)
+    adamw = protocol.optimizer(dataclasses.replace(config, warmup_steps=0, decay_rate=1.0), weight_decay=0.5)
     params = {"w": jnp.ones(2)}
     updates, _ = adamw.update({"w": jnp.zeros(2)}, adamw.init(params), params)
     np.testing.assert_allclose(updates["w"], -3e-3 * 0.5)
@@ -180,7 +180,7 @@ def test_a_model_with_input_noise_trains_in_float32(tiny_dataset):
     scene = get_scene("chain4")
     model = models.ModelConfig.for_scene("gns-10-128", scene, **SMALL)
     assert model.spec.velocity_noise > 0
-    config = train.TrainConfig(learning_rate=3e-3, epochs=2, warmup_steps=2)
+    config = protocol.TrainConfig(learning_rate=3e-3, epochs=2, warmup_steps=2)
     train.train_seeds(model, [config], tiny_dataset, scene)  # float64 first: its program cached, as in a precision study
     with runtime.precision("float32"):
         (state,) = train.train_seeds(model, [config], tiny_dataset, scene)

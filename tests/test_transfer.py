@@ -11,7 +11,7 @@ import pytest
 
 from lgnn import physics
 from lgnn.errors import ConfigError
-from lgnn.learn import data, graphs, models, train
+from lgnn.learn import checkpoints, data, graphs, models, protocol, train
 from lgnn.scene import get_scene
 
 DRAWS = data.DataConfig(n_trajectories=4, duration=0.2, sample_dt=0.01, dt=1e-3, varied_draws=2)
@@ -72,7 +72,7 @@ def test_training_on_draws_scores_each_state_against_its_own_draw(draws_dataset)
     # GNS: the training machinery is the model's business no more than the loss is (and
     # compiles in a fraction of LGNN's time); with link features, as the track trains.
     model = models.ModelConfig.for_scene("gns", scenes[0], link_features=True)
-    config = train.TrainConfig(learning_rate=3e-3, batch_size=10, epochs=3, warmup_steps=5)
+    config = protocol.TrainConfig(learning_rate=3e-3, batch_size=10, epochs=3, warmup_steps=5)
     state = train.train(model, config, draws_dataset, scenes)
     val = [draws_dataset.val[draws_dataset.draw[draws_dataset.val] == k] for k in range(2)]
     per_draw = [train.evaluate_fn(model, scene)(state.best_params, *(a[index] for a in (draws_dataset.q, draws_dataset.qd, draws_dataset.qdd)))
@@ -91,8 +91,8 @@ def test_training_on_draws_scores_each_state_against_its_own_draw(draws_dataset)
 def test_a_model_trained_on_draws_is_warned_only_outside_the_ranges_its_draws_spanned():
     meta = {"data": {**DRAWS.to_dict()}}
     scenes = data.draw_scenes(DRAWS)
-    assert train.physics_differences(meta, scenes[1]) == []
-    assert any(d.startswith("link masses from 1 to 1 (trained on ") for d in train.physics_differences(meta, get_scene("chain4")))
+    assert checkpoints.physics_differences(meta, scenes[1]) == []
+    assert any(d.startswith("link masses from 1 to 1 (trained on ") for d in checkpoints.physics_differences(meta, get_scene("chain4")))
 
 
 def _moving_state(scene, seed=0):

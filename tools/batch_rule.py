@@ -1,6 +1,6 @@
 """Convergence per GPU-second of the training protocol and of rules that would change
 its batch size or learning rate: at a batch of the batch rule
-(`lgnn.learn.train.batch_scaled`), and with schedule settings overridden (`--set`).
+(`lgnn.learn.protocol.batch_scaled`), and with schedule settings overridden (`--set`).
 Each model's full-profile job, its seeds packed in one program as the benchmark trains
 them, from scratch for a wall-clock budget (the first call's compilation included):
 one JSON line per model with each seed's running best validation MSE against its
@@ -90,11 +90,11 @@ def measure(models: list[tuple[str, float]]):
     runtime.configure()
     from lgnn.bench.profiles import get_profile, training_jobs
     from lgnn.bench.stages.train import job_settings
-    from lgnn.learn import data, train
+    from lgnn.learn import data, protocol, train
     from lgnn.provenance import environment
 
     profile = get_profile("full")
-    overrides(train.TrainConfig(), args.set)  # the fields' names, before minutes of data generation
+    overrides(protocol.TrainConfig(), args.set)  # the fields' names, before minutes of data generation
     print(json.dumps({"environment": environment()}), flush=True)
     for name, seconds in models:
         jobs = [j for j in training_jobs(profile) if j.model == name and j.scene == args.scene and not j.varied_draws]
@@ -102,7 +102,7 @@ def measure(models: list[tuple[str, float]]):
             raise SystemExit(f"error: the full profile trains no {name} on {args.scene}")
         scene, model, data_config, protocol = job_settings(profile, jobs[0])
         dataset = data.load_or_generate(data_config, args.data)
-        config = overrides(train.batch_scaled(protocol, args.batch), args.set)
+        config = overrides(protocol.batch_scaled(protocol, args.batch), args.set)
         is_protocol = config == protocol
         config = dataclasses.replace(config, minutes=seconds / 60, checkpoint_every=args.every)
         with runtime.precision("float64"):
@@ -111,7 +111,7 @@ def measure(models: list[tuple[str, float]]):
         row = dict(model=name, scene=args.scene, variant=variant, protocol=is_protocol, batch=config.batch_size, learning_rate=config.learning_rate,
                    warmup_steps=config.warmup_steps, decay_steps=config.decay_steps, min_learning_rate=config.min_learning_rate,
                    seeds=[j.seed for j in jobs], seconds=seconds, epochs=[s.epoch for s in states],
-                   stop=[train.stop_reason(s, config) for s in states], curves=[_curve(s.history) for s in states])
+                   stop=[protocol.stop_reason(s, config) for s in states], curves=[_curve(s.history) for s in states])
         print(json.dumps(row), flush=True)
         print(f"{name} on {args.scene}, {variant}: {states[0].epoch} epochs in {states[0].elapsed_s:.0f} s, "
               f"best {np.median([s.best_val for s in states]):.3g}", file=sys.stderr, flush=True)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from lgnn.bench import grid, profiles, store
-from lgnn.learn import checkpoints, train
+from lgnn.learn import checkpoints, protocol
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("--results", default="results", help="a results folder (its benchmark/checkpoints/)")
@@ -50,8 +50,8 @@ def best_within(job) -> tuple[callable, str]:
     val = np.array([entry[2] for entry in history])
     running = np.fmin.accumulate(np.where(np.isnan(val), np.inf, val))
     config = dataclasses.replace(profiles.train_config(profile, job), minutes=None)  # the protocol's own rules only
-    state = train.TrainState(None, None, None, float(running[-1]), int(meta["best_epoch"]), int(epochs[-1]), history, 0.0)
-    ended = train.stop_reason(state, config)
+    state = protocol.TrainState(None, None, None, float(running[-1]), int(meta["best_epoch"]), int(epochs[-1]), history, 0.0)
+    ended = protocol.stop_reason(state, config)
 
     def best(budget: int):
         if budget > epochs[-1] and ended is None:

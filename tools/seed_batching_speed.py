@@ -11,14 +11,14 @@ import time
 import jax, jax.numpy as jnp
 import lgnn
 lgnn.configure()
-from lgnn.learn import data, models, train
+from lgnn.learn import data, models, protocol, train
 from lgnn.scene import get_scene
 scene = get_scene("chain4")
 ds = data.load_or_generate(data.DataConfig("chain4"), "results/datasets")
 arrays = tuple(jnp.asarray(a[ds.train]) for a in (ds.q, ds.qd, ds.qdd))
 model = models.ModelConfig.for_scene("lgnn", scene)
-config = train.scheduled(train.TrainConfig(), len(ds.train) // train.TrainConfig().batch_size)  # the paper budget: 1e-3, warm-up 1000
-states = [train.initial_state(model, train.TrainConfig(seed=s)) for s in range(3)]
+config = protocol.scheduled(protocol.TrainConfig(), len(ds.train) // protocol.TrainConfig().batch_size)  # the paper budget: 1e-3, warm-up 1000
+states = [train.initial_state(model, protocol.TrainConfig(seed=s)) for s in range(3)]
 one = train.compiled_epoch_fn(model, scene, config)
 many = train.compiled_epoch_fn(model, scene, config, vmapped=True)
 stack = lambda trees: jax.tree.map(lambda *l: jnp.stack(l), *trees)

@@ -43,7 +43,7 @@ def main() -> None:
     from lgnn.engines.base import SimulationConfig
     from lgnn.engines.lagrangian import simulate
     from lgnn.errors import SimulationError
-    from lgnn.learn import data, models, train
+    from lgnn.learn import data, models, protocol, train
     from lgnn.metrics import relative_error
     from lgnn.scene import get_scene
 
@@ -54,9 +54,9 @@ def main() -> None:
     simulation = SimulationConfig(dt=1e-3, frame_dt=1e-3, duration=1.0)
     truth = simulate(scene, simulation)
     for seed in args.seeds:
-        config = train.TrainConfig(epochs=args.epochs, seed=seed, patience=args.epochs, minutes=args.minutes)
+        config = protocol.TrainConfig(epochs=args.epochs, seed=seed, patience=args.epochs, minutes=args.minutes)
         if args.legacy_optimiser:
-            config = dataclasses.replace(config, **train.LEGACY_OPTIMISATION)
+            config = dataclasses.replace(config, **protocol.LEGACY_OPTIMISATION)
         if args.lr:
             config = dataclasses.replace(config, learning_rate=args.lr)
         start = time.monotonic()

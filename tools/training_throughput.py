@@ -120,7 +120,7 @@ if args.summarise:
 runtime.configure()
 from lgnn.bench.profiles import get_profile, training_jobs  # noqa: E402
 from lgnn.bench.stages.train import job_settings  # noqa: E402
-from lgnn.learn import data, train  # noqa: E402
+from lgnn.learn import data, protocol, train  # noqa: E402
 from lgnn.provenance import environment  # noqa: E402
 
 profile = get_profile("full")
@@ -136,7 +136,7 @@ for name in args.models:
         arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
         for batch in args.batches:
             steps = len(dataset.train) // batch
-            config = train.scheduled(dataclasses.replace(train_config, batch_size=batch), steps)
+            config = protocol.scheduled(dataclasses.replace(train_config, batch_size=batch), steps)
             states = [train.initial_state(model, dataclasses.replace(config, seed=s)) for s in profile.seeds]
             stack = lambda trees: jax.tree.map(lambda *leaves: jnp.stack(leaves), *trees)  # noqa: E731
             params, opt = stack([s.params for s in states]), stack([s.opt_state for s in states])

@@ -169,10 +169,10 @@ def _row(case: Case, **values) -> dict:
 def bad_model_checkpoint(path: str | Path, scene: Scene, scale: float) -> Path:
     """Write a GNS checkpoint of untrained parameters times `scale` (the file `lgnn
     rollout --model` reads)."""
-    from lgnn.learn import models, train
+    from lgnn.learn import models, protocol, train
 
     model = models.ModelConfig.for_scene("gns", scene)
-    config = train.TrainConfig(seed=SEED)
+    config = protocol.TrainConfig(seed=SEED)
     state = train.initial_state(model, config)
     params = jax.tree.map(lambda x: x * scale, state.params)
     state = state._replace(params=params, best_params=params)

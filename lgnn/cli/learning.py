@@ -62,7 +62,7 @@ def _cmd_train(args) -> None:
 
 def _cmd_rollout(args) -> None:
     from lgnn.engines.base import Integration, save_rollout
-    from lgnn.learn import checkpoints, models, train
+    from lgnn.learn import checkpoints, models
     from lgnn.scene import get_scene
     from lgnn.metrics import energy_drift
 
@@ -72,7 +72,7 @@ def _cmd_rollout(args) -> None:
     model, params = checkpoints.load_model(args.model)  # inference: no optimiser
     scene = get_scene(args.scene)
     meta, _ = checkpoints.read(args.model)
-    differences = train.physics_differences(meta, scene)
+    differences = checkpoints.physics_differences(meta, scene)
     if differences:
         print(f"lgnn: warning: {scene.name} differs from the scene {model.name} was trained on: {'; '.join(differences)}", file=sys.stderr)
     integration = integration_of(args) or Integration()

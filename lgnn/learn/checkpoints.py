@@ -60,7 +60,9 @@ import numpy as np
 from lgnn import records
 from lgnn.errors import CheckpointError, ConfigError
 from lgnn.learn import models
+from lgnn.learn.data import DataConfig, draw_scenes
 from lgnn.runtime import in_float64
+from lgnn.scene import Scene
 
 FORMAT = 2
 # Positional leaves; read (`arrays_by_path`), never written.
@@ -355,3 +357,57 @@ def load_model(path: str | os.PathLike, spec: models.ModelSpec | None = None) ->
     model = model_config(path, meta, spec)
     template = params_template(model)
     return model, restore(path, template, arrays_by_path(path, meta, arrays, {"best": template}), "best")
+
+
+def physics_differences(meta: dict, scene: Scene) -> list[str]:
+    """How `scene`'s physical parameters differ from the scene a checkpoint was trained
+    on (gravity, drag, the link masses, inertias and lengths: values the model never
+    saw; the number of links and how they connect may differ, that is the zero-shot
+    generalisation the benchmark measures): one phrase each, empty when they agree or when the
+    training scene is unknown or no longer loadable (a moved scene file)."""
+    from lgnn.errors import SceneError
+    from lgnn.scene import get_scene
+
+    source = (meta.get("data") or {}).get("scene")
+    draws = (meta.get("data") or {}).get("varied_draws", 0)
+    try:
+        trained = get_scene(source) if source else None
+        if trained is not None and draws:
+            return _outside_the_draws(scene, draw_scenes(DataConfig(scene=source, n_trajectories=draws, varied_draws=draws)))
+    except (SceneError, ConfigError):
+        return []
+    if trained is None:
+        return []
+    differences = _gravity_and_drag_differences(scene, trained)
+    for name in ("masses", "inertias", "lengths"):
+        values, trained_values = (np.unique(np.round(getattr(s, name), 12)) for s in (scene, trained))
+        if values.shape != trained_values.shape or not np.allclose(values, trained_values):
+            differences.append(f"link {name} {_values(values)} (trained on {_values(trained_values)})")
+    return differences
+
+
+def _gravity_and_drag_differences(scene: Scene, trained: Scene) -> list[str]:
+    differences = []
+    if not np.allclose(trained.gravity, scene.gravity):
+        differences.append(f"gravity {np.asarray(scene.gravity).tolist()} (trained on {np.asarray(trained.gravity).tolist()})")
+    if not np.isclose(trained.drag, scene.drag):
+        differences.append(f"drag {scene.drag:g} (trained on {trained.drag:g})")
+    return differences
+
+
+def _outside_the_draws(scene: Scene, draws: tuple[Scene, ...]) -> list[str]:
+    """`physics_differences` of a model trained on varied draws: the gravity and drag of
+    the draws, and link values outside the range the draws spanned."""
+    differences = _gravity_and_drag_differences(scene, draws[0])
+    for name in ("masses", "inertias", "lengths"):
+        seen = np.concatenate([getattr(draw, name) for draw in draws])
+        values = np.asarray(getattr(scene, name))
+        low, high = seen.min() * (1 - 1e-12), seen.max() * (1 + 1e-12)
+        if values.min() < low or values.max() > high:
+            differences.append(f"link {name} from {values.min():g} to {values.max():g} (trained on {seen.min():g} to {seen.max():g})")
+    return differences
+
+
+def _values(values: np.ndarray) -> str:
+    shown = ", ".join(f"{v:g}" for v in values[:4])
+    return f"{{{shown}{', ...' if len(values) > 4 else ''}}}"

@@ -32,7 +32,7 @@ from lgnn.engines import ENGINES
 from lgnn.engines.base import Integration, SimulationConfig
 from lgnn.learn.data import DataConfig
 from lgnn.learn.models import load_spec
-from lgnn.learn.train import TrainConfig, adam_steps_per_epoch, scheduled
+from lgnn.learn.protocol import TrainConfig, adam_steps_per_epoch, scheduled
 from lgnn.scene import check_scene_name, get_scene
 
 from lgnn.bench.grid import ERROR_FIGURES, GRID, MEASURED_MODEL, SPATIAL_TRAINING_SCENE, SPATIAL_TRANSFER_SCENES, TRACKS, TRAINING_SCENE, TRAINING_SCENES, TRANSFER_SCENES, FigureGroup, GridEntry, Pair, TrainingJob, check_numbers
@@ -40,9 +40,9 @@ from lgnn.bench.grid import ERROR_FIGURES, GRID, MEASURED_MODEL, SPATIAL_TRAININ
 @dataclasses.dataclass(frozen=True)
 class TrainSettings:
     """Training data (the scene is each job's) and the optimisation budget. A checkpoint
-    is reused when its model, `train.training_key` and data settings match. A learning
+    is reused when its model, `protocol.training_key` and data settings match. A learning
     rate or warm-up `train` leaves None follows the schedule rule for this budget
-    (`lgnn.learn.train.scheduled`), filled in here so that records and the report see
+    (`lgnn.learn.protocol.scheduled`), filled in here so that records and the report see
     the values trained with; one the config gives is kept."""
 
     data: DataConfig

@@ -25,7 +25,7 @@ from lgnn.bench.report.summary import (
     unrankable_scenes,
 )
 from lgnn.bench.tables import escape_markdown_cell
-from lgnn.learn.train import stop_reason, training_key
+from lgnn.learn.protocol import stop_reason, training_key
 from lgnn.scene import CHAIN_SAMPLER, OWN_STATE, PROJECTED, get_scene, initial_state_policy
 
 
@@ -36,7 +36,7 @@ def _command(profile: Profile, command: str | None) -> str:
 
 
 def _stopped_by(state, config) -> str:
-    """Why a run's training ended (`lgnn.learn.train.stop_reason`), or that it has not."""
+    """Why a run's training ended (`lgnn.learn.protocol.stop_reason`), or that it has not."""
     return stop_reason(state, config) or "not finished: cut off, resumable"
 
 

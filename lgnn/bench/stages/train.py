@@ -3,7 +3,7 @@
 `train_jobs` trains the seeds of each (model, training scene) together, one compiled
 program (`lgnn.learn.train.train_seeds`), resuming interrupted runs from their
 checkpoints (written every `checkpoint_every` epochs, so a run cut off by a 10-minute
-limit goes on where it stopped); a finished checkpoint whose model, optimisation (`train.training_key`) and data settings
+limit goes on where it stopped); a finished checkpoint whose model, optimisation (`protocol.training_key`) and data settings
 match the profile's `TrainSettings` is reused, one made with other settings or
 unreadable is replaced. Each job is claimed before it trains (`lgnn.bench.claims`), so
 processes sharing the output folder train it once. `load_checkpoints` gives the
@@ -25,7 +25,7 @@ from lgnn.bench.profiles import train_config as train_config_of
 from lgnn.bench import claims, store
 from lgnn.bench.store import Layout, log
 from lgnn.errors import CheckpointError
-from lgnn.learn import data, models, train
+from lgnn.learn import data, models, protocol, train
 from lgnn.learn.checkpoints import refuse_without_parameters
 from lgnn.scene import get_scene
 
@@ -60,11 +60,11 @@ def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
     except CheckpointError as err:
         log(f"warning: {err}; retraining {job.name}")
         return False
-    same = meta["model"] == model.to_dict() and meta["train"] == train.training_key(train_config) and meta["data"] == data_config.to_dict()
-    if same and not train.finished(state, train_config) and state.params is None:
+    same = meta["model"] == model.to_dict() and meta["train"] == protocol.training_key(train_config) and meta["data"] == data_config.to_dict()
+    if same and not protocol.finished(state, train_config) and state.params is None:
         log(f"train {job.name}: its unfinished checkpoint is kept without its optimiser state; retraining")
         return False
-    if same and train.finished(state, train_config):
+    if same and protocol.finished(state, train_config):
         log(f"train {job.name}: reusing finished checkpoint ({state.epoch} epochs, best validation MSE {state.best_val:.3g})")
         return None
     if same:
@@ -133,7 +133,7 @@ def prepare_datasets(profile: Profile, jobs: list[TrainingJob], out: Path, progr
             data.load_or_generate(config, Layout(out).datasets, progress=progress)
 
 
-def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, train.TrainState]]:
+def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, protocol.TrainState]]:
     """`(job, training state)` of every job of the profile with a checkpoint under `out`."""
     layout = store.layout(profile, out)
     found = [(job, layout.found(layout.checkpoint(job))) for job in training_jobs(profile)]
@@ -141,7 +141,7 @@ def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, tra
 
 
 def default_lgnn(profile: Profile, out: Path, training_scene: str = TRAINING_SCENE,
-                 checkpoints: list[tuple[TrainingJob, train.TrainState]] | None = None) -> tuple[str | None, dict[str, float]]:
+                 checkpoints: list[tuple[TrainingJob, protocol.TrainState]] | None = None) -> tuple[str | None, dict[str, float]]:
     """The default LGNN of one training scene (chain4; chain4-3d for the spatial grid),
     chosen from the training records: among `LGNN_VARIANTS` trained on `training_scene`
     with a checkpoint for every seed of the profile, the one with the lowest geometric
