@@ -484,25 +484,25 @@ def test_schedule_warms_up_decays_and_legacy_checkpoints_keep_plain_adam():
 
 
 def test_batch_rule_keeps_the_schedule_in_epochs_and_scales_the_rate_by_the_square_root():
-    protocol = protocol.scheduled(protocol.TrainConfig(batch_size=100, epochs=10_000, patience=200, min_improvement=0.01), 75)
-    rule = protocol.batch_scaled(protocol, 750)
+    recipe = protocol.scheduled(protocol.TrainConfig(batch_size=100, epochs=10_000, patience=200, min_improvement=0.01), 75)
+    rule = protocol.batch_scaled(recipe, 750)
     assert rule.learning_rate == pytest.approx(1e-3 * 7.5**0.5) and rule.batch_size == 750
-    assert (rule.epochs, rule.patience, rule.min_improvement, rule.seed) == (protocol.epochs, protocol.patience, protocol.min_improvement, protocol.seed)
-    # The rate after any number of epochs is sqrt(7.5) times the protocol's (10 and 75
+    assert (rule.epochs, rule.patience, rule.min_improvement, rule.seed) == (recipe.epochs, recipe.patience, recipe.min_improvement, recipe.seed)
+    # The rate after any number of epochs is sqrt(7.5) times the recipe's (10 and 75
     # Adam steps an epoch), until both reach the floor, to the rounding of the warm-up's
     # 1000 / 7.5 steps (1 % inside it, and the decay starts 1/30 epoch earlier).
-    protocol_rate, rule_rate = protocol.learning_rate_schedule(protocol), protocol.learning_rate_schedule(rule)
+    protocol_rate, rule_rate = protocol.learning_rate_schedule(recipe), protocol.learning_rate_schedule(rule)
     for epoch, rel in ((0.4, 1e-2), (6, 1e-2), (14, 1e-4), (100, 1e-4), (1000, 1e-4), (2500, 1e-4)):
         assert float(rule_rate(round(10 * epoch))) == pytest.approx(7.5**0.5 * float(protocol_rate(round(75 * epoch))), rel=rel)
-    assert float(rule_rate(10**7)) == float(protocol_rate(10**7)) == protocol.min_learning_rate
-    assert protocol.batch_scaled(protocol, 100) == protocol
+    assert float(rule_rate(10**7)) == float(protocol_rate(10**7)) == recipe.min_learning_rate
+    assert protocol.batch_scaled(recipe, 100) == recipe
     # Smaller batches: the floor never exceeds the peak.
-    small = protocol.batch_scaled(protocol, 1)
+    small = protocol.batch_scaled(recipe, 1)
     assert small.min_learning_rate <= small.learning_rate
     protocol.learning_rate_schedule(small)
     for bad in (0, -5, 2.5, True):
         with pytest.raises(ConfigError, match="batch size"):
-            protocol.batch_scaled(protocol, bad)
+            protocol.batch_scaled(recipe, bad)
     with pytest.raises(ConfigError, match="schedule rule"):
         protocol.batch_scaled(protocol.TrainConfig(), 750)
 

@@ -100,10 +100,10 @@ def measure(models: list[tuple[str, float]]):
         jobs = [j for j in training_jobs(profile) if j.model == name and j.scene == args.scene and not j.varied_draws]
         if not jobs:
             raise SystemExit(f"error: the full profile trains no {name} on {args.scene}")
-        scene, model, data_config, protocol = job_settings(profile, jobs[0])
+        scene, model, data_config, recipe = job_settings(profile, jobs[0])
         dataset = data.load_or_generate(data_config, args.data)
-        config = overrides(protocol.batch_scaled(protocol, args.batch), args.set)
-        is_protocol = config == protocol
+        config = overrides(protocol.batch_scaled(recipe, args.batch), args.set)
+        is_protocol = config == recipe
         config = dataclasses.replace(config, minutes=seconds / 60, checkpoint_every=args.every)
         with runtime.precision("float64"):
             states = train.train_seeds(model, [dataclasses.replace(config, seed=j.seed) for j in jobs], dataset, scene)
