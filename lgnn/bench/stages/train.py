@@ -43,12 +43,6 @@ def job_settings(profile: Profile, job: TrainingJob):
     return scene, model, data_config, train_config
 
 
-def train_job(profile: Profile, job: TrainingJob, out: Path, progress: bool = True) -> Path:
-    """The job's checkpoint, trained (or resumed) unless a finished one with the same
-    settings exists. A checkpoint made with other settings, or unreadable, is replaced."""
-    return train_jobs(profile, [job], out, progress)[0]
-
-
 def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
     """None if the job's checkpoint is finished with its `settings` (`job_settings`:
     reuse it), True if it can be resumed, False if training starts afresh."""
