@@ -3,6 +3,7 @@ benchmark config as `module:attribute`, trains and evaluates through the benchma
 own stages and appears in its tables beside the built-in models."""
 
 import functools
+import os
 
 import jax.numpy as jnp
 
@@ -93,3 +94,38 @@ def test_commands_reading_a_checkpoint_load_its_model_code_when_told(capsys, tmp
         assert err.count("\n") == 1 and f"--model-code {reference}" in err, err
         assert main([*argv, "--model-code", reference]) == 0, name
         assert "scaled-truth" in capsys.readouterr().out
+
+
+def test_a_model_file_added_to_the_models_folder_needs_no_other_edit(tmp_path):
+    """ARCHITECTURE.md's claim for a model: one file under `lgnn/learn/models/` registers
+    itself after the built-ins (the tables' column order kept), and the benchmark's grid
+    takes it by its name. Checked on a copy of the package, never the checkout's."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import lgnn
+
+    copy = tmp_path / "lgnn"
+    shutil.copytree(Path(lgnn.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    (copy / "learn" / "models" / "mine.py").write_text(
+        "import dataclasses\n\nfrom lgnn.learn.models.registry import get_spec, register\n\n"
+        "MINE = register(dataclasses.replace(get_spec('gns'), name='mine'))\n")
+    check = ("import lgnn, jax, numpy as np\n"
+             f"assert lgnn.__file__.startswith({str(tmp_path)!r}), lgnn.__file__\n"
+             "from lgnn.learn import models\n"
+             "from lgnn.bench import profiles\n"
+             "from lgnn.scene import get_scene\n"
+             "names = models.model_names()\n"
+             "assert names[-1] == 'mine' and names[:-1] == tuple(n for n in names if n != 'mine'), names\n"
+             "profile = profiles.load_profile('quick', add=('mine',))\n"
+             "assert 'mine-chain4-s0' in [job.name for job in profiles.training_jobs(profile)]\n"
+             "scene = get_scene('chain4')\n"
+             "config = models.ModelConfig.for_scene('mine', scene)\n"
+             "params = models.init(jax.random.PRNGKey(0), config)\n"
+             "qdd = models.acceleration_fn(config, params, scene)(scene.initial_state.q, scene.initial_state.qd)\n"
+             "assert np.isfinite(np.asarray(qdd)).all()\n")
+    result = subprocess.run([sys.executable, "-c", check], cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(tmp_path)},
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
