@@ -31,7 +31,8 @@ TWIN = "lagrangian-twin"
 @pytest.fixture
 def registered(monkeypatch):
     monkeypatch.setitem(metrics.METRICS, MAX_NODE_ERROR.name, MAX_NODE_ERROR)
-    monkeypatch.setitem(ENGINES, TWIN, ENGINES["lagrangian"])
+    # Its own entry, so the report titles it by its own name, not the Lagrangian engine's.
+    monkeypatch.setitem(ENGINES, TWIN, dataclasses.replace(ENGINES["lagrangian"], name=TWIN, title=TWIN))
 
 
 def _tiny_benchmark(tmp_path):

@@ -71,7 +71,7 @@ def test_non_finite_worlds_are_said_plainly(monkeypatch):
 
     def fake_run(spec, scene, config, states, settings):
         q = final.copy()
-        if spec != gpu_truth.REFERENCE:
+        if spec != gpu_truth.reference_spec():
             q[1, 2, 0] = np.nan
         return 0.5, [1.0, 2.0], q
 

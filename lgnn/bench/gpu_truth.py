@@ -1,18 +1,22 @@
 """GPU ground truth: every engine on the same batches of initial states, one run per scene.
 
 `measure(scene, settings)` runs, for each batch size, lgnn's Lagrangian engine in
-float64 (the reference) and the engines of `settings.engines` (name:dtype; the
-Lagrangian engine in float32, MJX, MuJoCo Warp) from the same `batch` initial states
-(`lgnn.physics.benchmark_initial_states`, seed `settings.seed`: the paper's chain
-sampler, T1's own state) for `settings.steps` RK4
-steps of `settings.dt`, and returns tidy rows:
+float64 (the reference: `reference_spec()`, the registered engine whose
+`EngineEntry.gpu_truth_role` is "reference") and the engines of `settings.engines`
+(name:dtype, each an engine of `lgnn.engines.ENGINES` with a GPU-truth role; by
+default every one in float32: the Lagrangian engine, MJX, MuJoCo Warp) from the same
+`batch` initial states (`lgnn.physics.benchmark_initial_states`, seed
+`settings.seed`: the paper's chain sampler, T1's own state) for `settings.steps` RK4
+steps of `settings.dt`, each through its `Engine.timed_batch`, and returns tidy rows:
 
 `scene, engine, dtype, form, batch, steps, steps_per_s, steps_per_s_min,
 steps_per_s_max, compile_s, max_node_error, finite_worlds, note`
 
 - speed: batch x steps / run time, the median of `repeats` timed runs after an untimed
-  one (`lgnn.engines.timing.time_runs`), with their min and max; compile apart (JAX:
+  one (`Engine.timed_batch`; the Lagrangian engine, MJX and MuJoCo Warp:
+  `lgnn.engines.timing.time_runs`), with their min and max; compile apart (JAX:
   the executable; MuJoCo Warp: its kernels and the CUDA graph of the steps);
+  `form` is `settings.form` for an engine with MJCF forms, else "";
 - error: max node position error after the last step against the float64 Lagrangian
   reference of the same batch; NaN when any world is non-finite, and `finite_worlds`
   says how many are finite (never a number made of the finite ones only).
@@ -24,9 +28,10 @@ engine. `write(rows, out_dir, scene, command)` writes `gpu_truth_<scene>.csv` an
 (`lgnn.provenance`).
 
 `load(directory)` reads the tables back, and `against_mujoco(rows)` sets the float32
-Lagrangian beside the fastest MuJoCo GPU engine that is finite and agrees with the
-reference (`AGREEMENT_MAX`), per scene and batch, with the ratio against issue 14's
-goal (`GOAL_RATIO`): the report's `performance.md` section.
+Lagrangian beside the fastest MuJoCo GPU engine (role "mujoco-gpu": MJX, MuJoCo Warp)
+that is finite and agrees with the reference (`AGREEMENT_MAX`), per scene and batch,
+with the ratio against issue 14's goal (`GOAL_RATIO`): the report's `performance.md`
+section.
 
 Precision (issue 14: "float32 on a GPU: chosen how?"): the process runs with JAX's
 float64 on (`lgnn.configure()`), and an engine's precision is that of its inputs: a
@@ -44,22 +49,38 @@ import dataclasses
 import statistics
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
 from lgnn import physics, provenance
 from lgnn.bench.tables import read_table, write_table
-from lgnn.engines import mjcf
-from lgnn.engines.base import Integration, SimulationConfig
-from lgnn.engines.rollouts import Unparametrised, timed_rollouts
-from lgnn.engines.timing import compile_timed, time_runs
+from lgnn.engines import DTYPES, ENGINES, get_engine, mjcf
+from lgnn.engines.base import SimulationConfig
 from lgnn.errors import ConfigError, LgnnError
 from lgnn.scene import Scene, State
 
-ENGINE_NAMES = ("lagrangian", "mjx", "mjwarp")
-REFERENCE = "lagrangian:float64"
 COLUMNS = ("scene", "engine", "dtype", "form", "batch", "steps", "steps_per_s", "steps_per_s_min", "steps_per_s_max",
            "compile_s", "max_node_error", "finite_worlds", "note")
+
+
+def engine_names() -> list[str]:
+    """The engines `lgnn gpu-truth` runs: every registered one with a GPU-truth role, in
+    registry order."""
+    return [name for name, entry in ENGINES.items() if entry.gpu_truth_role]
+
+
+def reference_spec() -> str:
+    """The reference, as name:dtype: the first registered engine whose role is
+    "reference" (lgnn's Lagrangian engine), in float64."""
+    return next(f"{name}:float64" for name, entry in ENGINES.items() if entry.gpu_truth_role == "reference")
+
+
+def mujoco_gpu_engines() -> list[str]:
+    """The engines `against_mujoco` sets beside lgnn's (role "mujoco-gpu": MJX, MuJoCo Warp)."""
+    return [name for name, entry in ENGINES.items() if entry.gpu_truth_role == "mujoco-gpu"]
+
+
+def _float32_engines() -> tuple[str, ...]:
+    return tuple(spec for spec in (f"{name}:float32" for name in engine_names() if "float32" in ENGINES[name].dtypes) if spec != reference_spec())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,8 +88,9 @@ class GpuTruthSettings:
     # The issue's scenes and batches (issue 14, item 5).
     scenes: tuple[str, ...] = ("chain4", "chain16", "chain100", "T1")
     batches: tuple[int, ...] = (1024, 8192, 65536)
-    # Engines besides the float64 reference, as name:dtype (MuJoCo Warp: float32 only).
-    engines: tuple[str, ...] = ("lagrangian:float32", "mjx:float32", "mjwarp:float32")
+    # Engines besides the float64 reference, as name:dtype (MuJoCo Warp: float32 only);
+    # default: every engine with a GPU-truth role, in float32 (`engine_names`).
+    engines: tuple[str, ...] = dataclasses.field(default_factory=_float32_engines)
     # The issue's measured table: RK4 at dt 1e-3; 100 steps is 0.1 s of motion, enough
     # for float32 and soft loop closures to show their error.
     steps: int = 100
@@ -80,12 +102,14 @@ class GpuTruthSettings:
     seed: int = 0
 
     def __post_init__(self):
+        names = engine_names()
         for spec in self.engines:
             name, _, dtype = spec.partition(":")
-            if name not in ENGINE_NAMES or dtype not in ("float32", "float64"):
-                raise ConfigError(f"--engines: {spec!r} is not name:dtype with name in {', '.join(ENGINE_NAMES)} and dtype float32 or float64")
-            if name == "mjwarp" and dtype != "float32":
-                raise ConfigError("--engines: MuJoCo Warp computes in float32 only (mjwarp:float32)")
+            if name not in names or dtype not in DTYPES:
+                raise ConfigError(f"--engines: {spec!r} is not name:dtype with name in {', '.join(names)} and dtype {' or '.join(sorted(DTYPES))}")
+            entry = ENGINES[name]
+            if dtype not in entry.dtypes:
+                raise ConfigError(f"--engines: {entry.title} computes in {' and '.join(entry.dtypes)} only ({name}:{entry.dtypes[0]})")
         if min(self.batches, default=0) < 1 or self.steps < 1 or self.repeats < 1 or not self.dt > 0:
             raise ConfigError("batches, steps and repeats must be positive whole numbers and dt positive")
         # Checked here, not when the first MuJoCo engine renders its MJCF, after the
@@ -99,43 +123,12 @@ class GpuTruthSettings:
         return SimulationConfig(dt=self.dt, frame_dt=duration, duration=duration)
 
 
-def _lagrangian(scene: Scene, config: SimulationConfig, states: State, dtype: str, repeats: int):
-    factory = physics.vectorised_true_acceleration_fn if len(states.q) > 1 else physics.true_acceleration_fn
-    compile_s, run_s, runs = timed_rollouts(scene, config, Unparametrised(factory), states, integration=Integration(), repeats=repeats,
-                                              dtype=dtype)
-    return compile_s, run_s, runs.q[:, -1]
-
-
-def _mjx(scene: Scene, config: SimulationConfig, states: State, dtype: str, repeats: int, form: str):
-    from lgnn.engines import mjx
-
-    with mjx.precision(dtype):
-        # `form` is checked by the renderer (nested or maximal: lgnn.engines.mjcf).
-        run = mjx.runner(scene, config, dtype, form)
-        q, qd = jnp.asarray(states.q, dtype), jnp.asarray(states.qd, dtype)
-        compiled, compile_s = compile_timed(run, q, qd)
-        run_s, (q_out, _) = time_runs(lambda: compiled(q, qd), repeats)
-    return compile_s, run_s, np.asarray(q_out[:, -1], np.float64)
-
-
-def _mjwarp(scene: Scene, config: SimulationConfig, states: State, repeats: int, form: str):
-    from lgnn.engines import mjwarp
-
-    run = mjwarp.runner(scene, config, len(states.q), form)
-    compile_s = run.prepare()
-    qpos, qvel = mjwarp.initial_qpos_qvel(run.compiled, states)
-    run_s, _ = time_runs(lambda: run.run(qpos, qvel), repeats)
-    return compile_s, run_s, run.nodes(frames=[config.n_frames]).q[:, 0]
-
-
 def _run(spec: str, scene: Scene, config: SimulationConfig, states: State, settings: GpuTruthSettings):
-    """`(compile_s, run_s list, final q (B, N, dim))` of engine `spec` (name:dtype)."""
+    """`(compile_s, run_s list, final q (B, N, dim))` of engine `spec` (name:dtype):
+    its `Engine.timed_batch`, a MuJoCo engine in `settings.form`."""
     name, _, dtype = spec.partition(":")
-    if name == "lagrangian":
-        return _lagrangian(scene, config, states, dtype, settings.repeats)
-    if name == "mjx":
-        return _mjx(scene, config, states, dtype, settings.repeats, settings.form)
-    return _mjwarp(scene, config, states, settings.repeats, settings.form)
+    engine = get_engine(name, dtype=dtype, form=settings.form if ENGINES[name].forms else None)
+    return engine.timed_batch(scene, config, states, settings.repeats)
 
 
 def _out_of_memory(err: Exception) -> bool:
@@ -149,13 +142,13 @@ def measure(scene: Scene, settings: GpuTruthSettings, log=print) -> list[dict]:
     """Tidy rows of every engine and batch on `scene` (module docstring)."""
     config = settings.config
     all_states = physics.benchmark_initial_states(scene, max(settings.batches), settings.seed)
-    rows = []
+    rows, reference_run = [], reference_spec()
     for batch in settings.batches:
         states = State(all_states.q[:batch], all_states.qd[:batch])
         reference = None
-        for spec in (REFERENCE,) + tuple(s for s in settings.engines if s != REFERENCE):
+        for spec in (reference_run,) + tuple(s for s in settings.engines if s != reference_run):
             name, _, dtype = spec.partition(":")
-            row = dict(scene=scene.name, engine=name, dtype=dtype, form=settings.form if name != "lagrangian" else "",
+            row = dict(scene=scene.name, engine=name, dtype=dtype, form=settings.form if ENGINES[name].forms else "",
                        batch=batch, steps=settings.steps, steps_per_s=float("nan"), steps_per_s_min=float("nan"),
                        steps_per_s_max=float("nan"), compile_s=float("nan"), max_node_error=float("nan"), finite_worlds=0, note="")
             try:
@@ -171,7 +164,7 @@ def measure(scene: Scene, settings: GpuTruthSettings, log=print) -> list[dict]:
                 finite = np.isfinite(q).all(axis=(1, 2))
                 row.update(steps_per_s=statistics.median(speeds), steps_per_s_min=min(speeds), steps_per_s_max=max(speeds),
                            compile_s=compile_s, finite_worlds=int(finite.sum()))
-                if spec == REFERENCE:
+                if spec == reference_run:
                     reference = q if finite.all() else None
                     row["max_node_error"] = 0.0 if finite.all() else float("nan")
                     row["note"] = "reference" if finite.all() else "reference non-finite: no errors for this batch"
@@ -232,7 +225,7 @@ def measured_before(out_dir, name: str, settings: GpuTruthSettings) -> bool:
         runs = {(row["engine"] + ":" + row["dtype"], int(row["batch"])) for row in table}
     except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError):
         return False
-    expected = {(spec, batch) for spec in (REFERENCE,) + settings.engines for batch in settings.batches}
+    expected = {(spec, batch) for spec in (reference_spec(),) + settings.engines for batch in settings.batches}
     return all(line in found for line in wanted) and runs == expected and len(table) == len(expected)
 
 
@@ -244,7 +237,6 @@ def measured_before(out_dir, name: str, settings: GpuTruthSettings) -> bool:
 # steps/s of the fastest MuJoCo GPU engine that stays finite (and agrees, below) on
 # the same batch.
 GOAL_RATIO = 1.5
-MUJOCO_GPU_ENGINES = ("mjx", "mjwarp")
 # A MuJoCo GPU run counts as a ground truth only within this max node error (length
 # units) of the float64 reference after the table's steps: finite is not enough (before
 # a4de0f6, MuJoCo Warp's float32 chain16-3d ended 15 m off, finite). The float32 runs
@@ -296,11 +288,12 @@ def against_mujoco(rows: list[dict]) -> list[dict]:
     scene (`tables` names both). `ratio` is NaN, and `note` says why, where either
     side has no such run; the MuJoCo runs left out (non-finite, not run, too far off) are named."""
     keys = dict.fromkeys((r["scene"], r["batch"]) for r in rows)
+    lgnn_engine, mujoco_engines = reference_spec().partition(":")[0], mujoco_gpu_engines()
     out = []
     for scene, batch in keys:
         here = [r for r in rows if r["scene"] == scene and r["batch"] == batch]
-        ours = [r for r in here if r["engine"] == "lagrangian" and r["dtype"] == "float32" and _finite(r)]
-        theirs = [r for r in here if r["engine"] in MUJOCO_GPU_ENGINES]
+        ours = [r for r in here if r["engine"] == lgnn_engine and r["dtype"] == "float32" and _finite(r)]
+        theirs = [r for r in here if r["engine"] in mujoco_engines]
         agreeing = [r for r in theirs if _finite(r) and r["max_node_error"] <= AGREEMENT_MAX]
         best = max(agreeing, key=lambda r: r["steps_per_s"]) if agreeing else None
         if best is not None and any(r["table"] == best["table"] for r in ours):

@@ -124,7 +124,7 @@ def _cmd_crosscheck(args) -> None:
 
 
 def _add_mujoco_commands(commands) -> None:
-    from lgnn.bench.crosscheck import DEFAULT_ENGINES, SCENES
+    from lgnn.bench.crosscheck import SCENES, default_engines
     from lgnn.engines.base import DTYPES
     from lgnn.engines.mjcf import FORMS
 
@@ -138,7 +138,7 @@ def _add_mujoco_commands(commands) -> None:
     mjcf.set_defaults(run=_cmd_mjcf)
     check = commands.add_parser("crosscheck", help="run every engine on the same scenes and compare them")
     check.add_argument("scenes", nargs="*", help=f"built-in names or scene files (default: {' '.join(SCENES)})")
-    check.add_argument("--engines", default=",".join(DEFAULT_ENGINES),
+    check.add_argument("--engines", default=",".join(default_engines()),
                        help="comma-separated engines, each NAME or NAME:FORM (e.g. mujoco:nested,mujoco:maximal: both MJCF forms in one table)")
     check.add_argument("--mjx-max-depth", type=nonnegative_int, help="skip MJX on deeper trees (default: skip none)")
     check.add_argument("--speed", action="store_true", help="write the speed-against-error table instead")

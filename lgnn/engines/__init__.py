@@ -3,6 +3,7 @@
 The contract (`base`): an `Engine` has a `name`, the precision it computes in
 (`dtype`), `rollout(scene, config, states) -> Trajectory` batched over initial states
 (B, N, D) -> q, qd (B, F+1, N, D), `timed_rollout` (the same run with compile apart),
+`timed_batch` (repeated timed runs of a batch and its final positions),
 `form_of(scene)` (its MJCF form, "" without one) and `accuracy(scene, config)` (the
 error it expects against the exact solution, None where it states none);
 `SimulationConfig`, `Integration` and `Trajectory` are the shared types. The JAX engines roll out
@@ -12,8 +13,13 @@ argument, frames in calls of about 100, stopped at divergence for a reference).
 
 `get_engine(name, dtype=..., progress=..., form=..., integration=...)` returns one
 from the registry `ENGINES` (name -> `EngineEntry`: its factory, the precisions it
-computes in, the MJCF forms it takes, whether it takes an `Integration`);
-`register_engine` adds one:
+computes in, the MJCF forms it takes, whether it takes an `Integration`, and what the
+benchmark's commands read of it: its title, whether it is one of the CPU ground truths
+`lgnn crosscheck` compares by default, whether it runs a compiled program, whether its
+compile grows with tree depth, whether the speed stage times it, its role in
+`lgnn gpu-truth`); `engine_entry(name)` is an engine's entry, `register_engine` adds
+one, and `lgnn crosscheck`, `lgnn gpu-truth` and the benchmark's speed stage take
+their engines from these fields, not from names:
 
 - "lagrangian" (`lagrangian.LagrangianEngine`): the exact constrained Lagrangian
   engine (`simulate`, `rollout_fn`), float64 or float32, any `Integration`;
@@ -53,24 +59,56 @@ from lgnn.scene import Scene, State
 MJCF_FORMS = ("auto", *FORMS)
 
 
+# An engine's role in `lgnn gpu-truth` (`EngineEntry.gpu_truth_role`).
+GPU_TRUTH_ROLES = {
+    "": "not run by gpu-truth",
+    "reference": "lgnn's own engine: its float64 run is every batch's reference, and its float32 run is set against the MuJoCo GPU engines",
+    "mujoco-gpu": "a MuJoCo GPU engine, timed against the reference; the fastest that agrees is set beside lgnn's float32 run",
+    "timed": "timed against the reference, and set beside nothing",
+}
+
+
 @dataclasses.dataclass(frozen=True)
 class EngineEntry:
     """One registered engine: `factory(dtype, progress, form, integration) -> Engine`
     (`form` None for an engine without MJCF forms, else one of `forms`; `integration`
     None for the engine's default or one that takes none), the precisions it computes
     in (`dtypes`, the first its default), the MJCF forms it takes (empty: none) and
-    whether it takes an `Integration` (`integrates`)."""
+    whether it takes an `Integration` (`integrates`).
+
+    The rest is what the benchmark's commands read of an engine, so that none of them
+    names one: `title`, the engine as the report's headings and notes name it (default:
+    its name); `cpu_ground_truth`, one of the CPU ground truths `lgnn crosscheck`
+    compares when given no `--engines`; `compiled`, it runs a compiled program (JAX,
+    Warp) rather than MuJoCo C's step loop: its first rollout's wall time includes the
+    compile, and the speed tables bound its runs by link-steps; `compile_grows_with_depth`,
+    its compile can grow with the scene's tree depth (MJX's nested form: minutes on a
+    CPU), so `lgnn crosscheck` may skip it past a depth (`--mjx-max-depth`) and has it
+    say so before it compiles; `in_speed_table`, the
+    benchmark's speed stage times it (unless the profile turns it off:
+    `SpeedSettings.runs`); `gpu_truth_role`, its role in `lgnn gpu-truth`
+    (`GPU_TRUTH_ROLES`)."""
 
     name: str
     factory: Callable[[str, bool, str | None, Integration | None], Engine]
     dtypes: tuple[str, ...]
     forms: tuple[str, ...] = ()
     integrates: bool = False
+    title: str = ""
+    cpu_ground_truth: bool = False
+    compiled: bool = False
+    compile_grows_with_depth: bool = False
+    in_speed_table: bool = False
+    gpu_truth_role: str = ""
 
     def __post_init__(self):
         unknown = [dtype for dtype in self.dtypes if dtype not in DTYPES]
         if not self.dtypes or unknown:
             raise ConfigError(f"engine {self.name!r}: precisions must be some of {', '.join(DTYPES)}, got {self.dtypes}")
+        if self.gpu_truth_role not in GPU_TRUTH_ROLES:
+            raise ConfigError(f"engine {self.name!r}: gpu_truth_role must be one of {', '.join(map(repr, GPU_TRUTH_ROLES))}, got {self.gpu_truth_role!r}")
+        if not self.title:
+            object.__setattr__(self, "title", self.name)
 
 
 # Name -> entry. The MuJoCo factories import their module (and so `mujoco`) when called.
@@ -113,10 +151,22 @@ def _mjwarp(dtype: str, progress: bool, form: str | None, integration: Integrati
     return MjwarpEngine() if form is None else MjwarpEngine(form=form)
 
 
-register_engine(EngineEntry("lagrangian", _lagrangian, ("float64", "float32"), integrates=True))
-register_engine(EngineEntry("mujoco", _mujoco, ("float64",), MJCF_FORMS))
-register_engine(EngineEntry("mjx", _mjx, ("float64", "float32"), MJCF_FORMS))
-register_engine(EngineEntry("mjwarp", _mjwarp, ("float32",), MJCF_FORMS))
+register_engine(EngineEntry("lagrangian", _lagrangian, ("float64", "float32"), integrates=True, title="the Lagrangian engine",
+                            cpu_ground_truth=True, compiled=True, in_speed_table=True, gpu_truth_role="reference"))
+register_engine(EngineEntry("mujoco", _mujoco, ("float64",), MJCF_FORMS, title="MuJoCo", cpu_ground_truth=True, in_speed_table=True))
+# MJX's nested form compiles in minutes on a CPU past a few links (the maximal form in
+# seconds to a minute: `lgnn.engines.mjcf`).
+register_engine(EngineEntry("mjx", _mjx, ("float64", "float32"), MJCF_FORMS, title="MJX", cpu_ground_truth=True, compiled=True,
+                            compile_grows_with_depth=True, in_speed_table=True, gpu_truth_role="mujoco-gpu"))
+register_engine(EngineEntry("mjwarp", _mjwarp, ("float32",), MJCF_FORMS, title="MuJoCo Warp", compiled=True, gpu_truth_role="mujoco-gpu"))
+
+
+def engine_entry(name: str) -> EngineEntry:
+    """The registry entry of engine `name`; an unknown name is a `ConfigError` naming the choices."""
+    entry = ENGINES.get(name)
+    if entry is None:
+        raise ConfigError(f"unknown engine {name!r} (choose from {', '.join(ENGINES)})")
+    return entry
 
 
 def get_engine(name: str, *, dtype: str | None = None, progress: bool = False, form: str | None = None,
@@ -127,9 +177,7 @@ def get_engine(name: str, *, dtype: str | None = None, progress: bool = False, f
     a MuJoCo engine ("nested", "maximal", or "auto": the engine's own choice; None: its
     default); `integration` how an engine that integrates itself does (None: its
     default; for one that does not, a `ConfigError`)."""
-    entry = ENGINES.get(name)
-    if entry is None:
-        raise ConfigError(f"unknown engine {name!r} (choose from {', '.join(ENGINES)})")
+    entry = engine_entry(name)
     if dtype is None:
         dtype = entry.dtypes[0]
     if dtype not in entry.dtypes:
@@ -154,5 +202,5 @@ def batch_of_one(state: State) -> State:
     return State(np.asarray(state.q)[None], np.asarray(state.qd)[None])
 
 
-__all__ = ["DTYPES", "ENGINES", "Engine", "EngineEntry", "Integration", "SimulationConfig", "Trajectory", "batch_of_one", "form_of", "get_engine",
-           "register_engine"]
+__all__ = ["DTYPES", "ENGINES", "GPU_TRUTH_ROLES", "Engine", "EngineEntry", "Integration", "SimulationConfig", "Trajectory", "batch_of_one", "engine_entry", "form_of",
+           "get_engine", "register_engine"]

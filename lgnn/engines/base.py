@@ -13,6 +13,11 @@
   - `timed_rollout(scene, config, states) -> (compile_s, run_s, q)`: the same run
     timed with one-off costs (compilation, model building) apart, `q` (B, F+1, N, D),
     on JAX's default device (what a timing names);
+  - `timed_batch(scene, config, states, repeats) -> (compile_s, [run_s, ...], q)`:
+    `repeats` timed runs of a batch, `q` (B, N, D) the final positions (`lgnn
+    gpu-truth`'s measurement); by default `repeats` `timed_rollout`s, the compile the
+    first's; the Lagrangian engine, MJX and MuJoCo Warp compile once and time the
+    compiled run `repeats` times;
   - `form_of(scene) -> str`: the MJCF form it runs `scene` in ("" for engines
     without MJCF, the default);
   - `accuracy(scene, config) -> float | None`: the maximum node position error it
@@ -220,8 +225,8 @@ def trajectory_problem(t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.
 class Engine:
     """What every engine answers (module docstring). Subclasses set `name` (a class
     attribute or a property) and `dtype`, and implement `rollout` and `timed_rollout`;
-    `form_of` and `accuracy` have defaults for engines without MJCF or a stated
-    accuracy."""
+    `timed_batch` has a default built on `timed_rollout`, and `form_of` and `accuracy`
+    defaults for engines without MJCF or a stated accuracy."""
 
     name: ClassVar[str] = ""
     dtype: str = "float64"
@@ -233,6 +238,13 @@ class Engine:
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, D))` of the same run, one-off costs apart."""
         raise NotImplementedError
+
+    def timed_batch(self, scene: Scene, config: SimulationConfig, states: State, repeats: int = 1) -> tuple[float, list[float], np.ndarray]:
+        """`(compile_s, run_s, q (B, N, D))` of `repeats` timed runs of the batch `states`:
+        their seconds (one-off costs apart) and the last run's final positions. Here
+        `repeats` `timed_rollout`s, `compile_s` the first's."""
+        timed = [self.timed_rollout(scene, config, states) for _ in range(repeats)]
+        return timed[0][0], [run_s for _, run_s, _ in timed], np.asarray(timed[-1][2])[:, -1]
 
     def form_of(self, scene: Scene) -> str:
         """The MJCF form this engine runs `scene` in; "" for an engine without MJCF."""

@@ -9,8 +9,8 @@ so long runs show progress, stopped at the first non-finite or exploding frame
 (`lgnn.metrics.ExplosionBounds`) with a `SimulationError` that names its time and
 carries the frames before it; a NaN trajectory is never returned.
 `LagrangianEngine` is the `lgnn.engines.Engine` on top: a batch of initial states in
-one compiled, vmapped program, and its timing; its `integration` field says how it
-integrates. `rollout_fn` is the pure per-state run
+one compiled, vmapped program, and its timings (`timed_rollout`, and `timed_batch`
+for `lgnn gpu-truth`); its `integration` field says how it integrates. `rollout_fn` is the pure per-state run
 for callers that compile their own batch (data generation).
 """
 
@@ -119,6 +119,13 @@ class LagrangianEngine(Engine):
         compile_s, (run_s,), runs = timed_rollouts(scene, config, _ground_truth(len(states.q)), states, integration=self.integration,
                                                    dtype=self.dtype)
         return compile_s, run_s, runs.q
+
+    def timed_batch(self, scene: Scene, config: SimulationConfig, states: State, repeats: int = 1) -> tuple[float, list[float], np.ndarray]:
+        """`(compile_s, run_s, q (B, N, D))`: the batch compiled once and timed `repeats`
+        times (`rollouts.timed_rollouts`), the last run's final positions."""
+        compile_s, run_s, runs = timed_rollouts(scene, config, _ground_truth(len(states.q)), states, integration=self.integration,
+                                                repeats=repeats, dtype=self.dtype)
+        return compile_s, run_s, runs.q[:, -1]
 
 
 def _ground_truth(batch: int) -> Unparametrised:

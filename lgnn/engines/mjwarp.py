@@ -265,3 +265,15 @@ class MjwarpEngine(Engine):
         qpos, qvel = initial_qpos_qvel(run.compiled, states)
         (run_s,), _ = time_runs(lambda: run.run(qpos, qvel))
         return compile_s, run_s, run.nodes().q
+
+    def timed_batch(self, scene: Scene, config: SimulationConfig, states: State, repeats: int = 1) -> tuple[float, list[float], np.ndarray]:
+        """`(compile_s, run_s, q (B, N, dim))`: compile as `timed_rollout`'s, then
+        `repeats` timed runs after an untimed one (`time_runs`), and the final positions
+        (may be non-finite). It steps at `config.dt` in either form, as `lgnn
+        gpu-truth`'s tables were measured (`rollout` and `timed_rollout` substep the
+        maximal form)."""
+        run = runner(scene, config, len(states.q), self.form_of(scene), self.device)
+        compile_s = run.prepare()
+        qpos, qvel = initial_qpos_qvel(run.compiled, states)
+        run_s, _ = time_runs(lambda: run.run(qpos, qvel), repeats)
+        return compile_s, run_s, run.nodes(frames=[config.n_frames]).q[:, 0]

@@ -50,7 +50,7 @@ from lgnn.engines.base import DTYPES, Engine, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form, form_error, scene_layout
 from lgnn.engines.mujoco import (checked_trajectory, compile_scene, engine_metadata, qpos_rate, quat_mul, resolve_form,
                                  state_to_qpos_qvel, stepped_config)
-from lgnn.engines.timing import time_compiled
+from lgnn.engines.timing import compile_timed, time_compiled, time_runs
 from lgnn.errors import ConfigError
 from lgnn.runtime import precision
 from lgnn.scene import Scene, State
@@ -394,6 +394,20 @@ class MjxEngine(Engine):
             run = runner(scene, stepped, self.dtype, form)
             compile_s, run_s, (q, _) = time_compiled(run, jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype))
         return compile_s, run_s, np.asarray(q, np.float64)
+
+    def timed_batch(self, scene: Scene, config: SimulationConfig, states: State, repeats: int = 1) -> tuple[float, list[float], np.ndarray]:
+        """`(compile_s, run_s, q (B, N, dim))`: the runner compiled once
+        (`timing.compile_timed`) and timed `repeats` times after an untimed run
+        (`timing.time_runs`), the last run's final positions. It steps at `config.dt` in
+        either form, as `lgnn gpu-truth`'s tables were measured (`rollout` and
+        `timed_rollout` substep the maximal form), and announces no compile."""
+        form = self.form_of(scene)
+        with precision(self.dtype):
+            run = runner(scene, config, self.dtype, form)
+            q, qd = jnp.asarray(states.q, self.dtype), jnp.asarray(states.qd, self.dtype)
+            compiled, compile_s = compile_timed(run, q, qd)
+            run_s, (q_out, _) = time_runs(lambda: compiled(q, qd), repeats)
+        return compile_s, run_s, np.asarray(q_out[:, -1], np.float64)
 
 
 def _has_runner(scene: Scene, config: SimulationConfig, dtype: str, form: Form) -> bool:

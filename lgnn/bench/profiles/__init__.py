@@ -136,14 +136,15 @@ class SpeedSettings:
     # Ground-truth engine steps; the reference runs at a tenth of the smallest.
     dts: tuple[float, ...] = (1e-3, 1e-4, 1e-5)
     horizon: float = 0.1
-    # MJX on or off (its CPU compile takes minutes beyond small trees).
+    # MJX on or off (its CPU compile takes minutes beyond small trees; `runs`).
     mjx: bool = True
     # Learned models timed (None: every one `speed.timed_jobs` names: those the grid
     # evaluates on the scene, trained on its dimension's training scene). Not in the key
     # as such: the key names each timed checkpoint (`speed.speed_key`).
     models: tuple[str, ...] | None = dataclasses.field(default=None, metadata=NOT_IN_KEY)
-    # Lagrangian engine runs longer than this many link-steps are skipped (with a row
-    # saying so): dt 1e-5 on chain100 would take most of an hour on a CPU.
+    # Runs of a compiled engine (the Lagrangian engine, MJX: `EngineEntry.compiled`)
+    # longer than this many link-steps are skipped (with a row saying so): the
+    # Lagrangian engine at dt 1e-5 on chain100 would take most of an hour on a CPU.
     max_link_steps: float = 5e5
     # Timed runs per row: the table gives their median and spread (min..max). In the key
     # (a record of 3 runs holds other numbers than one of 1), but left out of it at 1,
@@ -155,6 +156,12 @@ class SpeedSettings:
         if self.repeats < 1:
             raise ConfigError(f"speed.repeats must be >= 1, got {self.repeats}")
         check_numbers("speed", self, dts=False, horizon=False, max_link_steps=False)
+
+    def runs(self, engine: str) -> bool:
+        """Whether this profile runs engine `engine` of the speed table
+        (`lgnn.engines.EngineEntry.in_speed_table`): every one unless turned off here
+        (`mjx` false: MJX)."""
+        return self.mjx or engine != "mjx"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -50,6 +50,7 @@ from lgnn.bench.profiles import EvaluateSettings
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, TRUTH, curve_frames, recorded_metrics, scene_level_prefix, scene_level_scores, truth_against
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
 from lgnn.bench.tables import read_table
+from lgnn.engines import ENGINES
 from lgnn.scene import get_scene
 
 # Column order of the built-in grid's models (a profile's own models follow: `profiles.model_order`).
@@ -62,8 +63,6 @@ EXTERNAL_MARK = f" ({EXTERNAL})"
 EXACT_NO_DRAG = "exact, no drag"
 # The reference engines the benchmark scores against unless its settings say otherwise.
 DEFAULT_REFERENCES = EvaluateSettings.references
-# How headings and columns name a reference engine (others by their registry name).
-ENGINE_TITLES = {"lagrangian": "the Lagrangian engine", "mujoco": "MuJoCo", "mjx": "MJX", "mjwarp": "MuJoCo Warp"}
 # The summary's and the per-frame curves' files under `benchmark/` (gzipped: module
 # docstring).
 SUMMARY = "summary.csv.gz"
@@ -209,8 +208,10 @@ def _truth_cell(row: dict, truth_metric: str) -> str:
 
 
 def engine_title(engine: str) -> str:
-    """A reference engine as headings and columns name it (`ENGINE_TITLES`)."""
-    return ENGINE_TITLES.get(engine, engine)
+    """A reference engine as headings and columns name it: its registry entry's `title`
+    (`lgnn.engines.EngineEntry`), or its name where none is registered under it."""
+    entry = ENGINES.get(engine)
+    return entry.title if entry is not None else engine
 
 
 def truth_columns(metric: str, references: tuple[str, ...] = DEFAULT_REFERENCES) -> list[tuple[str, str]]:

@@ -1,11 +1,16 @@
 """Speed-against-error stage: wall time per simulated second (single trajectory,
 compile apart) against rollout error, for the ground-truth engines at several steps
 and for each learned model, against a MuJoCo C reference at a tenth of the smallest step.
+The engines are those of the registry the table times (`timed_engines`:
+`lgnn.engines.EngineEntry.in_speed_table`: the Lagrangian engine, MuJoCo C, MJX), in
+registry order.
 
 A scene's record (JSON) depends on the scene's content, the profile's `SpeedSettings`
 and `EvaluateSettings` (its step, frames and initial conditions) and the content of
-every checkpoint timed (`speed_key`). `speed_rows` gives the report the rows of the
-records that match, as a tidy table.
+every checkpoint timed (`speed_key`); which engines are timed is not in the key: a
+record lacking a row of a timed engine (made before that engine was registered) is
+measured again by `speed_error`. `speed_rows` gives the report the rows of the records
+that match, as a tidy table.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ import numpy as np
 
 from lgnn import metrics, records
 from lgnn.bench import store
-from lgnn.engines import form_of, get_engine
+from lgnn.engines import ENGINES, form_of, get_engine
 from lgnn.bench.grid import TRAINING_SCENES, TrainingJob
 from lgnn.bench.profiles import Profile, evaluated_jobs
 from lgnn.records import settings_key
@@ -27,6 +32,11 @@ from lgnn.engines.rollouts import timed_rollouts
 from lgnn.learn import models
 from lgnn.learn.checkpoints import content_digest, load_model
 from lgnn.scene import State, get_scene, scene_to_dict
+
+
+def timed_engines() -> list[str]:
+    """The engines the speed table times (`EngineEntry.in_speed_table`), in registry order."""
+    return [name for name, entry in ENGINES.items() if entry.in_speed_table]
 
 
 def timed_jobs(profile: Profile, scene_name: str, jobs: list[TrainingJob] | None = None) -> list[TrainingJob]:
@@ -68,7 +78,9 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     scene's first initial condition over `horizon` s, frames every `frame_dt`; wall time:
     the median (and min, max) of `SpeedSettings.repeats` timed runs; compile: the
     first's; error: geometric mean of the rollout error against MuJoCo C at a tenth of
-    the smallest step."""
+    the smallest step. Engines: `timed_engines()`, each one the profile turns off
+    (`SpeedSettings.runs`) a row saying so, and a compiled one's (`EngineEntry.compiled`:
+    the JAX engines) runs over `SpeedSettings.max_link_steps` likewise."""
     from lgnn.engines import mujoco as lm
 
     settings = profile.speed
@@ -76,7 +88,9 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
     layout = store.layout(profile, out)
     checkpoints = _checkpoint_digests(profile, scene_name, out, jobs)
     path, key = layout.speed_record(scene_name), speed_key(profile, scene_name, out, jobs)
-    if layout.load_json(path, key) is not None:
+    engines = timed_engines()
+    stored = layout.load_json(path, key)
+    if stored is not None and set(engines) <= {r["solver"] for r in stored["rows"] if r["kind"] == "engine"}:
         return path
     states = evaluation_initial_states(profile, scene)
     single = State(states.q[:1], states.qd[:1])
@@ -93,12 +107,12 @@ def speed_error(profile: Profile, scene_name: str, out: Path, jobs: list[Trainin
                     compile_s=float("nan"), rollout_error=float("nan"), note="", form="")
         rows.append({**base, **values})
 
-    for engine in ("lagrangian", "mujoco", "mjx"):
+    for engine in engines:
         for dt in settings.dts:
-            if engine == "mjx" and not settings.mjx:
+            if not settings.runs(engine):
                 row(engine, "engine", dt, note="not run in this profile")
                 continue
-            if engine != "mujoco" and horizon / dt * scene.n_links > settings.max_link_steps:
+            if ENGINES[engine].compiled and horizon / dt * scene.n_links > settings.max_link_steps:
                 row(engine, "engine", dt, note=f"not run: over {settings.max_link_steps:g} link-steps")
                 continue
             config = SimulationConfig(dt, frame_dt, horizon)
