@@ -27,7 +27,8 @@ from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.bench.stages import train as train_stage
 from lgnn.learn import data, models, protocol, train
 from lgnn.learn.checkpoints import load_model
-from lgnn.scene import get_scene
+from lgnn.engines import rollouts
+from lgnn.scene import State, get_scene
 
 QUICK, FULL = profiles.PROFILES["quick"], profiles.PROFILES["full"]
 TIMED_SCENES = ("chain4",)
@@ -147,7 +148,7 @@ def test_ground_truth(profile, out, eval_scene):
         # record's may come from the dataset cache, made by another program of the same
         # settings (another chunk size): positions equal to round-off, whose 1e-16
         # become 3e-11 of the first frames' displacements of 3e-6.
-        q = evaluate.ground_truth(profile, eval_scene, True)["q"]
+        q = evaluate.ground_truth(profile, eval_scene, True).truth.q
         logs = np.log(np.sqrt(np.mean(np.sum((q[:, 1:] - q[:, :1]) ** 2, axis=-1), axis=-1)))  # (C, F - 1)
         np.testing.assert_allclose(arrays[f"{evaluate.REST}/node_rms_error/per_ic_log"], logs.mean(axis=1), rtol=1e-9)
         # Its curves: every CURVE_DT s, the last frame of each (frame k at k * frame_dt).
@@ -176,7 +177,7 @@ def test_evaluation(profile, out, pair):
 
 
 def test_rollout_speed(benchmark, record_rate, profile, out, timed_pair):
-    run_chunk, steps = evaluate.timed_rollout_fn(profile, timed_pair, out)
+    run_chunk, steps = _timed_rollout_fn(profile, timed_pair, out)
     _time(benchmark, run_chunk, rounds=1 if profile is FULL else 3)
     record_rate("rk4_steps", steps, pair=f"{timed_pair.job.label} on {timed_pair.scene}")
 
@@ -190,7 +191,7 @@ def test_the_timed_programs_run_from_the_stages_records(profile, out):
     params, _, loss = run_epoch()
     assert np.isfinite(loss) and all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(params))
     pair = next(p for p in profiles.evaluation_pairs(profile) if p.job == job and p.scene in TIMED_SCENES and p.projected)
-    run_chunk, steps = evaluate.timed_rollout_fn(profile, pair, out)
+    run_chunk, steps = _timed_rollout_fn(profile, pair, out)
     rollouts = run_chunk()
     assert np.isfinite(rollouts.q).all() and steps > 0
 
@@ -312,3 +313,20 @@ def test_report(profile, out):
     assert figures
     for figure in figures:
         assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _timed_rollout_fn(profile: profiles.Profile, pair: grid.Pair, out):
+    """`(run, steps)`: a no-argument call running the pair's model alone on the first
+    chunk of the evaluation's initial conditions (through the one rollout path, its
+    programs compiled by the first call), and the RK4 steps it takes; for
+    pytest-benchmark."""
+    scene = get_scene(pair.scene)
+    states = evaluate.evaluation_initial_states(profile, scene)
+    chunk = min(profile.evaluate.chunk, len(states.q))
+    first = State(states.q[:chunk], states.qd[:chunk])
+    layout = store.layout(profile, out)
+    model, params = load_model(layout.found(layout.checkpoint(pair.job)))
+    config = profile.evaluate.simulation(pair.scene)
+    steps = chunk * config.n_frames * config.steps_per_frame
+    integration = profile.evaluate.integration
+    return (lambda: rollouts.batched_rollouts(scene, config, models.AccelerationFactory(model), first, params, integration=integration, chunk=chunk)), steps

@@ -17,6 +17,7 @@ from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.engines.rollouts import Rollouts
 from lgnn.learn import checkpoints, models, protocol, train
 from lgnn.scene import get_scene
+from lgnn.trajectory import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = profiles.PROFILES["quick"]
@@ -131,7 +132,7 @@ def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_
     computed = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
     # The one that computes them says in its log what they cost, the reference included.
     cost = [line for line in capsys.readouterr().err.splitlines() if line.startswith(f"[benchmark] ground truth {SCENE} cost: ")]
-    assert len(cost) == 1 and f"mujoco {computed['mujoco_s']:.1f} s" in cost[0], cost
+    assert len(cost) == 1 and f"mujoco {computed.reference_s['mujoco']:.1f} s" in cost[0], cost
     assert evaluate.truth_file(QUICK, SCENE).exists()
     assert not (tmp_path / "datasets").exists()  # in the dataset cache, not the output folder
     evaluate.ground_truth.cache_clear()
@@ -142,9 +143,11 @@ def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_
     monkeypatch.setattr(evaluate, "_computed_ground_truth", recompute)
     # Read back by a process of any output folder.
     read = evaluate.ground_truth(QUICK, SCENE, False, tmp_path / "another-output-folder")
-    for name in evaluate.truth_trajectories(QUICK.evaluate.references):
-        assert read[name].dtype == computed[name].dtype and (read[name] == computed[name]).all(), name
-    assert (read["states"].q == computed["states"].q).all() and read["mujoco_s"] == computed["mujoco_s"]
+    kept, written = read.arrays(), computed.arrays()
+    assert set(kept) == set(written) >= set(evaluate.truth_trajectories(QUICK.evaluate.references))
+    for name in written:
+        assert kept[name].dtype == written[name].dtype and (kept[name] == written[name]).all(), name
+    assert read.timings() == computed.timings() and read.platform == computed.platform
     other = dataclasses.replace(QUICK, evaluate=dataclasses.replace(QUICK.evaluate, ic_seed=QUICK.evaluate.ic_seed + 1))
     with pytest.raises(AssertionError, match="recomputed"):
         evaluate.ground_truth(other, SCENE, False, tmp_path)
@@ -181,7 +184,9 @@ def test_a_models_rollouts_do_not_wait_for_its_scenes_ground_truth(tmp_path, mon
         assert rollouts_started.wait(timeout=30), "the ground truth was computed before the rollouts started"
         (q,), (qd,) = held_states(1)
         energy = metrics.true_energies(scene, q, qd)
-        return dict(q=q, qd=qd, energy=energy, q_mujoco=q, energy_mujoco=energy, states=states)
+        t = np.arange(q.shape[1]) * profile.evaluate.frame_dt
+        held = Trajectory(t, q, qd, energy)
+        return evaluate.GroundTruth(states, held, states, {"mujoco": held}, 0.0, 0.0, {"mujoco": 0.0}, "cpu")
 
     def rollouts(scene, config, factory, initial, params, **options):
         rollouts_started.set()

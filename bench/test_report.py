@@ -283,8 +283,8 @@ def test_a_drag_scene_record_scores_the_exact_physics_without_drag(tmp_path):
     scene, truth = get_scene("chain4-drag"), evaluate.ground_truth(profile, "chain4-drag", False)
     config = profile.evaluate.simulation("chain4-drag")
     for c in range(2):
-        q = simulate(scene.replace(drag=0.0), config, State(truth["states"].q[c], truth["states"].qd[c])).q[1:]
-        reference = truth["q"][c, 1:]
+        q = simulate(scene.replace(drag=0.0), config, State(truth.states.q[c], truth.states.qd[c])).q[1:]
+        reference = truth.truth.q[c, 1:]
         flat = lambda a: a.reshape(len(a), -1)  # noqa: E731
         errors = np.linalg.norm(flat(q - reference), axis=1) / (np.linalg.norm(flat(q), axis=1) + np.linalg.norm(flat(reference), axis=1))
         # (errors of 1e-12-1e-8 over 0.02 s: a vmapped and a single run agree to ~1e-6 of them)

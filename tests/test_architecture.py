@@ -22,6 +22,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "lgnn"
 LAYERS = (
     ("lgnn", "lgnn.errors", "lgnn.files", "lgnn.provenance", "lgnn.records", "lgnn.runtime", "lgnn.sharding"),
     ("lgnn.scene",),
+    ("lgnn.trajectory",),
     ("lgnn.physics", "lgnn.integrate"),
     ("lgnn.metrics",),
     ("lgnn.engines",),

@@ -131,7 +131,7 @@ def test_a_registered_metric_appears_in_the_evaluate_summary(capsys, tmp_path, m
     terminal summary with its unit and in the CSV files, with no other edit."""
     from lgnn import metrics
 
-    absolute = metrics.Metric("absolute_energy_error", lambda q, energy, ref_q, ref_energy: np.abs(energy - ref_energy), "J",
+    absolute = metrics.Metric("absolute_energy_error", lambda scene, predicted, reference: np.abs(predicted.energy - reference.energy), "J",
                               "Absolute energy error", "Absolute energy error", maximum_fn=lambda scene, q0: 1e6)
     monkeypatch.setitem(metrics.METRICS, absolute.name, absolute)
     checkpoint = _cheat_checkpoint(tmp_path)

@@ -11,6 +11,7 @@ from lgnn.cli import main
 from lgnn.engines.base import SimulationConfig
 from lgnn.engines.lagrangian import simulate
 from lgnn.scene import State, get_scene, scene_from_dict
+from lgnn.trajectory import Trajectory
 
 
 def horizontal_double_pendulum():
@@ -113,7 +114,7 @@ def test_a_diverged_rollout_scores_each_metric_maximum_from_its_divergence_frame
     predicted[..., 0] += 1e-3
     size = metrics.structure_size(scene, q[0, 0])
     predicted[1, 6:] += 2 * metrics.EXPLOSION_FACTOR * size
-    scored = metrics.score_rollouts(scene, t, predicted, qd, q, energy)
+    scored = metrics.score_rollouts(scene, t, predicted, qd, Trajectory(t, q, qd, energy))
     scores, diverged = scored.errors, scored.diverged
     assert diverged.tolist() == [-1, 6]
     assert set(scores) == set(metrics.METRICS)
@@ -134,7 +135,7 @@ def test_the_rest_baseline_scores_exactly_the_truths_displacement_from_its_start
     scene, t, q, qd, energy = _chain4_truth()
     rest_q, rest_qd = metrics.rest_rollouts(q, qd)
     assert (rest_q == q[:, :1]).all() and (rest_qd == qd[:, :1]).all() and rest_q.shape == q.shape
-    scored = metrics.score_rollouts(scene, t, rest_q, rest_qd, q, energy)
+    scored = metrics.score_rollouts(scene, t, rest_q, rest_qd, Trajectory(t, q, qd, energy))
     scores, diverged = scored.errors, scored.diverged
     assert diverged.tolist() == [-1, -1]
     q0, later = q[0, 0], q[0, 1:]
@@ -162,3 +163,21 @@ def test_seed_intervals_cover_the_spread_between_seeds():
     value, low, high = summarise_seeds([ics, ics])
     single = summarise(ics)
     assert value == pytest.approx(single[0]) and low < value < high and high / low < 1.5 * single[2] / single[1]
+
+
+@pytest.mark.parametrize("seeds", [2, 3])
+@pytest.mark.parametrize("ics", [1, 2, 3, 8, 100, [8, 5, 8]])
+def test_the_seed_bootstrap_draws_what_one_call_per_resampled_seed_draws(seeds, ics):
+    """The two-level bootstrap draws every resampled seed's ICs in one call where its
+    generator gives the same numbers as one call per seed (even sizes, one IC): its
+    interval is the one of that loop, written out here, to the last bit (one process,
+    one generator: the same draws and the same sums)."""
+    from lgnn.metrics import summarise_seeds
+
+    sizes = ics if isinstance(ics, list) else [ics] * seeds
+    logs = [np.random.default_rng(k).normal(-8, 3, size) for k, size in enumerate(sizes[:seeds])]
+    rng = np.random.default_rng(0)
+    picks = rng.integers(0, len(logs), (2000, len(logs)))
+    boots = np.array([np.mean([logs[k][rng.integers(0, len(logs[k]), len(logs[k]))].mean() for k in pick]) for pick in picks])
+    low, high = np.exp(np.percentile(boots, [2.5, 97.5]))
+    assert summarise_seeds(logs)[1:] == (low, high)

@@ -264,5 +264,5 @@ def test_the_chaos_floor_runs_the_ground_truths_compiled_program(monkeypatch):
     truth = evaluate._computed_ground_truth(profile, "chain4", progress=False)
     assert len(compiled) == 2, "the ground truth, then its chaos floor"
     assert compiled[1] == compiled[0], "the chaos floor compiled a program of its own"
-    gap = np.abs(truth["q_floor"] - truth["q"]).max()
+    gap = np.abs(truth.floor.q - truth.truth.q).max()
     assert 0 < gap < 1e-2, "the floor starts from perturbed states and stays near the truth this briefly"

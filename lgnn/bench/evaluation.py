@@ -60,7 +60,7 @@ def score(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference:
     reference trajectory (C, F, N, D) with every registered metric
     (`lgnn.metrics.METRICS`). The reference's energies are the ones it carries: every
     engine's `Trajectory` holds the scene's true `H` of its states."""
-    return metrics.score_rollouts(scene, t, q, qd, reference.q, reference.energy, model, reference_name)
+    return metrics.score_rollouts(scene, t, q, qd, reference, model, reference_name)
 
 
 def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config: SimulationConfig, states: State,

@@ -57,7 +57,7 @@ from lgnn.bench.profiles import Profile, evaluation_pairs, evaluation_scenes
 from lgnn.records import settings_key
 from lgnn.bench.store import Layout, log
 from lgnn.engines import get_engine
-from lgnn.engines.base import SimulationConfig
+from lgnn.engines.base import SimulationConfig, Trajectory
 from lgnn.engines.rollouts import Unparametrised, batched_rollouts, ground_truth_platform
 from lgnn.runtime import in_background
 from lgnn.errors import ConfigError, SimulationError
@@ -177,10 +177,51 @@ def truth_file(profile: Profile, scene_name: str) -> Path:
 
 
 def truth_trajectories(references: tuple[str, ...]) -> tuple[str, ...]:
-    """The trajectories `ground_truth` keeps on disk (with `states`, its initial
-    conditions): the Lagrangian ground truth's, the chaos floor's, and positions
-    `q_<engine>` and true energies `energy_<engine>` of each reference engine."""
-    return ("q", "qd", "energy", "q_floor", "qd_floor", *(f"{kind}_{engine}" for engine in references for kind in ("q", "energy")))
+    """The arrays `ground_truth` keeps on disk (with `states`, its initial conditions):
+    the Lagrangian ground truth's positions, velocities and true energies, the chaos
+    floor's positions and velocities, and each reference engine's `q_<engine>`,
+    `qd_<engine>` and `energy_<engine>` (a file without a reference's velocities, kept
+    before metrics could read them, is computed again)."""
+    return ("q", "qd", "energy", "q_floor", "qd_floor", *(f"{kind}_{engine}" for engine in references for kind in ("q", "qd", "energy")))
+
+
+@dataclasses.dataclass(frozen=True)
+class GroundTruth:
+    """A scene's evaluation ground truth: the initial `states` (C, N, D), the Lagrangian
+    ground truth `truth` (a trajectory batch (C, F, N, D)), the chaos floor's states
+    `floor` (q, qd (C, F, N, D); scored as a prediction is), each reference engine's
+    trajectories `references[engine]`, and what they cost: `compile_s`, `run_s` of the
+    JAX rollouts, `reference_s[engine]` of each reference, and `platform`, where the
+    JAX rollouts ran (None for a file kept before it was recorded)."""
+
+    states: State
+    truth: Trajectory
+    floor: State
+    references: dict[str, Trajectory]
+    compile_s: float
+    run_s: float
+    reference_s: dict[str, float]
+    platform: str | None
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The arrays kept on disk (`truth_trajectories`, and `states/q`, `states/qd`)."""
+        kept = {"q": self.truth.q, "qd": self.truth.qd, "energy": self.truth.energy, "q_floor": self.floor.q, "qd_floor": self.floor.qd}
+        for engine, trajectory in self.references.items():
+            kept.update({f"q_{engine}": trajectory.q, f"qd_{engine}": trajectory.qd, f"energy_{engine}": trajectory.energy})
+        return {**kept, "states/q": np.asarray(self.states.q), "states/qd": np.asarray(self.states.qd)}
+
+    def timings(self) -> dict[str, float]:
+        """The costs kept with the trajectories and in the record (`truth_timings`)."""
+        return {"compile_s": self.compile_s, "run_s": self.run_s, **{f"{engine}_s": s for engine, s in self.reference_s.items()}}
+
+    @classmethod
+    def from_arrays(cls, frame_dt: float, arrays: dict, meta: dict, references: tuple[str, ...]) -> GroundTruth:
+        """The ground truth of arrays and meta kept on disk (`arrays`, `timings`)."""
+        t = np.arange(arrays["q"].shape[1]) * frame_dt
+        return cls(State(arrays["states/q"], arrays["states/qd"]), Trajectory(t, arrays["q"], arrays["qd"], arrays["energy"]),
+                   State(arrays["q_floor"], arrays["qd_floor"]),
+                   {engine: Trajectory(t, arrays[f"q_{engine}"], arrays[f"qd_{engine}"], arrays[f"energy_{engine}"]) for engine in references},
+                   meta["compile_s"], meta["run_s"], {engine: meta[f"{engine}_s"] for engine in references}, meta.get("platform"))
 
 
 def truth_timings(references: tuple[str, ...]) -> tuple[str, ...]:
@@ -191,12 +232,10 @@ def truth_timings(references: tuple[str, ...]) -> tuple[str, ...]:
 
 
 @functools.lru_cache(maxsize=2)
-def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: Path | None = None) -> dict:
-    """The ground truth of a scene's evaluation: `q`, `qd` (C, F, N, D) and true `energy`
-    (C, F) of the Lagrangian ground truth, the chaos floor's `q_floor`, `qd_floor`
-    (scored, divergence included, by `evaluate_scene`), each reference engine's
-    `q_<engine>` and `energy_<engine>`, the initial `states` and timings
-    (`truth_trajectories`, `truth_timings`).
+def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: Path | None = None) -> GroundTruth:
+    """The `GroundTruth` of a scene's evaluation: the Lagrangian ground truth, the chaos
+    floor (scored, divergence included, by `evaluate_scene`), each reference engine's
+    trajectories, the initial states and timings.
 
     With `out`, the trajectories are kept in the dataset cache (`truth_file`, named and
     keyed by `truth_key`), and read back by every later process, of any output folder:
@@ -214,20 +253,16 @@ def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: 
         # Files written before their reference was fixed, or before references' energies
         # were kept, lack a version or trajectory: computed again.
         if (stored is not None and stored[1].get("mujoco_reference") == REFERENCE_VERSION
-                and all(name in stored[0] for name in trajectories)):
+                and all(name in stored[0] for name in trajectories) and all(name in stored[1] for name in timings)):
             arrays, meta = stored
             log(f"ground truth {scene_name}: read from {path}")
-            # (`platform`: unknown for a file written before it was kept.)
-            return dict(**{name: arrays[name] for name in trajectories}, states=State(arrays["states/q"], arrays["states/qd"]),
-                        **{name: meta[name] for name in timings}, platform=meta.get("platform"))
+            return GroundTruth.from_arrays(profile.evaluate.frame_dt, arrays, meta, profile.evaluate.references)
         truth = _computed_ground_truth(profile, scene_name, progress)
-        store.save(path, key, {**{name: truth[name] for name in trajectories}, "states/q": np.asarray(truth["states"].q),
-                                "states/qd": np.asarray(truth["states"].qd)},
-                   dict(scene=scene_name, mujoco_reference=REFERENCE_VERSION, platform=truth["platform"], **{name: truth[name] for name in timings}))
+        store.save(path, key, truth.arrays(), dict(scene=scene_name, mujoco_reference=REFERENCE_VERSION, platform=truth.platform, **truth.timings()))
         return truth
 
 
-def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) -> dict:
+def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) -> GroundTruth:
     """`ground_truth`, computed. The reference engines run in a thread beside the
     Lagrangian ground truth and chaos floor (`mujoco.rollout` releases the GIL): on a GPU
     the two overlap, which saves chain100-3d's 6 minutes of JAX rollouts."""
@@ -257,22 +292,24 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     # What the scene's ground truth cost, in the part's log: the reference engines
     # (MuJoCo C on chain100-3d) can be most of an evaluate stage.
     log(f"ground truth {scene_name} cost: rollouts {truth.run_s:.1f} s + compile {truth.compile_s:.1f} s on {truth.platform}, chaos floor "
-        f"{floor.run_s + floor.compile_s:.1f} s" + "".join(f"; {engine} {references[f'{engine}_s']:.1f} s" for engine in settings.references))
-    return dict(q=truth.q, qd=truth.qd, energy=truth.energy, q_floor=floor.q, qd_floor=floor.qd, states=states,
-                compile_s=truth.compile_s, run_s=truth.run_s, platform=truth.platform, **references)
+        f"{floor.run_s + floor.compile_s:.1f} s" + "".join(f"; {engine} {seconds:.1f} s" for engine, (_, seconds) in references.items()))
+    t = np.arange(truth.q.shape[1]) * settings.frame_dt
+    return GroundTruth(states, Trajectory(t, truth.q, truth.qd, truth.energy), State(floor.q, floor.qd),
+                       {engine: trajectory for engine, (trajectory, _) in references.items()}, truth.compile_s, truth.run_s,
+                       {engine: seconds for engine, (_, seconds) in references.items()}, truth.platform)
 
 
-def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, references: tuple[str, ...]) -> dict:
-    """Each reference engine's node positions `q_<engine>` (C, F, N, D), true energies
-    `energy_<engine>` (C, F) and seconds `<engine>_s` from `states`, through the one
-    engine interface (`get_engine(engine).rollout`; an engine raises `SimulationError`
-    at a diverging frame, so no reference that diverged is scored against)."""
+def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, references: tuple[str, ...]) -> dict[str, tuple[Trajectory, float]]:
+    """Each reference engine's trajectories from `states` (`Trajectory`: q, qd
+    (C, F, N, D), true energies (C, F)) and the seconds they took, by engine, through
+    the one engine interface (`get_engine(engine).rollout`; an engine raises
+    `SimulationError` at a diverging frame, so no reference that diverged is scored
+    against)."""
     found = {}
     for engine in references:
         start = time.perf_counter()
         trajectory = get_engine(engine).rollout(scene, config, State(np.asarray(states.q), np.asarray(states.qd)))
-        found.update({f"q_{engine}": np.asarray(trajectory.q), f"energy_{engine}": np.asarray(trajectory.energy),
-                      f"{engine}_s": time.perf_counter() - start})
+        found[engine] = (trajectory, time.perf_counter() - start)
     return found
 
 
@@ -319,15 +356,15 @@ def _statistics_arrays(prefix: str, errors: np.ndarray, frame_dt: float) -> dict
     return {f"{prefix}/{k}": v if k == "per_ic_log" else v[curve_frames(frame_dt)] for k, v in metrics.error_statistics(errors).items()}
 
 
-def score_against_truth(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth: dict) -> list[metrics.Scored]:
+def score_against_truth(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth: GroundTruth) -> list[metrics.Scored]:
     """Trajectories `q`, `qd` (C, F, N, D) scored (`lgnn.metrics.score_rollouts`) against
     the scene's ground truth with every registered metric, then against each reference
     engine's trajectory with those `against_references`."""
     t = np.arange(q.shape[1]) * profile.evaluate.frame_dt
-    scored = [metrics.score_rollouts(scene, t, q, qd, truth["q"], truth["energy"], reference=TRUTH)]
+    scored = [metrics.score_rollouts(scene, t, q, qd, truth.truth, reference_name=TRUTH)]
     if _against_references():
-        scored += [metrics.score_rollouts(scene, t, q, qd, truth[f"q_{engine}"], truth[f"energy_{engine}"], reference=engine,
-                                          names=_against_references()) for engine in profile.evaluate.references]
+        scored += [metrics.score_rollouts(scene, t, q, qd, truth.references[engine], reference_name=engine, names=_against_references())
+                   for engine in profile.evaluate.references]
     return scored
 
 
@@ -396,30 +433,30 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
     truth = ground_truth(profile, scene_name, progress, out)
     references = profile.evaluate.references
     frame_dt = profile.evaluate.frame_dt
-    t = np.arange(truth["q"].shape[1]) * frame_dt
-    floor = metrics.score_rollouts(scene, t, truth["q_floor"], truth["qd_floor"], truth["q"], truth["energy"], names=_floor_metrics())
+    t = truth.truth.t
+    floor = metrics.score_rollouts(scene, t, truth.floor.q, truth.floor.qd, truth.truth, names=_floor_metrics())
     arrays = {
         "t": curve_times(len(t), frame_dt),
         **_scene_level_arrays(FLOOR, floor, frame_dt),
         f"{FLOOR}/diverged_at": np.where(floor.diverged >= 0, floor.diverged * frame_dt, np.nan),
-        **record_arrays(f"{REST}/", score_against_truth(profile, scene, *metrics.rest_rollouts(truth["q"], truth["qd"]), truth), frame_dt),
-        **snapshot(profile, scene_name, "truth", truth["q"]),
-        "mid_state": np.stack([truth["q"][0, truth["q"].shape[1] // 2], truth["qd"][0, truth["qd"].shape[1] // 2]]),
+        **record_arrays(f"{REST}/", score_against_truth(profile, scene, *metrics.rest_rollouts(truth.truth.q, truth.truth.qd), truth), frame_dt),
+        **snapshot(profile, scene_name, "truth", truth.truth.q),
+        "mid_state": np.stack([truth.truth.q[0, len(t) // 2], truth.truth.qd[0, len(t) // 2]]),
     }
     for engine in references:
         # The ground truth never diverges (it stops at divergence: `batched_rollouts`), so neither side's
         # errors are capped.
-        versus = metrics.score_rollouts(scene, t, truth["q"], truth["qd"], truth[f"q_{engine}"], truth[f"energy_{engine}"], names=_against_references())
+        versus = metrics.score_rollouts(scene, t, truth.truth.q, truth.truth.qd, truth.references[engine], names=_against_references())
         arrays.update(_scene_level_arrays(truth_against(engine), versus, frame_dt))
-        arrays.update(snapshot(profile, scene_name, engine, truth[f"q_{engine}"]))
+        arrays.update(snapshot(profile, scene_name, engine, truth.references[engine].q))
     if scene.drag > 0:
         no_drag = scene.replace(drag=0.0)
-        runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth["states"],
+        runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth.states,
                                 integration=profile.evaluate.integration, chunk=profile.evaluate.chunk, label=f"{scene_name} without drag",
-                                progress=progress, platform=ground_truth_platform(len(truth["states"].q)))
+                                progress=progress, platform=ground_truth_platform(len(truth.states.q)))
         arrays.update(record_arrays(f"{NO_DRAG}/", score_against_truth(profile, scene, runs.q, runs.qd, truth), frame_dt))
-    meta = dict(scene=scene_name, initial_conditions=len(truth["q"]), mujoco_reference=REFERENCE_VERSION, platform=truth["platform"],
-                **{name: truth[name] for name in truth_timings(references)})
+    meta = dict(scene=scene_name, initial_conditions=len(truth.states.q), mujoco_reference=REFERENCE_VERSION, platform=truth.platform,
+                **truth.timings())
     store.save(path, key, arrays, meta)
     return path
 
@@ -494,7 +531,7 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
                             chunk=profile.evaluate.chunk, label=f"{pair.label} {seeds} on {pair.scene}", progress=progress)
     q_all, qd_all, compile_s, run_s = runs.q, runs.qd, runs.compile_s, runs.run_s
     truth = truth_when_done()
-    if not np.allclose(truth["states"].q, states.q, rtol=1e-9, atol=1e-12):
+    if not np.allclose(truth.states.q, states.q, rtol=1e-9, atol=1e-12):
         raise SimulationError(f"{pair.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
                               f"remove {truth_file(profile, pair.scene)} to recompute it")
     steps = len(group) * len(states.q) * config.n_frames * config.steps_per_frame
@@ -551,20 +588,3 @@ def load_pairs(profile: Profile, out: Path) -> list[tuple[Pair, tuple[dict, dict
     """`(pair, (arrays, meta))` of every pair record that exists and matches the profile."""
     found = [(pair, load_pair(profile, pair, out)) for pair in evaluation_pairs(profile)]
     return [(pair, record) for pair, record in found if record is not None]
-
-
-def timed_rollout_fn(profile: Profile, pair: Pair, out: Path):
-    """`(run, steps)`: a no-argument call running the pair's model alone on the first
-    chunk of the evaluation's initial conditions (through the one rollout path, its
-    programs compiled by the first call), and the RK4 steps it takes; for
-    pytest-benchmark."""
-    scene = get_scene(pair.scene)
-    states = evaluation_initial_states(profile, scene)
-    chunk = min(profile.evaluate.chunk, len(states.q))
-    first = State(states.q[:chunk], states.qd[:chunk])
-    layout = store.layout(profile, out)
-    model, params = load_model(layout.found(layout.checkpoint(pair.job)))
-    config = profile.evaluate.simulation(pair.scene)
-    steps = chunk * config.n_frames * config.steps_per_frame
-    integration = profile.evaluate.integration
-    return (lambda: batched_rollouts(scene, config, models.AccelerationFactory(model), first, params, integration=integration, chunk=chunk)), steps

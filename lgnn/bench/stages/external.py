@@ -154,7 +154,7 @@ def evaluate_external(profile: Profile, path: str | os.PathLike, out: Path, prog
         if evaluate.has_arrays(layout.load(record, key), evaluate.pair_needs(profile)):
             return record
         truth = evaluate.ground_truth(profile, predictions.scene, progress, out)
-        if not np.allclose(truth["states"].q, predictions.q[:, 0], rtol=1e-9, atol=1e-12):
+        if not np.allclose(truth.states.q, predictions.q[:, 0], rtol=1e-9, atol=1e-12):
             raise ConfigError(f"{predictions.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
                               f"remove {evaluate.truth_file(profile, predictions.scene)} to recompute it")
         scene = get_scene(predictions.scene)
