@@ -8,7 +8,7 @@ conditions with a bootstrap interval, `lgnn.metrics.summarise`) to the `lgnn
 evaluate` and `lgnn compare` commands.
 
 - `evaluate_model(model, params, scene, config, states)`: the model's rollouts from the
-  initial `states` (C, N, D), scored against the Lagrangian engine and MuJoCo C run
+  initial `states` (C, N, D), as an engine (`ModelEngine`), scored against the Lagrangian engine and MuJoCo C run
   with the same settings. The model's rollout is not stopped at divergence (its frames
   from there count as each metric's maximum, as in the benchmark); a reference that
   diverges stops with `SimulationError` (an error against it would mean nothing).
@@ -25,6 +25,7 @@ times in s; the relative errors are dimensionless.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from pathlib import Path
@@ -36,7 +37,6 @@ from lgnn.bench.profiles import ROLLOUTS_PER_CALL
 from lgnn.bench.tables import write_table
 from lgnn.engines import ENGINES, get_engine
 from lgnn.engines.base import Integration, SimulationConfig, Trajectory
-from lgnn.engines.rollouts import batched_rollouts
 from lgnn.errors import ConfigError
 from lgnn.files import write_text_atomic
 from lgnn.learn import models
@@ -75,18 +75,18 @@ def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config
     # while JAX runs the model), waited for only to score.
     references_when_done = {name: in_background(functools.partial(_reference, name, scene, config, states, integration, progress))
                             for name in REFERENCES}
-    # The params are an argument of the compiled program: another checkpoint of the
-    # same model config compiles nothing.
+    # The model is an engine, rolled out as the references are; it is not stopped at a
+    # divergence (the frames from there count as each metric's maximum). The params are
+    # an argument of the compiled program: another checkpoint of the same model config
+    # compiles nothing.
     chunk = CPU_CHUNK if sharding.platform() == "cpu" else None
-    runs = batched_rollouts(scene, config, models.AccelerationFactory(model), states, params, integration=integration, chunk=chunk,
-                            label=f"{model.name} on {scene.name}", progress=progress)
+    engine = models.ModelEngine(model, params, progress=progress, integration=integration, stop_at_divergence=False, chunk=chunk)
+    predicted = engine.rollout(scene, config, states)
     references = {name: when_done() for name, when_done in references_when_done.items()}
-    q, qd = runs.q, runs.qd
     t = references["lagrangian"].t
-    scored = [score(scene, t, q, qd, truth, model.name, name) for name, truth in references.items()]
-    metadata = {**references["lagrangian"].metadata, "model": model.to_dict()}
-    predicted = Trajectory(t, q[0], qd[0], metrics.true_energies(scene, q[0], qd[0]), metadata)
-    return scored, {"model": predicted, **{name: truth.member(0) for name, truth in references.items()}}
+    scored = [score(scene, t, predicted.q, predicted.qd, truth, model.name, name) for name, truth in references.items()]
+    kept = dataclasses.replace(predicted.member(0), metadata={**references["lagrangian"].metadata, "model": model.to_dict()})
+    return scored, {"model": kept, **{name: truth.member(0) for name, truth in references.items()}}
 
 
 def evaluate_on_scenes(model: models.ModelConfig, params: dict, scenes: list[Scene], config: SimulationConfig, initial_conditions: int = 1,

@@ -10,10 +10,10 @@ placeholders, training fills them in once from its training states and steps onl
 rest, checkpoints keep them like any leaf, so inference needs nothing else. Every
 Lagrangian model goes through `physics.acceleration_fn`, the very same constrained
 Euler-Lagrange solve as the ground truth; an acceleration model predicts node
-accelerations itself. Rollouts use the ground truth's engine and integrators with the
-params as an argument of the compiled run: `simulate(scene, config, state,
-accel_factory=AccelerationFactory(model), params=params)`, compiled once per scene,
-settings and model config.
+accelerations itself. A model rolls out as an engine (`ModelEngine(config,
+params).rollout(scene, config, states)`; `rollout` for one state), through the ground
+truth's one batched path and integrators with the params an argument of the compiled
+run (`AccelerationFactory`), compiled once per scene, settings and model config.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 
 from lgnn import physics
 from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
-from lgnn.engines.lagrangian import simulate
+from lgnn.engines.lagrangian import check_state
 from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
 from lgnn.errors import ConfigError
 from lgnn.learn.graphs import edge_type_indices
@@ -160,23 +160,14 @@ class AccelerationFactory:
 
 def rollout(config: ModelConfig, params: dict, scene: Scene, simulation: SimulationConfig | None = None, state=None, *,
             integration: Integration = Integration(), progress: bool = False) -> Trajectory:
-    """The model's predicted `Trajectory` of `scene` from `state` (default: the scene's
-    own), through the ground truth's integrators (`engines.lagrangian.simulate`, by
-    `integration`); its
-    `energy` is the scene's true Hamiltonian of the predicted states. A prediction that
-    becomes non-finite or explodes stops with `SimulationError` naming the time."""
-    check_compatible(config, scene)
-    trajectory = simulate(
-        scene,
-        simulation or SimulationConfig(),
-        state,
-        integration=integration,
-        accel_factory=AccelerationFactory(config),
-        params=params,
-        progress=progress,
-        hint=f"the {config.name} model's predicted dynamics diverge (its rollout stops there)",
-    )
-    return dataclasses.replace(trajectory, metadata={**trajectory.metadata, "model": config.to_dict()})
+    """The model's predicted `Trajectory` of `scene` from one `state` (N, D) (default:
+    the scene's own): `ModelEngine.rollout` of a batch of one, integrated by
+    `integration`; its `energy` is the scene's true Hamiltonian of the predicted
+    states. A prediction that becomes non-finite or explodes stops with
+    `SimulationError` naming the time."""
+    state = check_state(scene, scene.initial_state if state is None else state)
+    engine = ModelEngine(config, params, progress=progress, integration=integration)
+    return engine.rollout(scene, simulation or SimulationConfig(), State(np.asarray(state.q)[None], np.asarray(state.qd)[None])).member(0)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -187,13 +178,18 @@ class ModelEngine(Engine):
     program, the params an argument of it), so cross-checks and tools treat a model like
     any other engine, integrated by `integration` (RK4 with projection, as the ground
     truth, by default). Its trajectories' `energy` is the scene's true Hamiltonian of
-    the predicted states; `rollout` stops at divergence like every engine."""
+    the predicted states; `rollout` stops at divergence like every engine, unless
+    `stop_at_divergence` is off (scoring: the frames from a divergence on count as each
+    metric's maximum), and rolls out `chunk` initial conditions per program (None:
+    all)."""
 
     config: ModelConfig
     params: dict
     dtype: str = "float64"
     progress: bool = False
     integration: Integration = Integration()
+    stop_at_divergence: bool = True
+    chunk: int | None = None
 
     @property
     def name(self) -> str:
@@ -203,7 +199,8 @@ class ModelEngine(Engine):
         """Predicted trajectories from initial states (B, N, D): q, qd (B, F+1, N, D), energy (B, F+1)."""
         check_compatible(self.config, scene)
         runs = batched_rollouts(scene, config, AccelerationFactory(self.config), states, self.params, integration=self.integration,
-                                dtype=self.dtype, stop_at_divergence=True, progress=self.progress, label=f"{self.config.name} on {scene.name}",
+                                dtype=self.dtype, chunk=self.chunk, stop_at_divergence=self.stop_at_divergence, with_energy=True,
+                                progress=self.progress, label=f"{self.config.name} on {scene.name}",
                                 hint=f"the {self.config.name} model's predicted dynamics diverge (its rollout stops there)")
         return runs.trajectory(scene, config, self.integration, {"model": self.config.to_dict()})
 
