@@ -24,6 +24,7 @@ from lgnn.bench import grid, profiles, store
 from lgnn.bench.report import readme as report_readme, summary as report_summary
 from lgnn.bench.run import run
 from lgnn.bench.stages import evaluate, mass, scaling, speed
+from lgnn.bench.stages import truth as truth_stage
 from lgnn.bench.stages import train as train_stage
 from lgnn.learn import data, models, protocol, train
 from lgnn.learn.checkpoints import load_model
@@ -148,7 +149,7 @@ def test_ground_truth(profile, out, eval_scene):
         # record's may come from the dataset cache, made by another program of the same
         # settings (another chunk size): positions equal to round-off, whose 1e-16
         # become 3e-11 of the first frames' displacements of 3e-6.
-        q = evaluate.ground_truth(profile, eval_scene, True).truth.q
+        q = truth_stage.ground_truth(profile, eval_scene, True).truth.q
         logs = np.log(np.sqrt(np.mean(np.sum((q[:, 1:] - q[:, :1]) ** 2, axis=-1), axis=-1)))  # (C, F - 1)
         np.testing.assert_allclose(arrays[f"{evaluate.REST}/node_rms_error/per_ic_log"], logs.mean(axis=1), rtol=1e-9)
         # Its curves: every CURVE_DT s, the last frame of each (frame k at k * frame_dt).
@@ -161,7 +162,7 @@ def test_ground_truth(profile, out, eval_scene):
 
 def test_evaluation(profile, out, pair):
     arrays, meta = store.load(evaluate.evaluate_pair(profile, pair, out))
-    count = len(evaluate.evaluation_initial_states(profile, get_scene(pair.scene)).q)
+    count = len(truth_stage.evaluation_initial_states(profile, get_scene(pair.scene)).q)
     for metric in (m.name for m in evaluate.recorded_metrics(profile.evaluate.references)):
         assert arrays[f"{metric}/per_ic_log"].shape == (count,), metric
         assert arrays[f"{metric}/gmean"].shape == arrays["t"].shape, metric
@@ -289,7 +290,7 @@ def test_a_3d_chains_mass_matrix_is_the_3d_lgnns_against_the_rods_in_3d(tmp_path
     train.save_checkpoint(layout.checkpoint(job), train.initial_state(model, config), model, config)
     q, qd = (np.asarray(a[0]) for a in physics.benchmark_initial_states(scene, 1, profile.evaluate.ic_seed))
     assert np.ptp(q[:, 2]) > 0.1, "a state out of the x-y plane"
-    store.save(layout.truth_record("chain4-3d"), evaluate.truth_key(profile, "chain4-3d"), {"mid_state": np.stack([q, qd])}, {})
+    store.save(layout.truth_record("chain4-3d"), truth_stage.truth_key(profile, "chain4-3d"), {"mid_state": np.stack([q, qd])}, {})
     arrays, meta = store.load(mass.mass_matrices(profile, "chain4-3d", tmp_path))
     assert meta["job"] == "lgnn-chain4-3d-s0"
     assert [m["scene"] for _, m in mass.load_mass(profile, tmp_path)] == ["chain4-3d"]
@@ -321,7 +322,7 @@ def _timed_rollout_fn(profile: profiles.Profile, pair: grid.Pair, out):
     programs compiled by the first call), and the RK4 steps it takes; for
     pytest-benchmark."""
     scene = get_scene(pair.scene)
-    states = evaluate.evaluation_initial_states(profile, scene)
+    states = truth_stage.evaluation_initial_states(profile, scene)
     chunk = min(profile.evaluate.chunk, len(states.q))
     first = State(states.q[:chunk], states.qd[:chunk])
     layout = store.layout(profile, out)

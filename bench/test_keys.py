@@ -14,8 +14,9 @@ import pytest
 from lgnn import metrics
 from lgnn.bench import grid, profiles, store
 from lgnn.bench.stages import evaluate, mass, scaling, speed
+from lgnn.bench.stages import truth as truth_stage
 from lgnn.engines.rollouts import Rollouts
-from lgnn.learn import checkpoints, models, protocol, train
+from lgnn.learn import models, protocol, train
 from lgnn.scene import get_scene
 from lgnn.trajectory import Trajectory
 
@@ -55,7 +56,7 @@ def _keys(profile, out: Path, checkpoint: Path) -> dict:
     """Every stage's key on SCENE."""
     pair = grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), SCENE)
     return {
-        "truth": evaluate.truth_key(profile, SCENE),
+        "truth": truth_stage.truth_key(profile, SCENE),
         "pair": evaluate.pair_key(profile, pair, checkpoint),
         "speed": speed.speed_key(profile, SCENE, out),
         "scaling": scaling.scaling_key(profile, out),
@@ -128,30 +129,30 @@ def test_committed_full_records_match_the_current_settings():
 def test_ground_truth_trajectories_are_kept_and_reused_only_under_their_key(tmp_path, monkeypatch, capsys):
     # Every process evaluating one of a scene's pairs reads the trajectories the first
     # one computed (chain100-3d's MuJoCo C reference takes 15 minutes on 16 cores).
-    evaluate.ground_truth.cache_clear()
-    computed = evaluate.ground_truth(QUICK, SCENE, False, tmp_path)
+    truth_stage.ground_truth.cache_clear()
+    computed = truth_stage.ground_truth(QUICK, SCENE, False, tmp_path)
     # The one that computes them says in its log what they cost, the reference included.
     cost = [line for line in capsys.readouterr().err.splitlines() if line.startswith(f"[benchmark] ground truth {SCENE} cost: ")]
     assert len(cost) == 1 and f"mujoco {computed.reference_s['mujoco']:.1f} s" in cost[0], cost
-    assert evaluate.truth_file(QUICK, SCENE).exists()
+    assert truth_stage.truth_file(QUICK, SCENE).exists()
     assert not (tmp_path / "datasets").exists()  # in the dataset cache, not the output folder
-    evaluate.ground_truth.cache_clear()
+    truth_stage.ground_truth.cache_clear()
 
     def recompute(*args):
         raise AssertionError("recomputed")
 
-    monkeypatch.setattr(evaluate, "_computed_ground_truth", recompute)
+    monkeypatch.setattr(truth_stage, "_computed_ground_truth", recompute)
     # Read back by a process of any output folder.
-    read = evaluate.ground_truth(QUICK, SCENE, False, tmp_path / "another-output-folder")
+    read = truth_stage.ground_truth(QUICK, SCENE, False, tmp_path / "another-output-folder")
     kept, written = read.arrays(), computed.arrays()
-    assert set(kept) == set(written) >= set(evaluate.truth_trajectories(QUICK.evaluate.references))
+    assert set(kept) == set(written) >= set(truth_stage.truth_trajectories(QUICK.evaluate.references))
     for name in written:
         assert kept[name].dtype == written[name].dtype and (kept[name] == written[name]).all(), name
     assert read.timings() == computed.timings() and read.platform == computed.platform
     other = dataclasses.replace(QUICK, evaluate=dataclasses.replace(QUICK.evaluate, ic_seed=QUICK.evaluate.ic_seed + 1))
     with pytest.raises(AssertionError, match="recomputed"):
-        evaluate.ground_truth(other, SCENE, False, tmp_path)
-    evaluate.ground_truth.cache_clear()
+        truth_stage.ground_truth(other, SCENE, False, tmp_path)
+    truth_stage.ground_truth.cache_clear()
 
 
 def test_the_3d_lgnn_enters_the_scaling_key_only_with_3d_lengths(tmp_path):
@@ -172,7 +173,7 @@ def test_a_models_rollouts_do_not_wait_for_its_scenes_ground_truth(tmp_path, mon
 
     profile = dataclasses.replace(QUICK, evaluate=dataclasses.replace(QUICK.evaluate, initial_conditions=2))
     scene = get_scene(SCENE)
-    states = evaluate.evaluation_initial_states(profile, scene)
+    states = truth_stage.evaluation_initial_states(profile, scene)
     config = profile.evaluate.simulation(SCENE)
     rollouts_started = threading.Event()
 
@@ -186,16 +187,16 @@ def test_a_models_rollouts_do_not_wait_for_its_scenes_ground_truth(tmp_path, mon
         energy = metrics.true_energies(scene, q, qd)
         t = np.arange(q.shape[1]) * profile.evaluate.frame_dt
         held = Trajectory(t, q, qd, energy)
-        return evaluate.GroundTruth(states, held, states, {"mujoco": held}, 0.0, 0.0, {"mujoco": 0.0}, "cpu")
+        return truth_stage.GroundTruth(states, held, states, {"mujoco": held}, 0.0, 0.0, {"mujoco": 0.0}, "cpu")
 
-    def rollouts(scene, config, factory, initial, params, **options):
+    def rollouts(engine, scene, config, initial, label=""):
         rollouts_started.set()
         np.testing.assert_array_equal(initial.q, states.q)
-        q, qd = held_states(len(jax.tree.leaves(params)[0]))
+        q, qd = held_states(len(jax.tree.leaves(engine.params)[0]))
         return Rollouts(q, qd, metrics.true_energies(scene, q, qd), 1.0, 1.0, "cpu")
 
     monkeypatch.setattr(evaluate, "ground_truth", truth_after_rollouts)
-    monkeypatch.setattr(evaluate, "batched_rollouts", rollouts)
+    monkeypatch.setattr(models.ModelEngine, "rollouts", rollouts)
     model = models.ModelConfig("lgnn", latent=4, hidden=8)
     pair = grid.Pair(grid.TrainingJob("lgnn", grid.TRAINING_SCENE, 0), SCENE)
     path = tmp_path / "pair.npz"
@@ -208,17 +209,17 @@ def test_an_interrupted_ground_truth_does_not_wait_for_mujocos_reference(monkeyp
     # MuJoCo C's reference runs beside the Lagrangian ground truth (chain100-3d: 8-14
     # minutes); Ctrl-C during the latter stops at once instead of waiting it out.
     release = threading.Event()
-    monkeypatch.setattr(evaluate, "_reference_rollouts", lambda *args: release.wait(60))
+    monkeypatch.setattr(truth_stage, "_reference_rollouts", lambda *args: release.wait(60))
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(evaluate, "batched_rollouts", interrupted)
+    monkeypatch.setattr(truth_stage, "batched_rollouts", interrupted)
     outcome = {}
 
     def compute():
         try:
-            evaluate._computed_ground_truth(QUICK, SCENE, False)
+            truth_stage._computed_ground_truth(QUICK, SCENE, False)
         except KeyboardInterrupt:
             outcome["interrupted"] = True
 

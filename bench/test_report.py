@@ -15,6 +15,7 @@ from lgnn.bench import grid, profiles
 
 from lgnn.bench.report import figures as report_figures, performance as report_performance, readme as report_readme, summary as report_summary
 from lgnn.bench.stages import evaluate
+from lgnn.bench.stages import truth as truth_stage
 from lgnn.bench.stages import train as train_stage
 from lgnn.errors import ConfigError
 
@@ -280,7 +281,7 @@ def test_a_drag_scene_record_scores_the_exact_physics_without_drag(tmp_path):
     quick = profiles.PROFILES["quick"]
     profile = dataclasses.replace(quick, evaluate=dataclasses.replace(quick.evaluate, initial_conditions=2, duration=0.02, chunk=2))
     arrays, meta = store.load(evaluate.evaluate_scene(profile, "chain4-drag", tmp_path, progress=False))
-    scene, truth = get_scene("chain4-drag"), evaluate.ground_truth(profile, "chain4-drag", False)
+    scene, truth = get_scene("chain4-drag"), truth_stage.ground_truth(profile, "chain4-drag", False)
     config = profile.evaluate.simulation("chain4-drag")
     for c in range(2):
         q = simulate(scene.replace(drag=0.0), config, State(truth.states.q[c], truth.states.qd[c])).q[1:]

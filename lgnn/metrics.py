@@ -19,8 +19,9 @@
 - `Metric`, `register_metric`, `METRICS`: the registry of per-frame errors (name,
   error function, unit, heading, axis label, maximum after divergence) that scoring,
   the benchmark's records, its report and `lgnn evaluate` all iterate: a metric is
-  added here and nowhere else. `score_rollouts` scores predictions against one
-  reference with each of them and returns a `Scored`.
+  added here and nowhere else. `score_rollouts` scores a predicted `Trajectory`
+  against one reference with each of them and returns a `Scored`; `trajectory_of`
+  gives bare states their true energies.
 - `relative_error`, `node_rms_error`, `clean_errors`, `rest_rollouts`,
   `error_statistics`, `summarise`, `gmean_error`: the benchmark's errors and their
   geometric-mean statistics with intervals. The paper's rollout and
@@ -263,31 +264,40 @@ class Scored:
     diverged: np.ndarray
 
 
-def score_rollouts(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference: Trajectory, model: str = "",
-                   reference_name: str = "", names: tuple[str, ...] | None = None) -> Scored:
-    """The scores of predicted trajectories `q`, `qd` (C, F, N, D) at times `t` (F,),
-    frame 0 their initial states, against a reference batch (`Trajectory`: `q`, `qd`
-    (C, F, N, D), the scene's true energies (C, F)): every metric of `METRICS` (or
-    those `names`) over frames t > 0, each given the prediction as a `Trajectory` with
-    its true energies. `diverged` is each prediction's first diverged frame
-    (`divergence_frames`); from it on every error counts as the metric's maximum
-    (`clean_errors`)."""
+def trajectory_of(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, metadata: dict | None = None) -> Trajectory:
+    """States `q`, `qd` (C, F, N, D) at times `t` (F,) as a float64 `Trajectory` batch with
+    the scene's true energies (`true_energies`): how states that carry no energies of
+    their own (a file, the rest baseline, a stacked rollout) are scored."""
     q, qd = np.asarray(q, np.float64), np.asarray(qd, np.float64)
-    predicted = Trajectory(np.asarray(t), q, qd, true_energies(scene, q, qd))
-    diverged = divergence_frames(scene, predicted.t, q, qd, predicted.energy)
+    return Trajectory(np.asarray(t), q, qd, true_energies(scene, q, qd), metadata or {})
+
+
+def score_rollouts(scene: Scene, predicted: Trajectory, reference: Trajectory, model: str = "", reference_name: str = "",
+                   names: tuple[str, ...] | None = None) -> Scored:
+    """The scores of a predicted trajectory batch against a reference batch (both
+    `Trajectory`: `q`, `qd` (C, F, N, D), the scene's true energies (C, F); frame 0 the
+    initial states; `trajectory_of` makes one of bare states): every metric of
+    `METRICS` (or those `names`) over frames t > 0. `diverged` is each prediction's first
+    diverged frame (`divergence_frames`); from it on every error counts as the metric's
+    maximum (`clean_errors`). Score one prediction against several references with the
+    same `predicted`: its energies are computed once, by whoever made it."""
+    diverged = divergence_frames(scene, predicted.t, predicted.q, predicted.qd, predicted.energy)
     errors = {}
     for name in METRICS if names is None else names:
         metric = METRICS[name]
-        maximum = np.array([metric.maximum_fn(scene, q0) for q0 in q[:, 0]])
+        maximum = np.array([metric.maximum_fn(scene, q0) for q0 in predicted.q[:, 0]])
         errors[name] = clean_errors(metric.error_fn(scene, predicted, reference), diverged, maximum)[:, 1:]
-    return Scored(scene.name, model, reference_name, predicted.t[1:], errors, diverged)
+    return Scored(scene.name, model, reference_name, np.asarray(predicted.t)[1:], errors, diverged)
 
 
-def rest_rollouts(q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The rest baseline's prediction of trajectories (C, F, N, D): every frame the
-    initial state `(q[:, 0], qd[:, 0])`, held. Scored against the truth its errors are
-    the truth's own displacement from its start."""
-    return tuple(np.broadcast_to(np.asarray(a)[:, :1], np.shape(a)) for a in (q, qd))
+def rest_rollouts(reference: Trajectory) -> Trajectory:
+    """The rest baseline's prediction of a trajectory batch (C, F, N, D): every frame the
+    initial state and its energy (the reference's frame 0), held. Scored against the
+    truth its errors are the truth's own displacement from its start."""
+    def held(a):
+        return np.broadcast_to(np.asarray(a)[:, :1], np.shape(a))
+
+    return Trajectory(reference.t, held(reference.q), held(reference.qd), held(reference.energy))
 
 
 def error_statistics(errors: np.ndarray) -> dict:

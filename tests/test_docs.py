@@ -272,3 +272,24 @@ def test_the_license_and_citation_files_say_what_the_package_and_readme_say():
     paper = citation["preferred-citation"]
     assert paper["title"] in (root / "README.md").read_text() and paper["year"] == 2022
     assert [a["family-names"] for a in paper["authors"]] == ["Bhattoo", "Ranu", "Krishnan"]
+
+
+def test_the_benchmark_pages_metric_example_registers_a_metric_that_scores(monkeypatch):
+    """docs/benchmark.md's own metric, run as written: it lands in the registry and
+    `score_rollouts` scores it (a prediction that is the truth: zero error, floored)."""
+    from lgnn import metrics
+    from lgnn.engines.base import SimulationConfig
+    from lgnn.engines.lagrangian import simulate
+
+    (example,) = [block for block in CODE_BLOCK.findall((ROOT / "docs" / "benchmark.md").read_text()) if "register_metric" in block]
+    monkeypatch.setattr(metrics, "METRICS", dict(metrics.METRICS))  # the test's registration leaves with it
+    exec(compile(example, "docs/benchmark.md", "exec"), {})
+    assert "momentum_error" in metrics.METRICS
+    scene = lgnn.get_scene("chain4")
+    run = simulate(scene, SimulationConfig(dt=1e-3, duration=0.02, frame_dt=5e-3), progress=False)
+    truth = metrics.trajectory_of(scene, run.t, np.asarray(run.q)[None], np.asarray(run.qd)[None])
+    shifted = metrics.trajectory_of(scene, run.t, truth.q, truth.qd * 1.01)
+    assert (metrics.score_rollouts(scene, truth, truth, names=("momentum_error",)).errors["momentum_error"] == metrics.ERROR_FLOOR).all()
+    # Velocities 1 % larger: the momentum's relative error 0.01 / 2.01 wherever it moves.
+    moving = metrics.score_rollouts(scene, shifted, truth, names=("momentum_error",)).errors["momentum_error"]
+    np.testing.assert_allclose(moving, 0.01 / 2.01, rtol=1e-9)

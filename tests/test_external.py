@@ -14,6 +14,7 @@ from lgnn import physics
 from lgnn.bench import profiles, store
 from lgnn.bench.report import summary as report_summary
 from lgnn.bench.stages import evaluate, external
+from lgnn.bench.stages import truth as truth_stage
 from lgnn.cli import main
 from lgnn.engines import get_engine
 from lgnn.learn import models
@@ -118,10 +119,10 @@ def test_exported_initial_conditions_rolled_out_elsewhere_are_scored_against_the
 ])
 def test_bad_predictions_are_one_line_before_any_stage(change, words, tmp_path, capsys, untrained_checkpoint):
     config, profile, out = _setup(tmp_path, untrained_checkpoint)
-    states = evaluate.evaluation_initial_states(profile, get_scene("chain4"))
+    states = truth_stage.evaluation_initial_states(profile, get_scene("chain4"))
     frames = profile.evaluate.simulation("chain4").n_frames + 1
     arrays = dict(q=np.repeat(states.q[:, None], frames, 1), qd=np.repeat(states.qd[:, None], frames, 1), scene="chain4",
-                  key=evaluate.truth_key(profile, "chain4"), model="my-sim")
+                  key=truth_stage.truth_key(profile, "chain4"), model="my-sim")
     for name, value in change.items():
         if value is None:
             del arrays[name]

@@ -114,7 +114,7 @@ def test_a_diverged_rollout_scores_each_metric_maximum_from_its_divergence_frame
     predicted[..., 0] += 1e-3
     size = metrics.structure_size(scene, q[0, 0])
     predicted[1, 6:] += 2 * metrics.EXPLOSION_FACTOR * size
-    scored = metrics.score_rollouts(scene, t, predicted, qd, Trajectory(t, q, qd, energy))
+    scored = metrics.score_rollouts(scene, metrics.trajectory_of(scene, t, predicted, qd), Trajectory(t, q, qd, energy))
     scores, diverged = scored.errors, scored.diverged
     assert diverged.tolist() == [-1, 6]
     assert set(scores) == set(metrics.METRICS)
@@ -133,9 +133,10 @@ def test_a_diverged_rollout_scores_each_metric_maximum_from_its_divergence_frame
 
 def test_the_rest_baseline_scores_exactly_the_truths_displacement_from_its_start():
     scene, t, q, qd, energy = _chain4_truth()
-    rest_q, rest_qd = metrics.rest_rollouts(q, qd)
-    assert (rest_q == q[:, :1]).all() and (rest_qd == qd[:, :1]).all() and rest_q.shape == q.shape
-    scored = metrics.score_rollouts(scene, t, rest_q, rest_qd, Trajectory(t, q, qd, energy))
+    truth = Trajectory(t, q, qd, energy)
+    rest = metrics.rest_rollouts(truth)
+    assert (rest.q == q[:, :1]).all() and (rest.qd == qd[:, :1]).all() and (rest.energy == energy[:, :1]).all() and rest.q.shape == q.shape
+    scored = metrics.score_rollouts(scene, rest, truth)
     scores, diverged = scored.errors, scored.diverged
     assert diverged.tolist() == [-1, -1]
     q0, later = q[0, 0], q[0, 1:]

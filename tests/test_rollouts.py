@@ -250,7 +250,7 @@ def test_the_chaos_floor_runs_the_ground_truths_compiled_program(monkeypatch):
     # same dynamics and settings: the floor compiles nothing (a program of its own took
     # 23-35 s to compile for chain100 on a GPU machine's busy host).
     from lgnn.bench import profiles
-    from lgnn.bench.stages import evaluate
+    from lgnn.bench.stages import truth as truth_stage
 
     profile = profiles.load_profile("quick", ["evaluate.duration=0.01", "evaluate.frame_dt=0.005", "evaluate.dt=0.005"])
     compiled = []
@@ -260,8 +260,8 @@ def test_the_chaos_floor_runs_the_ground_truths_compiled_program(monkeypatch):
         compiled.append(rollouts.compiled_programs.cache_info().misses)
         return runs
 
-    monkeypatch.setattr(evaluate, "batched_rollouts", counting)
-    truth = evaluate._computed_ground_truth(profile, "chain4", progress=False)
+    monkeypatch.setattr(truth_stage, "batched_rollouts", counting)
+    truth = truth_stage._computed_ground_truth(profile, "chain4", progress=False)
     assert len(compiled) == 2, "the ground truth, then its chaos floor"
     assert compiled[1] == compiled[0], "the chaos floor compiled a program of its own"
     gap = np.abs(truth.floor.q - truth.truth.q).max()

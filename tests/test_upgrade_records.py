@@ -12,6 +12,7 @@ import pytest
 from lgnn import records
 from lgnn.bench import grid, profiles
 from lgnn.bench.stages import evaluate
+from lgnn.bench.stages import truth as truth_stage
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,7 +25,7 @@ def _tool():
 
 
 @pytest.mark.parametrize("scene, initial_conditions, version, stale", [
-    ("chain4", 100, None, True), ("chain4", 100, evaluate.REFERENCE_VERSION, False),
+    ("chain4", 100, None, True), ("chain4", 100, truth_stage.REFERENCE_VERSION, False),
     ("chain4", 1, None, False), ("chain4-drag", 100, None, False),
 ])
 def test_only_arrays_scored_against_a_stale_mujoco_reference_are_removed(tmp_path, scene, initial_conditions, version, stale):
@@ -60,7 +61,7 @@ def test_records_keep_the_curves_and_snapshots_the_report_draws_and_nothing_else
     arrays = {"t": t, "rollout_error/per_ic_log": rng.normal(size=100), "diverged_at": np.full(100, np.nan),
               "snapshot/model": rng.normal(size=(101, 5, 2)).astype(np.float32),
               **{f"rollout_error/{k}": rng.uniform(size=frames) for k in ("gmean", "low", "high")}}
-    meta = dict(scene=scene, initial_conditions=100, key="k", mujoco_reference=evaluate.REFERENCE_VERSION)
+    meta = dict(scene=scene, initial_conditions=100, key="k", mujoco_reference=truth_stage.REFERENCE_VERSION)
     path = tmp_path / "benchmark" / "runs" / "lgnn-chain4-s0" / f"{scene}.npz"
     path.parent.mkdir(parents=True)
     environment = {"commit": "abc", "versions": "old", "device": "cpu"}

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from lgnn import metrics
 from lgnn.bench import viz
 from lgnn.cli import main
 from lgnn.engines.base import SimulationConfig
@@ -60,6 +61,23 @@ def test_plot_writes_a_figure(capsys, files, tmp_path):
     assert main(["plot", *map(str, files), "--out", str(out)]) == 0
     image = Image.open(out)
     assert image.size == (600, 600)
+
+
+@pytest.mark.parametrize("metric", ["node_rms_error", "rollout_error"])
+def test_plot_draws_the_registered_metric_it_is_given(files, tmp_path, monkeypatch, metric):
+    """`lgnn plot --metric`: the error axis is that metric's, its label the registry's;
+    the model file is 0.3 m off at every node, so the RMS error is 0.3 at every frame."""
+    import matplotlib.pyplot as plt
+
+    drawn = []
+    monkeypatch.setattr(plt, "close", lambda figure: drawn.append(figure))
+    assert main(["plot", *map(str, files), "--out", str(tmp_path / "error.png"), "--metric", metric]) == 0
+    (figure,) = drawn
+    error_axes = figure.axes[0]
+    title = metrics.METRICS[metric].title
+    assert error_axes.get_ylabel().startswith(title[0].lower() + title[1:])
+    if metric == "node_rms_error":
+        np.testing.assert_allclose(error_axes.get_lines()[0].get_ydata(), 0.3, rtol=1e-9)
 
 
 def test_drawing_is_planar_for_now():

@@ -151,7 +151,6 @@ def trained_rollouts():
 
     from lgnn.bench import profiles
     from lgnn.bench.stages.evaluate import evaluation_initial_states
-    from lgnn.engines.rollouts import batched_rollouts
     from lgnn.learn import checkpoints
 
     profile = profiles.load_profile("full")
@@ -165,8 +164,8 @@ def trained_rollouts():
     if args.duration is not None:
         simulation = dataclasses.replace(simulation, duration=args.duration)
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for _, params in loaded))
-    runs = batched_rollouts(scene, simulation, models.AccelerationFactory(model), states, stacked,
-                            integration=profile.evaluate.integration, stacked=True)
+    engine = models.ModelEngine(model, stacked, integration=profile.evaluate.integration, stop_at_divergence=False, stacked=True)
+    runs = engine.rollouts(scene, simulation, states)
     print(f"LGN ({trained_on}) on {args.scene}: {len(states.q)} initial conditions, {runs.q.shape[2]} frames; "
           f"rollouts {runs.run_s:.1f} s + compile {runs.compile_s:.1f} s for 3 seeds", flush=True)
     return scene, loaded, runs

@@ -14,7 +14,7 @@ recomputed):
   `grid.SNAPSHOT_SCENES` alone, the scenes of the report's snapshot figures.
 - **Stale MuJoCo references.** Version 1 of MuJoCo C's reference trajectories (array
   records whose meta has no `mujoco_reference`; the stage writes
-  `evaluate.REFERENCE_VERSION`, 2): the last `mujoco.rollout` call of a batch of several
+  `truth_stage.REFERENCE_VERSION`, 2): the last `mujoco.rollout` call of a batch of several
   drag-free trajectories left its frames stale, up to the last 18 % of frames, so every
   array scored against MuJoCo (`MUJOCO_ARRAYS`) of such a record is wrong; the rest of
   the record is not (MuJoCo enters nothing else). A single trajectory's buffer was
@@ -35,6 +35,7 @@ from pathlib import Path
 
 from lgnn import records
 from lgnn.bench.stages import evaluate
+from lgnn.bench.stages import truth as truth_stage
 from lgnn.scene import get_scene
 
 # Array name prefixes made from the MuJoCo reference, in a pair or ground-truth record.
@@ -45,7 +46,7 @@ MUJOCO_ARRAYS = ("truth_vs_mujoco", "rollout_error_vs_mujoco", f"{evaluate.REST}
 def is_stale(meta: dict) -> bool:
     """Whether a record's MuJoCo-scored arrays came from a stale reference: version 1,
     several initial conditions, a drag-free scene (module docstring)."""
-    return (meta.get("mujoco_reference", 1) < evaluate.REFERENCE_VERSION and meta.get("initial_conditions", 1) > 1
+    return (meta.get("mujoco_reference", 1) < truth_stage.REFERENCE_VERSION and meta.get("initial_conditions", 1) > 1
             and "scene" in meta and not get_scene(meta["scene"]).drag)
 
 

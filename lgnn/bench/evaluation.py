@@ -14,8 +14,8 @@ evaluate` and `lgnn compare` commands.
   diverges stops with `SimulationError` (an error against it would mean nothing).
 - `compare_trajectories(reference, other)`: one trajectory file against another (the
   scene from the reference's metadata).
-- `score`: a prediction against one reference, every registered metric, as a
-  `lgnn.metrics.Scored` (the evaluate stage's type too); `frame_csv`
+- Every score is a `lgnn.metrics.Scored` of `score_rollouts` (the evaluate stage's
+  type too); `frame_csv`
   (tidy: `scene, model, reference, initial_condition, t, metric, value`) and
   `summary_rows` turn a list of them into tables; `write_outputs` writes them.
 
@@ -55,14 +55,6 @@ CPU_CHUNK = ROLLOUTS_PER_CALL
 REFERENCES = ("lagrangian", "mujoco")
 
 
-def score(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray, reference: Trajectory, model: str, reference_name: str) -> Scored:
-    """`Scored` of predictions `q`, `qd` (C, F, N, D) at times `t` (F,) against a
-    reference trajectory (C, F, N, D) with every registered metric
-    (`lgnn.metrics.METRICS`). The reference's energies are the ones it carries: every
-    engine's `Trajectory` holds the scene's true `H` of its states."""
-    return metrics.score_rollouts(scene, t, q, qd, reference, model, reference_name)
-
-
 def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config: SimulationConfig, states: State,
                    integration: Integration = Integration(), progress: bool = False) -> tuple[list[Scored], dict[str, Trajectory]]:
     """The model's rollouts from `states` (C, N, D) scored against the Lagrangian engine
@@ -83,8 +75,8 @@ def evaluate_model(model: models.ModelConfig, params: dict, scene: Scene, config
     engine = models.ModelEngine(model, params, progress=progress, integration=integration, stop_at_divergence=False, chunk=chunk)
     predicted = engine.rollout(scene, config, states)
     references = {name: when_done() for name, when_done in references_when_done.items()}
-    t = references["lagrangian"].t
-    scored = [score(scene, t, predicted.q, predicted.qd, truth, model.name, name) for name, truth in references.items()]
+    # The engine's trajectories carry their true energies: scored as they are against each reference.
+    scored = [metrics.score_rollouts(scene, predicted, truth, model.name, name) for name, truth in references.items()]
     kept = dataclasses.replace(predicted.member(0), metadata={**references["lagrangian"].metadata, "model": model.to_dict()})
     return scored, {"model": kept, **{name: truth.member(0) for name, truth in references.items()}}
 
@@ -147,8 +139,8 @@ def compare_trajectories(paths) -> tuple[Scored, list[str]]:
         notes.append(f"compared over the {frames} frames both files have ({len(reference.t)} and {len(other.t)})")
     if "scene" in other.metadata and other.metadata["scene"] != reference.metadata["scene"]:
         notes.append(f"the files' scenes differ; energies are {scene.name}'s (from {paths[0]})")
-    scored = score(scene, reference.t[:frames], *as_batch(other, frames), file_reference(scene, reference, frames),
-                   Path(paths[1]).name, Path(paths[0]).name)
+    scored = metrics.score_rollouts(scene, file_reference(scene, other, frames), file_reference(scene, reference, frames),
+                                    Path(paths[1]).name, Path(paths[0]).name)
     return scored, notes
 
 
@@ -159,11 +151,10 @@ def as_batch(trajectory: Trajectory, frames: int) -> tuple[np.ndarray, np.ndarra
 
 
 def file_reference(scene: Scene, trajectory: Trajectory, frames: int) -> Trajectory:
-    """A trajectory file's first `frames` frames as a reference batch of one, its energies
-    recomputed as `scene`'s true `H`: a file may come from another program, whose
-    energies need not be this scene's."""
-    q, qd = as_batch(trajectory, frames)
-    return Trajectory(trajectory.t[:frames], q, qd, metrics.true_energies(scene, q, qd), trajectory.metadata)
+    """A trajectory file's first `frames` frames as a batch of one, its energies
+    recomputed as `scene`'s true `H` (`metrics.trajectory_of`): a file may come from
+    another program, whose energies need not be this scene's."""
+    return metrics.trajectory_of(scene, trajectory.t[:frames], *as_batch(trajectory, frames), trajectory.metadata)
 
 
 FRAME_COLUMNS = ("scene", "model", "reference", "initial_condition", "t", "metric", "unit", "value", "diverged")

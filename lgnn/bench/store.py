@@ -125,7 +125,7 @@ class Layout:
 
 def truth_trajectories(scene: str, key: str) -> Path:
     """A scene's ground-truth trajectories under the settings `key`
-    (`evaluate.ground_truth`): large, not a result, in the dataset cache of every output
+    (`lgnn.bench.stages.truth.ground_truth`): large, not a result, in the dataset cache of every output
     folder."""
     return default_cache_dir() / "ground-truth" / f"{file_name(scene)}-{key[:16]}.npz"
 

@@ -4,8 +4,9 @@
   the ground truth, underneath in a thick light line; the others, learned models, over
   it), rods as lines between nodes, pinned nodes as black triangles, a legend entry per
   file and a time stamp, as a GIF (Pillow) or MP4 (ffmpeg, if installed).
-- `plot(paths, out)`: per-node RMS position error against the first file (m, log scale)
-  and true energy (J) against time (s), one line per file.
+- `plot(paths, out, metric)`: a registered metric (`lgnn.metrics.METRICS`; default the
+  per-node RMS position error, m) against the first file, log scale, and true energy
+  (J) against time (s), one line per file.
 
 The drawing takes node positions of shape (frames, nodes, dim) and maps them to the
 picture plane with a `projection` ((..., dim) -> (..., 2)); `planar` is the identity on
@@ -21,7 +22,8 @@ from typing import Callable
 
 import numpy as np
 
-from lgnn.bench.evaluation import file_reference, load_trajectories, score
+from lgnn import metrics
+from lgnn.bench.evaluation import file_reference, load_trajectories
 from lgnn.engines.base import Trajectory
 from lgnn.errors import ConfigError
 from lgnn.files import atomic_path, check_writable
@@ -129,9 +131,14 @@ def animate(paths, out: str | os.PathLike, fps: float = FPS, speed: float = SPEE
     return len(shown)
 
 
-def plot(paths, out: str | os.PathLike) -> None:
+# The metric `plot` draws unless told: in lengths, so it does not shrink as a structure grows.
+PLOT_METRIC = "node_rms_error"
+
+
+def plot(paths, out: str | os.PathLike, metric: str = PLOT_METRIC) -> None:
     """Write the error and energy figure of the trajectory files `paths` (module
-    docstring) to `out` (any format matplotlib writes: .png, .pdf, .svg), atomically."""
+    docstring), the error `metric` (a name of `lgnn.metrics.METRICS`), to `out` (any
+    format matplotlib writes: .png, .pdf, .svg), atomically."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -156,15 +163,16 @@ def plot(paths, out: str | os.PathLike) -> None:
         if k == 0:
             truth = batch
             continue
-        scored = score(scene, t, batch.q, batch.qd, truth, name, Path(paths[0]).name)
-        error_axes.semilogy(scored.t, scored.errors["node_rms_error"][0], color=colour, label=name)
+        scored = metrics.score_rollouts(scene, batch, truth, name, Path(paths[0]).name, names=(metric,))
+        error_axes.semilogy(scored.t, scored.errors[metric][0], color=colour, label=name)
         if scored.diverged[0] >= 0:
             error_axes.axvline(t[scored.diverged[0]], color=colour, linestyle=":", label=f"{Path(path).name} diverged")
     if len(trajectories) > 1:
         error_axes.legend(fontsize=7)
     else:
         error_axes.text(0.5, 0.5, "one file: nothing to compare", transform=error_axes.transAxes, ha="center")
-    error_axes.set(ylabel="per-node RMS position error (m)", title=f"{scene.name}: error against {Path(paths[0]).name}")
+    drawn = metrics.METRICS[metric]
+    error_axes.set(ylabel=drawn.title[0].lower() + drawn.title[1:] + ("" if drawn.unit == "1" else f" ({drawn.unit})"), title=f"{scene.name}: error against {Path(paths[0]).name}")
     energy_axes.set(xlabel="time (s)", ylabel="true energy H = T + V (J)")
     energy_axes.ticklabel_format(axis="y", useOffset=False)  # a conserved energy's tiny range reads as values, not an offset
     energy_axes.legend(fontsize=7)

@@ -10,6 +10,7 @@ import sys
 
 from lgnn.cli.options import (add_model_code_option, add_simulation_options, float_in, import_model_code, int_in, integration_of, model_reference,
                               nonnegative_int, positive_float, positive_int, simulation_config, trajectory_out)
+from lgnn import metrics
 from lgnn.errors import ConfigError
 
 # `lgnn animate`: frames per second and simulated seconds per second of animation; out
@@ -199,7 +200,7 @@ def _cmd_animate(args) -> None:
 def _cmd_plot(args) -> None:
     from lgnn.bench import viz
 
-    viz.plot(args.files, args.out)
+    viz.plot(args.files, args.out, args.metric)
     print(f"wrote {args.out}")
 
 
@@ -230,9 +231,11 @@ def _add_evaluation_parsers(commands) -> None:
     animate.add_argument("--speed", type=float_in(*SPEED_RANGE), default=1.0, help="simulated seconds per second of animation (default 1)")
     animate.set_defaults(run=_cmd_animate)
 
-    plot = commands.add_parser("plot", help="per-node error against the first file and energy, against time")
+    plot = commands.add_parser("plot", help="an error against the first file (default per-node RMS position) and energy, against time")
     plot.add_argument("files", nargs="+", metavar="FILE", help="trajectory .npz files of one scene, the reference first")
     plot.add_argument("--out", required=True, help="output figure (.png, .pdf, .svg)")
+    plot.add_argument("--metric", choices=tuple(metrics.METRICS), default="node_rms_error",
+                      help="the error drawn (a registered metric; default node_rms_error, in lengths)")
     plot.set_defaults(run=_cmd_plot)
 
 

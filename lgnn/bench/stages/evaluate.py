@@ -1,12 +1,12 @@
 """Evaluation stage: every trained model on every scene, against the Lagrangian ground
 truth and each reference engine.
 
-`evaluate_scene` writes a scene's ground-truth record: the Lagrangian ground truth
-(RK4 with projection, the same integrator and step as the models), its chaos floor
-(initial positions perturbed by `floor_perturbation`, projected back onto the
-constraints), each reference engine of `EvaluateSettings.references` (MuJoCo C by
-default; `get_engine(name).rollout` at `mujoco_dt`, frames at the same times), and the
-rest baseline (the initial state held: `lgnn.metrics.rest_rollouts`), scored as a
+`evaluate_scene` writes a scene's ground-truth record from its `GroundTruth`
+(`lgnn.bench.stages.truth`): the Lagrangian ground truth (RK4 with projection, the same
+integrator and step as the models), its chaos floor (initial positions perturbed by
+`floor_perturbation`, projected back onto the constraints), each reference engine of
+`EvaluateSettings.references` (MuJoCo C by default; `get_engine(name).rollout` at
+`mujoco_dt`, frames at the same times), and the rest baseline (the initial state held: `lgnn.metrics.rest_rollouts`), scored as a
 model is. `evaluate_pair` writes a (model, scene) record: the model's rollouts from
 the same initial conditions (`evaluate_group`: a model's seeds in one program). Per
 frame (t > 0) and initial condition, every metric of the registry
@@ -42,28 +42,25 @@ records that match.
 from __future__ import annotations
 
 import dataclasses
-import functools
-import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from lgnn import metrics, physics, records
+from lgnn import metrics, records
 from lgnn.bench import claims, store
 from lgnn.bench.grid import SNAPSHOT_SCENES, Pair
 from lgnn.bench.profiles import Profile, evaluation_pairs, evaluation_scenes
-from lgnn.records import settings_key
+from lgnn.bench.stages.truth import (REFERENCE_VERSION, TRUE_DYNAMICS, GroundTruth, evaluation_count, evaluation_initial_states,
+                                     ground_truth, truth_file, truth_key)
 from lgnn.bench.store import Layout, log
-from lgnn.engines import get_engine
-from lgnn.engines.base import SimulationConfig, Trajectory
-from lgnn.engines.rollouts import Unparametrised, batched_rollouts, ground_truth_platform
-from lgnn.runtime import in_background
+from lgnn.engines.base import Trajectory
+from lgnn.engines.rollouts import batched_rollouts, ground_truth_platform
 from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models
 from lgnn.learn.checkpoints import content_digest, load_model
-from lgnn.scene import OWN_STATE, Scene, State, get_scene, initial_state_policy, scene_to_dict
+from lgnn.runtime import in_background
+from lgnn.scene import Scene, get_scene
 
 # The reference a metric is scored against unless it names an engine: the Lagrangian
 # ground truth (`lgnn.metrics.Scored.reference`).
@@ -76,9 +73,6 @@ REST = "rest"
 NO_DRAG = "exact_no_drag"
 # The chaos floor's arrays in the ground-truth record (its metrics: `Metric.floor`).
 FLOOR = "chaos_floor"
-# Version of the reference trajectories, in every record's meta: 2 since MuJoCo C's
-# stale last frames were fixed (c0eb960; `tools/upgrade_records.py` reads it).
-REFERENCE_VERSION = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,7 +124,6 @@ def scene_level_scores(references: tuple[str, ...]) -> tuple[tuple[str, str], ..
             *((truth_against(engine), name) for engine in references for name in _against_references()))
 # The exact dynamics of every reference rollout here, with the solver that vectorises
 # over a batch of initial conditions.
-TRUE_DYNAMICS = Unparametrised(physics.vectorised_true_acceleration_fn)
 
 
 # Trajectories kept for figures: initial condition 0, a frame every SNAPSHOT_DT s, in
@@ -144,173 +137,11 @@ SNAPSHOT_DT = 0.01
 CURVE_DT = 0.01
 
 
-def evaluation_initial_states(profile: Profile, scene: Scene) -> State:
-    """The evaluation initial conditions (C, N, D), seed `ic_seed`, by the scene's
-    initial-state policy (`lgnn.scene.initial_state_policy`, `physics.benchmark_initial_states`):
-    its own state (C = 1: T1-T3), or `initial_conditions` samples of the chain sampler
-    or of projected perturbations."""
-    return physics.benchmark_initial_states(scene, evaluation_count(profile, scene), profile.evaluate.ic_seed)
-
-
-def evaluation_count(profile: Profile, scene: Scene) -> int:
-    """How many initial conditions a scene is evaluated from: 1 for a scene started from
-    its own state (T1-T3), else the profile's `initial_conditions`."""
-    return 1 if initial_state_policy(scene) == OWN_STATE else profile.evaluate.initial_conditions
-
-
-def truth_key(profile: Profile, scene_name: str) -> str:
-    """Settings a scene's ground-truth record depends on."""
-    return records.digest({"evaluate": settings_key(profile.evaluate.for_scene(scene_name)), "scene": scene_to_dict(get_scene(scene_name))})
-
-
 def pair_key(profile: Profile, pair: Pair, checkpoint: Path) -> str:
     """Settings a pair's record depends on: its scene's ground truth, the checkpoint's
     content and, for an unprojected pair only (projected keys stay as they were), that."""
     unprojected = {} if pair.projected else {"projected": False}
     return records.digest({"truth": truth_key(profile, pair.scene), "checkpoint": content_digest(checkpoint), **unprojected})
-
-
-def truth_file(profile: Profile, scene_name: str) -> Path:
-    """Where `ground_truth` keeps a scene's trajectories: the dataset cache, named by
-    the scene and its `truth_key`."""
-    return store.truth_trajectories(scene_name, truth_key(profile, scene_name))
-
-
-def truth_trajectories(references: tuple[str, ...]) -> tuple[str, ...]:
-    """The arrays `ground_truth` keeps on disk (with `states`, its initial conditions):
-    the Lagrangian ground truth's positions, velocities and true energies, the chaos
-    floor's positions and velocities, and each reference engine's `q_<engine>`,
-    `qd_<engine>` and `energy_<engine>` (a file without a reference's velocities, kept
-    before metrics could read them, is computed again)."""
-    return ("q", "qd", "energy", "q_floor", "qd_floor", *(f"{kind}_{engine}" for engine in references for kind in ("q", "qd", "energy")))
-
-
-@dataclasses.dataclass(frozen=True)
-class GroundTruth:
-    """A scene's evaluation ground truth: the initial `states` (C, N, D), the Lagrangian
-    ground truth `truth` (a trajectory batch (C, F, N, D)), the chaos floor's states
-    `floor` (q, qd (C, F, N, D); scored as a prediction is), each reference engine's
-    trajectories `references[engine]`, and what they cost: `compile_s`, `run_s` of the
-    JAX rollouts, `reference_s[engine]` of each reference, and `platform`, where the
-    JAX rollouts ran (None for a file kept before it was recorded)."""
-
-    states: State
-    truth: Trajectory
-    floor: State
-    references: dict[str, Trajectory]
-    compile_s: float
-    run_s: float
-    reference_s: dict[str, float]
-    platform: str | None
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        """The arrays kept on disk (`truth_trajectories`, and `states/q`, `states/qd`)."""
-        kept = {"q": self.truth.q, "qd": self.truth.qd, "energy": self.truth.energy, "q_floor": self.floor.q, "qd_floor": self.floor.qd}
-        for engine, trajectory in self.references.items():
-            kept.update({f"q_{engine}": trajectory.q, f"qd_{engine}": trajectory.qd, f"energy_{engine}": trajectory.energy})
-        return {**kept, "states/q": np.asarray(self.states.q), "states/qd": np.asarray(self.states.qd)}
-
-    def timings(self) -> dict[str, float]:
-        """The costs kept with the trajectories and in the record (`truth_timings`)."""
-        return {"compile_s": self.compile_s, "run_s": self.run_s, **{f"{engine}_s": s for engine, s in self.reference_s.items()}}
-
-    @classmethod
-    def from_arrays(cls, frame_dt: float, arrays: dict, meta: dict, references: tuple[str, ...]) -> GroundTruth:
-        """The ground truth of arrays and meta kept on disk (`arrays`, `timings`)."""
-        t = np.arange(arrays["q"].shape[1]) * frame_dt
-        return cls(State(arrays["states/q"], arrays["states/qd"]), Trajectory(t, arrays["q"], arrays["qd"], arrays["energy"]),
-                   State(arrays["q_floor"], arrays["qd_floor"]),
-                   {engine: Trajectory(t, arrays[f"q_{engine}"], arrays[f"qd_{engine}"], arrays[f"energy_{engine}"]) for engine in references},
-                   meta["compile_s"], meta["run_s"], {engine: meta[f"{engine}_s"] for engine in references}, meta.get("platform"))
-
-
-def truth_timings(references: tuple[str, ...]) -> tuple[str, ...]:
-    """The ground truth's costs in seconds (JAX compile, JAX run, each reference
-    engine's `<engine>_s`), kept with its trajectories and in its record (beside
-    `platform`, where its JAX rollouts ran)."""
-    return ("compile_s", "run_s", *(f"{engine}_s" for engine in references))
-
-
-@functools.lru_cache(maxsize=2)
-def ground_truth(profile: Profile, scene_name: str, progress: bool = True, out: Path | None = None) -> GroundTruth:
-    """The `GroundTruth` of a scene's evaluation: the Lagrangian ground truth, the chaos
-    floor (scored, divergence included, by `evaluate_scene`), each reference engine's
-    trajectories, the initial states and timings.
-
-    With `out`, the trajectories are kept in the dataset cache (`truth_file`, named and
-    keyed by `truth_key`), and read back by every later process, of any output folder:
-    MuJoCo C's reference alone takes 6.6 minutes on 16 cores for chain100-3d, more
-    beside other work (a serial chain's joint-space mass matrix is dense: O(nv^3) per
-    step), which each process evaluating one of the scene's pairs would otherwise redo.
-    Float64 as computed (the reference agrees with MuJoCo to 1e-10 and better); about
-    1.2 GB for chain100-3d."""
-    if out is None:
-        return _computed_ground_truth(profile, scene_name, progress)
-    key, path = truth_key(profile, scene_name), truth_file(profile, scene_name)
-    trajectories, timings = truth_trajectories(profile.evaluate.references), truth_timings(profile.evaluate.references)
-    with claims.once(path):  # processes on one scene: the first computes, the others read
-        stored = store.load(path, key)
-        # Files written before their reference was fixed, or before references' energies
-        # were kept, lack a version or trajectory: computed again.
-        if (stored is not None and stored[1].get("mujoco_reference") == REFERENCE_VERSION
-                and all(name in stored[0] for name in trajectories) and all(name in stored[1] for name in timings)):
-            arrays, meta = stored
-            log(f"ground truth {scene_name}: read from {path}")
-            return GroundTruth.from_arrays(profile.evaluate.frame_dt, arrays, meta, profile.evaluate.references)
-        truth = _computed_ground_truth(profile, scene_name, progress)
-        store.save(path, key, truth.arrays(), dict(scene=scene_name, mujoco_reference=REFERENCE_VERSION, platform=truth.platform, **truth.timings()))
-        return truth
-
-
-def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) -> GroundTruth:
-    """`ground_truth`, computed. The reference engines run in a thread beside the
-    Lagrangian ground truth and chaos floor (`mujoco.rollout` releases the GIL): on a GPU
-    the two overlap, which saves chain100-3d's 6 minutes of JAX rollouts."""
-    settings = profile.evaluate
-    scene = get_scene(scene_name)
-    states = evaluation_initial_states(profile, scene)
-    config = settings.simulation(scene_name)
-    reference_config = SimulationConfig(settings.mujoco_dt, settings.frame_dt, settings.duration)
-    log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s; "
-        f"{', '.join(settings.references) or 'no reference engine'} at dt {reference_config.dt:g} alongside")
-    # A daemon thread: an error or Ctrl-C here does not wait out MuJoCo's minutes.
-    references_when_done = in_background(lambda: _reference_rollouts(scene, reference_config, states, settings.references))
-    # A reference that diverged would turn every error into 1 for every model: it stops there.
-    where = ground_truth_platform(len(states.q))
-    truth = batched_rollouts(scene, config, TRUE_DYNAMICS, states, integration=settings.integration, chunk=settings.chunk, stop_at_divergence=True,
-                             label=f"truth {scene_name}", progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)",
-                             platform=where)
-    noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
-    perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
-    # The perturbed runs are not references: one that diverges (T2/T3's perturbed
-    # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's. With
-    # energies, as the ground truth's, so that they run its compiled program (without,
-    # another program: chain100's took 23-35 s to compile on an H200's busy host).
-    floor = batched_rollouts(scene, config, TRUE_DYNAMICS, perturbed, integration=settings.integration, chunk=settings.chunk,
-                             with_energy=True, label=f"floor {scene_name}", progress=progress, platform=where)
-    references = references_when_done()
-    # What the scene's ground truth cost, in the part's log: the reference engines
-    # (MuJoCo C on chain100-3d) can be most of an evaluate stage.
-    log(f"ground truth {scene_name} cost: rollouts {truth.run_s:.1f} s + compile {truth.compile_s:.1f} s on {truth.platform}, chaos floor "
-        f"{floor.run_s + floor.compile_s:.1f} s" + "".join(f"; {engine} {seconds:.1f} s" for engine, (_, seconds) in references.items()))
-    t = np.arange(truth.q.shape[1]) * settings.frame_dt
-    return GroundTruth(states, Trajectory(t, truth.q, truth.qd, truth.energy), State(floor.q, floor.qd),
-                       {engine: trajectory for engine, (trajectory, _) in references.items()}, truth.compile_s, truth.run_s,
-                       {engine: seconds for engine, (_, seconds) in references.items()}, truth.platform)
-
-
-def _reference_rollouts(scene: Scene, config: SimulationConfig, states: State, references: tuple[str, ...]) -> dict[str, tuple[Trajectory, float]]:
-    """Each reference engine's trajectories from `states` (`Trajectory`: q, qd
-    (C, F, N, D), true energies (C, F)) and the seconds they took, by engine, through
-    the one engine interface (`get_engine(engine).rollout`; an engine raises
-    `SimulationError` at a diverging frame, so no reference that diverged is scored
-    against)."""
-    found = {}
-    for engine in references:
-        start = time.perf_counter()
-        trajectory = get_engine(engine).rollout(scene, config, State(np.asarray(states.q), np.asarray(states.qd)))
-        found[engine] = (trajectory, time.perf_counter() - start)
-    return found
 
 
 def keeps_snapshots(scene_name: str) -> bool:
@@ -356,14 +187,14 @@ def _statistics_arrays(prefix: str, errors: np.ndarray, frame_dt: float) -> dict
     return {f"{prefix}/{k}": v if k == "per_ic_log" else v[curve_frames(frame_dt)] for k, v in metrics.error_statistics(errors).items()}
 
 
-def score_against_truth(profile: Profile, scene: Scene, q: np.ndarray, qd: np.ndarray, truth: GroundTruth) -> list[metrics.Scored]:
-    """Trajectories `q`, `qd` (C, F, N, D) scored (`lgnn.metrics.score_rollouts`) against
-    the scene's ground truth with every registered metric, then against each reference
-    engine's trajectory with those `against_references`."""
-    t = np.arange(q.shape[1]) * profile.evaluate.frame_dt
-    scored = [metrics.score_rollouts(scene, t, q, qd, truth.truth, reference_name=TRUTH)]
+def score_against_truth(profile: Profile, scene: Scene, predicted: Trajectory, truth: GroundTruth) -> list[metrics.Scored]:
+    """A predicted trajectory batch (C, F, N, D; its true energies, `metrics.trajectory_of`)
+    scored (`lgnn.metrics.score_rollouts`) against the scene's ground truth with every
+    registered metric, then against each reference engine's trajectory with those
+    `against_references`."""
+    scored = [metrics.score_rollouts(scene, predicted, truth.truth, reference_name=TRUTH)]
     if _against_references():
-        scored += [metrics.score_rollouts(scene, t, q, qd, truth.references[engine], reference_name=engine, names=_against_references())
+        scored += [metrics.score_rollouts(scene, predicted, truth.references[engine], reference_name=engine, names=_against_references())
                    for engine in profile.evaluate.references]
     return scored
 
@@ -434,19 +265,19 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
     references = profile.evaluate.references
     frame_dt = profile.evaluate.frame_dt
     t = truth.truth.t
-    floor = metrics.score_rollouts(scene, t, truth.floor.q, truth.floor.qd, truth.truth, names=_floor_metrics())
+    floor = metrics.score_rollouts(scene, metrics.trajectory_of(scene, t, *truth.floor), truth.truth, names=_floor_metrics())
     arrays = {
         "t": curve_times(len(t), frame_dt),
         **_scene_level_arrays(FLOOR, floor, frame_dt),
         f"{FLOOR}/diverged_at": np.where(floor.diverged >= 0, floor.diverged * frame_dt, np.nan),
-        **record_arrays(f"{REST}/", score_against_truth(profile, scene, *metrics.rest_rollouts(truth.truth.q, truth.truth.qd), truth), frame_dt),
+        **record_arrays(f"{REST}/", score_against_truth(profile, scene, metrics.rest_rollouts(truth.truth), truth), frame_dt),
         **snapshot(profile, scene_name, "truth", truth.truth.q),
         "mid_state": np.stack([truth.truth.q[0, len(t) // 2], truth.truth.qd[0, len(t) // 2]]),
     }
     for engine in references:
         # The ground truth never diverges (it stops at divergence: `batched_rollouts`), so neither side's
         # errors are capped.
-        versus = metrics.score_rollouts(scene, t, truth.truth.q, truth.truth.qd, truth.references[engine], names=_against_references())
+        versus = metrics.score_rollouts(scene, truth.truth, truth.references[engine], names=_against_references())
         arrays.update(_scene_level_arrays(truth_against(engine), versus, frame_dt))
         arrays.update(snapshot(profile, scene_name, engine, truth.references[engine].q))
     if scene.drag > 0:
@@ -454,7 +285,8 @@ def _evaluated_scene(profile: Profile, scene_name: str, out: Path, progress: boo
         runs = batched_rollouts(no_drag, profile.evaluate.simulation(scene_name), TRUE_DYNAMICS, truth.states,
                                 integration=profile.evaluate.integration, chunk=profile.evaluate.chunk, label=f"{scene_name} without drag",
                                 progress=progress, platform=ground_truth_platform(len(truth.states.q)))
-        arrays.update(record_arrays(f"{NO_DRAG}/", score_against_truth(profile, scene, runs.q, runs.qd, truth), frame_dt))
+        arrays.update(record_arrays(f"{NO_DRAG}/", score_against_truth(profile, scene, metrics.trajectory_of(scene, t, runs.q, runs.qd), truth),
+                                    frame_dt))
     meta = dict(scene=scene_name, initial_conditions=len(truth.states.q), mujoco_reference=REFERENCE_VERSION, platform=truth.platform,
                 **truth.timings())
     store.save(path, key, arrays, meta)
@@ -470,7 +302,7 @@ def evaluate_group(profile: Profile, pairs: list[Pair], out: Path, progress: boo
     """The evaluation records of `pairs` (module docstring), those not yet recorded
     computed together: pairs on one scene whose models share a configuration (the seeds
     of one training job, projected alike) roll out in one compiled program
-    (`rollouts.batched_rollouts`, stacked): one compile instead of one per seed, and the GPU's
+    (`models.ModelEngine`, stacked): one compile instead of one per seed, and the GPU's
     batch as wide as the seeds times the initial conditions. Each pair keeps its own
     record, as `evaluate_pair` writes it. A pair whose checkpoint is the base folder's
     (`Profile.base`) is never evaluated here: its record is the base's, or there is none
@@ -527,16 +359,17 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     seeds = ", ".join(f"s{p.job.seed}" for p, *_ in group)
     log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(states.q)} initial conditions")
     stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for *_, params in group))
-    runs = batched_rollouts(scene, config, models.AccelerationFactory(group[0][3]), states, stacked, integration=integration, stacked=True,
-                            chunk=profile.evaluate.chunk, label=f"{pair.label} {seeds} on {pair.scene}", progress=progress)
-    q_all, qd_all, compile_s, run_s = runs.q, runs.qd, runs.compile_s, runs.run_s
+    engine = models.ModelEngine(group[0][3], stacked, progress=progress, integration=integration, stop_at_divergence=False,
+                                chunk=profile.evaluate.chunk, stacked=True)
+    runs = engine.rollouts(scene, config, states, label=f"{pair.label} {seeds} on {pair.scene}")
+    compile_s, run_s = runs.compile_s, runs.run_s
     truth = truth_when_done()
     if not np.allclose(truth.states.q, states.q, rtol=1e-9, atol=1e-12):
         raise SimulationError(f"{pair.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
                               f"remove {truth_file(profile, pair.scene)} to recompute it")
     steps = len(group) * len(states.q) * config.n_frames * config.steps_per_frame
-    for (pair, path, key, _, _), q, qd in zip(group, q_all, qd_all):
-        scored = score_against_truth(profile, scene, q, qd, truth)
+    for (pair, path, key, _, _), q, qd, energy in zip(group, runs.q, runs.qd, runs.energy):
+        scored = score_against_truth(profile, scene, Trajectory(truth.truth.t, q, qd, energy), truth)
         diverged = scored[0].diverged
         frame_dt = profile.evaluate.frame_dt
         arrays = {"t": curve_times(q.shape[1], frame_dt), **record_arrays("", scored, frame_dt), **snapshot(profile, pair.scene, "model", q)}

@@ -26,7 +26,7 @@ Hamiltonian of the predicted states (`lgnn.metrics.score_rollouts`).
 engine, from the same initial conditions and with the same functions as a trained
 model's pair (`evaluate.score_against_truth`, `evaluate.record_arrays`), and writes the
 record `benchmark/runs/external/<model>/<scene>.npz` (`store.Layout.external_record`),
-keyed on the scene's ground truth (`evaluate.truth_key`) and the file's content.
+keyed on the scene's ground truth (`lgnn.bench.stages.truth.truth_key`) and the file's content.
 `load_externals` finds every such record under the output folder and its base whose
 ground truth is the profile's, with or without the file that made it: a record is a
 submission, which later reports keep showing. An external row has no checkpoint,
@@ -43,11 +43,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lgnn import records
+from lgnn import metrics, records
 from lgnn.bench import claims, store
 from lgnn.bench.grid import Pair, external_pair
 from lgnn.bench.profiles import Profile, evaluation_scenes
 from lgnn.bench.stages import evaluate
+from lgnn.bench.stages import truth as truth_stage
 from lgnn.bench.store import log
 from lgnn.errors import ConfigError
 from lgnn.scene import get_scene
@@ -108,12 +109,12 @@ def read_predictions(profile: Profile, path: str | os.PathLike) -> Predictions:
     scenes = evaluation_scenes(profile)
     if scene_name not in scenes:
         raise ConfigError(f"{path}: scene {scene_name!r} is not evaluated by the {profile.name} profile (choose from {', '.join(scenes)})")
-    expected_key = evaluate.truth_key(profile, scene_name)
+    expected_key = truth_stage.truth_key(profile, scene_name)
     if key != expected_key:
         raise ConfigError(f"{path}: key {key!r} is not this profile's evaluation of {scene_name} ({expected_key}): the predictions answer "
                           f"other initial conditions or settings; export them again with lgnn dataset export --scene {scene_name} and the same profile")
     scene = get_scene(scene_name)
-    states = evaluate.evaluation_initial_states(profile, scene)
+    states = truth_stage.evaluation_initial_states(profile, scene)
     frames = profile.evaluate.simulation(scene_name).n_frames + 1
     shape = (len(states.q), frames, scene.n_nodes, scene.dim)
     for name in ("q", "qd"):
@@ -140,7 +141,7 @@ def read_predictions(profile: Profile, path: str | os.PathLike) -> Predictions:
 
 def external_key(profile: Profile, predictions: Predictions) -> str:
     """What an external record depends on: its scene's ground truth and the file's content."""
-    return records.digest({"truth": evaluate.truth_key(profile, predictions.scene), "predictions": predictions.digest})
+    return records.digest({"truth": truth_stage.truth_key(profile, predictions.scene), "predictions": predictions.digest})
 
 
 def evaluate_external(profile: Profile, path: str | os.PathLike, out: Path, progress: bool = True) -> Path:
@@ -153,18 +154,18 @@ def evaluate_external(profile: Profile, path: str | os.PathLike, out: Path, prog
     with claims.once(record):
         if evaluate.has_arrays(layout.load(record, key), evaluate.pair_needs(profile)):
             return record
-        truth = evaluate.ground_truth(profile, predictions.scene, progress, out)
+        truth = truth_stage.ground_truth(profile, predictions.scene, progress, out)
         if not np.allclose(truth.states.q, predictions.q[:, 0], rtol=1e-9, atol=1e-12):
             raise ConfigError(f"{predictions.scene}: the stored ground truth starts from other initial conditions than the evaluation's; "
-                              f"remove {evaluate.truth_file(profile, predictions.scene)} to recompute it")
+                              f"remove {truth_stage.truth_file(profile, predictions.scene)} to recompute it")
         scene = get_scene(predictions.scene)
-        scored = evaluate.score_against_truth(profile, scene, predictions.q, predictions.qd, truth)
+        scored = evaluate.score_against_truth(profile, scene, metrics.trajectory_of(scene, truth.truth.t, predictions.q, predictions.qd), truth)
         frame_dt = profile.evaluate.frame_dt
         arrays = {"t": evaluate.curve_times(predictions.q.shape[1], frame_dt), **evaluate.record_arrays("", scored, frame_dt),
                   **evaluate.snapshot(profile, predictions.scene, "model", predictions.q)}
         meta = dict(external=True, model=predictions.model, label=predictions.pair.label, scene=predictions.scene, about=predictions.about,
-                    file=predictions.path.name, file_digest=predictions.digest, truth_key=evaluate.truth_key(profile, predictions.scene),
-                    initial_conditions=len(predictions.q), mujoco_reference=evaluate.REFERENCE_VERSION)
+                    file=predictions.path.name, file_digest=predictions.digest, truth_key=truth_stage.truth_key(profile, predictions.scene),
+                    initial_conditions=len(predictions.q), mujoco_reference=truth_stage.REFERENCE_VERSION)
         store.save(record, key, arrays, meta)
     diverged = int(np.sum(scored[0].diverged >= 0))
     log(f"external {predictions.model} on {predictions.scene}: rollout error "
@@ -180,7 +181,7 @@ def load_externals(profile: Profile, out: Path) -> list[tuple[Pair, tuple[dict, 
     layout = store.layout(profile, out)
     found = []
     for scene in evaluation_scenes(profile):
-        wanted = evaluate.truth_key(profile, scene)
+        wanted = truth_stage.truth_key(profile, scene)
         for path in layout.external_records(scene):
             record = layout.load(path)
             if (record is not None and record[1].get("truth_key") == wanted and record[1].get("external")

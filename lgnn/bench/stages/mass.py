@@ -5,7 +5,7 @@ true one is the rods' (`lgnn.physics`): in 3D a thin rod has no spin about its o
 axis, so only motion across the rod turns it.
 
 A scene's record depends on the profile's `MassSettings`, the scene's ground-truth key
-(`lgnn.bench.stages.evaluate.truth_key`) and the checkpoint's content (`mass_key`);
+(`lgnn.bench.stages.truth.truth_key`) and the checkpoint's content (`mass_key`);
 `load_mass` gives the report the records that match.
 """
 

@@ -28,7 +28,7 @@ import numpy as np
 from lgnn import physics
 from lgnn.engines.base import Engine, Integration, SimulationConfig, Trajectory
 from lgnn.engines.lagrangian import check_state
-from lgnn.engines.rollouts import batched_rollouts, timed_rollouts
+from lgnn.engines.rollouts import Rollouts, batched_rollouts, timed_rollouts
 from lgnn.errors import ConfigError
 from lgnn.learn.graphs import edge_type_indices
 from lgnn.learn.models.registry import ModelConfig, check_compatible
@@ -181,7 +181,8 @@ class ModelEngine(Engine):
     the predicted states; `rollout` stops at divergence like every engine, unless
     `stop_at_divergence` is off (scoring: the frames from a divergence on count as each
     metric's maximum), and rolls out `chunk` initial conditions per program (None:
-    all)."""
+    all). `rollouts` gives the batch with its costs, and rolls out a model's seeds
+    together (`stacked`)."""
 
     config: ModelConfig
     params: dict
@@ -190,19 +191,33 @@ class ModelEngine(Engine):
     integration: Integration = Integration()
     stop_at_divergence: bool = True
     chunk: int | None = None
+    # `params` holds S parameter sets of the model stacked along every leaf's first axis
+    # (a model's seeds), rolled out in one program: trajectories (S, B, F+1, N, D).
+    stacked: bool = False
+
+    def __post_init__(self):
+        if self.stacked and self.stop_at_divergence:
+            raise ValueError("stacked parameter sets roll out past a divergence (scoring caps the frames from it): pass stop_at_divergence=False")
 
     @property
     def name(self) -> str:
         return self.config.name
 
+    def rollouts(self, scene: Scene, config: SimulationConfig, states: State, label: str = "") -> Rollouts:
+        """The batch's `lgnn.engines.rollouts.Rollouts` (positions, velocities, true
+        energies, compile and run seconds, platform) from initial states (B, N, D),
+        stacked (S, ...) where the engine is; `label` names it in progress and messages."""
+        check_compatible(self.config, scene)
+        return batched_rollouts(scene, config, AccelerationFactory(self.config), states, self.params, integration=self.integration,
+                                dtype=self.dtype, chunk=self.chunk, stop_at_divergence=self.stop_at_divergence,
+                                with_energy=True, stacked=self.stacked, progress=self.progress, label=label or f"{self.config.name} on {scene.name}",
+                                hint=f"the {self.config.name} model's predicted dynamics diverge (its rollout stops there)")
+
     def rollout(self, scene: Scene, config: SimulationConfig, states: State) -> Trajectory:
         """Predicted trajectories from initial states (B, N, D): q, qd (B, F+1, N, D), energy (B, F+1)."""
-        check_compatible(self.config, scene)
-        runs = batched_rollouts(scene, config, AccelerationFactory(self.config), states, self.params, integration=self.integration,
-                                dtype=self.dtype, chunk=self.chunk, stop_at_divergence=self.stop_at_divergence, with_energy=True,
-                                progress=self.progress, label=f"{self.config.name} on {scene.name}",
-                                hint=f"the {self.config.name} model's predicted dynamics diverge (its rollout stops there)")
-        return runs.trajectory(scene, config, self.integration, {"model": self.config.to_dict()})
+        if self.stacked:
+            raise ValueError("a stacked model's rollout is rollouts(): one Trajectory holds one parameter set's")
+        return self.rollouts(scene, config, states).trajectory(scene, config, self.integration, {"model": self.config.to_dict()})
 
     def timed_rollout(self, scene: Scene, config: SimulationConfig, states: State) -> tuple[float, float, np.ndarray]:
         """`(compile_s, run_s, q (B, F+1, N, D))` of the batch (`rollouts.timed_rollouts`)."""
