@@ -120,6 +120,34 @@ def test_the_committed_full_records_render_with_the_new_columns_not_computed():
     assert _row(table, "T2-slack")["lgnn"].startswith("4.21e-04")
 
 
+def test_figures_drawn_in_processes_of_their_own_are_the_files_drawn_in_turn(tmp_path):
+    """The full report draws its figures in spawned processes (`figures._drawn`): the
+    same bytes as drawn in this process, each figure's name and whether it drew in
+    order, a plot with nothing to draw saying so from its process too."""
+    import pandas as pd
+
+    curves = pd.DataFrame([dict(scene=scene, model=model, seed=0, metric=metric, statistic=stat, t=t, value=value * t)
+                           for scene, model, value in (("chain4", "lgnn", 1e-3), ("chain4", "gns", 1e-2), ("chain8", "lgnn", 3e-3))
+                           for metric in ("rollout_error", "energy_error", "node_rms_error") for stat in ("gmean", "low", "high")
+                           for t in (0.1, 0.2, 0.3)])
+    plots = [(f"error_{k}.png", report_figures._plot_error_vs_time, dict(curves=curves, scenes=scenes, trained_on="chain4"))
+             for k, scenes in enumerate((["chain4"], ["chain4", "chain8"]))]
+    plots.append(("speed_error.png", report_figures._plot_speed_error, dict(rows=[])))
+    in_turn, in_processes = tmp_path / "in-turn", tmp_path / "in-processes"
+    assert report_figures._drawn(plots, in_turn, parallel=False) == [True, True, False]
+    assert report_figures._drawn(plots, in_processes, parallel=True) == [True, True, False]
+    assert sorted(p.name for p in in_processes.iterdir()) == ["error_0.png", "error_1.png"]
+    for name in ("error_0.png", "error_1.png"):
+        assert (in_processes / name).read_bytes() == (in_turn / name).read_bytes(), name
+
+
+def test_an_engine_the_figures_do_not_know_gets_a_marker_of_its_own():
+    markers, offsets = report_figures.engine_markers(["mujoco", "my-engine", "lagrangian", "other"])
+    assert {e: markers[e] for e in report_figures.ENGINE_MARKERS} == {e: m for e, (m, _) in report_figures.ENGINE_MARKERS.items()}
+    assert markers["my-engine"] != markers["other"] and {markers["my-engine"], markers["other"]}.isdisjoint({"o", "s", "^"})
+    assert set(offsets) == set(markers)
+
+
 def test_error_figures_label_their_axes_legend_every_model_and_title_what_they_show(monkeypatch, tmp_path):
     """Each row has a y-axis label, one legend beside the panels names every model any
     panel draws (panels may hold different models), once each, an unprojected rollout

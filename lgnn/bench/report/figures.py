@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import fnmatch
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -63,25 +64,30 @@ def error_axis_labels() -> dict[str, str]:
     return {m.name: m.label for m in metrics.METRICS.values() if m.label}
 
 
-def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str, colors: dict[str, str] | None = None) -> bool:
+def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str, colors: dict[str, str] | None = None,
+                        labels: dict[str, str] | None = None) -> bool:
     """Error against time of every model on `scenes` (those with curves; the title
     names them, so a profile without some scenes is not mislabelled), a line per
     training seed in the model's colour (`colors`, default `model_colors` of the curves'
-    models)."""
+    models), a row per metric of `labels` (default `error_axis_labels()`)."""
     import matplotlib.pyplot as plt
 
-    scenes = [s for s in scenes if s in set(curves["scene"])]
+    scenes = [s for s in scenes if s in set(curves["scene"].unique())]
     if not scenes:
         return False
     title = (f"Error against time: {', '.join(scenes)} (trained on {trained_on})\n"
              f"errors are clipped to [{metrics.ERROR_FLOOR:g}, 1]: 1 means diverged (or no better than that); band: interval over initial conditions")
     colors = colors or model_colors(model.split()[0] for model in curves["model"].unique())
-    labels = error_axis_labels()
+    labels = labels or error_axis_labels()
     fig, axes = plt.subplots(len(labels), len(scenes), figsize=(4.2 * len(scenes), 3.2 * len(labels)), squeeze=False, sharex=True)
+    # Each panel's rows, split once (rows in the curves' order): filtering the whole table
+    # per panel was a fifth of the full report's time.
+    panels = {key: rows for key, rows in curves.groupby(["scene", "metric"], sort=False)}
+    empty = curves.iloc[:0]
     for col, scene in enumerate(scenes):
         for row, metric in enumerate(labels):
             ax = axes[row, col]
-            sub = curves[(curves.scene == scene) & (curves.metric == metric)]
+            sub = panels.get((scene, metric), empty)
             for model in sub["model"].unique():
                 if model == "ground truth":
                     continue
@@ -95,7 +101,8 @@ def _plot_error_vs_time(curves, scenes: list[str], path: Path, trained_on: str, 
                     lo, hi = m[m.statistic == "low"], m[m.statistic == "high"]
                     if np.isfinite(lo.value.to_numpy()).any():
                         ax.fill_between(lo.t, lo.value, hi.value, color=colors.get(kind), alpha=0.2, linewidth=0)
-            floor = curves[(curves.scene == scene) & (curves.metric == "chaos_floor") & (curves.statistic == "gmean")]
+            floor = panels.get((scene, "chaos_floor"), empty)
+            floor = floor[floor.statistic == "gmean"]
             if len(floor) and metric == "rollout_error":
                 ax.plot(floor.t, floor.value, "k--", linewidth=1, label="chaos floor (1e-4)")
             ax.set_yscale("log")
@@ -212,6 +219,22 @@ def _plot_snapshots(scene: str, truths: dict, pairs: list, path: Path, colors: d
     return True
 
 
+# The committed figures' marker of each built-in engine, and where its dt labels sit
+# (a side per engine, so the engines' labels at one dt do not overprint each other).
+ENGINE_MARKERS = {"lagrangian": ("o", (4, 3)), "mujoco": ("s", (4, -9)), "mjx": ("^", (-26, 3))}
+# Markers and label sides given in turn to every other engine (`engine_markers`).
+SPARE_MARKERS = (("D", (4, 9)), ("v", (-26, -9)), ("P", (6, 0)), ("X", (-28, 0)), ("h", (4, 15)), ("*", (-26, 15)))
+
+
+def engine_markers(engines) -> tuple[dict[str, str], dict[str, tuple[int, int]]]:
+    """`({engine: marker}, {engine: dt label offset})`: a built-in's own
+    (`ENGINE_MARKERS`); every other of `engines`, in the order given, the next of
+    `SPARE_MARKERS` (an engine registered by a researcher is drawn like the built-ins)."""
+    others = [engine for engine in dict.fromkeys(engines) if engine not in ENGINE_MARKERS]
+    styles = {**ENGINE_MARKERS, **{engine: SPARE_MARKERS[k % len(SPARE_MARKERS)] for k, engine in enumerate(others)}}
+    return {engine: marker for engine, (marker, _) in styles.items()}, {engine: offset for engine, (_, offset) in styles.items()}
+
+
 def _plot_speed_error(rows: list[dict], path: Path, colors: dict[str, str] | None = None) -> bool:
     import matplotlib.pyplot as plt
 
@@ -226,10 +249,7 @@ def _plot_speed_error(rows: list[dict], path: Path, colors: dict[str, str] | Non
         ax.set_visible(False)
     from matplotlib.lines import Line2D
 
-    markers = {"lagrangian": "o", "mujoco": "s", "mjx": "^"}
-    # dt labels beside their marker, on a side per engine, so the engines' labels at one
-    # dt do not overprint each other.
-    offsets = {"lagrangian": (4, 3), "mujoco": (4, -9), "mjx": (-26, 3)}
+    markers, offsets = engine_markers(r["solver"] for r in rows if r["kind"] == "engine")
     for ax, scene in zip(axes.flat, scenes):
         for r in rows:
             if r["scene"] != scene or not (math.isfinite(r["wall_s_per_sim_s"]) and math.isfinite(r["rollout_error"])):
@@ -255,32 +275,57 @@ def _plot_speed_error(rows: list[dict], path: Path, colors: dict[str, str] | Non
     return True
 
 
+# The figures are drawn in processes of their own (one per usable core) when the curves
+# have this many rows: the full profile's 18 figures (a million rows of curves) were two
+# thirds of its report's time, while a process costs seconds to start (it imports lgnn
+# and matplotlib), more than all of the quick profile's small figures take.
+PARALLEL_CURVE_ROWS = 100_000
+
+
+def _drawn(plots: list, figures_dir: Path, parallel: bool) -> list[bool]:
+    """Each `(name, plot, arguments)` drawn as `plot(path=figures_dir / name,
+    **arguments)`, whether it drew, in order: in processes of their own where
+    `parallel` and the host has more than one usable core, else one after another. A
+    figure is the same file either way (matplotlib's drawing is deterministic)."""
+    workers = min(len(plots), len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    if not parallel or workers < 2:
+        return [plot(path=figures_dir / name, **arguments) for name, plot, arguments in plots]
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    # Spawned, not forked: the parent holds JAX's threads, which a fork would copy stopped.
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = [pool.submit(plot, path=figures_dir / name, **arguments) for name, plot, arguments in plots]
+        return [future.result() for future in futures]
+
+
 def draw(profile: Profile, figures_dir: Path, truths: dict, pairs: list, externals: list, curves, speed_rows: list[dict],
          mass_records: list) -> list[str]:
     """Draw every figure the records allow under `figures_dir` (an error figure per
     `profiles.error_figures` group, the mass matrices, the snapshots of `SNAPSHOT_SCENES`,
     speed against error), remove the ones an earlier report drew and this one does not,
     and return the names drawn, in order."""
-    figures = []
     # Every model's colour, fixed for the whole report: the profile's grid in order, then
     # any other model recorded (from an earlier grid), by name.
     recorded = sorted({pair.job.model for pair, _ in pairs + externals} | {r["solver"].split()[0] for r in speed_rows if r["kind"] != "engine"})
     colors = model_colors([*model_order(profile), *recorded])
-    # Each figure draws its track's models (`track_rows`).
+    # Each figure draws its track's models (`track_rows`); a snapshot figure its scene's
+    # records only (each plot's arguments go to another process whole).
     recorded_pairs = [pair for pair, _ in pairs]
+    labels = error_axis_labels()
     plots = [
-        *((group.file, lambda p, group=group: _plot_error_vs_time(track_rows(curves, recorded_pairs, group.track), list(group.scenes), p,
-                                                                  group.trained_on, colors))
+        *((group.file, _plot_error_vs_time, dict(curves=track_rows(curves, recorded_pairs, group.track), scenes=list(group.scenes),
+                                                  trained_on=group.trained_on, colors=colors, labels=labels))
           for group in error_figures(profile)),
-        ("mass_matrix.png", lambda p: _plot_mass_matrices(mass_records, p)),
-        *((f"snapshots_{scene.replace('-', '_')}.png", lambda p, scene=scene: _plot_snapshots(scene, truths, pairs, p, colors))
+        ("mass_matrix.png", _plot_mass_matrices, dict(records=mass_records)),
+        *((f"snapshots_{scene.replace('-', '_')}.png", _plot_snapshots,
+           dict(scene=scene, truths={s: r for s, r in truths.items() if s == scene}, pairs=[(p, r) for p, r in pairs if p.scene == scene],
+                colors=colors))
           for scene in SNAPSHOT_SCENES),
-        ("speed_error.png", lambda p: _plot_speed_error(speed_rows, p, colors)),
+        ("speed_error.png", _plot_speed_error, dict(rows=speed_rows, colors=colors)),
     ]
-    for name, plot in plots:
-        if not curves.empty or name in ("mass_matrix.png", "speed_error.png"):
-            if plot(figures_dir / name):
-                figures.append(name)
+    plots = [plot for plot in plots if not curves.empty or plot[0] in ("mass_matrix.png", "speed_error.png")]
+    figures = [name for (name, _, _), drawn in zip(plots, _drawn(plots, figures_dir, parallel=len(curves) >= PARALLEL_CURVE_ROWS)) if drawn]
     # A figure an earlier report drew and this one does not (its scene left the grid, or
     # its records went) would sit in figures/ unnamed by README.md: removed. Files of
     # other names are never touched.
