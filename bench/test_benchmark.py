@@ -16,6 +16,7 @@ compiled (compile time is kept apart, in the records).
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -27,7 +28,7 @@ from lgnn.bench.stages import evaluate, mass, scaling, speed
 from lgnn.bench.stages import truth as truth_stage
 from lgnn.bench.stages import train as train_stage
 from lgnn.learn import data, models, protocol, train
-from lgnn.learn.checkpoints import load_model
+from lgnn.learn.checkpoints import load_model, refuse_without_parameters
 from lgnn.engines import rollouts
 from lgnn.scene import State, get_scene
 
@@ -92,13 +93,33 @@ def _time(benchmark, run, rounds: int) -> None:
     benchmark.pedantic(run, rounds=rounds, iterations=1)
 
 
+def _timed_epoch_fn(profile, job, out):
+    """`(run, steps)`: a no-argument call running one training epoch of the job (the
+    compiled function training used, from the checkpoint's parameters: its best ones
+    and a fresh optimiser state for a checkpoint kept for inference), and the Adam
+    steps it takes; for pytest-benchmark."""
+    scene, model, data_config, train_config = train_stage.job_settings(profile, job)
+    layout = store.layout(profile, out)
+    path = layout.found(layout.checkpoint(job))
+    state, meta = train.load_checkpoint(path)
+    refuse_without_parameters(path, meta, "timed")
+    dataset = data.load_or_generate(data_config, store.Layout(out).datasets)
+    arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
+    epoch = train.compiled_epoch_fn(model, scene, train_config)
+    key = jax.random.PRNGKey(0)
+    steps = len(dataset.train) // train_config.batch_size
+    params = state.best_params if state.params is None else state.params
+    opt_state = train.fresh_optimiser_state(model, train_config, params) if state.opt_state is None else state.opt_state
+    return (lambda: jax.block_until_ready(epoch(params, opt_state, *arrays, key))), steps
+
+
 def test_training(benchmark, record_rate, request, profile, out, job):
     # The job's seeds train together (one compiled program); later seeds reuse the checkpoints.
     group = [j for j in profiles.training_jobs(profile) if (j.model, j.scene) == (job.model, job.scene)]
     path = train_stage.train_jobs(profile, group, out)[group.index(job)]
     state, meta = train.load_checkpoint(path)
     assert np.isfinite(state.best_val) and state.epoch >= 1
-    run_epoch, steps = train_stage.timed_epoch_fn(profile, job, out)
+    run_epoch, steps = _timed_epoch_fn(profile, job, out)
     assert steps == protocol.adam_steps_per_epoch(profile.training.data, profile.training.train)  # the schedule rule's count
     _time(benchmark, run_epoch, rounds=3)
     record_rate("adam_steps", steps, job=job.name, epochs=state.epoch, best_val=state.best_val)

@@ -312,6 +312,22 @@ NOTES = (
 )
 
 
+# The files `lgnn convergence` writes into its output folder, and the report reads
+# beside its own (`load_unrankable`).
+TABLE_CSV, TABLE_MD = "convergence.csv", "convergence.md"
+
+
+def load_unrankable(folder) -> dict[str, str]:
+    """`unrankable` of the convergence table in `folder` (`TABLE_CSV`, written by `lgnn
+    convergence`); `{}` where there is none."""
+    from pathlib import Path
+
+    from lgnn.bench.tables import read_table
+
+    path = Path(folder) / TABLE_CSV
+    return unrankable(read_table(path)[1]) if path.exists() else {}
+
+
 def write_report(rows: Sequence[dict], csv_path, md_path, command: str, notes: Sequence[str] = ()) -> None:
     """The rows as CSV + markdown (`lgnn.bench.tables.write_table`) with the command and
     provenance (`lgnn.provenance.environment`), the notes and one summary line per scene."""

@@ -27,8 +27,10 @@ commit, machine and versions.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -132,6 +134,35 @@ def write_speed_error(rows: list[dict], out_dir, command: str, dtype: str) -> No
              "error: max node error after 0.1 s (single state) vs MuJoCo C RK4 at dt 1e-6"]
     write_table(rows, list(SPEED_COLUMNS), f"{out_dir}/{SPEED_STEM}.csv", f"{out_dir}/{SPEED_STEM}.md",
                 "Engines: speed against error", header(command), notes)
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchedRate:
+    """One engine's steps per second on a batch of more than one, as a speed table
+    (`write_speed_error`) holds it: the table's file name without its suffix, the scene,
+    the batch, the engine, its dtype and the rate."""
+
+    table: str
+    scene: str
+    batch: int
+    engine: str
+    dtype: str
+    steps_per_s: float
+
+
+def load_batched_rates(folder) -> list[BatchedRate]:
+    """The batched rows of every speed table in `folder` (`*.csv` written by `lgnn
+    crosscheck --speed`, on GPU machines: the report's `gpu/`), tables in name order,
+    rows in each table's; `[]` where there is no such folder."""
+    import pandas as pd
+
+    folder = Path(folder)
+    rates = []
+    for path in sorted(folder.glob("*.csv")) if folder.is_dir() else ():
+        frame = pd.read_csv(path, comment="#")
+        for row in frame[frame["batch"] > 1].itertuples(index=False):
+            rates.append(BatchedRate(path.stem, row.scene, int(row.batch), row.engine, str(row.dtype), float(row.steps_per_s)))
+    return rates
 
 
 def header(command: str) -> list[str]:

@@ -22,7 +22,7 @@ def _cmd_convergence(args) -> None:
     from lgnn.scene import get_scene, scene_names
 
     args.out_dir = out_dir(args.out_dir)
-    check_writable(f"{args.out_dir}/convergence.md")
+    check_writable(f"{args.out_dir}/{convergence.TABLE_MD}")
     environment()  # the commit the run starts at, before any edit during a long run
     evaluate = get_profile("full").evaluate
     log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
@@ -34,9 +34,9 @@ def _cmd_convergence(args) -> None:
         config = dataclasses.replace(config, dt=args.dt or config.dt, frame_dt=args.frame_dt, duration=horizon)
         rows += convergence.reference_convergence(scene, config, args.halvings, log=log, integration=evaluate.integration)
     command = "lgnn " + " ".join(args.argv)
-    convergence.write_report(rows, f"{args.out_dir}/convergence.csv", f"{args.out_dir}/convergence.md", command)
+    convergence.write_report(rows, f"{args.out_dir}/{convergence.TABLE_CSV}", f"{args.out_dir}/{convergence.TABLE_MD}", command)
     print("\n".join(convergence.summary(rows)))
-    print(f"wrote {args.out_dir}/convergence.csv and .md")
+    print(f"wrote {args.out_dir}/{convergence.TABLE_CSV} and .md")
 
 
 def _add_convergence_parser(commands) -> None:

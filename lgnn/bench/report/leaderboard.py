@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 
 from lgnn import metrics
-from lgnn.bench import store
 from lgnn.bench.grid import PAPER_TRACK, TRAINING_SCENES, TRANSFER_TRACK, Pair
 from lgnn.bench.profiles import Profile, evaluation_pairs
 from lgnn.bench.stages.evaluate import load_pairs, load_truths
@@ -59,18 +58,17 @@ def _ranks(values: dict[str, float]) -> dict[str, int]:
     return {model: 1 + ordered.index(value) for model, value in values.items()}
 
 
-def _trained(profile: Profile, out: Path, checkpoints: list) -> dict[str, tuple[str, str]]:
-    """`{job label: (parameters, training)}` of the profile's trained models with checkpoints:
+def _trained(checkpoints: list) -> dict[str, tuple[str, str]]:
+    """`{job label: (parameters, training)}` of the trained models' checkpoints
+    (`stages.train.load_checkpoints`, each read once):
     learned parameters of the best epoch (training-set statistics apart) and the median
     over seeds of the recorded training minutes, with the device (GPU-minutes only on a
     GPU); "not recorded" where a checkpoint holds no time."""
     from lgnn.learn import checkpoints as checkpoint_files
 
-    layout = store.layout(profile, out)
     found: dict[str, list] = {}
-    for job, state in checkpoints:
-        meta, _ = checkpoint_files.read(layout.found(layout.checkpoint(job)))
-        found.setdefault(job.label, []).append((job, state, meta))
+    for trained in checkpoints:
+        found.setdefault(trained.job.label, []).append((trained.job, trained.state, trained.meta))
     result = {}
     for model, runs in found.items():
         _, state, meta = runs[0]
@@ -125,7 +123,7 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, checkpoints: list
     unrankable = unrankable_scenes(out)
     wide = (summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
             if not summary.empty else None)
-    trained = _trained(profile, out, checkpoints)
+    trained = _trained(checkpoints)
     shown = "lgnn leaderboard" + (" --full" if profile.name == "full" else f" (profile {profile.name})")
     lines = [f"# Leaderboard ({profile.name} profile)", "",
              f"Written by `{command or shown}` from the benchmark's records (`benchmark/runs/` of this folder"

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lgnn.bench import gpu_truth
+from lgnn.bench import crosscheck, gpu_truth
 from lgnn.bench.grid import TRAINING_SCENES
 from lgnn.bench.profiles import Profile
 from lgnn.bench.stability import fit_exponent
@@ -55,26 +55,25 @@ def _fastest_accurate(rows: list[dict], scene: str, solver: str) -> dict | None:
 
 def _gpu_section(out: Path) -> list[str]:
     """The GPU tables under `out/gpu/` (written by `lgnn crosscheck --speed` on a lent
-    GPU machine, commands in their headers): batched throughput, Lagrangian over MJX
-    where a table has both; and the LGNN training-time summary if present."""
-    import pandas as pd
-
+    GPU machine, commands in their headers; `crosscheck.load_batched_rates`): batched
+    throughput, Lagrangian over MJX where a table has both; and the LGNN training-time
+    summary if present."""
     gpu = out / "gpu"
-    tables = sorted(gpu.glob("*.csv")) if gpu.is_dir() else []
-    if not tables:
+    rates = crosscheck.load_batched_rates(gpu)
+    if not (sorted(gpu.glob("*.csv")) if gpu.is_dir() else []):
         return ["Not measured in this output directory (no `gpu/` tables)."]
     lines = ["Batched ground truth on GPUs, RK4 at dt 1e-3, from the tables in `gpu/` (each `.md` names its command, machine and "
              "versions; `h200x2_*`: one and two H200s of one host, the batch split over the devices by `jax.sharding`).", "",
              "| table | scene | batch | dtype | Lagrangian steps/s | MJX steps/s | Lagrangian / MJX | MuJoCo C steps/s |", "|---" * 8 + "|"]
-    for path in tables:
-        frame = pd.read_csv(path, comment="#")
-        batched = frame[frame["batch"] > 1]
-        for (scene, batch), group in batched.groupby(["scene", "batch"], sort=False):
-            rate = {r["engine"]: r["steps_per_s"] for _, r in group.iterrows()}
-            dtype = group[group["engine"] == "lagrangian"]["dtype"].iloc[0] if "lagrangian" in rate else "—"
-            ratio = rate["lagrangian"] / rate["mjx"] if "lagrangian" in rate and "mjx" in rate else float("nan")
-            lines.append(f"| {path.stem} | {scene} | {batch} | {dtype} | {number_cell(rate.get('lagrangian', float('nan')))} | "
-                         f"{number_cell(rate.get('mjx', float('nan')))} | {'—' if math.isnan(ratio) else f'{ratio:.3g}'} | {number_cell(rate.get('mujoco', float('nan')))} |")
+    groups: dict[tuple[str, str, int], list] = {}
+    for rate in rates:
+        groups.setdefault((rate.table, rate.scene, rate.batch), []).append(rate)
+    for (table, scene, batch), group in groups.items():
+        rate = {r.engine: r.steps_per_s for r in group}
+        dtype = next(r.dtype for r in group if r.engine == "lagrangian") if "lagrangian" in rate else "—"
+        ratio = rate["lagrangian"] / rate["mjx"] if "lagrangian" in rate and "mjx" in rate else float("nan")
+        lines.append(f"| {table} | {scene} | {batch} | {dtype} | {number_cell(rate.get('lagrangian', float('nan')))} | "
+                     f"{number_cell(rate.get('mjx', float('nan')))} | {'—' if math.isnan(ratio) else f'{ratio:.3g}'} | {number_cell(rate.get('mujoco', float('nan')))} |")
     for path in sorted(gpu.glob("*training*.txt")):
         lines += ["", f"LGNN training on a GPU (`{path.name}`, written by `lgnn benchmark --full --stage train --job lgnn-chain4-s0` "
                   "in a fresh output directory, then `lgnn checkpoint ... --reference results/benchmark/checkpoints/lgnn-chain4-s0.npz`):",

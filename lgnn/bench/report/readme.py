@@ -43,7 +43,8 @@ def _stopped_by(state, config) -> str:
 def _training_lines(profile: Profile, out: Path, checkpoints: list) -> list[str]:
     """The training table of `checkpoints` (`stages.train.load_checkpoints`) and each dimension's default LGNN."""
     lines = ["| model | training scene | seed | epochs | minutes | best validation MSE (epoch) | stopped by |", "|---|---|---|---|---|---|---|"]
-    for job, state in checkpoints:
+    for trained in checkpoints:
+        job, state = trained.job, trained.state
         lines.append(f"| {job.model} | {job.scene} | {job.seed} | {state.epoch} | {state.elapsed_s / 60:.1f} | {state.best_val:.3g} ({state.best_epoch}) "
                      f"| {_stopped_by(state, train_config(profile, job))} |")
     for dim, training_scene in TRAINING_SCENES.items():
@@ -92,9 +93,9 @@ def _cut_off_lines(profile: Profile, checkpoints: list) -> list[str]:
     or by an interrupted run. Their rows rank what that training learned, not the
     protocol's; a full run resumes or retrains them. Nothing where every run ended."""
     cut: dict[str, list[TrainingJob]] = {}
-    for job, state in checkpoints:
-        if stop_reason(state, train_config(profile, job)) is None:
-            cut.setdefault(job.model, []).append(job)
+    for trained in checkpoints:
+        if stop_reason(trained.state, train_config(profile, trained.job)) is None:
+            cut.setdefault(trained.job.model, []).append(trained.job)
     if not cut:
         return []
     named = [f"{model} ({'; '.join(dict.fromkeys(j.trained_on for j in jobs))}; {len(jobs)} run{'s' if len(jobs) > 1 else ''})"

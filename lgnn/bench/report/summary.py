@@ -49,7 +49,6 @@ from lgnn.bench.grid import EXTERNAL, GRID, PAPER_TRACK, TRACKS, Pair
 from lgnn.bench.profiles import EvaluateSettings
 from lgnn.bench.stages.evaluate import FLOOR, NO_DRAG, TRUTH, curve_frames, recorded_metrics, scene_level_prefix, scene_level_scores, truth_against
 from lgnn.bench.stages.evaluate import REST as REST_PREFIX
-from lgnn.bench.tables import read_table
 from lgnn.engines import ENGINES
 from lgnn.scene import get_scene
 
@@ -305,11 +304,8 @@ def summary_markdown(summary, metric: str, expected: set[tuple[str, str]] = froz
 
 def unrankable_scenes(out: Path) -> dict[str, str]:
     """`{scene: why}` from the reference convergence table beside the report
-    (`<out>/convergence.csv`, written by `lgnn convergence`), if there is one."""
-    path = out / "convergence.csv"
-    if not path.exists():
-        return {}
-    return convergence.unrankable(read_table(path)[1])
+    (`lgnn.bench.convergence.load_unrankable`: `lgnn convergence`'s), if there is one."""
+    return convergence.load_unrankable(out)
 
 
 def summary_tables(references: tuple[str, ...] = DEFAULT_REFERENCES) -> list[tuple[str, str]]:

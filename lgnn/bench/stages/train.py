@@ -15,8 +15,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from lgnn.bench.grid import LGNN_VARIANTS, TRAINING_SCENE, TrainingJob
@@ -26,7 +24,6 @@ from lgnn.bench import claims, store
 from lgnn.bench.store import Layout, log
 from lgnn.errors import CheckpointError
 from lgnn.learn import data, models, protocol, train
-from lgnn.learn.checkpoints import refuse_without_parameters
 from lgnn.scene import get_scene
 
 
@@ -127,15 +124,26 @@ def prepare_datasets(profile: Profile, jobs: list[TrainingJob], out: Path, progr
             data.load_or_generate(config, Layout(out).datasets, progress=progress)
 
 
-def load_checkpoints(profile: Profile, out: Path) -> list[tuple[TrainingJob, protocol.TrainState]]:
-    """`(job, training state)` of every job of the profile with a checkpoint under `out`."""
+@dataclasses.dataclass(frozen=True)
+class Trained:
+    """A job's checkpoint as the report reads it once: the job, its training state
+    (`train.load_checkpoint`) and the checkpoint's meta (environment, parameter count
+    of one kept without its parameters)."""
+
+    job: TrainingJob
+    state: protocol.TrainState
+    meta: dict
+
+
+def load_checkpoints(profile: Profile, out: Path) -> list[Trained]:
+    """`Trained` of every job of the profile with a checkpoint under `out` (or its base)."""
     layout = store.layout(profile, out)
     found = [(job, layout.found(layout.checkpoint(job))) for job in training_jobs(profile)]
-    return [(job, train.load_checkpoint(path)[0]) for job, path in found if path.exists()]
+    return [Trained(job, *train.load_checkpoint(path)) for job, path in found if path.exists()]
 
 
 def default_lgnn(profile: Profile, out: Path, training_scene: str = TRAINING_SCENE,
-                 checkpoints: list[tuple[TrainingJob, protocol.TrainState]] | None = None) -> tuple[str | None, dict[str, float]]:
+                 checkpoints: list[Trained] | None = None) -> tuple[str | None, dict[str, float]]:
     """The default LGNN of one training scene (chain4; chain4-3d for the spatial grid),
     chosen from the training records: among `LGNN_VARIANTS` trained on `training_scene`
     with a checkpoint for every seed of the profile, the one with the lowest geometric
@@ -143,28 +151,9 @@ def default_lgnn(profile: Profile, out: Path, training_scene: str = TRAINING_SCE
     Returns `(name, {variant: that mean})`; name None when no variant has all its seeds.
     `checkpoints`: `load_checkpoints(profile, out)` where the caller has it already."""
     found: dict[str, list[float]] = {}
-    for job, state in load_checkpoints(profile, out) if checkpoints is None else checkpoints:
+    for trained in load_checkpoints(profile, out) if checkpoints is None else checkpoints:
+        job = trained.job
         if job.model in LGNN_VARIANTS and job.scene == training_scene and not job.varied_draws:
-            found.setdefault(job.model, []).append(state.best_val)
+            found.setdefault(job.model, []).append(trained.state.best_val)
     scores = {v: float(np.exp(np.mean(np.log(found[v])))) for v in LGNN_VARIANTS if len(found.get(v, ())) == len(profile.seeds)}
     return (min(scores, key=lambda v: (scores[v], LGNN_VARIANTS.index(v))) if scores else None), scores
-
-
-def timed_epoch_fn(profile: Profile, job: TrainingJob, out: Path):
-    """`(run, steps)`: a no-argument call running one training epoch of the job (the
-    compiled function training used, from the checkpoint's parameters: its best ones
-    and a fresh optimiser state for a checkpoint kept for inference), and the Adam
-    steps it takes; for pytest-benchmark."""
-    scene, model, data_config, train_config = job_settings(profile, job)
-    layout = store.layout(profile, out)
-    path = layout.found(layout.checkpoint(job))
-    state, meta = train.load_checkpoint(path)
-    refuse_without_parameters(path, meta, "timed")
-    dataset = data.load_or_generate(data_config, Layout(out).datasets)
-    arrays = tuple(jnp.asarray(a[dataset.train]) for a in (dataset.q, dataset.qd, dataset.qdd))
-    epoch = train.compiled_epoch_fn(model, scene, train_config)
-    key = jax.random.PRNGKey(0)
-    steps = len(dataset.train) // train_config.batch_size
-    params = state.best_params if state.params is None else state.params
-    opt_state = train.fresh_optimiser_state(model, train_config, params) if state.opt_state is None else state.opt_state
-    return (lambda: jax.block_until_ready(epoch(params, opt_state, *arrays, key))), steps
