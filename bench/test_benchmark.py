@@ -209,7 +209,7 @@ def test_the_timed_programs_run_from_the_stages_records(profile, out):
     time (`_time`): an epoch of LGNN's training from its checkpoint, and its first
     evaluation chunk on chain4."""
     job = profiles.lgnn_job(profile)
-    run_epoch, _ = train_stage.timed_epoch_fn(profile, job, out)
+    run_epoch, _ = _timed_epoch_fn(profile, job, out)
     params, _, loss = run_epoch()
     assert np.isfinite(loss) and all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(params))
     pair = next(p for p in profiles.evaluation_pairs(profile) if p.job == job and p.scene in TIMED_SCENES and p.projected)
