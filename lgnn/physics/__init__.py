@@ -84,6 +84,7 @@ __all__ = [
     "mass_matrix_fn",
     "neighbourhoods",
     "own_or_sampled_states",
+    "parametrised_acceleration_fn",
     "potential_energy_per_link",
     "prepare",
     "projection_fn",
