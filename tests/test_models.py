@@ -694,7 +694,7 @@ def test_pooled_jacobian_colouring():
 
 
 def test_physics_differences_from_the_training_scene():
-    """A rollout on a scene with other gravity, drag, link masses or lengths is flagged;
+    """A rollout on a scene with other gravity, drag, joint damping, link masses or lengths is flagged;
     a longer chain of the same links (generalisation) is not."""
     meta = {"data": {"scene": "chain4"}}
     assert checkpoints.physics_differences(meta, get_scene("chain8")) == []
@@ -702,6 +702,8 @@ def test_physics_differences_from_the_training_scene():
     assert any(d.startswith("link masses") for d in checkpoints.physics_differences(meta, get_scene("chain4-varied")))
     # T1's shortest links are 5x shorter than any the model saw.
     assert any(d.startswith("link lengths {0.2, ") and d.endswith("(trained on {1})") for d in checkpoints.physics_differences(meta, get_scene("T1")))
+    damped = dataclasses.replace(get_scene("chain4"), dampers=((0, -1, 0.05), (1, 0, 0.05)))
+    assert checkpoints.physics_differences(meta, damped) == ["joint damping {0.05} (trained on none)"]
     assert checkpoints.physics_differences({"data": None}, get_scene("chain4-varied")) == []
 
 

@@ -251,6 +251,29 @@ def test_drag_dissipates_energy_at_the_expected_rate():
     assert physics.drag_force_fn(get_scene("chain4")) is None  # no drag term when there is no drag
 
 
+@pytest.mark.parametrize("solver", ["generic", "auto"])
+def test_joint_damping_dissipates_twice_its_dissipation_function(solver):
+    """dH/dt = qd . F = -2 D with D = 1/2 sum b (omega_e - omega_p)^2 (D is quadratic in
+    qd), on every solve path; with drag too, each term adds its own power."""
+    import dataclasses
+
+    from lgnn.physics.energies import link_angular_velocity
+
+    drag = get_scene("chain4-drag")
+    scene = dataclasses.replace(drag, dampers=((0, -1, 0.3), (1, 0, 0.05), (2, 1, 0.2), (3, 2, 0.1)))
+    q, qd = random_state(scene, seed=6)
+    qdd = physics.true_acceleration_fn(scene, solver)(q, qd)
+    _, power = jax.jvp(physics.energy_fn(scene), (q, qd), (qd, qdd))
+    i, j = scene.edge_index.T
+    omega = link_angular_velocity(q[j] - q[i], qd[j] - qd[i])
+    relative = jnp.array([omega[e] - (omega[p] if p >= 0 else 0.0) for e, p, _ in scene.dampers])
+    dissipation = 0.5 * jnp.sum(jnp.array([b for _, _, b in scene.dampers]) * relative**2)
+    expected = -2 * dissipation + jnp.sum(qd * physics.drag_force_fn(scene)(q, qd))
+    assert dissipation > 0
+    np.testing.assert_allclose(power, expected, rtol=1e-9)
+    assert physics.damping_force_fn(drag) is None
+
+
 def test_conservative_power_is_zero():
     for scene in (get_scene("T1"), double_pinned_chain(6)):  # regular configurations (not T2/T3 at rest)
         q, qd = random_state(scene, seed=7)

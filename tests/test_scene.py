@@ -361,3 +361,57 @@ def test_checking_a_scene_name_builds_no_catalogue_scene(monkeypatch, tmp_path):
     path.write_text("{")
     with pytest.raises(SceneError):
         check_scene_name(str(path))
+
+
+def damped():
+    """`valid()` with its two joints damped (the pin's and the elbow's)."""
+    return {**valid(), "dampers": [{"links": [0], "damping": 0.1}, {"links": [1, 0], "damping": 0.05}]}
+
+
+def test_dampers_load_and_round_trip_and_change_the_content_key():
+    scene = scene_from_dict(damped())
+    assert scene.dampers == ((0, -1, 0.1), (1, 0, 0.05))
+    again = scene_from_dict(json.loads(scene_to_json(scene)))
+    assert again.dampers == scene.dampers and again == scene
+    undamped = scene_from_dict(valid())
+    assert undamped.dampers == () and "dampers" not in scene_to_dict(undamped)
+    assert undamped.content_key != scene.content_key and undamped != scene
+
+
+@pytest.mark.parametrize(
+    ("dampers", "words"),
+    [
+        ({"links": [0]}, ["dampers", "expected a list"]),
+        ([{"links": [0], "damping": 0.1, "axis": 1}], ["dampers[0]", "expected {"]),
+        ([{"links": [0, 1, 2], "damping": 0.1}], ["dampers[0].links", "expected [e, p] or [e]"]),
+        ([{"links": [5], "damping": 0.1}], ["dampers[0].links", "link indices 0..1"]),
+        ([{"links": [True], "damping": 0.1}], ["dampers[0].links", "link indices"]),
+        ([{"links": [1, 1], "damping": 0.1}], ["dampers[0].links", "link 1 twice"]),
+        ([{"links": [1], "damping": 0.1}], ["dampers[0].links", "link 1 has no pinned end"]),
+        ([{"links": [0, 1], "damping": 0.1}, {"links": [1, 0], "damping": 0.2}], ["dampers[1].links", "already have a damper"]),
+        ([{"links": [0], "damping": -0.1}], ["dampers[0].damping", "must be >= 0"]),
+        ([{"links": [0], "damping": "a"}], ["dampers[0].damping"]),
+    ],
+)
+def test_every_bad_damper_is_one_clear_line(dampers, words):
+    with pytest.raises(SceneError) as info:
+        scene_from_dict({**valid(), "dampers": dampers})
+    assert "\n" not in str(info.value)
+    for word in words:
+        assert word in str(info.value), str(info.value)
+
+
+def test_dampers_are_refused_in_3d():
+    """In 3D a joint's damping would also act about a rod's own axis, which a node
+    description has no spin about."""
+    with pytest.raises(SceneError, match="planar scenes only"):
+        scene_from_dict({**valid3d(), "dampers": [{"links": [0], "damping": 0.1}]})
+
+
+def test_links_sharing_no_node_cannot_share_a_damper():
+    data = valid()
+    data["nodes"].append([2.6, -0.8])
+    data["velocities"].append([0.8, 1.6])
+    data["links"].append({"nodes": [2, 3], "mass": 1.0, "inertia": 0.1})
+    with pytest.raises(SceneError, match="share no node"):
+        scene_from_dict({**data, "dampers": [{"links": [0, 2], "damping": 0.1}]})

@@ -236,7 +236,7 @@ def _run_acceleration(case: Case, scene: Scene) -> dict:
     if case.expect_rest:
         reference, what = np.zeros_like(qdd), "zero (rigid structure)"
     else:
-        constant_mass = physics.acceleration_fn(scene, physics.constant_mass_lagrangian_fn(scene), physics.drag_force_fn(scene))
+        constant_mass = physics.acceleration_fn(scene, physics.constant_mass_lagrangian_fn(scene), physics.dissipative_force_fn(scene))
         reference, what = np.asarray(jax.jit(constant_mass)(q, qd)), "the constant-mass Lagrangian's"
     finite = bool(np.isfinite(qdd).all())
     error = float(np.max(np.abs(qdd - reference))) if finite else math.inf

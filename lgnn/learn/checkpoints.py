@@ -361,7 +361,7 @@ def load_model(path: str | os.PathLike, spec: models.ModelSpec | None = None) ->
 
 def physics_differences(meta: dict, scene: Scene) -> list[str]:
     """How `scene`'s physical parameters differ from the scene a checkpoint was trained
-    on (gravity, drag, the link masses, inertias and lengths: values the model never
+    on (gravity, drag, joint damping, the link masses, inertias and lengths: values the model never
     saw; the number of links and how they connect may differ, that is the zero-shot
     generalisation the benchmark measures): one phrase each, empty when they agree or when the
     training scene is unknown or no longer loadable (a moved scene file)."""
@@ -392,6 +392,10 @@ def _gravity_and_drag_differences(scene: Scene, trained: Scene) -> list[str]:
         differences.append(f"gravity {np.asarray(scene.gravity).tolist()} (trained on {np.asarray(trained.gravity).tolist()})")
     if not np.isclose(trained.drag, scene.drag):
         differences.append(f"drag {scene.drag:g} (trained on {trained.drag:g})")
+    damping, trained_damping = (sorted({round(b, 12) for _, _, b in s.dampers}) for s in (scene, trained))
+    if damping != trained_damping:
+        shown = [_values(np.asarray(d)) if d else "none" for d in (damping, trained_damping)]
+        differences.append(f"joint damping {shown[0]} (trained on {shown[1]})")
     return differences
 
 

@@ -49,7 +49,7 @@ import numpy as np
 
 from lgnn import sharding
 from lgnn.physics.constraints import take_rows
-from lgnn.physics.energies import Array, ForceFn, LagrangianFn, drag_force_fn, lagrangian_fn
+from lgnn.physics.energies import Array, ForceFn, LagrangianFn, dissipative_force_fn, lagrangian_fn
 from lgnn.physics.local_mass import LOCAL, LocalMass, MassStructure
 from lgnn.physics.solvers import (banded_chain_kkt_solve, chain_kkt_solve, guarded_spd_solve, regularised_spd_solve, solve_kkt, spd_solve,
                                   tangent_basis)
@@ -370,7 +370,8 @@ def mass_matrix_fn(lagrangian: LagrangianFn) -> Callable[[Array, Array], Array]:
 
 
 def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool = False) -> AccelerationFn:
-    """Ground-truth accelerations: the exact rod Lagrangian, plus drag if the scene has it.
+    """Ground-truth accelerations: the exact rod Lagrangian, plus drag and joint damping
+    where the scene has them.
 
     `solver` picks how the constrained Euler-Lagrange equations are solved; all give
     the same accelerations (to round-off, tested) wherever they apply:
@@ -396,7 +397,7 @@ def true_acceleration_fn(scene: Scene, solver: str = "auto", *, vectorised: bool
     system = prepare(scene)
     solver = system.solver(solver, vectorised)
     if solver == "generic":
-        return acceleration_fn(scene, lagrangian_fn(scene), drag_force_fn(scene))
+        return acceleration_fn(scene, lagrangian_fn(scene), dissipative_force_fn(scene))
     # Full-precision products: a ground truth in float32 on a GPU is otherwise TF32's.
     # The guarded Schur solve is a branch per call: on a CPU it saves a single
     # trajectory the refinement; on an accelerator a branch reads its predicate back to
@@ -413,14 +414,14 @@ def vectorised_true_acceleration_fn(scene: Scene) -> AccelerationFn:
 
 def _node_forces_fn(system: System) -> Callable[[Array, Array], Array]:
     """`(q, qd) -> (N, D)` generalised forces on the free nodes: gravity (half of each
-    link's weight on each end) plus drag where the scene has it."""
+    link's weight on each end) plus drag and joint damping where the scene has them."""
     free_nodes = system.constraints.free_mask.astype(np.float64)
     gravity = system.node_gravity
-    drag = drag_force_fn(system.scene)
+    dissipative = dissipative_force_fn(system.scene)
 
     def forces(q, qd):
         total = jnp.asarray(gravity, q.dtype)
-        return total if drag is None else total + drag(q, qd) * jnp.asarray(free_nodes, q.dtype)
+        return total if dissipative is None else total + dissipative(q, qd) * jnp.asarray(free_nodes, q.dtype)
 
     return forces
 

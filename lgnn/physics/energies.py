@@ -127,6 +127,46 @@ def hamiltonian_fn(lagrangian: LagrangianFn) -> EnergyFn:
     return hamiltonian
 
 
+def link_angular_velocity(dq: Array, dqd: Array) -> Array:
+    """(...,) planar links' angular velocities `(dq x dqd) / |dq|^2` (D = 2); the sign
+    does not depend on which end `dq` starts from."""
+    return (dq[..., 0] * dqd[..., 1] - dq[..., 1] * dqd[..., 0]) / jnp.sum(dq * dq, -1)
+
+
+def damping_force_fn(scene: Scene) -> ForceFn | None:
+    """The joints' viscous damping (`Scene.dampers`, planar): the generalised force
+    `-dD/dqd` of the dissipation `D = 1/2 sum damping (omega_e - omega_p)^2` (a pin's
+    `omega_p` is 0), as MuJoCo's joint damping; `None` when the scene has none."""
+    if not scene.dampers:
+        return None
+    i, j = scene.edge_index.T
+    link, other, damping = (np.array(column) for column in zip(*scene.dampers))
+    to_world = other < 0
+    other = np.where(to_world, 0, other).astype(np.int64)
+    link = link.astype(np.int64)
+
+    def dissipation(q, qd):
+        omega = link_angular_velocity(q[j] - q[i], qd[j] - qd[i])
+        relative = omega[link] - jnp.where(to_world, 0.0, omega[other])
+        return 0.5 * jnp.sum(jnp.asarray(damping, q.dtype) * relative**2)
+
+    def force(q, qd):
+        return -jax.grad(dissipation, argnums=1)(q, qd)
+
+    return force
+
+
+def dissipative_force_fn(scene: Scene) -> ForceFn | None:
+    """The scene's own non-conservative forces: drag and joint damping (`None` without
+    either)."""
+    forces = [f for f in (drag_force_fn(scene), damping_force_fn(scene)) if f is not None]
+    if not forces:
+        return None
+    if len(forces) == 1:
+        return forces[0]
+    return lambda q, qd: sum(f(q, qd) for f in forces)
+
+
 def drag_force_fn(scene: Scene, coefficients: Array | None = None) -> ForceFn | None:
     """Linear drag: each link feels `-c * v_cm`, split equally between its two nodes.
 

@@ -10,7 +10,9 @@ but `lgnn.errors`.
 """
 
 from lgnn.scene.schema import (
+    NodeSource,
     Scene,
+    SceneSource,
     State,
     check_scene,
     is_pinned_chain,
@@ -61,7 +63,9 @@ __all__ = [
     "OWN_STATE",
     "PROJECTED",
     "TAGS",
+    "NodeSource",
     "Scene",
+    "SceneSource",
     "State",
     "chain",
     "chain4_drag",

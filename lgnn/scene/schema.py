@@ -25,7 +25,24 @@ Scene files are JSON with exactly this schema (other tools depend on it):
      "pinned": [node, ...],
      "links": [{"nodes": [i, j], "mass": float, "inertia": float,
                 "length": float (optional, default the initial distance),
-                "type": str (optional, default "link")}, ...]}
+                "type": str (optional, default "link")}, ...],
+     "dampers": [{"links": [e, p] or [e], "damping": float}, ...] (optional, planar
+                 scenes: a joint's viscous damping, below),
+     "source": {...} (optional: where an imported scene's nodes come from, below)}
+
+A damper is a joint's viscous damping, as MuJoCo's joint `damping`: a torque
+`-damping * (omega_e - omega_p)` on link `e` and its opposite on link `p` (they share a
+node), or with one link `-damping * omega_e` on a link turning about a pin; `omega` is
+a link's angular velocity. Planar scenes only: in 3D a joint's damping also acts about
+a rod's own axis, which the node description has no spin about.
+
+A scene imported from MJCF (`lgnn.import_mjcf`) records its `source` (`SceneSource`):
+`{"mjcf": the file's name, "axes": [[x, y, z], ...] (one orthonormal row per scene axis:
+its direction in the world, so a node's scene coordinates are `axes @ p` of its world
+position `p`, no shift), "nodes": [{"body": MuJoCo body name, "point": [x, y, z]}, ...]
+(for each node in order, the point fixed in that body's frame that the node stands
+for; "world" for a pin)}`, which makes the import checkable against MuJoCo on the
+original file. It changes no physics.
 
 `scene_from_dict` validates everything and raises `SceneError` with one line naming
 the field and the problem.
@@ -74,6 +91,28 @@ class State(NamedTuple):
     qd: Any
 
 
+@dataclasses.dataclass(frozen=True)
+class NodeSource:
+    """The point (x, y, z), fixed in MuJoCo body `body`'s frame, that a node stands for."""
+
+    body: str
+    point: tuple[float, float, float]
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneSource:
+    """Where an imported scene comes from (module docstring): the MJCF file's name, the
+    scene's axes in the world (D rows of 3) and each node's body and point."""
+
+    mjcf: str
+    axes: tuple[tuple[float, float, float], ...]
+    nodes: tuple[NodeSource, ...]
+
+    def to_dict(self) -> dict:
+        return {"mjcf": self.mjcf, "axes": [list(row) for row in self.axes],
+                "nodes": [{"body": node.body, "point": list(node.point)} for node in self.nodes]}
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Scene:
     """Immutable description of an articulated structure; see the module docstring."""
@@ -89,6 +128,10 @@ class Scene:
     masses: np.ndarray
     inertias: np.ndarray
     gravity: np.ndarray
+    # Where an imported scene's nodes come from (`SceneSource`); None for every other.
+    source: SceneSource | None = None
+    # Joint damping (module docstring): (link e, link p or -1 for a pin, damping) each.
+    dampers: tuple[tuple[int, int, float], ...] = ()
 
     @property
     def n_nodes(self) -> int:
@@ -131,6 +174,10 @@ class Scene:
         state): two scenes with equal keys are the same scene. Equality and hashing use
         it, so caches keyed on a scene key on its content, never on the object."""
         digest = hashlib.sha256(repr((self.name, self.edges, self.pinned, self.link_types, float(self.drag))).encode())
+        if self.source is not None:  # scenes without a source keep the keys their records were made with
+            digest.update(repr(self.source).encode())
+        if self.dampers:  # as scenes without dampers
+            digest.update(repr(("dampers", self.dampers)).encode())
         for array in (self.nodes, self.velocities, self.lengths, self.masses, self.inertias, self.gravity):
             array = np.ascontiguousarray(array, np.float64)
             digest.update(repr(array.shape).encode())
@@ -153,7 +200,7 @@ class Scene:
 jax.tree_util.register_dataclass(
     Scene,
     data_fields=["nodes", "velocities", "lengths", "masses", "inertias", "gravity"],
-    meta_fields=["name", "edges", "pinned", "link_types", "drag"],
+    meta_fields=["name", "edges", "pinned", "link_types", "drag", "source", "dampers"],
 )
 
 
@@ -161,7 +208,7 @@ jax.tree_util.register_dataclass(
 # Construction and validation
 # ---------------------------------------------------------------------------------
 
-_TOP_KEYS = {"name", "gravity", "drag", "nodes", "velocities", "pinned", "links"}
+_TOP_KEYS = {"name", "gravity", "drag", "nodes", "velocities", "pinned", "links", "source", "dampers"}
 _REQUIRED_TOP = {"name", "nodes", "pinned", "links"}
 def is_pinned_chain(scene: Scene) -> bool:
     """True for a path 0-1-...-n pinned at node 0 only, in 2D or 3D: the scenes the chain
@@ -332,9 +379,81 @@ def scene_from_dict(data: Any) -> Scene:
         masses=np.asarray(masses, np.float64),
         inertias=np.asarray(inertias, np.float64),
         gravity=np.asarray(gravity, np.float64),
+        source=_source(data["source"], n_nodes, nodes.shape[1]) if "source" in data else None,
+        dampers=_dampers(data["dampers"], edges, pinned, nodes.shape[1]) if "dampers" in data else (),
     )
     check_scene(scene)
     return scene
+
+
+def _dampers(value, edges: list, pinned: tuple, dim: int) -> tuple[tuple[int, int, float], ...]:
+    """The validated dampers (module docstring): each on a link and a link sharing a
+    node with it, or on a link with a pinned end."""
+    if not isinstance(value, list):
+        raise _fail("dampers", f"expected a list of dampers, got {_short(value)}")
+    if value and dim != 2:
+        raise _fail("dampers", "joint damping is for planar scenes only (in 3D it would spin rods about their own axes)")
+    dampers, seen = [], set()
+    for k, damper in enumerate(value):
+        where = f"dampers[{k}]"
+        if not isinstance(damper, dict) or set(damper) != {"links", "damping"}:
+            raise _fail(where, f'expected {{"links": [e, p] or [e], "damping": number}}, got {_short(damper)}')
+        links = damper["links"]
+        if not isinstance(links, list) or len(links) not in (1, 2):
+            raise _fail(f"{where}.links", f"expected [e, p] or [e], got {_short(links)}")
+        for e in links:
+            if isinstance(e, bool) or not isinstance(e, int) or not 0 <= e < len(edges):
+                raise _fail(f"{where}.links", f"expected link indices 0..{len(edges) - 1}, got {_short(links)}")
+        if len(links) == 2 and links[0] == links[1]:
+            raise _fail(f"{where}.links", f"link {links[0]} twice (a joint joins two links)")
+        if len(links) == 2 and not set(edges[links[0]]) & set(edges[links[1]]):
+            raise _fail(f"{where}.links", f"links {links[0]} and {links[1]} share no node (a joint joins links at a node)")
+        if len(links) == 1 and not set(edges[links[0]]) & set(pinned):
+            raise _fail(f"{where}.links", f"link {links[0]} has no pinned end (a damper with one link turns it about a pin)")
+        key = frozenset(links)
+        if key in seen:
+            raise _fail(f"{where}.links", f"links {links} already have a damper")
+        seen.add(key)
+        damping = _number(damper["damping"], f"{where}.damping")
+        if damping < 0:
+            raise _fail(f"{where}.damping", f"must be >= 0, got {damping}")
+        dampers.append((links[0], links[1] if len(links) == 2 else -1, damping))
+    return tuple(dampers)
+
+
+_SOURCE_KEYS = {"mjcf", "axes", "nodes"}
+# Rows of a source's `axes` must be orthonormal to this accuracy (15-digit JSON passes).
+AXES_TOLERANCE = 1e-9
+
+
+def _source(value, n_nodes: int, dim: int) -> SceneSource:
+    """The validated `source` of an imported scene (module docstring)."""
+    if not isinstance(value, dict):
+        raise _fail("source", f"expected an object, got {_short(value)}")
+    if set(value) != _SOURCE_KEYS:
+        wrong = sorted(set(value) ^ _SOURCE_KEYS)[0]
+        raise _fail(f"source.{wrong}", "unknown key" if wrong in value else "missing required key")
+    mjcf = value["mjcf"]
+    if not isinstance(mjcf, str) or not mjcf:
+        raise _fail("source.mjcf", f"expected the MJCF file's name, got {_short(mjcf)}")
+    axes = _points(value["axes"], "source.axes", 3)
+    if len(axes) != dim:
+        raise _fail("source.axes", f"expected {dim} rows (one per scene axis), got {len(axes)}")
+    if not np.allclose(axes @ axes.T, np.eye(dim), rtol=0, atol=AXES_TOLERANCE):
+        raise _fail("source.axes", "rows must be orthonormal (unit directions at right angles)")
+    nodes = value["nodes"]
+    if not isinstance(nodes, list) or len(nodes) != n_nodes:
+        raise _fail("source.nodes", f"expected {n_nodes} entries (one per node), got {_short(nodes)}")
+    points = []
+    for k, node in enumerate(nodes):
+        where = f"source.nodes[{k}]"
+        if not isinstance(node, dict) or set(node) != {"body", "point"}:
+            raise _fail(where, f'expected {{"body": NAME, "point": [x, y, z]}}, got {_short(node)}')
+        if not isinstance(node["body"], str) or not node["body"]:
+            raise _fail(f"{where}.body", f"expected a body name, got {_short(node['body'])}")
+        (point,) = _points([node["point"]], f"{where}.point", 3)
+        points.append(NodeSource(node["body"], tuple(float(x) for x in point)))
+    return SceneSource(mjcf, tuple(tuple(float(x) for x in row) for row in axes), tuple(points))
 
 
 def check_scene(scene: Scene) -> None:
@@ -375,7 +494,7 @@ def check_scene(scene: Scene) -> None:
 
 def scene_to_dict(scene: Scene) -> dict:
     """The JSON schema form of a scene; `scene_from_dict(scene_to_dict(s))` reproduces `s` exactly."""
-    return {
+    data = {
         "name": scene.name,
         "gravity": float(scene.gravity),
         "drag": float(scene.drag),
@@ -389,6 +508,11 @@ def scene_to_dict(scene: Scene) -> dict:
             )
         ],
     }
+    if scene.dampers:
+        data["dampers"] = [{"links": [e] if p < 0 else [e, p], "damping": damping} for e, p, damping in scene.dampers]
+    if scene.source is not None:
+        data["source"] = scene.source.to_dict()
+    return data
 
 
 def scene_to_json(scene: Scene) -> str:
