@@ -25,7 +25,8 @@ and mjcf/maximal/: `write_builtin_files`).
   normal to it and `AXIAL_INERTIA_FRACTION` of that about its own axis (`rod_inertia`).
 - `render(scene, dt)` (also `scene_to_mjcf`) renders the MJCF text: explicit `<inertial>` (the link's
   mass at the rod's centre, the scene's moment of inertia about z), contacts off,
-  gravity `(0, -g, 0)`, a site `node{k}` on every node, RK4. Loop equalities are made
+  gravity `(0, -g, 0)`, a site `node{k}` on every node, RK4, and the scene's initial
+  velocities, where it has any, as the keyframe `INITIAL_KEY` (`initial_qvel`). Loop equalities are made
   stiff with `solref` of `SOLREF_STEPS` time steps and `solimp` near 1, so the MJCF
   depends on `dt`. Numbers are written as the shortest text that reads back to the
   same double, so the model reproduces the scene exactly (MuJoCo C agrees with the
@@ -125,6 +126,10 @@ MODELLED_DURATION = 1.0
 # The tolerance the maximal form's step is chosen to meet (`maximal_substeps`), as the
 # ground truth's max node error over 1 s (issue 29).
 MAXIMAL_TOLERANCE = 1e-6
+# The custom numeric holding a rendered scene's drag, which MuJoCo has no element for.
+DRAG_NUMERIC = "lgnn_drag"
+# The keyframe holding a rendered scene's initial velocities (`initial_qvel`).
+INITIAL_KEY = "initial"
 # Drawing sizes (viewer only, no physics): capsule and site radius per unit length.
 GEOM_RADIUS = 0.03
 SITE_RADIUS = 0.04
@@ -325,6 +330,7 @@ def _vec(*xs) -> str:
 def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
     """The MJCF text of `scene` in `form` for time step `dt` (module docstring)."""
     layout = scene_layout(scene, form)
+    damping = joint_damping(scene, layout)
     if layout.depth > MAX_BODY_DEPTH:
         raise SceneError(
             f"{scene.name}: spanning tree of depth {layout.depth} is too deep to render as nested MJCF bodies "
@@ -384,7 +390,8 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
             if body.free_root:
                 lines.append(f'{inner}<joint name="link{e}_x" type="slide" axis="1 0 0"/>')
                 lines.append(f'{inner}<joint name="link{e}_y" type="slide" axis="0 1 0"/>')
-            lines.append(f'{inner}<joint name="link{e}_hinge" type="hinge" axis="0 0 1"/>')
+            damped = f' damping="{_num(damping[index])}"' if damping[index] else ""
+            lines.append(f'{inner}<joint name="link{e}_hinge" type="hinge" axis="0 0 1"{damped}/>')
             # Only Izz acts on a planar hinge; Ixx = Iyy = Izz satisfies MuJoCo's
             # triangle inequality.
             lines.append(f'{inner}<inertial pos="{centre}" mass="{_num(mass)}" diaginertia="{_vec(inertia, inertia, inertia)}"/>')
@@ -416,6 +423,8 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         lines.append(f"  <!-- Links {list(layout.static_links)} join two pins: they never move and have no body. -->")
     if scene.drag:
         lines.append(f"  <!-- Drag {scene.drag:g} on link centre velocities is applied by lgnn (xfrc_applied), not modelled here. -->")
+        # Kept for `lgnn scene import` (MuJoCo ignores custom numerics).
+        lines += ["  <custom>", f'    <numeric name="{DRAG_NUMERIC}" data="{_num(scene.drag)}"/>', "  </custom>"]
     lines += [
         '  <compiler angle="radian" autolimits="true"/>',
         f'  <option timestep="{_num(dt)}" integrator="RK4" gravity="0 {_num(-float(scene.gravity))} 0" '
@@ -441,8 +450,56 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
                 f'solref="{solref}" solimp="{solimp}"/>'
             )
         lines.append("  </equality>")
+    qvel = initial_qvel(scene, layout)
+    if np.any(qvel):
+        # The scene's initial velocities (its positions are the rendered pose, qpos0).
+        lines += ["  <keyframe>", f'    <key name="{INITIAL_KEY}" qvel="{_vec(*qvel)}"/>', "  </keyframe>"]
     lines.append("</mujoco>")
     return "\n".join(lines) + "\n"
+
+
+def joint_damping(scene: Scene, layout: Layout) -> list[float]:
+    """Each body's hinge damping: the scene's damper between its link and its parent's
+    (a pin's: the world); `SceneError` for a damper no hinge of `layout` carries (the
+    maximal form has none, and a damper between two links of which neither is the
+    other's parent in the spanning tree)."""
+    damping = [0.0] * len(layout.bodies)
+    if not scene.dampers:
+        return damping
+    if layout.form == "maximal":
+        raise SceneError(f"{scene.name}: joint damping is rendered in the nested form only (the maximal form's joints are connect equalities)")
+    body_of = {body.link: k for k, body in enumerate(layout.bodies)}
+    for e, p, value in scene.dampers:
+        for child, parent in ((e, p), (p, e)):
+            k = body_of.get(child)
+            if k is not None and not layout.bodies[k].free_root and parent == (layout.bodies[layout.bodies[k].parent].link if layout.bodies[k].parent >= 0 else -1):
+                damping[k] = value
+                break
+        else:
+            raise SceneError(f"{scene.name}: the damper between links {e} and {p} is on no joint of the nested MJCF's spanning tree")
+    return damping
+
+
+def initial_qvel(scene: Scene, layout: Layout) -> np.ndarray:
+    """MuJoCo's `qvel` of `scene`'s initial velocities in the rendered model of `layout`,
+    whose pose is the scene's initial one (every body frame aligned with the world):
+    a hinge or ball joint's rate is its link's angular velocity less its parent's
+    (`d x dd / |d|^2`, no spin about a rod's axis), a free root's the velocity of its
+    frame's origin (world) and its angular velocity (the body's frame, here the world's)."""
+    nodes, velocities = np.asarray(scene.nodes, np.float64), np.asarray(scene.velocities, np.float64)
+    spatial = scene.dim == 3
+    omegas, qvel = [], []
+    for body in layout.bodies:
+        d = nodes[body.tip] - nodes[body.base]
+        dd = velocities[body.tip] - velocities[body.base]
+        omega = np.cross(d, dd) / (d @ d) if spatial else np.array([d[0] * dd[1] - d[1] * dd[0]]) / (d @ d)
+        omegas.append(omega)
+        if body.free_root:
+            w = layout.origin_weight
+            qvel += [*(velocities[body.base] + w * dd), *omega]
+        else:
+            qvel += list(omega - (omegas[body.parent] if body.parent >= 0 else 0))
+    return np.asarray(qvel, np.float64)
 
 
 # The nested renderer's earlier name (other modules and branches call it).

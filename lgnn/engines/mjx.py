@@ -335,8 +335,9 @@ def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = 
 
 def best_form(scene: Scene) -> Form:
     """MJX's form of `scene`: nested (exact joints) up to `NESTED_MAX_DEPTH`, else
-    maximal (compile time nearly flat in the number of links)."""
-    return "nested" if scene_layout(scene).depth <= NESTED_MAX_DEPTH else "maximal"
+    maximal (compile time nearly flat in the number of links); always nested with
+    joint damping, which only the nested form's hinges carry."""
+    return "nested" if scene.dampers or scene_layout(scene).depth <= NESTED_MAX_DEPTH else "maximal"
 
 
 @dataclasses.dataclass(frozen=True)
