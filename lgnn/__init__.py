@@ -46,6 +46,7 @@ _PUBLIC = {
     "Scene": "lgnn.scene",
     "State": "lgnn.scene",
     "get_scene": "lgnn.scene",
+    "import_mjcf": "lgnn.engines.mjcf_import",
     "load_scene_file": "lgnn.scene",
     "sample_initial_states": "lgnn.scene",
     "scene_from_dict": "lgnn.scene",

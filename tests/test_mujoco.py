@@ -602,4 +602,4 @@ def test_only_the_mujoco_engines_import_mujoco():
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else []
             if any(name == "mujoco" or name.startswith("mujoco.") for name in names):
                 importers.add(path.relative_to(package).as_posix())
-    assert importers == {"engines/mujoco.py", "engines/mjx.py", "engines/mjwarp.py"}
+    assert importers == {"engines/mujoco.py", "engines/mjx.py", "engines/mjwarp.py", "engines/mjcf_import.py"}

@@ -1,4 +1,4 @@
-"""The commands of scenes and ground-truth engines: `lgnn scenes`, `scene export`,
+"""The commands of scenes and ground-truth engines: `lgnn scenes`, `scene export`, `scene import`,
 `simulate`, `mjcf` and `crosscheck` (`PARSERS`); each parses its options and
 calls the library (`lgnn.scene`, `lgnn.engines`, `lgnn.bench.crosscheck`).
 """
@@ -41,6 +41,28 @@ def _cmd_scene_export(args) -> None:
     else:
         write_text_atomic(args.out, text)
         print(f"wrote {args.out}", file=sys.stderr)
+
+
+def _cmd_scene_import(args) -> None:
+    from lgnn.engines.mjcf_import import imported
+    from lgnn.files import write_text_atomic
+    from lgnn.scene import scene_to_json
+
+    result = imported(args.file, args.key)
+    for note in result.notes:
+        print(f"note: {note}", file=sys.stderr)
+    scene = result.scene
+    text = scene_to_json(scene)
+    if args.out in (None, "-"):
+        sys.stdout.write(text)
+    else:
+        write_text_atomic(args.out, text)
+        print(f"wrote {args.out}: {scene.name}, {scene.dim}D, {_count(scene.n_nodes, 'node')}, {_count(scene.n_links, 'link')}, "
+              f"pins {list(scene.pinned)}, gravity {float(scene.gravity):g}", file=sys.stderr)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _cmd_simulate(args) -> None:
@@ -171,6 +193,11 @@ def _add_scene_parsers(commands) -> None:
     export.add_argument("name")
     export.add_argument("--out", help="output file (default: standard output)")
     export.set_defaults(run=_cmd_scene_export)
+    mjcf_in = scene_commands.add_parser("import", help="import an MJCF file (MuJoCo's model format) as a scene, or say in one line why not")
+    mjcf_in.add_argument("file", help="MJCF (.xml) file; MuJoCo compiles it, includes and defaults as MuJoCo reads them")
+    mjcf_in.add_argument("--key", help="keyframe whose qpos and qvel are the initial state (default: qpos0, at rest)")
+    mjcf_in.add_argument("--out", help="output scene JSON file (default: standard output)")
+    mjcf_in.set_defaults(run=_cmd_scene_import)
 
     simulate = commands.add_parser("simulate", help="simulate a scene with a ground-truth engine")
     simulate.add_argument("scene", help="built-in scene name or scene JSON file")
