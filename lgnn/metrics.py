@@ -137,6 +137,56 @@ def divergence_frames(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray
     return first
 
 
+def limit_values(scene: Scene, q: np.ndarray) -> np.ndarray:
+    """(F, L) each of the scene's joint limits' quantity (`Scene.limits`: an angle in
+    radians or a rail node's coordinate) at frames `q` (F, N, D) of one trajectory,
+    angles unwrapped along the frames and taken, at frame 0, on the turn nearest the
+    middle of their range."""
+    q = np.asarray(q, np.float64)
+    values = []
+    for limit in scene.limits:
+        if not limit.links:
+            axis = next(a for node, a, _ in scene.rails if node == limit.node)
+            values.append(q[:, limit.node, axis])
+            continue
+        e = limit.links[0]
+        if len(limit.links) == 2:
+            p = limit.links[1]
+            (node,) = set(scene.edges[e]) & set(scene.edges[p])
+            into = q[:, node] - q[:, _other_end(scene, p, node)]
+        else:
+            node = next(n for n in scene.edges[e] if n in scene.pinned or any(n == r for r, _, _ in scene.rails))
+            into = np.broadcast_to(np.array([1.0, 0.0]), q[:, node].shape)
+        out = q[:, _other_end(scene, e, node)] - q[:, node]
+        angle = np.unwrap(np.arctan2(into[:, 0] * out[:, 1] - into[:, 1] * out[:, 0], np.sum(into * out, -1)))
+        middle = 0.5 * (limit.low + limit.high)
+        values.append(angle + 2 * np.pi * np.round((middle - angle[0]) / (2 * np.pi)))
+    return np.stack(values, -1) if values else np.zeros((len(q), 0))
+
+
+def _other_end(scene: Scene, link: int, node: int) -> int:
+    i, j = scene.edges[link]
+    return j if i == node else i
+
+
+def limit_violation(scene: Scene, t: np.ndarray, q: np.ndarray) -> tuple[int, str] | None:
+    """(index, reason) of the first frame of `q` (F, N, D) at times `t` (F,) outside a
+    joint limit of the scene (`Scene.limits`, which lgnn does not enforce: an engine
+    stops there, as at divergence), or None."""
+    if not scene.limits:
+        return None
+    values = limit_values(scene, q)
+    low, high = (np.array([getattr(limit, name) for limit in scene.limits]) for name in ("low", "high"))
+    outside = (values < low) | (values > high)
+    if not outside.any():
+        return None
+    k = int(np.argmax(outside.any(-1)))
+    which = int(np.argmax(outside[k]))
+    limit = scene.limits[which]
+    joint = f"the rail of node {limit.node}" if not limit.links else f"the joint of links {list(limit.links)}"
+    return k, f"left the range of {joint} at t = {t[k]:.6g} s ({values[k, which]:.6g} outside [{limit.low:.6g}, {limit.high:.6g}]; lgnn does not model joint limits)"
+
+
 def true_energies(scene: Scene, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
     """The scene's true `H = T + V` of states `q`, `qd` (..., N, D) -> (...); NaN where a
     state is non-finite."""

@@ -524,14 +524,14 @@ signal.signal(signal.SIGINT, signal.default_int_handler)
 from lgnn.cli import main
 sys.exit(main(sys.argv[1:]))
 """
-INTERRUPTS = 30
+INTERRUPTS = 20
 # Processes interrupted at once: the moments stay random (each process's own clock),
 # the test's wall time a fifth of one after another.
 INTERRUPTED_AT_ONCE = 5
 
 
 def test_simulate_interrupted_at_random_moments_exits_130_in_one_line(tmp_path):
-    """Ctrl-C at 30 random moments over `lgnn simulate` (imports, compilation, the run):
+    """Ctrl-C at 20 random moments over `lgnn simulate` (imports, compilation, the run):
     exit 130 with the one line `lgnn: interrupted`, or, when the signal comes after the
     run, exit 0; an output is whole or absent. Never a traceback or a crash. A signal
     that lands while the interpreter starts or after `main` has returned, before or after

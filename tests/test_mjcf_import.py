@@ -106,6 +106,51 @@ FOUR_BAR = """<mujoco model="four-bar">
 </mujoco>
 """
 
+# dm_control's cart-pole (its cart, rail and pole; its slider's limit left out) with a
+# second pole, as Gymnasium's inverted double pendulum.
+CART_DOUBLE_POLE = """<mujoco model="cart-double-pole">
+  <option timestep="0.01" integrator="RK4"><flag contact="disable"/></option>
+  <default><default class="pole">
+    <joint type="hinge" axis="0 1 0" damping="2e-3"/>
+    <geom type="capsule" fromto="0 0 0 0 0 1" size="0.045" mass=".1"/>
+  </default></default>
+  <worldbody>
+    <geom name="floor" pos="0 0 -.05" size="4 4 .2" type="plane"/>
+    <body name="cart" pos="0 0 1">
+      <joint name="slider" type="slide" axis="1 0 0" damping="5e-2"/>
+      <geom name="cart" type="box" size="0.2 0.15 0.1" mass="1"/>
+      <body name="pole_1" childclass="pole">
+        <joint name="hinge_1"/>
+        <geom name="pole_1"/>
+        <body name="pole_2" childclass="pole" pos="0 0 1">
+          <joint name="hinge_2"/>
+          <geom name="pole_2"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor name="slide" joint="slider" gear="10" ctrlrange="-1 1"/></actuator>
+  <keyframe><key name="falling" qpos="0.1 0.3 -0.2" qvel="0.5 1 -1.5"/></keyframe>
+</mujoco>
+"""
+# A cart on a rail along the world's y axis with a ball-jointed pole: in 3D the rail
+# is one of the scene's axes (z).
+CART_BALL_POLE = """<mujoco model="cart-ball-pole">
+  <option><flag contact="disable"/></option>
+  <worldbody>
+    <body name="cart" pos="0 0 1">
+      <joint type="slide" axis="0 1 0"/>
+      <geom type="box" size="0.2 0.15 0.1" mass="2"/>
+      <body name="pole" pos="0 0 0.05">
+        <joint type="ball"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -1" size="0.03" mass="0.5"/>
+      </body>
+    </body>
+  </worldbody>
+  <keyframe><key name="swing" qpos="0 0.9950041652780258 0.09983341664682815 0 0" qvel="0.4 1 -0.5 0"/></keyframe>
+</mujoco>
+"""
+
 
 def _write(tmp_path, text: str, name: str = "model.xml"):
     path = tmp_path / name
@@ -134,8 +179,10 @@ def _mujoco_nodes(path, scene, key: str | None, frame_dt: float, duration: float
 @pytest.mark.parametrize(
     "text, key, dim, nodes, pins",
     [(DOUBLE_PENDULUM, "swing", 2, 3, 1), (DAMPED_DOUBLE_PENDULUM, "swing", 2, 3, 1), (BOB_PENDULUM, "tilted", 2, 2, 1),
-     (BOB_PENDULUM.replace('axis="0 1 0"', 'axis="0 1 0" damping="0.1"'), "tilted", 2, 2, 1), (ROPE, "thrown", 3, 4, 1), (FOUR_BAR, None, 2, 4, 2)],
-    ids=["double-pendulum", "damped-double-pendulum", "bob-pendulum", "damped-bob-pendulum", "rope-3d", "four-bar"],
+     (BOB_PENDULUM.replace('axis="0 1 0"', 'axis="0 1 0" damping="0.1"'), "tilted", 2, 2, 1), (ROPE, "thrown", 3, 4, 1), (FOUR_BAR, None, 2, 4, 2),
+     (CART_DOUBLE_POLE, "falling", 2, 3, 0), (CART_BALL_POLE, "swing", 3, 2, 0)],
+    ids=["double-pendulum", "damped-double-pendulum", "bob-pendulum", "damped-bob-pendulum", "rope-3d", "four-bar", "cart-double-pole",
+         "cart-ball-pole-3d"],
 )
 def test_an_imported_file_moves_as_mujoco_moves_the_original(tmp_path, text, key, dim, nodes, pins):
     path = _write(tmp_path, text)
@@ -147,6 +194,28 @@ def test_an_imported_file_moves_as_mujoco_moves_the_original(tmp_path, text, key
     assert np.abs(theirs[0] - scene.nodes).max() < 1e-12  # the source mapping places every node
     assert ours.q.shape == theirs.shape
     assert np.abs(ours.q - theirs).max() < AGREEMENT_M
+
+
+def test_a_cart_becomes_a_point_mass_on_a_rail(tmp_path):
+    """dm_control's cart (1 kg, a slide along the world's x with damping 5e-2) is node 0:
+    a point mass sliding along scene x, where its pole's hinge is; the hinges' damping
+    is on the pole (which the cart does not turn) and between the poles."""
+    result = imported(_write(tmp_path, CART_DOUBLE_POLE), "falling")
+    scene = result.scene
+    assert scene.pinned == () and scene.rails == ((0, 0, 0.05),) and scene.point_masses == ((0, pytest.approx(1.0)),)
+    assert scene.edges == ((0, 1), (1, 2)) and scene.dampers == ((0, -1, 2e-3), (1, 0, 2e-3))
+    np.testing.assert_allclose(scene.masses, 0.1)
+    assert scene.source.nodes[0].body == "cart"
+    np.testing.assert_allclose(scene.velocities[0], [0.5, 0.0])
+    assert result.notes == ("left out: actuator 'slide' (no force at zero control; a scene is the passive system)",)
+    # The learned models' graphs and the MJCF renderer know no rails: each says so.
+    from lgnn.errors import ConfigError
+    from lgnn.learn import models
+
+    with pytest.raises(ConfigError, match="has rails"):
+        models.check_compatible(models.ModelConfig.for_scene("lgnn", scene), scene)
+    with pytest.raises(SceneError, match="are not rendered to MJCF"):
+        mjcf.render(scene)
 
 
 def test_a_bob_becomes_a_rod_whose_middle_is_the_bobs_centre(tmp_path):
@@ -231,12 +300,18 @@ def _model(body: str, option: str = '<flag contact="disable"/>', extra: str = ""
 
 HINGE = '<joint name="j" type="hinge" axis="0 1 0"{}/>'
 REFUSALS = {
-    "slide": (_model(_BODY.format(joint='<joint name="j" type="slide" axis="1 0 0"/>', child="")), "joint 'j' is a slide joint"),
+    "only a slide": (_model(_BODY.format(joint='<joint name="j" type="slide" axis="1 0 0"/>', child="")), "only slide joints"),
+    "slide on a moving body": (_model(_BODY.format(joint=HINGE.format(""), child='<body pos="0 0 -1"><joint name="s" type="slide" axis="0 0 1"/>'
+                                                  '<geom type="sphere" size="0.1"/></body>')), "joint 's' slides a body that moves"),
+    # Gymnasium's inverted double pendulum: gravity leans 1e-6 rad off its rail's normal.
+    "rail along gravity's lean": (CART_DOUBLE_POLE.replace('integrator="RK4"', 'integrator="RK4" gravity="1e-5 0 -9.81"'),
+                                  "joint 'slider' slides 1.02e-06 rad off the scene's nearest axis"),
     "free": (_model(_BODY.format(joint="<freejoint name=\"j\"/>", child="")), "joint 'j' is a free joint"),
     "ball damping": (_model(_BODY.format(joint='<joint name="j" type="ball" damping="0.1"/>', child="")), "joint 'j' is a ball joint with damping"),
     "stiffness": (_model(_BODY.format(joint=HINGE.format(' stiffness="2"'), child="")), "joint 'j' has stiffness 2"),
     "armature": (_model(_BODY.format(joint=HINGE.format(' armature="0.1"'), child="")), "joint 'j' has armature"),
-    "limit": (_model(_BODY.format(joint=HINGE.format(' range="-1 1"'), child="")), "joint 'j' has a range"),
+    "ball range": (_model(_BODY.format(joint='<joint name="j" type="ball" range="0 30"/>', child="")), "joint 'j' is a ball joint with a range"),
+    "limit margin": (_model(_BODY.format(joint=HINGE.format(' range="-10 10" margin="0.01"'), child="")), "joint 'j' has a limit margin"),
     "friction loss": (_model(_BODY.format(joint=HINGE.format(' frictionloss="0.1"'), child="")), "joint 'j' has friction loss"),
     "contact": (_model('<geom name="floor" type="plane" size="3 3 .1"/>' + _BODY.format(joint=HINGE.format(""), child=""), option=""),
                 "geoms 'floor' and #1 can collide"),
@@ -291,9 +366,9 @@ def test_lgnn_scene_import_writes_the_scene_and_simulate_runs_it(tmp_path, capsy
     scene = lgnn.load_scene_file(out)
     assert scene == lgnn.import_mjcf(path, key="tilted")
     assert main(["simulate", str(out), "--duration", "0.01", "--out", str(tmp_path / "bob.npz"), "--quiet"]) in (0, None)
-    assert main(["scene", "import", str(_write(tmp_path, REFUSALS["slide"][0], "slide.xml")), "--out", str(tmp_path / "no.json")]) == 2
+    assert main(["scene", "import", str(_write(tmp_path, REFUSALS["free"][0], "free.xml")), "--out", str(tmp_path / "no.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "slide joint" in err[0] and not (tmp_path / "no.json").exists()
+    assert len(err) == 1 and "free joint" in err[0] and not (tmp_path / "no.json").exists()
 
 
 def test_a_source_that_does_not_describe_its_nodes_is_refused(tmp_path):
@@ -325,3 +400,55 @@ def test_engines_agree_on_an_imported_damped_scene(tmp_path):
     for name, run in runs.items():
         assert np.abs(np.asarray(run.q) - np.asarray(truth.q)).max() < 1e-8, name
         np.testing.assert_allclose(run.energy[0, 0] - run.energy[0, -1], lost, rtol=1e-8, err_msg=name)
+
+
+def _first_outside(path, key: str | None, joint: str, frame_dt: float, duration: float) -> int:
+    """The first frame (of `frame_dt`) at which MuJoCo C, moving the original file with
+    its limits switched off, has `joint`'s qpos outside its range; -1 if none."""
+    model = mujoco.MjModel.from_xml_path(str(path))
+    model.opt.timestep, model.opt.integrator = MUJOCO_DT, mujoco.mjtIntegrator.mjINT_RK4
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
+    data = mujoco.MjData(model)
+    if key is not None:
+        mujoco.mj_resetDataKeyframe(model, data, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, key))
+    j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
+    low, high = model.jnt_range[j]
+    for frame in range(round(duration / frame_dt) + 1):
+        if not low <= data.qpos[model.jnt_qposadr[j]] <= high:
+            return frame
+        for _ in range(round(frame_dt / MUJOCO_DT)):
+            mujoco.mj_step(model, data)
+    return -1
+
+
+@pytest.mark.parametrize(
+    "text, key, joint",
+    # (MuJoCo reads hinge ranges in degrees by default.)
+    [(CART_DOUBLE_POLE.replace('damping="5e-2"', 'damping="5e-2" range="-0.3 0.45"'), "falling", "slider"),
+     (CART_DOUBLE_POLE.replace('<joint name="hinge_2"/>', '<joint name="hinge_2" range="-35 6"/>'), "falling", "hinge_2"),
+     (DOUBLE_PENDULUM.replace('<joint name="elbow" type="hinge" axis="0 1 0"/>', '<joint name="elbow" type="hinge" axis="0 1 0" range="-70 50"/>'),
+      "swing", "elbow"),
+     (DOUBLE_PENDULUM.replace('<joint name="shoulder" type="hinge" axis="0 1 0"/>', '<joint name="shoulder" type="hinge" axis="0 -1 0" range="-40 86"/>'),
+      "swing", "shoulder")],
+    ids=["slider", "pole-on-pole", "elbow", "shoulder-reversed-axis"],
+)
+def test_a_joint_range_is_kept_as_a_limit_and_the_engine_stops_where_mujocos_joint_leaves_it(tmp_path, text, key, joint):
+    """A limited slide or hinge becomes a limit in the scene's coordinates (its sign and
+    offset from the joint's qpos at the keyframe); the Lagrangian engine stops at the
+    frame where MuJoCo C's qpos (its limits off) first leaves the range, flagged, with
+    the motion up to there MuJoCo's."""
+    from lgnn.errors import SimulationError
+
+    path = _write(tmp_path, text)
+    result = imported(path, key)
+    scene = result.scene
+    assert len(scene.limits) == 1 and any("limits" in note for note in result.notes)
+    config = SimulationConfig(duration=DURATION)
+    expected = _first_outside(path, key, joint, config.frame_dt, DURATION)
+    assert expected > 10  # the joint starts inside its range and leaves it within the run
+    with pytest.raises(SimulationError, match="left the range of") as raised:
+        get_engine("lagrangian").rollout(scene, config, batch_of_one(scene.initial_state))
+    partial = raised.value.trajectory
+    assert abs(len(partial.t) - expected) <= 1, (len(partial.t), expected)
+    theirs = _mujoco_nodes(path, scene, key, config.frame_dt, DURATION)[: len(partial.t)]
+    assert np.abs(partial.q - theirs).max() < AGREEMENT_M

@@ -274,6 +274,50 @@ def test_joint_damping_dissipates_twice_its_dissipation_function(solver):
     assert physics.damping_force_fn(drag) is None
 
 
+def _cart_double_pole(rail_damping: float = 0.0):
+    """A 1 kg cart on a rail along x with two hinged 0.1 kg poles and a 0.3 kg bob at
+    the top, moving."""
+    return scene_from_dict({
+        "name": "cart-double-pole", "gravity": 9.81, "nodes": [[0.0, 1.0], [0.6, 1.8], [1.4, 2.4]],
+        "velocities": [[0.5, 0.0], [0.5 - 0.8 * 1.2, 0.6 * 1.2], [0.5 - 0.8 * 1.2 - 0.6 * 0.7, 0.6 * 1.2 + 0.8 * 0.7]],
+        "pinned": [], "links": [{"nodes": [0, 1], "mass": 0.1, "inertia": 0.1 / 12}, {"nodes": [1, 2], "mass": 0.1, "inertia": 0.1 / 12}],
+        "point_masses": [{"node": 0, "mass": 1.0}, {"node": 2, "mass": 0.3}], "rails": [{"node": 0, "axis": 0, "damping": rail_damping}],
+        "dampers": [{"links": [0], "damping": 0.02}, {"links": [1, 0], "damping": 0.01}]})
+
+
+@pytest.mark.parametrize("solver", ["generic", "schur"])
+def test_a_cart_on_a_rail_keeps_to_it_and_conserves_horizontal_momentum(solver):
+    """No horizontal force acts on a cart-pole but the rail's damping: total x momentum
+    (rods' centres and point masses) changes at `-b v_cart`; the cart never leaves its
+    rail; dH/dt is the dampers' power."""
+    from lgnn.physics.energies import damping_force_fn
+
+    for b in (0.0, 0.3):
+        scene = _cart_double_pole(b)
+        q, qd = jnp.asarray(scene.nodes), jnp.asarray(scene.velocities)
+        qdd = physics.true_acceleration_fn(scene, solver)(q, qd)
+        assert float(qdd[0, 1]) == 0.0
+        i, j = scene.edge_index.T
+        momentum_rate = jnp.sum(jnp.asarray(scene.masses) * 0.5 * (qdd[i, 0] + qdd[j, 0])) + jnp.sum(jnp.asarray(scene.node_mass_array) * qdd[:, 0])
+        np.testing.assert_allclose(momentum_rate, -b * qd[0, 0], atol=1e-12)
+        _, power = jax.jvp(physics.energy_fn(scene), (q, qd), (qd, qdd))
+        expected = jnp.sum(qd * damping_force_fn(scene)(q, qd)) - b * qd[0, 0] ** 2
+        np.testing.assert_allclose(power, expected, rtol=1e-9)
+    assert float(physics.constraint_violation(scene, q.at[0, 1].add(1e-3))) == pytest.approx(1e-3)
+
+
+def test_sampled_states_of_a_cart_are_on_its_rail_and_its_links():
+    """Projected perturbations keep the cart on its rail and the rods' lengths, to
+    round-off (the projection's Gram matrix counts a rail's free coordinate only)."""
+    scene = _cart_double_pole(0.1)
+    states = physics.sample_initial_conditions(scene, 4, seed=0)
+    np.testing.assert_array_equal(np.asarray(states.q)[:, 0, 1], scene.nodes[0, 1])
+    np.testing.assert_array_equal(np.asarray(states.qd)[:, 0, 1], 0.0)
+    for q, qd in zip(states.q, states.qd):
+        assert float(physics.constraint_violation(scene, q)) < 1e-14
+        assert float(physics.velocity_constraint_violation(scene, q, qd)) < 1e-14
+
+
 def test_conservative_power_is_zero():
     for scene in (get_scene("T1"), double_pinned_chain(6)):  # regular configurations (not T2/T3 at rest)
         q, qd = random_state(scene, seed=7)

@@ -415,3 +415,90 @@ def test_links_sharing_no_node_cannot_share_a_damper():
     data["links"].append({"nodes": [2, 3], "mass": 1.0, "inertia": 0.1})
     with pytest.raises(SceneError, match="share no node"):
         scene_from_dict({**data, "dampers": [{"links": [0, 2], "damping": 0.1}]})
+
+
+def carted():
+    """`valid()` with node 0 a 2 kg cart sliding along x (unpinned) and a bob at node 2."""
+    data = valid()
+    data["pinned"] = []
+    data["velocities"] = [[0.3, 0.0], [1.1, 0.6], [1.1, 1.6]]
+    return {**data, "point_masses": [{"node": 0, "mass": 2.0}, {"node": 2, "mass": 0.5}], "rails": [{"node": 0, "axis": 0, "damping": 0.1}]}
+
+
+def test_point_masses_and_rails_load_round_trip_and_fix_coordinates():
+    scene = scene_from_dict(carted())
+    assert scene.point_masses == ((0, 2.0), (2, 0.5)) and scene.rails == ((0, 0, 0.1),)
+    np.testing.assert_array_equal(scene.fixed_mask, [[False, True], [False, False], [False, False]])
+    np.testing.assert_array_equal(scene.node_mass_array, [2.0, 0.0, 0.5])
+    again = scene_from_dict(json.loads(scene_to_json(scene)))
+    assert (again.point_masses, again.rails) == (scene.point_masses, scene.rails) and again == scene
+    assert scene_from_dict({**carted(), "rails": []}).content_key != scene.content_key
+
+
+@pytest.mark.parametrize(
+    ("changes", "words"),
+    [
+        ({"point_masses": {"node": 0}}, ["point_masses", "expected a list"]),
+        ({"point_masses": [{"node": 0}]}, ["point_masses[0]", "expected {"]),
+        ({"point_masses": [{"node": 7, "mass": 1.0}]}, ["point_masses[0].node", "out of range"]),
+        ({"point_masses": [{"node": 0, "mass": 0.0}]}, ["point_masses[0].mass", "must be > 0"]),
+        ({"point_masses": [{"node": 0, "mass": 1.0}, {"node": 0, "mass": 2.0}]}, ["point_masses[1].node", "already has a point mass"]),
+        ({"rails": [{"node": 0}]}, ["rails[0]", "expected {"]),
+        ({"rails": [{"node": 0, "axis": 2}]}, ["rails[0].axis", "scene axis 0..1"]),
+        ({"rails": [{"node": 0, "axis": True}]}, ["rails[0].axis"]),
+        ({"rails": [{"node": 0, "axis": 0}, {"node": 0, "axis": 1}]}, ["rails[1].node", "already has a rail"]),
+        ({"rails": [{"node": 0, "axis": 0, "damping": -1}]}, ["rails[0].damping", "must be >= 0"]),
+        ({"pinned": [0], "velocities": [[0, 0], [0.8, 0.6], [0.8, 1.6]]}, ["rails[0].node", "node 0 is pinned"]),
+        ({"rails": [{"node": 0, "axis": 1}]}, ["velocities[0]", "slides along axis 1 only"]),
+    ],
+)
+def test_every_bad_point_mass_and_rail_is_one_clear_line(changes, words):
+    with pytest.raises(SceneError) as info:
+        scene_from_dict({**carted(), **changes})
+    assert "\n" not in str(info.value)
+    for word in words:
+        assert word in str(info.value), str(info.value)
+
+
+def test_a_node_with_only_a_point_mass_is_a_body():
+    """A free node of no link is refused for having no mass, unless it has a point mass."""
+    data = valid()
+    data["nodes"].append([3.0, 0.0])
+    data["velocities"].append([0.0, 0.0])
+    with pytest.raises(SceneError, match="no point mass"):
+        scene_from_dict(data)
+    assert scene_from_dict({**data, "point_masses": [{"node": 3, "mass": 1.0}]}).n_nodes == 4
+
+
+def test_limits_load_round_trip_and_are_checked():
+    from lgnn.scene import JointLimit
+
+    scene = scene_from_dict({**carted(), "limits": [{"links": [0], "range": [-1.0, 1.0]}, {"links": [1, 0], "range": [-0.5, 0.5]},
+                                                    {"node": 0, "range": [-2.0, 2.0]}]})
+    assert scene.limits == (JointLimit((0,), -1, -1.0, 1.0), JointLimit((1, 0), -1, -0.5, 0.5), JointLimit((), 0, -2.0, 2.0))
+    again = scene_from_dict(json.loads(scene_to_json(scene)))
+    assert again.limits == scene.limits and again == scene
+    assert scene_from_dict(carted()).content_key != scene.content_key
+
+
+@pytest.mark.parametrize(
+    ("limits", "words"),
+    [
+        ({"links": [0]}, ["limits", "expected a list"]),
+        ([{"links": [0]}], ["limits[0]", "expected {"]),
+        ([{"links": [0], "range": [1.0]}], ["limits[0].range", "expected [low, high]"]),
+        ([{"links": [0], "range": [1.0, -1.0]}], ["limits[0].range", "low must be below high"]),
+        ([{"links": [0], "range": [0.0, "x"]}], ["limits[0].range", "expected a number"]),
+        ([{"node": 2, "range": [0.0, 1.0]}], ["limits[0].node", "the node of a rail ([0])"]),
+        ([{"links": [3], "range": [0.0, 1.0]}], ["limits[0].links", "link indices 0..1"]),
+        ([{"links": [1], "range": [0.0, 1.0]}], ["limits[0].links", "link 1 has no pinned end and no end on a rail"]),
+        ([{"links": [0, 0], "range": [0.0, 1.0]}], ["limits[0].links", "do not meet at a node"]),
+        ([{"links": [0], "range": [0.0, 1.0]}, {"links": [0], "range": [0.0, 2.0]}], ["limits[1]", "a second limit"]),
+    ],
+)
+def test_every_bad_limit_is_one_clear_line(limits, words):
+    with pytest.raises(SceneError) as info:
+        scene_from_dict({**carted(), "limits": limits})
+    assert "\n" not in str(info.value)
+    for word in words:
+        assert word in str(info.value), str(info.value)

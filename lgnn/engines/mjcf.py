@@ -201,8 +201,12 @@ class Layout:
 
 def scene_layout(scene: Scene, form: Form = "nested") -> Layout:
     """The bodies of `form`: nested, the breadth-first spanning tree rooted at the
-    pinned nodes; maximal, one free body per moving link (module docstring)."""
+    pinned nodes; maximal, one free body per moving link (module docstring).
+    `SceneError` for point masses and rails, which are not rendered yet (an imported
+    scene is checked against its own MJCF file instead)."""
     check_form(form)
+    if scene.point_masses or scene.rails or scene.limits:
+        raise SceneError(f"{scene.name}: point masses, rails and joint limits are not rendered to MJCF yet (the MuJoCo engines cannot run this scene)")
     if form == "maximal":
         return _maximal_layout(scene)
     adjacency = [[] for _ in range(scene.n_nodes)]

@@ -21,6 +21,12 @@ rest):
   then never spins (the joint forces act on its axis), and the node description,
   which has no axial spin, is exact. A body joined to its parent by no joint is
   welded to it; a body jointed to the world is pinned at its anchor.
+- **Carts.** A body on a slide joint to the world (with what is welded to it) is a
+  point mass on a rail (`Scene.point_masses`, `Scene.rails`): it never turns, so it is
+  one node wherever its children's joints are, and the slide's damping is the rail's.
+  The slide must lie along one of the scene's axes to round-off (`RAIL_TOLERANCE`): a
+  rail that gravity leans along, as Gymnasium's inverted double pendulum's by 1e-6
+  rad, is refused, as the scene's gravity is along -y only.
 - **Loops.** A `connect` equality tying two link ends (or a link end and the world)
   joins them in one node, exactly; MuJoCo's own connect is soft (`solref`), so the
   file's own simulation differs from the scene by that softness.
@@ -31,8 +37,11 @@ rest):
 - **Joint damping** of hinges becomes the scene's dampers (`Scene.dampers`: the same
   torque on the same two links); a ball joint's is refused, as it also acts about a
   rod's own axis, which a node description has no spin about.
-- **Refused**, in one line naming the element: slide and free joints, ball joints'
-  damping, nonlinear damping, stiffness, armature, friction loss and limits, contacts that could happen, tendons,
+- **Joint ranges** of hinges and slides become the scene's limits (`Scene.limits`), in
+  the scene's angles and coordinates: lgnn does not model them, and its engine stops a
+  rollout that leaves one, flagged, as at divergence.
+- **Refused**, in one line naming the element: free joints, slides on moving bodies
+  or off the scene's axes, ball joints' damping, nonlinear damping, stiffness, armature, friction loss, ball joints' ranges, limit margins, contacts that could happen, tendons,
   flexes, plugins, mocap bodies, gravity compensation, fluid forces, equalities other
   than `connect`, actuators that push at zero control, hinges on different axes, and
   bodies whose mass is not a rod's as described. Actuators that do nothing at zero
@@ -58,6 +67,9 @@ from lgnn.scene import NodeSource, Scene, scene_from_dict
 # mass this close to a link's middle is at its middle; inertia components this small
 # (relative to the largest) are zero. Loose enough for MJCF written to 6 digits.
 RELATIVE_TOLERANCE = 1e-6
+# A slide's axis further than this (radians) from every scene axis is refused: the
+# scene's rails are along its axes exactly.
+RAIL_TOLERANCE = 1e-9
 # Largest MJCF file read (a model of thousands of bodies is a few MB).
 MAX_MJCF_FILE_BYTES = 64 * 1024 * 1024
 WORLD = "world"
@@ -116,9 +128,20 @@ def _import(mujoco, model, file_name: str, key: str | None) -> Imported:
     size = max(float(model.stat.extent), 1e-300)
     tolerance = RELATIVE_TOLERANCE * size
 
-    moving = [b for b in range(1, model.nbody) if model.body_jntnum[b] > 0]
-    if not moving:
+    jointed = [b for b in range(1, model.nbody) if model.body_jntnum[b] > 0]
+    if not jointed:
         raise SceneError("no body has a joint: nothing moves")
+    weld = np.asarray(model.body_weldid)
+    slide = int(mujoco.mjtJoint.mjJNT_SLIDE)
+    # A body on a slide joint to the world is a cart: a point mass on a rail, no rod.
+    carts = [b for b in jointed if int(model.jnt_type[model.body_jntadr[b]]) == slide]
+    for b in carts:
+        if weld[model.body_parentid[b]] != 0:
+            raise SceneError(f"joint {_name(mujoco, model, 'joint', model.body_jntadr[b])} slides a body that moves; "
+                             "lgnn models slide joints to the world (a cart)")
+    moving = [b for b in jointed if b not in carts]
+    if not moving:
+        raise SceneError("only slide joints: lgnn's scenes are rods, and a cart needs a hinged or ball-jointed body on it")
     kinds = {int(model.jnt_type[model.body_jntadr[b]]) for b in moving}
     hinge, ball = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_BALL)
     if kinds == {hinge}:
@@ -137,7 +160,6 @@ def _import(mujoco, model, file_name: str, key: str | None) -> Imported:
     plane = np.eye(3) if normal is None else np.eye(3) - np.outer(normal, normal)
 
     # One rod per moving body: mass, centre of mass and inertia of its weld group.
-    weld = np.asarray(model.body_weldid)
     parent_of = {b: int(weld[model.body_parentid[b]]) for b in moving}
     anchors = {b: np.array(data.xanchor[model.body_jntadr[b]], np.float64) for b in moving}
     nodes: list[np.ndarray] = []  # world positions
@@ -165,12 +187,23 @@ def _import(mujoco, model, file_name: str, key: str | None) -> Imported:
     def same(p, q) -> bool:
         return float(np.linalg.norm(plane @ (p - q))) <= tolerance
 
+    project = np.asarray(axes)
+    cart_node, point_masses, rails = {}, [], []
+    for b in carts:
+        node, point_mass, rail = _cart(mujoco, model, data, weld, b, [anchors[c] for c in moving if parent_of[c] == b], same, project, off)
+        cart_node[b] = new_node(node, b)
+        point_masses.append((cart_node[b], point_mass))
+        rails.append((cart_node[b], *rail))
     base_node, tip_node, links, link_of, dampers = {}, {}, [], {}, []
     for b in moving:  # parents before children (MuJoCo's body order)
         body = _name(mujoco, model, "body", b)
         p = parent_of[b]
         a = anchors[b]
-        if p == 0:
+        if p in cart_node:
+            if not same(a, nodes[cart_node[p]]):
+                raise SceneError(f"body {body}: its joint is not at the point of its cart where its siblings' are (a cart is one node)")
+            base_node[b] = cart_node[p]
+        elif p == 0:
             base_node[b] = next((k for k in pins if same(nodes[k], a)), None)
             if base_node[b] is None:
                 base_node[b] = new_node(a, 0)
@@ -213,12 +246,13 @@ def _import(mujoco, model, file_name: str, key: str | None) -> Imported:
         links.append((base_node[b], tip_node[b], mass, max(link_inertia, 0.0)))
         damping = 0.0 if off("DAMPER") else float(model.dof_damping[model.jnt_dofadr[model.body_jntadr[b]]])
         if damping:
-            dampers.append({"links": [link_of[b]] if p == 0 else [link_of[b], link_of[p]], "damping": damping})
+            # A cart does not turn, so a hinge on it is damped as one on a pin.
+            dampers.append({"links": [link_of[b]] if p == 0 or p in cart_node else [link_of[b], link_of[p]], "damping": damping})
 
-    nodes_merged = _connected(mujoco, model, data, weld, nodes, pins, base_node, tip_node, same, lambda point: new_node(point, 0), off)
+    ends_of = {**{b: [base_node[b], tip_node[b]] for b in moving}, **{b: [k] for b, k in cart_node.items()}}
+    nodes_merged = _connected(mujoco, model, data, weld, nodes, pins, ends_of, same, lambda point: new_node(point, 0), off)
     order = sorted(set(nodes_merged))
     index = {k: n for n, k in enumerate(order)}
-    project = np.asarray(axes)
     drag = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, DRAG_NUMERIC)
     if drag >= 0:
         drag = float(model.numeric_data[model.numeric_adr[drag]])
@@ -231,16 +265,29 @@ def _import(mujoco, model, file_name: str, key: str | None) -> Imported:
         "velocities": [(project @ velocities[k]).tolist() for k in order],
         "links": [{"nodes": [index[nodes_merged[i]], index[nodes_merged[j]]], "mass": m, "inertia": inertia} for i, j, m, inertia in links],
         "dampers": dampers,
+        "point_masses": [{"node": index[nodes_merged[k]], "mass": m} for k, m in point_masses],
+        "rails": [{"node": index[nodes_merged[k]], "axis": axis, "damping": damping} for k, axis, damping in rails],
         "source": {"mjcf": file_name, "axes": project.tolist(),
                    "nodes": [{"body": sources[k].body, "point": list(sources[k].point)} for k in order]},
     }
     # A node a connect ties to a pin is that pin.
     merged_pins = {index[nodes_merged[k]] for k in pins}
     scene_dict["pinned"] = sorted(merged_pins)
+    limited = [(model.body_jntadr[b], {"links": [link_of[b]] if parent_of[b] == 0 or parent_of[b] in cart_node else [link_of[b], link_of[parent_of[b]]]})
+               for b in moving] + [(model.body_jntadr[b], {"node": index[nodes_merged[cart_node[b]]]}) for b in carts]
     for k in merged_pins:
         scene_dict["velocities"][k] = [0.0] * dim
+    for k, axis, _ in rails:
+        node = index[nodes_merged[k]]
+        if node in merged_pins:
+            raise SceneError("a connect equality ties a cart to the world")
+        # Off the rail's axis the projection leaves round-off only.
+        scene_dict["velocities"][node] = [v if a == axis else 0.0 for a, v in enumerate(scene_dict["velocities"][node])]
     try:
         scene = scene_from_dict(scene_dict)
+        if any(_limited(model, joint, off) for joint, _ in limited):
+            scene = scene_from_dict({**scene_dict, "limits": _limits(mujoco, model, data, off, scene, limited, project)})
+            notes.append("joint ranges kept as limits: lgnn does not model them, and an engine stops a rollout that leaves one")
     except SceneError as err:
         raise SceneError(f"the imported scene is not valid: {err}") from None
     return Imported(scene, tuple(notes))
@@ -265,6 +312,29 @@ def node_positions(scene: Scene, model, data) -> np.ndarray:
             raise SceneError(f"the model has no body {node.body!r} (scene {scene.name!r} was imported from another file)")
         points.append(data.xpos[body] + np.asarray(data.xmat[body]).reshape(3, 3) @ np.asarray(node.point))
     return np.asarray(points, np.float64) @ np.asarray(scene.source.axes).T
+
+
+def _cart(mujoco, model, data, weld, body: int, child_anchors: list, same, project: np.ndarray, off):
+    """A cart's node (world point), point mass and rail `(axis, damping)`: the node is
+    where its children's joints are (a body that slides without turning is a point
+    mass at any point of it), or its centre of mass if it has none; its slide's axis
+    must be one of the scene's (`project`'s rows)."""
+    name = _name(mujoco, model, "body", body)
+    joint = model.body_jntadr[body]
+    mass, centre, _ = _weld_group(model, data, weld, body)
+    if mass <= 0:
+        raise SceneError(f"body {name}: a cart without mass (with the bodies welded to it)")
+    if child_anchors and any(not same(a, child_anchors[0]) for a in child_anchors):
+        raise SceneError(f"body {name}: the joints on this cart are at more than one point (a cart is one node)")
+    direction = project @ np.asarray(data.xaxis[joint], np.float64)
+    axis = int(np.argmax(np.abs(direction)))
+    off_axis = float(np.linalg.norm(np.delete(direction, axis)))
+    if off_axis > RAIL_TOLERANCE:
+        raise SceneError(f"joint {_name(mujoco, model, 'joint', joint)} slides {off_axis:.3g} rad off the scene's nearest axis "
+                         "(y is against gravity, x horizontal in the plane of motion); a rail along no scene axis, "
+                         "or gravity with a component along a rail, is not modelled yet")
+    damping = 0.0 if off("DAMPER") else float(model.dof_damping[model.jnt_dofadr[joint]])
+    return (child_anchors[0] if child_anchors else centre), mass, (axis, damping)
 
 
 def _weld_group(model, data, weld: np.ndarray, body: int) -> tuple[float, np.ndarray, np.ndarray]:
@@ -342,8 +412,8 @@ def _spatial_axes(gravity: np.ndarray) -> tuple[list[list[float]], float]:
 def _refusals_and_notes(mujoco, model, off):
     """Raise `SceneError` for the first feature of `model` lgnn does not model; yield a
     note for each one it leaves out (module docstring)."""
-    hinge, ball = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_BALL)
-    kind_name = {int(mujoco.mjtJoint.mjJNT_SLIDE): "slide", int(mujoco.mjtJoint.mjJNT_FREE): "free"}
+    hinge, ball, slide = (int(getattr(mujoco.mjtJoint, f"mjJNT_{kind}")) for kind in ("HINGE", "BALL", "SLIDE"))
+    kind_name = {int(mujoco.mjtJoint.mjJNT_FREE): "free"}
     for b in range(1, model.nbody):
         body = _name(mujoco, model, "body", b)
         if model.body_mocapid[b] >= 0:
@@ -351,13 +421,13 @@ def _refusals_and_notes(mujoco, model, off):
         if model.body_gravcomp[b] != 0:
             raise SceneError(f"body {body} has gravity compensation, which lgnn does not model")
         if model.body_jntnum[b] > 1:
-            raise SceneError(f"body {body} has {model.body_jntnum[b]} joints; lgnn models one hinge or ball joint per body")
+            raise SceneError(f"body {body} has {model.body_jntnum[b]} joints; lgnn models one hinge, ball or slide joint per body")
     for j in range(model.njnt):
         joint = _name(mujoco, model, "joint", j)
         kind = int(model.jnt_type[j])
-        if kind not in (hinge, ball):
-            raise SceneError(f"joint {joint} is a {kind_name.get(kind, str(kind))} joint; lgnn models hinge and ball joints only")
-        dofs = range(model.jnt_dofadr[j], model.jnt_dofadr[j] + (1 if kind == hinge else 3))
+        if kind not in (hinge, ball, slide):
+            raise SceneError(f"joint {joint} is a {kind_name.get(kind, str(kind))} joint; lgnn models hinge, ball and slide joints")
+        dofs = range(model.jnt_dofadr[j], model.jnt_dofadr[j] + (3 if kind == ball else 1))
         if not off("DAMPER") and any(x for d in dofs for x in model.dof_dampingpoly[d]):
             raise SceneError(f"joint {joint} has nonlinear damping (dampingpoly); lgnn models linear joint damping")
         if not off("DAMPER") and kind == ball and any(model.dof_damping[d] for d in dofs):
@@ -369,8 +439,10 @@ def _refusals_and_notes(mujoco, model, off):
             raise SceneError(f"joint {joint} has armature; lgnn does not model it")
         if not off("FRICTIONLOSS") and not off("CONSTRAINT") and any(model.dof_frictionloss[d] for d in dofs):
             raise SceneError(f"joint {joint} has friction loss; lgnn does not model it")
-        if model.jnt_limited[j] and not off("LIMIT") and not off("CONSTRAINT"):
-            raise SceneError(f"joint {joint} has a range (a joint limit); lgnn does not model limits")
+        if _limited(model, j, off) and kind == ball:
+            raise SceneError(f"joint {joint} is a ball joint with a range (a cone limit); lgnn flags hinge and slide ranges only")
+        if _limited(model, j, off) and model.jnt_margin[j]:
+            raise SceneError(f"joint {joint} has a limit margin; lgnn flags a range's crossing, with no margin")
     for what, count in (("tendon", model.ntendon), ("flex", model.nflex), ("plugin", model.nplugin)):
         if count:
             raise SceneError(f"{count} {what}{'s' if count > 1 else ''}: lgnn does not model {what}s")
@@ -395,6 +467,37 @@ def _refusals_and_notes(mujoco, model, off):
             raise SceneError(f"actuator {_name(mujoco, model, 'actuator', pushing[0])} pushes at zero control (it has a bias); lgnn scenes are passive")
         names = ", ".join(_name(mujoco, model, "actuator", u) for u in range(model.nu))
         yield f"left out: actuator{'s' if model.nu > 1 else ''} {names} (no force at zero control; a scene is the passive system)"
+
+
+def _limited(model, joint: int, off) -> bool:
+    """Whether MuJoCo enforces `joint`'s range (lgnn flags its crossing instead)."""
+    return bool(model.jnt_limited[joint]) and not off("LIMIT") and not off("CONSTRAINT")
+
+
+def _limits(mujoco, model, data, off, scene: Scene, joints: list[tuple[int, dict]], axes: np.ndarray) -> list[dict]:
+    """The scene's `limits` entries of the limited hinges and slides among `joints`
+    ((joint, its limit's "links" or "node")): MuJoCo's range of the joint's `qpos`,
+    moved to the scene's angle (or rail coordinate) by their values at the initial
+    state, in the scene's sense of rotation (or the rail's direction)."""
+    from lgnn.metrics import limit_values
+    from lgnn.scene import JointLimit
+
+    normal = np.cross(axes[0], axes[1]) if len(axes) == 2 else None
+    entries = []
+    for joint, where in joints:
+        if not _limited(model, joint, off):
+            continue
+        if "node" in where:
+            sense = float(np.sign(axes @ np.asarray(data.xaxis[joint], np.float64))[next(a for k, a, _ in scene.rails if k == where["node"])])
+            probe = JointLimit((), where["node"], -np.pi, np.pi)
+        else:
+            sense = float(np.sign(normal @ np.asarray(data.xaxis[joint], np.float64)))
+            probe = JointLimit(tuple(where["links"]), -1, -np.pi, np.pi)
+        initial = float(limit_values(scene.replace(limits=(probe,)), scene.nodes[None])[0, 0])
+        value = float(data.qpos[model.jnt_qposadr[joint]])
+        ends = sorted(initial + sense * (float(bound) - value) for bound in model.jnt_range[joint])
+        entries.append({**where, "range": ends})
+    return entries
 
 
 def _possible_contact(model, filter_parent_off: bool) -> tuple[int, int] | None:
@@ -422,7 +525,7 @@ def _possible_contact(model, filter_parent_off: bool) -> tuple[int, int] | None:
     return None
 
 
-def _connected(mujoco, model, data, weld, nodes, pins, base_node, tip_node, same, new_pin, off) -> list[int]:
+def _connected(mujoco, model, data, weld, nodes, pins, ends_of, same, new_pin, off) -> list[int]:
     """Each node's representative once the `connect` equalities have joined the link ends
     they tie (union-find); a tie to the world at a point that is no pin yet makes one."""
     parent = list(range(len(nodes)))
@@ -446,7 +549,7 @@ def _connected(mujoco, model, data, weld, nodes, pins, base_node, tip_node, same
                     rotation = np.asarray(data.xmat[body]).reshape(3, 3)
                     point = data.xpos[body] + rotation @ np.asarray(model.eq_data[e][3 * which: 3 * which + 3], np.float64)
                 body = int(weld[body])
-                ends = pins if body == 0 else [base_node[body], tip_node[body]]
+                ends = pins if body == 0 else ends_of[body]
                 node = next((k for k in ends if same(nodes[k], point)), None)
                 if node is None and body == 0:
                     node = new_pin(point)

@@ -57,7 +57,7 @@ from lgnn import physics, sharding
 from lgnn.engines.base import Integration, SimulationConfig, Trajectory
 from lgnn.errors import SimulationError
 from lgnn.integrate import advance
-from lgnn.metrics import ExplosionBounds
+from lgnn.metrics import ExplosionBounds, limit_violation
 from lgnn.physics import solvers
 from lgnn.runtime import precision
 from lgnn.scene import Scene, State, scene_to_dict
@@ -325,13 +325,19 @@ def _stop_at_divergence(scene: Scene, config: SimulationConfig, integration: Int
     t = (done + 1 + np.arange(kept)) * config.frame_dt
     found = [(violation[0], c, violation[1]) for c, member in enumerate(bounds, first)
              if (violation := member.first_violation(t, q[c, frames], qd[c, frames], energy[c, frames])) is not None]
-    if not found:
+    # A joint limit (which the engines do not model) stops a run as divergence does;
+    # its angles are unwrapped from frame 0.
+    limits = [(violation[0] - (done + 1), c, violation[1]) for c in range(first, first + len(bounds))
+              if (violation := limit_violation(scene, np.arange(done + 1 + kept) * config.frame_dt, q[c, :done + 1 + kept])) is not None]
+    if not found and not limits:
         return
-    k, c, reason = min(found)
-    end = done + 1 + k
+    k, c, reason = min(found + limits)
+    end = max(done + 1 + k, 1)  # an initial state outside a limit: that frame alone
     partial = Trajectory(np.arange(end) * config.frame_dt, q[c, :end].copy(), qd[c, :end].copy(), energy[c, :end].copy(),
                          run_metadata(scene, config, integration))
     member = f", initial condition {c}" if len(q) > 1 else ""
+    if (k, c, reason) in limits:
+        raise SimulationError(f"{label}: state {reason}{member}", time=float(t[k]) if k >= 0 else 0.0, trajectory=partial)
     raise SimulationError(f"{label}: state {reason} at t = {t[k]:.6g} s ({integration.integrator}, dt = {config.dt:g}{member}); {hint}",
                           time=float(t[k]), trajectory=partial)
 

@@ -361,7 +361,7 @@ def load_model(path: str | os.PathLike, spec: models.ModelSpec | None = None) ->
 
 def physics_differences(meta: dict, scene: Scene) -> list[str]:
     """How `scene`'s physical parameters differ from the scene a checkpoint was trained
-    on (gravity, drag, joint damping, the link masses, inertias and lengths: values the model never
+    on (gravity, drag, joint damping, point masses, the link masses, inertias and lengths: values the model never
     saw; the number of links and how they connect may differ, that is the zero-shot
     generalisation the benchmark measures): one phrase each, empty when they agree or when the
     training scene is unknown or no longer loadable (a moved scene file)."""
@@ -396,6 +396,10 @@ def _gravity_and_drag_differences(scene: Scene, trained: Scene) -> list[str]:
     if damping != trained_damping:
         shown = [_values(np.asarray(d)) if d else "none" for d in (damping, trained_damping)]
         differences.append(f"joint damping {shown[0]} (trained on {shown[1]})")
+    point_masses, trained_point_masses = (sorted({round(m, 12) for _, m in s.point_masses}) for s in (scene, trained))
+    if point_masses != trained_point_masses:
+        shown = [_values(np.asarray(m)) if m else "none" for m in (point_masses, trained_point_masses)]
+        differences.append(f"point masses {shown[0]} (trained on {shown[1]})")
     return differences
 
 

@@ -54,7 +54,9 @@ from lgnn.physics.energies import (
     hamiltonian_fn,
     kinetic_energy_per_link,
     lagrangian_fn,
+    point_mass_energies,
     potential_energy_per_link,
+    rail_damping_force_fn,
 )
 from lgnn.physics.local_mass import LOCAL, MassStructure, neighbourhoods
 from lgnn.physics.projection import projection_fn
@@ -89,9 +91,11 @@ __all__ = [
     "neighbourhoods",
     "own_or_sampled_states",
     "parametrised_acceleration_fn",
+    "point_mass_energies",
     "potential_energy_per_link",
     "prepare",
     "projection_fn",
+    "rail_damping_force_fn",
     "refine",
     "sample_initial_conditions",
     "sample_states",

@@ -8,7 +8,7 @@ links k = (i, j): scaled by 1/l, so Jacobian rows are unit vectors and links of 
 different lengths are equally well conditioned.
 
 Pins are exact: pinned nodes are not unknowns (`embed` puts them at their pins), so no
-pin rows exist. Redundant rows (a link between two pinned nodes, an over-braced truss)
+pin rows exist; a rail's node likewise has only its coordinate along the rail free. Redundant rows (a link between two pinned nodes, an over-braced truss)
 are dropped once per scene by a rank-revealing (column-pivoted) QR of the Jacobian at
 a random *generic* configuration, so exactly the structurally redundant rows go; the
 kept rows span the same constraint manifold. A structure can still lose rank at
@@ -83,8 +83,8 @@ class Constraints:
 
     def __init__(self, scene: Scene):
         n, d = scene.n_nodes, scene.dim
-        free_mask = np.ones((n, d), bool)
-        free_mask[list(scene.pinned)] = False
+        # A rail's node is free along its axis only (`Scene.fixed_mask`).
+        free_mask = ~scene.fixed_mask
         self.shape = (n, d)
         self.free_mask = free_mask
         self.free = np.flatnonzero(free_mask.ravel())
@@ -216,10 +216,14 @@ class Constraints:
 
 
 def constraint_violation(scene: Scene, q: Array) -> Array:
-    """Max absolute error of link lengths and pin positions at positions `q` (N, D)."""
+    """Max absolute error of link lengths and pin positions (and rails' fixed
+    coordinates) at positions `q` (N, D)."""
     i, j = scene.edge_index.T
     stretch = jnp.abs(jnp.linalg.norm(q[i] - q[j], axis=-1) - jnp.asarray(scene.lengths))
     worst = jnp.max(stretch)
+    if scene.rails:
+        fixed = scene.fixed_mask
+        return jnp.maximum(worst, jnp.max(jnp.where(fixed, jnp.abs(q - jnp.asarray(scene.nodes, q.dtype)), 0.0)))
     if scene.pinned:
         pins = np.asarray(scene.pinned)
         worst = jnp.maximum(worst, jnp.max(jnp.abs(q[pins] - jnp.asarray(scene.nodes[pins]))))
@@ -227,11 +231,14 @@ def constraint_violation(scene: Scene, q: Array) -> Array:
 
 
 def velocity_constraint_violation(scene: Scene, q: Array, qd: Array) -> Array:
-    """Max absolute rate of change of link lengths (and pin velocity) at (q, qd)."""
+    """Max absolute rate of change of link lengths (and pin velocity, and rails'
+    fixed coordinates' velocity) at (q, qd)."""
     i, j = scene.edge_index.T
     dq = q[i] - q[j]
     rate = jnp.abs(jnp.sum(dq * (qd[i] - qd[j]), -1)) / jnp.linalg.norm(dq, axis=-1)
     worst = jnp.max(rate)
+    if scene.rails:
+        return jnp.maximum(worst, jnp.max(jnp.where(scene.fixed_mask, jnp.abs(qd), 0.0)))
     if scene.pinned:
         worst = jnp.maximum(worst, jnp.max(jnp.abs(qd[np.asarray(scene.pinned)])))
     return worst

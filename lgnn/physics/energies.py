@@ -14,6 +14,9 @@ and for a rod of fixed length `|omega_perp|^2 l^2 = |dqd|^2`, so everything buil
 the node description (the constant on-manifold mass, the solvers) carries over. Its mass matrix `d2T/dqd2` is singular along the rod (stretching costs
 no kinetic energy), which the solver handles (`dynamics`); `constant_mass_lagrangian_fn`
 is the regular on-manifold equivalent the structured solvers factor once.
+
+A scene's point masses (`Scene.point_masses`) add `1/2 m |qd_k|^2` and `m g y_k` at
+their nodes (`point_mass_energies`); scenes without them compute exactly as before.
 """
 
 from __future__ import annotations
@@ -66,11 +69,26 @@ def potential_energy_per_link(scene: Scene, q: Array) -> Array:
     return jnp.asarray(scene.masses) * jnp.asarray(scene.gravity) * y_cm
 
 
+def point_mass_energies(scene: Scene, q: Array, qd: Array) -> tuple[Array, Array]:
+    """The kinetic and potential energy `(T, V)` of the scene's point masses
+    (`1/2 m |qd_k|^2`, `m g y_k`), zeros without any."""
+    if not scene.point_masses:
+        return jnp.zeros((), q.dtype), jnp.zeros((), q.dtype)
+    nodes = np.array([node for node, _ in scene.point_masses])
+    masses = jnp.asarray(np.array([mass for _, mass in scene.point_masses]), q.dtype)
+    kinetic = 0.5 * jnp.sum(masses * jnp.sum(qd[nodes] ** 2, -1))
+    return kinetic, jnp.sum(masses * jnp.asarray(scene.gravity, q.dtype) * q[nodes, 1])
+
+
 def lagrangian_fn(scene: Scene) -> LagrangianFn:
-    """The exact Lagrangian `L(q, qd) = T - V` of the scene's rods."""
+    """The exact Lagrangian `L(q, qd) = T - V` of the scene's rods and point masses."""
 
     def lagrangian(q, qd):
-        return jnp.sum(kinetic_energy_per_link(scene, q, qd)) - jnp.sum(potential_energy_per_link(scene, q))
+        value = jnp.sum(kinetic_energy_per_link(scene, q, qd)) - jnp.sum(potential_energy_per_link(scene, q))
+        if scene.point_masses:
+            kinetic, potential = point_mass_energies(scene, q, qd)
+            value = value + kinetic - potential
+        return value
 
     return lagrangian
 
@@ -87,7 +105,11 @@ def constant_mass_lagrangian_fn(scene: Scene) -> LagrangianFn:
     def lagrangian(q, qd):
         _, dqd, v_cm = _link_kinematics(scene, q, qd)
         kinetic = 0.5 * m * jnp.sum(v_cm * v_cm, -1) + 0.5 * inertia / length**2 * jnp.sum(dqd * dqd, -1)
-        return jnp.sum(kinetic) - jnp.sum(potential_energy_per_link(scene, q))
+        value = jnp.sum(kinetic) - jnp.sum(potential_energy_per_link(scene, q))
+        if scene.point_masses:
+            point_kinetic, point_potential = point_mass_energies(scene, q, qd)
+            value = value + point_kinetic - point_potential
+        return value
 
     return lagrangian
 
@@ -95,7 +117,8 @@ def constant_mass_lagrangian_fn(scene: Scene) -> LagrangianFn:
 def constant_node_mass(scene: Scene) -> np.ndarray:
     """(N*D, N*D) the constant mass matrix of `constant_mass_lagrangian_fn`, assembled
     from per-link blocks: a rod with ends a, b adds `m/4 + I/l^2` to the (a, a) and
-    (b, b) blocks and `m/4 - I/l^2` to (a, b) and (b, a), times the D x D identity."""
+    (b, b) blocks and `m/4 - I/l^2` to (a, b) and (b, a), and a point mass m at node k
+    adds m to the (k, k) block, times the D x D identity."""
     n, d = scene.n_nodes, scene.dim
     mass = np.zeros((n, n))
     same = np.asarray(scene.masses) / 4 + np.asarray(scene.inertias) / np.asarray(scene.lengths) ** 2
@@ -105,6 +128,8 @@ def constant_node_mass(scene: Scene) -> np.ndarray:
     np.add.at(mass, (b, b), same)
     np.add.at(mass, (a, b), cross)
     np.add.at(mass, (b, a), cross)
+    for node, point_mass in scene.point_masses:
+        mass[node, node] += point_mass
     return np.kron(mass, np.eye(d))
 
 
@@ -112,7 +137,11 @@ def energy_fn(scene: Scene) -> EnergyFn:
     """The exact Hamiltonian `H(q, qd) = T + V` of the scene."""
 
     def energy(q, qd):
-        return jnp.sum(kinetic_energy_per_link(scene, q, qd)) + jnp.sum(potential_energy_per_link(scene, q))
+        value = jnp.sum(kinetic_energy_per_link(scene, q, qd)) + jnp.sum(potential_energy_per_link(scene, q))
+        if scene.point_masses:
+            kinetic, potential = point_mass_energies(scene, q, qd)
+            value = value + kinetic + potential
+        return value
 
     return energy
 
@@ -156,10 +185,26 @@ def damping_force_fn(scene: Scene) -> ForceFn | None:
     return force
 
 
+def rail_damping_force_fn(scene: Scene) -> ForceFn | None:
+    """The rails' viscous damping (`Scene.rails`): `-damping * qd_k[axis]` along each
+    damped rail, as MuJoCo's slide-joint damping; `None` when no rail is damped."""
+    damped = [(node, axis, damping) for node, axis, damping in scene.rails if damping]
+    if not damped:
+        return None
+    coefficients = np.zeros((scene.n_nodes, scene.dim))
+    for node, axis, damping in damped:
+        coefficients[node, axis] = damping
+
+    def force(q, qd):
+        return -jnp.asarray(coefficients, qd.dtype) * qd
+
+    return force
+
+
 def dissipative_force_fn(scene: Scene) -> ForceFn | None:
-    """The scene's own non-conservative forces: drag and joint damping (`None` without
-    either)."""
-    forces = [f for f in (drag_force_fn(scene), damping_force_fn(scene)) if f is not None]
+    """The scene's own non-conservative forces: drag, joint damping and rail damping
+    (`None` without any)."""
+    forces = [f for f in (drag_force_fn(scene), damping_force_fn(scene), rail_damping_force_fn(scene)) if f is not None]
     if not forces:
         return None
     if len(forces) == 1:

@@ -80,8 +80,7 @@ def sample_initial_conditions(
     length = float(np.mean(scene.lengths)) if scene.n_links else 1.0
     gravity = abs(float(scene.gravity))
     speed = float(np.sqrt(gravity * length)) if gravity > 0 else length
-    free = np.ones((scene.n_nodes, 1))
-    free[list(scene.pinned)] = 0.0
+    free = (~scene.fixed_mask).astype(np.float64)  # pins and rails' fixed coordinates stay
     key_q, key_qd = jax.random.split(jax.random.PRNGKey(seed))
     shape = (count, *scene.nodes.shape)
     q = scene.nodes + position_scale * length * free * np.asarray(jax.random.normal(key_q, shape, jnp.float64))

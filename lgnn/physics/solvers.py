@@ -677,7 +677,8 @@ class LinkGram:
 
     `G_kl` is nonzero only when links k and l share a free node, where it is
     `+-u_k . u_l`; the diagonal counts each link's free ends. The pairs are found once
-    per scene. When only consecutive kept links share nodes (a chain) G is tridiagonal
+    per scene. A rail's node (free along one axis only) counts only its free
+    coordinates in those products (`partial`). When only consecutive kept links share nodes (a chain) G is tridiagonal
     and solved in linear time. When that holds after setting aside a few `border` links
     (T1: a chain of ropes and three braces that close loops) G is solved by block
     elimination: the tridiagonal rest, then the small dense Schur complement of the
@@ -693,8 +694,14 @@ class LinkGram:
         by_node: dict[int, list[tuple[int, float]]] = {}
         for k, node, sign in ends:
             by_node.setdefault(int(node), []).append((k, sign))
-        pairs = [(a, b, sa * sb) for incident in by_node.values() for x, (a, sa) in enumerate(incident) for b, sb in incident[x + 1 :]]
-        pairs = [(min(a, b), max(a, b), sign) for a, b, sign in pairs]
+        pairs = [(a, b, sa * sb, node) for node, incident in by_node.items() for x, (a, sa) in enumerate(incident) for b, sb in incident[x + 1 :]]
+        pairs = [(min(a, b), max(a, b), sign, node) for a, b, sign, node in pairs]
+        # Some node free in some coordinates only (a rail's): products over its free ones.
+        mask = constraints.free_mask.astype(np.float64)
+        self.partial = bool(np.any(constraints.free_mask.any(1) & ~constraints.free_mask.all(1)))
+        self.end_masks = (mask[i], mask[j]) if self.partial else None
+        self.pair_masks = mask[[node for *_, node in pairs]] if self.partial and pairs else np.zeros((0, mask.shape[1]))
+        pairs = [pair[:3] for pair in pairs]
         # int32 indices: the same dtype whether or not the caller traces with 64-bit
         # types (the projection runs in full precision inside a float32 rollout, and
         # int64 indices there met int32 ones in JAX's index arithmetic).
@@ -730,8 +737,13 @@ class LinkGram:
         13.8-14.7 -> 13.2-13.9 us, chain8 9.6-10.1 -> 8.8-9.3, chain16 unchanged
         (`results/cpu_vs_mujoco.md`)."""
         tridiagonal_solve = jax.lax.linalg.tridiagonal_solve if one_system else spd_tridiagonal_solve
-        diag = jnp.asarray(self.free_ends, u.dtype) * jnp.sum(u * u, -1) + shift
-        off = jnp.asarray(self.sign, u.dtype) * jnp.sum(take_rows(u, self.first) * take_rows(u, self.second), -1)
+        if self.partial:
+            first_mask, second_mask = (jnp.asarray(m, u.dtype) for m in self.end_masks)
+            diag = jnp.sum(u * u * (first_mask + second_mask), -1) + shift
+            off = jnp.asarray(self.sign, u.dtype) * jnp.sum(take_rows(u, self.first) * take_rows(u, self.second) * jnp.asarray(self.pair_masks, u.dtype), -1)
+        else:
+            diag = jnp.asarray(self.free_ends, u.dtype) * jnp.sum(u * u, -1) + shift
+            off = jnp.asarray(self.sign, u.dtype) * jnp.sum(take_rows(u, self.first) * take_rows(u, self.second), -1)
         if self.tridiagonal:
             upper = add_rows(jnp.zeros_like(diag), self.first, off)
             lower = jnp.roll(upper, 1)

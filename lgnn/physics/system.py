@@ -130,6 +130,8 @@ class System:
         weight = np.asarray(scene.masses) * float(scene.gravity) / 2
         np.add.at(gravity[:, 1], scene.edge_index[:, 0], -weight)
         np.add.at(gravity[:, 1], scene.edge_index[:, 1], -weight)
+        for node, mass in scene.point_masses:
+            gravity[node, 1] -= mass * float(scene.gravity)
         return gravity * self.constraints.free_mask.astype(np.float64)
 
     def solver(self, requested: str = "auto", vectorised: bool = False) -> str:

@@ -10,6 +10,7 @@ but `lgnn.errors`.
 """
 
 from lgnn.scene.schema import (
+    JointLimit,
     NodeSource,
     Scene,
     SceneSource,
@@ -63,6 +64,7 @@ __all__ = [
     "OWN_STATE",
     "PROJECTED",
     "TAGS",
+    "JointLimit",
     "NodeSource",
     "Scene",
     "SceneSource",

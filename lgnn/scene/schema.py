@@ -11,7 +11,7 @@ drag acts on each link's centre velocity. A scene is 2D or 3D throughout (`dim`)
 any scene of the same content (`content_key`), so caches key on content:
 - static (meta) fields fix the topology and the model structure and are hashable:
   `name`, `edges`, `pinned`, `link_types`, `drag` (whether a drag term exists at all
-  changes the equations, so it is static);
+  changes the equations, so it is static), `dampers`, `point_masses`, `rails`, `source`;
 - numeric fields are the leaves: `nodes` (N, D) and `velocities` (N, D), the initial
   state; `lengths`, `masses`, `inertias` (E,); `gravity` ().
 Leaves are stored as NumPy float64 so a scene is exact whatever JAX's x64 setting;
@@ -28,6 +28,11 @@ Scene files are JSON with exactly this schema (other tools depend on it):
                 "type": str (optional, default "link")}, ...],
      "dampers": [{"links": [e, p] or [e], "damping": float}, ...] (optional, planar
                  scenes: a joint's viscous damping, below),
+     "point_masses": [{"node": k, "mass": float}, ...] (optional: mass at a node),
+     "rails": [{"node": k, "axis": a, "damping": float (default 0)}, ...] (optional:
+               a node that slides along one scene axis, below),
+     "limits": [{"links": [e, p] or [e], "range": [low, high]} or
+                {"node": k, "range": [low, high]}, ...] (optional: joint ranges, below),
      "source": {...} (optional: where an imported scene's nodes come from, below)}
 
 A damper is a joint's viscous damping, as MuJoCo's joint `damping`: a torque
@@ -35,6 +40,21 @@ A damper is a joint's viscous damping, as MuJoCo's joint `damping`: a torque
 node), or with one link `-damping * omega_e` on a link turning about a pin; `omega` is
 a link's angular velocity. Planar scenes only: in 3D a joint's damping also acts about
 a rod's own axis, which the node description has no spin about.
+
+A point mass sits at a node (a cart, a bob): kinetic energy `1/2 m |qd_k|^2` and
+potential `m g y_k`. A rail holds a free node to the line through its initial position
+along scene axis `axis` (0 = x, 1 = y, 2 = z), as MuJoCo's slide joint to the world (a
+cart): its other coordinates are fixed as a pin's are, and `damping` is the slide's
+viscous damping, a force `-damping * qd_k[axis]`.
+
+A limit is a joint's range, which lgnn does not enforce: an engine stops a rollout that
+leaves it and flags it, as it flags divergence (`lgnn.metrics.limit_violation`). With
+links `[e, p]` (sharing a node n) it bounds the angle in radians from link p's
+direction into n to link e's direction out of n, counter-clockwise in the x-y plane (0
+when they continue straight on); with `[e]` (a link with a pinned end or a rail's
+node, which does not turn) the angle of e's direction out of that node from the x
+axis; with `node` (a rail's) the node's coordinate along its rail. Angles are planar
+scenes' only.
 
 A scene imported from MJCF (`lgnn.import_mjcf`) records its `source` (`SceneSource`):
 `{"mjcf": the file's name, "axes": [[x, y, z], ...] (one orthonormal row per scene axis:
@@ -113,6 +133,20 @@ class SceneSource:
                 "nodes": [{"body": node.body, "point": list(node.point)} for node in self.nodes]}
 
 
+class JointLimit(NamedTuple):
+    """A joint's range (module docstring): of the angle between `links` (e, p), of link
+    e's angle (e,), or of rail node `node`'s coordinate (`links` empty)."""
+
+    links: tuple[int, ...]
+    node: int
+    low: float
+    high: float
+
+    def to_dict(self) -> dict:
+        where = {"links": list(self.links)} if self.links else {"node": self.node}
+        return {**where, "range": [self.low, self.high]}
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Scene:
     """Immutable description of an articulated structure; see the module docstring."""
@@ -132,6 +166,12 @@ class Scene:
     source: SceneSource | None = None
     # Joint damping (module docstring): (link e, link p or -1 for a pin, damping) each.
     dampers: tuple[tuple[int, int, float], ...] = ()
+    # Point masses at nodes (module docstring): (node, mass) each.
+    point_masses: tuple[tuple[int, float], ...] = ()
+    # Nodes sliding along a scene axis (module docstring): (node, axis, damping) each.
+    rails: tuple[tuple[int, int, float], ...] = ()
+    # Joint ranges, not enforced: a rollout leaving one stops (module docstring).
+    limits: tuple["JointLimit", ...] = ()
 
     @property
     def n_nodes(self) -> int:
@@ -157,6 +197,25 @@ class Scene:
         return tuple(k for k in range(self.n_nodes) if k not in pinned)
 
     @property
+    def fixed_mask(self) -> np.ndarray:
+        """(N, D) bool: the coordinates held at their initial values, every coordinate of
+        a pinned node and those of a rail's node off its axis."""
+        fixed = np.zeros(self.nodes.shape, bool)
+        fixed[list(self.pinned)] = True
+        for node, axis, _ in self.rails:
+            fixed[node] = True
+            fixed[node, axis] = False
+        return fixed
+
+    @property
+    def node_mass_array(self) -> np.ndarray:
+        """(N,) the point mass at each node (zero where there is none)."""
+        masses = np.zeros(self.n_nodes)
+        for node, mass in self.point_masses:
+            masses[node] = mass
+        return masses
+
+    @property
     def pin_positions(self) -> np.ndarray:
         """(P, D) fixed positions of the pinned nodes (their initial positions)."""
         return self.nodes[list(self.pinned)]
@@ -178,6 +237,12 @@ class Scene:
             digest.update(repr(self.source).encode())
         if self.dampers:  # as scenes without dampers
             digest.update(repr(("dampers", self.dampers)).encode())
+        if self.point_masses:
+            digest.update(repr(("point_masses", self.point_masses)).encode())
+        if self.rails:
+            digest.update(repr(("rails", self.rails)).encode())
+        if self.limits:
+            digest.update(repr(("limits", tuple(tuple(limit) for limit in self.limits))).encode())
         for array in (self.nodes, self.velocities, self.lengths, self.masses, self.inertias, self.gravity):
             array = np.ascontiguousarray(array, np.float64)
             digest.update(repr(array.shape).encode())
@@ -200,7 +265,7 @@ class Scene:
 jax.tree_util.register_dataclass(
     Scene,
     data_fields=["nodes", "velocities", "lengths", "masses", "inertias", "gravity"],
-    meta_fields=["name", "edges", "pinned", "link_types", "drag", "source", "dampers"],
+    meta_fields=["name", "edges", "pinned", "link_types", "drag", "source", "dampers", "point_masses", "rails", "limits"],
 )
 
 
@@ -208,13 +273,13 @@ jax.tree_util.register_dataclass(
 # Construction and validation
 # ---------------------------------------------------------------------------------
 
-_TOP_KEYS = {"name", "gravity", "drag", "nodes", "velocities", "pinned", "links", "source", "dampers"}
+_TOP_KEYS = {"name", "gravity", "drag", "nodes", "velocities", "pinned", "links", "source", "dampers", "point_masses", "rails", "limits"}
 _REQUIRED_TOP = {"name", "nodes", "pinned", "links"}
 def is_pinned_chain(scene: Scene) -> bool:
     """True for a path 0-1-...-n pinned at node 0 only, in 2D or 3D: the scenes the chain
     samplers apply to, and whose constraint system physics solves in linear time."""
     n = scene.n_nodes - 1
-    return scene.pinned == (0,) and scene.edges == tuple((k, k + 1) for k in range(n))
+    return scene.pinned == (0,) and not scene.rails and scene.edges == tuple((k, k + 1) for k in range(n))
 
 
 _LINK_KEYS = {"nodes", "mass", "inertia", "length", "type"}
@@ -367,6 +432,7 @@ def scene_from_dict(data: Any) -> Scene:
         lengths.append(length)
         types.append(link_type)
 
+    rails = _rails(data["rails"], n_nodes, pinned, nodes.shape[1]) if "rails" in data else ()
     scene = Scene(
         name=name,
         edges=tuple(edges),
@@ -380,15 +446,107 @@ def scene_from_dict(data: Any) -> Scene:
         inertias=np.asarray(inertias, np.float64),
         gravity=np.asarray(gravity, np.float64),
         source=_source(data["source"], n_nodes, nodes.shape[1]) if "source" in data else None,
-        dampers=_dampers(data["dampers"], edges, pinned, nodes.shape[1]) if "dampers" in data else (),
+        # A link hinged to a pin or to a rail's node (which does not turn) has a
+        # damper of its own.
+        dampers=_dampers(data["dampers"], edges, pinned + tuple(node for node, _, _ in rails), nodes.shape[1]) if "dampers" in data else (),
+        point_masses=_point_masses(data["point_masses"], n_nodes) if "point_masses" in data else (),
+        rails=rails,
+        limits=_limits(data["limits"], edges, pinned + tuple(node for node, _, _ in rails), rails, nodes.shape[1]) if "limits" in data else (),
     )
     check_scene(scene)
     return scene
 
 
+def _point_masses(value, n_nodes: int) -> tuple[tuple[int, float], ...]:
+    """The validated point masses (module docstring): one per node at most, mass > 0."""
+    if not isinstance(value, list):
+        raise _fail("point_masses", f"expected a list of point masses, got {_short(value)}")
+    masses, seen = [], set()
+    for k, entry in enumerate(value):
+        where = f"point_masses[{k}]"
+        if not isinstance(entry, dict) or set(entry) != {"node", "mass"}:
+            raise _fail(where, f'expected {{"node": k, "mass": number}}, got {_short(entry)}')
+        node = _index(entry["node"], f"{where}.node", n_nodes)
+        if node in seen:
+            raise _fail(f"{where}.node", f"node {node} already has a point mass")
+        seen.add(node)
+        mass = _number(entry["mass"], f"{where}.mass")
+        if mass <= 0:
+            raise _fail(f"{where}.mass", f"must be > 0, got {mass}")
+        masses.append((node, mass))
+    return tuple(masses)
+
+
+def _rails(value, n_nodes: int, pinned: tuple, dim: int) -> tuple[tuple[int, int, float], ...]:
+    """The validated rails (module docstring): one per free node at most, on one of the
+    scene's axes, damping >= 0."""
+    if not isinstance(value, list):
+        raise _fail("rails", f"expected a list of rails, got {_short(value)}")
+    rails, seen = [], set()
+    for k, entry in enumerate(value):
+        where = f"rails[{k}]"
+        if not isinstance(entry, dict) or not {"node", "axis"} <= set(entry) <= {"node", "axis", "damping"}:
+            raise _fail(where, f'expected {{"node": k, "axis": a, "damping": number (optional)}}, got {_short(entry)}')
+        node = _index(entry["node"], f"{where}.node", n_nodes)
+        if node in pinned:
+            raise _fail(f"{where}.node", f"node {node} is pinned")
+        if node in seen:
+            raise _fail(f"{where}.node", f"node {node} already has a rail")
+        seen.add(node)
+        axis = entry["axis"]
+        if isinstance(axis, bool) or not isinstance(axis, int) or not 0 <= axis < dim:
+            raise _fail(f"{where}.axis", f"expected a scene axis 0..{dim - 1}, got {_short(axis)}")
+        damping = _number(entry.get("damping", 0.0), f"{where}.damping")
+        if damping < 0:
+            raise _fail(f"{where}.damping", f"must be >= 0, got {damping}")
+        rails.append((node, axis, damping))
+    return tuple(rails)
+
+
+def _limits(value, edges: list, fixed_ends: tuple, rails: tuple, dim: int) -> tuple[JointLimit, ...]:
+    """The validated limits (module docstring): an angle between links sharing a node
+    or of a link with an end in `fixed_ends` (planar), or a rail node's coordinate."""
+    if not isinstance(value, list):
+        raise _fail("limits", f"expected a list of limits, got {_short(value)}")
+    limits, seen = [], set()
+    rail_nodes = {node for node, _, _ in rails}
+    for k, entry in enumerate(value):
+        where = f"limits[{k}]"
+        if not isinstance(entry, dict) or set(entry) not in ({"links", "range"}, {"node", "range"}):
+            raise _fail(where, f'expected {{"links": [e, p] or [e], "range": [low, high]}} or {{"node": k, "range": [low, high]}}, got {_short(entry)}')
+        bounds = entry["range"]
+        if not isinstance(bounds, list) or len(bounds) != 2:
+            raise _fail(f"{where}.range", f"expected [low, high], got {_short(bounds)}")
+        low, high = (_number(b, f"{where}.range") for b in bounds)
+        if not low < high:
+            raise _fail(f"{where}.range", f"low must be below high, got [{low}, {high}]")
+        if "node" in entry:
+            node = entry["node"]
+            if isinstance(node, bool) or not isinstance(node, int) or node not in rail_nodes:
+                raise _fail(f"{where}.node", f"expected the node of a rail ({sorted(rail_nodes) or 'the scene has none'}), got {_short(node)}")
+            key, limit = ("node", node), JointLimit((), node, low, high)
+        else:
+            if dim != 2:
+                raise _fail(where, "joint angle limits are for planar scenes only")
+            links = entry["links"]
+            if not isinstance(links, list) or len(links) not in (1, 2) or any(
+                    isinstance(e, bool) or not isinstance(e, int) or not 0 <= e < len(edges) for e in links):
+                raise _fail(f"{where}.links", f"expected [e, p] or [e] of link indices 0..{len(edges) - 1}, got {_short(links)}")
+            if len(links) == 2 and (links[0] == links[1] or not set(edges[links[0]]) & set(edges[links[1]])):
+                raise _fail(f"{where}.links", f"links {links} do not meet at a node (a joint joins two links)")
+            if len(links) == 1 and not set(edges[links[0]]) & set(fixed_ends):
+                raise _fail(f"{where}.links", f"link {links[0]} has no pinned end and no end on a rail")
+            key, limit = ("links", *links), JointLimit(tuple(links), -1, low, high)
+        if key in seen:
+            raise _fail(where, "a second limit of the same joint")
+        seen.add(key)
+        limits.append(limit)
+    return tuple(limits)
+
+
 def _dampers(value, edges: list, pinned: tuple, dim: int) -> tuple[tuple[int, int, float], ...]:
     """The validated dampers (module docstring): each on a link and a link sharing a
-    node with it, or on a link with a pinned end."""
+    node with it, or on a link with an end in `pinned` (pins and rails' nodes)."""
     if not isinstance(value, list):
         raise _fail("dampers", f"expected a list of dampers, got {_short(value)}")
     if value and dim != 2:
@@ -409,7 +567,7 @@ def _dampers(value, edges: list, pinned: tuple, dim: int) -> tuple[tuple[int, in
         if len(links) == 2 and not set(edges[links[0]]) & set(edges[links[1]]):
             raise _fail(f"{where}.links", f"links {links[0]} and {links[1]} share no node (a joint joins links at a node)")
         if len(links) == 1 and not set(edges[links[0]]) & set(pinned):
-            raise _fail(f"{where}.links", f"link {links[0]} has no pinned end (a damper with one link turns it about a pin)")
+            raise _fail(f"{where}.links", f"link {links[0]} has no pinned end (a damper with one link turns it about a pin or a rail's node)")
         key = frozenset(links)
         if key in seen:
             raise _fail(f"{where}.links", f"links {links} already have a damper")
@@ -463,10 +621,10 @@ def check_scene(scene: Scene) -> None:
     for k, length in enumerate(lengths):
         if length < MIN_RELATIVE_LENGTH * longest:
             raise _fail(f"links[{k}].length", f"{length:g} is (nearly) zero: below {MIN_RELATIVE_LENGTH:g} of the longest link")
-    linked = {n for edge in scene.edges for n in edge}
+    linked = {n for edge in scene.edges for n in edge} | {node for node, _ in scene.point_masses}
     for node in scene.free_nodes:
         if node not in linked:
-            raise _fail("nodes", f"free node {node} belongs to no link (it would have no mass)")
+            raise _fail("nodes", f"free node {node} belongs to no link and has no point mass (it would have no mass)")
     i, j = scene.edge_index.T
     dq = scene.nodes[i] - scene.nodes[j]
     distance = np.linalg.norm(dq, axis=-1)
@@ -481,6 +639,9 @@ def check_scene(scene: Scene) -> None:
     if pinned and np.any(scene.velocities[pinned] != 0):
         bad = next(p for p in pinned if np.any(scene.velocities[p] != 0))
         raise _fail(f"velocities[{bad}]", "a pinned node must have zero velocity")
+    for node, axis, _ in scene.rails:
+        if np.any(np.delete(scene.velocities[node], axis) != 0):
+            raise _fail(f"velocities[{node}]", f"node {node} slides along axis {axis} only: its other velocity components must be zero")
     dqd = scene.velocities[i] - scene.velocities[j]
     speed = max(float(np.abs(scene.velocities).max()), 1.0)
     rate = np.abs(np.sum(dq * dqd, axis=-1)) / lengths / speed
@@ -510,6 +671,12 @@ def scene_to_dict(scene: Scene) -> dict:
     }
     if scene.dampers:
         data["dampers"] = [{"links": [e] if p < 0 else [e, p], "damping": damping} for e, p, damping in scene.dampers]
+    if scene.point_masses:
+        data["point_masses"] = [{"node": node, "mass": mass} for node, mass in scene.point_masses]
+    if scene.rails:
+        data["rails"] = [{"node": node, "axis": axis, "damping": damping} for node, axis, damping in scene.rails]
+    if scene.limits:
+        data["limits"] = [limit.to_dict() for limit in scene.limits]
     if scene.source is not None:
         data["source"] = scene.source.to_dict()
     return data

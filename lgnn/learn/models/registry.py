@@ -239,7 +239,10 @@ class ModelConfig:
 
 
 def check_compatible(config: ModelConfig, scene: Scene) -> None:
-    """Raise `ConfigError` if the model cannot run on `scene` (size, dimension, types)."""
+    """Raise `ConfigError` if the model cannot run on `scene` (size, dimension, types,
+    rails: the models' graphs know pinned and free nodes, not a node that slides)."""
+    if scene.rails:
+        raise ConfigError(f"scene {scene.name!r} has rails (nodes sliding along an axis), which the learned models do not take yet")
     if scene.dim != config.dim:
         raise ConfigError(f"model {config.name} was trained in {config.dim}D, scene {scene.name!r} is {scene.dim}D")
     if config.spec.fixed_size and scene.n_nodes != config.n_nodes:
