@@ -67,7 +67,8 @@ def energy_scale(scene: Scene, state: State) -> float:
     """The energy a motion of `scene` from `state` can involve (module docstring)."""
     size = structure_size(scene, state.q)
     speed0 = float(np.max(np.linalg.norm(np.asarray(state.qd, np.float64), axis=-1)))
-    return float(np.sum(scene.masses)) * (abs(float(scene.gravity)) * size + speed0**2 + size**2)
+    mass = float(np.sum(scene.masses)) + float(np.sum(scene.node_mass_array))
+    return mass * (float(np.linalg.norm(scene.gravity_vector)) * size + speed0**2 + size**2)
 
 
 def energy_drift(scene: Scene, trajectory) -> float:
@@ -97,7 +98,7 @@ class ExplosionBounds:
     def of(cls, scene: Scene, state: State, energy0: float) -> "ExplosionBounds":
         q0, qd0 = np.asarray(state.q, np.float64), np.asarray(state.qd, np.float64)
         speed0 = float(np.max(np.linalg.norm(qd0, axis=-1)))
-        return cls(float(energy0), energy_scale(scene, state), q0, structure_size(scene, q0), speed0, abs(float(scene.gravity)))
+        return cls(float(energy0), energy_scale(scene, state), q0, structure_size(scene, q0), speed0, float(np.linalg.norm(scene.gravity_vector)))
 
     def violations(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray, energy: np.ndarray):
         """`(non_finite, energy_out, position_out)`, each (F,) booleans, for frames at

@@ -318,6 +318,33 @@ def test_sampled_states_of_a_cart_are_on_its_rail_and_its_links():
         assert float(physics.velocity_constraint_violation(scene, q, qd)) < 1e-14
 
 
+@pytest.mark.parametrize("name", ["chain4", "chain4-drag", "chain4-3d"])
+def test_gravity_as_a_vector_turns_the_motion_with_it(name):
+    """A scene turned by a rotation R, its gravity turned with it (now with lateral
+    components), accelerates as R times the original, on every solver that applies;
+    its energy is the original's."""
+    from lgnn.scene import scene_to_dict
+
+    scene = get_scene(name)
+    angle = 0.4
+    c, s_ = np.cos(angle), np.sin(angle)
+    rotation = np.array([[c, -s_], [s_, c]]) if scene.dim == 2 else np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]) @ np.array(
+        [[1, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
+    data = scene_to_dict(scene)
+    data["name"] = f"{name}-turned"
+    data["nodes"] = (scene.nodes @ rotation.T).tolist()
+    data["velocities"] = (scene.velocities @ rotation.T).tolist()
+    data["gravity"] = (rotation @ scene.gravity_vector).tolist()
+    turned = scene_from_dict(data)
+    assert turned.lateral_gravity
+    q, qd = random_state(scene, seed=3)
+    q_turned, qd_turned = q @ rotation.T, qd @ rotation.T
+    for solver in ("generic", "schur", "chain"):
+        expected = physics.true_acceleration_fn(scene, solver)(q, qd) @ rotation.T
+        np.testing.assert_allclose(physics.true_acceleration_fn(turned, solver)(q_turned, qd_turned), expected, atol=1e-11, err_msg=solver)
+    np.testing.assert_allclose(physics.energy_fn(turned)(q_turned, qd_turned), physics.energy_fn(scene)(q, qd), rtol=1e-12)
+
+
 def test_conservative_power_is_zero():
     for scene in (get_scene("T1"), double_pinned_chain(6)):  # regular configurations (not T2/T3 at rest)
         q, qd = random_state(scene, seed=7)

@@ -2,6 +2,7 @@
 
 import itertools
 import json
+import re
 
 import numpy as np
 import pytest
@@ -502,3 +503,17 @@ def test_every_bad_limit_is_one_clear_line(limits, words):
     assert "\n" not in str(info.value)
     for word in words:
         assert word in str(info.value), str(info.value)
+
+
+def test_gravity_as_a_vector_loads_and_round_trips():
+    scene = scene_from_dict({**valid(), "gravity": [0.5, -9.0]})
+    assert float(scene.gravity) == 9.0 and scene.lateral_gravity == (0.5,)
+    np.testing.assert_array_equal(scene.gravity_vector, [0.5, -9.0])
+    assert scene_from_dict(json.loads(scene_to_json(scene))) == scene
+    # A vector along -y is the number: the same scene.
+    assert scene_from_dict({**valid(), "gravity": [0.0, -9.81]}) == scene_from_dict(valid())
+    spatial = scene_from_dict({**valid3d(), "gravity": [0.0, -9.0, 1.5]})
+    np.testing.assert_array_equal(spatial.gravity_vector, [0.0, -9.0, 1.5])
+    for bad, words in (([1.0, 2.0, 3.0], "a vector of 2 coordinates"), ([1.0, "x"], "gravity[1]"), ([], "a vector of 2")):
+        with pytest.raises(SceneError, match=re.escape(words)):
+            scene_from_dict({**valid(), "gravity": bad})

@@ -25,7 +25,7 @@ and mjcf/maximal/: `write_builtin_files`).
   normal to it and `AXIAL_INERTIA_FRACTION` of that about its own axis (`rod_inertia`).
 - `render(scene, dt)` (also `scene_to_mjcf`) renders the MJCF text: explicit `<inertial>` (the link's
   mass at the rod's centre, the scene's moment of inertia about z), contacts off,
-  gravity `(0, -g, 0)`, a site `node{k}` on every node, RK4, and the scene's initial
+  gravity `(0, -g, 0)` (or the scene's gravity vector), a site `node{k}` on every node, RK4, and the scene's initial
   velocities, where it has any, as the keyframe `INITIAL_KEY` (`initial_qvel`). Loop equalities are made
   stiff with `solref` of `SOLREF_STEPS` time steps and `solimp` near 1, so the MJCF
   depends on `dt`. Numbers are written as the shortest text that reads back to the
@@ -282,7 +282,7 @@ def error_model_holds(scene: Scene) -> bool:
     layout = scene_layout(scene)
     alike = all(np.ptp(values) <= 1e-12 * np.max(np.abs(values)) for values in (scene.lengths, scene.masses, scene.inertias))
     loops = layout.static_links or any(body.closes_loop for body in layout.bodies)
-    return alike and not loops and not scene.drag and float(scene.gravity) > 0
+    return alike and not loops and not scene.drag and not scene.lateral_gravity and float(scene.gravity) > 0
 
 
 def form_error(scene: Scene, form: Form, h: float, duration: float = MODELLED_DURATION) -> float | None:
@@ -431,7 +431,7 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         lines += ["  <custom>", f'    <numeric name="{DRAG_NUMERIC}" data="{_num(scene.drag)}"/>', "  </custom>"]
     lines += [
         '  <compiler angle="radian" autolimits="true"/>',
-        f'  <option timestep="{_num(dt)}" integrator="RK4" gravity="0 {_num(-float(scene.gravity))} 0" '
+        f'  <option timestep="{_num(dt)}" integrator="RK4" gravity="{_vec(*np.pad(scene.gravity_vector, (0, 3 - scene.dim)))}" '
         f'solver="Newton" tolerance="{_num(SOLVER_TOLERANCE)}" iterations="{SOLVER_ITERATIONS}" jacobian="{"sparse" if maximal else "dense"}">',
         '    <flag contact="disable"/>',
         "  </option>",

@@ -24,15 +24,17 @@ rest):
 - **Carts.** A body on a slide joint to the world (with what is welded to it) is a
   point mass on a rail (`Scene.point_masses`, `Scene.rails`): it never turns, so it is
   one node wherever its children's joints are, and the slide's damping is the rail's.
-  The slide must lie along one of the scene's axes to round-off (`RAIL_TOLERANCE`): a
-  rail that gravity leans along, as Gymnasium's inverted double pendulum's by 1e-6
-  rad, is refused, as the scene's gravity is along -y only.
+  The first cart's rail is the scene's x axis exactly and y is against gravity as
+  far as it is normal to the rail, so gravity keeps any part along the rail (Gymnasium's
+  inverted double pendulum's `1e-5`: `Scene.lateral_gravity`); other carts' slides
+  must lie along a scene axis to round-off (`RAIL_TOLERANCE`).
 - **Loops.** A `connect` equality tying two link ends (or a link end and the world)
   joins them in one node, exactly; MuJoCo's own connect is soft (`solref`), so the
   file's own simulation differs from the scene by that softness.
 - **Axes.** The scene's y axis points against gravity (in a planar scene its component
   in the plane; the component along the hinges does no work), x completes a
-  right-handed frame with the hinge axis (planar) or with the world's x axis (3D).
+  right-handed frame with the hinge axis (planar) or with the world's x axis (3D);
+  with a cart, x is its rail (below).
   With no gravity the world's axes are kept as far as they fit.
 - **Joint damping** of hinges becomes the scene's dampers (`Scene.dampers`: the same
   torque on the same two links); a ball joint's is refused, as it also acts about a
@@ -157,6 +159,11 @@ def _import(mujoco, model, file_name: str, key: str | None) -> Imported:
     else:
         normal = None
         axes, g = _spatial_axes(gravity)
+    if carts:
+        # The first cart's rail is the x axis exactly; gravity keeps whatever part of
+        # it lies along the rail (Gymnasium's inverted double pendulum's 1e-5).
+        axes = _rail_axes(np.asarray(data.xaxis[model.body_jntadr[carts[0]]], np.float64), normal, np.asarray(axes))
+        g = (np.asarray(axes) @ gravity).tolist()
     plane = np.eye(3) if normal is None else np.eye(3) - np.outer(normal, normal)
 
     # One rod per moving body: mass, centre of mass and inertia of its weld group.
@@ -394,6 +401,21 @@ def _planar_axes(normal: np.ndarray, gravity: np.ndarray) -> tuple[list[list[flo
     if x[int(np.argmax(np.abs(x)))] < 0:
         x = -x
     return [x.tolist(), up.tolist()], g
+
+
+def _rail_axes(rail: np.ndarray, normal: np.ndarray | None, axes: np.ndarray) -> list[list[float]]:
+    """Scene axes whose x is `rail` (world, sign kept towards the axes' own x) and whose
+    y is the axes' y (against gravity) made normal to it; in a planar scene the rail
+    must lie in the plane of motion."""
+    rail = rail / np.linalg.norm(rail)
+    if normal is not None and abs(float(rail @ normal)) > RAIL_TOLERANCE:
+        raise SceneError("a slide joint's axis leaves the plane of the hinges' motion")
+    x = rail if rail @ axes[0] >= 0 else -rail
+    y = axes[1] - (axes[1] @ x) * x
+    if np.linalg.norm(y) < 0.5:  # a rail along gravity: y from the axes' x instead
+        y = axes[0] - (axes[0] @ x) * x
+    y /= np.linalg.norm(y)
+    return [x.tolist(), y.tolist()] if normal is not None else [x.tolist(), y.tolist(), np.cross(x, y).tolist()]
 
 
 def _spatial_axes(gravity: np.ndarray) -> tuple[list[list[float]], float]:

@@ -388,8 +388,8 @@ def physics_differences(meta: dict, scene: Scene) -> list[str]:
 
 def _gravity_and_drag_differences(scene: Scene, trained: Scene) -> list[str]:
     differences = []
-    if not np.allclose(trained.gravity, scene.gravity):
-        differences.append(f"gravity {np.asarray(scene.gravity).tolist()} (trained on {np.asarray(trained.gravity).tolist()})")
+    if scene.dim != trained.dim or not np.allclose(trained.gravity_vector, scene.gravity_vector):
+        differences.append(f"gravity {_gravity_text(scene)} (trained on {_gravity_text(trained)})")
     if not np.isclose(trained.drag, scene.drag):
         differences.append(f"drag {scene.drag:g} (trained on {trained.drag:g})")
     damping, trained_damping = (sorted({round(b, 12) for _, _, b in s.dampers}) for s in (scene, trained))
@@ -401,6 +401,10 @@ def _gravity_and_drag_differences(scene: Scene, trained: Scene) -> list[str]:
         shown = [_values(np.asarray(m)) if m else "none" for m in (point_masses, trained_point_masses)]
         differences.append(f"point masses {shown[0]} (trained on {shown[1]})")
     return differences
+
+
+def _gravity_text(scene: Scene) -> str:
+    return f"{np.round(scene.gravity_vector, 12).tolist()}" if scene.lateral_gravity else f"{float(scene.gravity):g}"
 
 
 def _outside_the_draws(scene: Scene, draws: tuple[Scene, ...]) -> list[str]:

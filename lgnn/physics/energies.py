@@ -63,21 +63,27 @@ def kinetic_energy_per_link(scene: Scene, q: Array, qd: Array) -> Array:
 
 
 def potential_energy_per_link(scene: Scene, q: Array) -> Array:
-    """(E,) gravitational energy `m g y_cm` (gravity along -y)."""
+    """(E,) gravitational energy `m g y_cm` (gravity along -y), `-m g . r_cm` where the
+    scene's gravity also has lateral components."""
     i, j = scene.edge_index.T
     y_cm = 0.5 * (q[i, 1] + q[j, 1])
-    return jnp.asarray(scene.masses) * jnp.asarray(scene.gravity) * y_cm
+    energy = jnp.asarray(scene.masses) * jnp.asarray(scene.gravity) * y_cm
+    if scene.lateral_gravity:
+        lateral = [0, *range(2, scene.dim)]
+        r_cm = 0.5 * (q[i][:, lateral] + q[j][:, lateral])
+        energy = energy - jnp.asarray(scene.masses) * (r_cm @ jnp.asarray(scene.lateral_gravity, q.dtype))
+    return energy
 
 
 def point_mass_energies(scene: Scene, q: Array, qd: Array) -> tuple[Array, Array]:
     """The kinetic and potential energy `(T, V)` of the scene's point masses
-    (`1/2 m |qd_k|^2`, `m g y_k`), zeros without any."""
+    (`1/2 m |qd_k|^2`, `-m g . q_k`), zeros without any."""
     if not scene.point_masses:
         return jnp.zeros((), q.dtype), jnp.zeros((), q.dtype)
     nodes = np.array([node for node, _ in scene.point_masses])
     masses = jnp.asarray(np.array([mass for _, mass in scene.point_masses]), q.dtype)
     kinetic = 0.5 * jnp.sum(masses * jnp.sum(qd[nodes] ** 2, -1))
-    return kinetic, jnp.sum(masses * jnp.asarray(scene.gravity, q.dtype) * q[nodes, 1])
+    return kinetic, -jnp.sum(masses * (q[nodes] @ jnp.asarray(scene.gravity_vector, q.dtype)))
 
 
 def lagrangian_fn(scene: Scene) -> LagrangianFn:

@@ -78,7 +78,7 @@ def sample_initial_conditions(
     if position_scale < 0 or velocity_scale < 0:
         raise ConfigError("sampler scales must be >= 0")
     length = float(np.mean(scene.lengths)) if scene.n_links else 1.0
-    gravity = abs(float(scene.gravity))
+    gravity = float(np.linalg.norm(scene.gravity_vector))
     speed = float(np.sqrt(gravity * length)) if gravity > 0 else length
     free = (~scene.fixed_mask).astype(np.float64)  # pins and rails' fixed coordinates stay
     key_q, key_qd = jax.random.split(jax.random.PRNGKey(seed))

@@ -130,8 +130,12 @@ class System:
         weight = np.asarray(scene.masses) * float(scene.gravity) / 2
         np.add.at(gravity[:, 1], scene.edge_index[:, 0], -weight)
         np.add.at(gravity[:, 1], scene.edge_index[:, 1], -weight)
+        if scene.lateral_gravity:  # the same split of the weight along the other axes
+            for axis, component in zip((0, *range(2, scene.dim)), scene.lateral_gravity):
+                for end in (0, 1):
+                    np.add.at(gravity[:, axis], scene.edge_index[:, end], np.asarray(scene.masses) * component / 2)
         for node, mass in scene.point_masses:
-            gravity[node, 1] -= mass * float(scene.gravity)
+            gravity[node] += mass * scene.gravity_vector
         return gravity * self.constraints.free_mask.astype(np.float64)
 
     def solver(self, requested: str = "auto", vectorised: bool = False) -> str:

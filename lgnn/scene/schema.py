@@ -19,7 +19,8 @@ computations convert them.
 
 Scene files are JSON with exactly this schema (other tools depend on it):
 
-    {"name": str, "gravity": float (magnitude along -y, default 10),
+    {"name": str, "gravity": float (magnitude along -y, default 10) or [gx, gy] /
+     [gx, gy, gz] (the gravitational acceleration as a vector in the scene's axes),
      "drag": float (default 0), "nodes": [[x, y], ...] or [[x, y, z], ...],
      "velocities": [[vx, vy], ...] or [[vx, vy, vz], ...] (optional, default rest),
      "pinned": [node, ...],
@@ -172,6 +173,18 @@ class Scene:
     rails: tuple[tuple[int, int, float], ...] = ()
     # Joint ranges, not enforced: a rollout leaving one stops (module docstring).
     limits: tuple["JointLimit", ...] = ()
+    # Gravity's components along the axes other than y (x, then z in 3D), where it
+    # does not act along -y alone; `gravity` is always its magnitude along -y.
+    lateral_gravity: tuple[float, ...] = ()
+
+    @property
+    def gravity_vector(self) -> np.ndarray:
+        """(D,) the gravitational acceleration in the scene's axes."""
+        vector = np.zeros(self.dim)
+        vector[1] = -float(self.gravity)
+        if self.lateral_gravity:
+            vector[[0, *range(2, self.dim)]] = self.lateral_gravity
+        return vector
 
     @property
     def n_nodes(self) -> int:
@@ -243,6 +256,8 @@ class Scene:
             digest.update(repr(("rails", self.rails)).encode())
         if self.limits:
             digest.update(repr(("limits", tuple(tuple(limit) for limit in self.limits))).encode())
+        if self.lateral_gravity:
+            digest.update(repr(("lateral_gravity", self.lateral_gravity)).encode())
         for array in (self.nodes, self.velocities, self.lengths, self.masses, self.inertias, self.gravity):
             array = np.ascontiguousarray(array, np.float64)
             digest.update(repr(array.shape).encode())
@@ -265,7 +280,7 @@ class Scene:
 jax.tree_util.register_dataclass(
     Scene,
     data_fields=["nodes", "velocities", "lengths", "masses", "inertias", "gravity"],
-    meta_fields=["name", "edges", "pinned", "link_types", "drag", "source", "dampers", "point_masses", "rails", "limits"],
+    meta_fields=["name", "edges", "pinned", "link_types", "drag", "source", "dampers", "point_masses", "rails", "limits", "lateral_gravity"],
 )
 
 
@@ -361,12 +376,13 @@ def scene_from_dict(data: Any) -> Scene:
     if not name.isprintable():
         # It names files, tables and MJCF models: no control characters, no half of a UTF-16 pair.
         raise _fail("name", f"expected printable text, got {name.encode('unicode_escape', 'backslashreplace').decode()}")
-    gravity = _number(data.get("gravity", 10.0), "gravity")
+    gravity_value = data.get("gravity", 10.0)
     drag = _number(data.get("drag", 0.0), "drag")
     if drag < 0:
         raise _fail("drag", f"must be >= 0, got {drag}")
 
     nodes = _points(data["nodes"], "nodes", None)
+    gravity, lateral_gravity = _gravity(gravity_value, nodes.shape[1] if nodes.ndim == 2 else None)
     n_nodes = len(nodes)
     if n_nodes < 2:
         raise _fail("nodes", f"need at least 2 nodes, got {n_nodes}")
@@ -451,6 +467,7 @@ def scene_from_dict(data: Any) -> Scene:
         dampers=_dampers(data["dampers"], edges, pinned + tuple(node for node, _, _ in rails), nodes.shape[1]) if "dampers" in data else (),
         point_masses=_point_masses(data["point_masses"], n_nodes) if "point_masses" in data else (),
         rails=rails,
+        lateral_gravity=lateral_gravity,
         limits=_limits(data["limits"], edges, pinned + tuple(node for node, _, _ in rails), rails, nodes.shape[1]) if "limits" in data else (),
     )
     check_scene(scene)
@@ -501,6 +518,18 @@ def _rails(value, n_nodes: int, pinned: tuple, dim: int) -> tuple[tuple[int, int
             raise _fail(f"{where}.damping", f"must be >= 0, got {damping}")
         rails.append((node, axis, damping))
     return tuple(rails)
+
+
+def _gravity(value, dim: int | None) -> tuple[float, tuple[float, ...]]:
+    """`(magnitude along -y, lateral components)` of the JSON `gravity`: a number, or a
+    vector of the scene's dimension (module docstring)."""
+    if not isinstance(value, list):
+        return _number(value, "gravity"), ()
+    if dim is None or len(value) != dim:
+        raise _fail("gravity", f"expected a number or a vector of {dim} coordinates (as the nodes have), got {_short(value)}")
+    vector = [_number(v, f"gravity[{k}]") for k, v in enumerate(value)]
+    lateral = tuple(vector[a] for a in (0, *range(2, dim)))
+    return -vector[1], (lateral if any(lateral) else ())
 
 
 def _limits(value, edges: list, fixed_ends: tuple, rails: tuple, dim: int) -> tuple[JointLimit, ...]:
@@ -657,7 +686,7 @@ def scene_to_dict(scene: Scene) -> dict:
     """The JSON schema form of a scene; `scene_from_dict(scene_to_dict(s))` reproduces `s` exactly."""
     data = {
         "name": scene.name,
-        "gravity": float(scene.gravity),
+        "gravity": scene.gravity_vector.tolist() if scene.lateral_gravity else float(scene.gravity),
         "drag": float(scene.drag),
         "nodes": scene.nodes.tolist(),
         "velocities": scene.velocities.tolist(),
