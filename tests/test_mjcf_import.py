@@ -324,7 +324,7 @@ REFUSALS = {
     "stiffness": (_model(_BODY.format(joint=HINGE.format(' stiffness="2"'), child="")), "joint 'j' has stiffness 2"),
     "armature": (_model(_BODY.format(joint=HINGE.format(' armature="0.1"'), child="")), "joint 'j' has armature"),
     "ball range": (_model(_BODY.format(joint='<joint name="j" type="ball" range="0 30"/>', child="")), "joint 'j' is a ball joint with a range"),
-    "limit margin": (_model(_BODY.format(joint=HINGE.format(' range="-10 10" margin="0.01"'), child="")), "joint 'j' has a limit margin"),
+    "limit margin": (_model(_BODY.format(joint=HINGE.format(' range="-10 10" margin="0.2"'), child="")), "its limit margin 0.2 leaves no range"),
     "friction loss": (_model(_BODY.format(joint=HINGE.format(' frictionloss="0.1"'), child="")), "joint 'j' has friction loss"),
     "contact": (_model('<geom name="floor" type="plane" size="3 3 .1"/>' + _BODY.format(joint=HINGE.format(""), child=""), option=""),
                 "geoms 'floor' and #1 can collide"),
@@ -425,7 +425,7 @@ def _first_outside(path, key: str | None, joint: str, frame_dt: float, duration:
     if key is not None:
         mujoco.mj_resetDataKeyframe(model, data, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, key))
     j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
-    low, high = model.jnt_range[j]
+    low, high = model.jnt_range[j] + np.array([1, -1]) * model.jnt_margin[j]  # where MuJoCo's limit would act
     for frame in range(round(duration / frame_dt) + 1):
         if not low <= data.qpos[model.jnt_qposadr[j]] <= high:
             return frame
@@ -438,12 +438,14 @@ def _first_outside(path, key: str | None, joint: str, frame_dt: float, duration:
     "text, key, joint",
     # (MuJoCo reads hinge ranges in degrees by default.)
     [(CART_DOUBLE_POLE.replace('damping="5e-2"', 'damping="5e-2" range="-0.3 0.45"'), "falling", "slider"),
+     # Gymnasium's inverted double pendulum's slider has a margin.
+     (TILTED_CART_DOUBLE_POLE.replace('damping="5e-2"', 'damping="5e-2" range="-0.3 0.45" margin="0.05"'), "falling", "slider"),
      (CART_DOUBLE_POLE.replace('<joint name="hinge_2"/>', '<joint name="hinge_2" range="-35 6"/>'), "falling", "hinge_2"),
      (DOUBLE_PENDULUM.replace('<joint name="elbow" type="hinge" axis="0 1 0"/>', '<joint name="elbow" type="hinge" axis="0 1 0" range="-70 50"/>'),
       "swing", "elbow"),
      (DOUBLE_PENDULUM.replace('<joint name="shoulder" type="hinge" axis="0 1 0"/>', '<joint name="shoulder" type="hinge" axis="0 -1 0" range="-40 86"/>'),
       "swing", "shoulder")],
-    ids=["slider", "pole-on-pole", "elbow", "shoulder-reversed-axis"],
+    ids=["slider", "slider-with-margin", "pole-on-pole", "elbow", "shoulder-reversed-axis"],
 )
 def test_a_joint_range_is_kept_as_a_limit_and_the_engine_stops_where_mujocos_joint_leaves_it(tmp_path, text, key, joint):
     """A limited slide or hinge becomes a limit in the scene's coordinates (its sign and

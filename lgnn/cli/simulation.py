@@ -58,7 +58,11 @@ def _cmd_scene_import(args) -> None:
     else:
         write_text_atomic(args.out, text)
         print(f"wrote {args.out}: {scene.name}, {scene.dim}D, {_count(scene.n_nodes, 'node')}, {_count(scene.n_links, 'link')}, "
-              f"pins {list(scene.pinned)}, gravity {float(scene.gravity):g}", file=sys.stderr)
+              f"pins {list(scene.pinned)}, gravity {_gravity(scene)}", file=sys.stderr)
+
+
+def _gravity(scene) -> str:
+    return f"{[float(f'{g:.6g}') for g in scene.gravity_vector]}" if scene.lateral_gravity else f"{float(scene.gravity):g}"
 
 
 def _count(n: int, noun: str) -> str:

@@ -43,7 +43,7 @@ rest):
   the scene's angles and coordinates: lgnn does not model them, and its engine stops a
   rollout that leaves one, flagged, as at divergence.
 - **Refused**, in one line naming the element: free joints, slides on moving bodies
-  or off the scene's axes, ball joints' damping, nonlinear damping, stiffness, armature, friction loss, ball joints' ranges, limit margins, contacts that could happen, tendons,
+  or off the scene's axes, ball joints' damping, nonlinear damping, stiffness, armature, friction loss, ball joints' ranges, limit margins wider than the range, contacts that could happen, tendons,
   flexes, plugins, mocap bodies, gravity compensation, fluid forces, equalities other
   than `connect`, actuators that push at zero control, hinges on different axes, and
   bodies whose mass is not a rod's as described. Actuators that do nothing at zero
@@ -265,7 +265,8 @@ def _import(mujoco, model, file_name: str, key: str | None) -> Imported:
         drag = float(model.numeric_data[model.numeric_adr[drag]])
         notes.append(f"drag {drag:g} on link centres from the custom numeric {DRAG_NUMERIC!r} (lgnn's own element, which MuJoCo ignores)")
     scene_dict = {
-        "name": mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_MODEL, 0) or Path(file_name).stem,
+        # The model's name is the first of MuJoCo's names (`<mujoco model=...>`).
+        "name": bytes(model.names).split(b"\0", 1)[0].decode("utf-8", "replace").strip() or Path(file_name).stem,
         "gravity": g,
         "drag": max(drag, 0.0),
         "nodes": [(project @ nodes[k]).tolist() for k in order],
@@ -463,8 +464,8 @@ def _refusals_and_notes(mujoco, model, off):
             raise SceneError(f"joint {joint} has friction loss; lgnn does not model it")
         if _limited(model, j, off) and kind == ball:
             raise SceneError(f"joint {joint} is a ball joint with a range (a cone limit); lgnn flags hinge and slide ranges only")
-        if _limited(model, j, off) and model.jnt_margin[j]:
-            raise SceneError(f"joint {joint} has a limit margin; lgnn flags a range's crossing, with no margin")
+        if _limited(model, j, off) and not model.jnt_range[j][0] + model.jnt_margin[j] < model.jnt_range[j][1] - model.jnt_margin[j]:
+            raise SceneError(f"joint {joint}: its limit margin {model.jnt_margin[j]:g} leaves no range where the limit is inactive")
     for what, count in (("tendon", model.ntendon), ("flex", model.nflex), ("plugin", model.nplugin)):
         if count:
             raise SceneError(f"{count} {what}{'s' if count > 1 else ''}: lgnn does not model {what}s")
@@ -498,7 +499,8 @@ def _limited(model, joint: int, off) -> bool:
 
 def _limits(mujoco, model, data, off, scene: Scene, joints: list[tuple[int, dict]], axes: np.ndarray) -> list[dict]:
     """The scene's `limits` entries of the limited hinges and slides among `joints`
-    ((joint, its limit's "links" or "node")): MuJoCo's range of the joint's `qpos`,
+    ((joint, its limit's "links" or "node")): MuJoCo's range of the joint's `qpos`
+    less its margin at each end (where MuJoCo's limit starts to act),
     moved to the scene's angle (or rail coordinate) by their values at the initial
     state, in the scene's sense of rotation (or the rail's direction)."""
     from lgnn.metrics import limit_values
@@ -517,7 +519,10 @@ def _limits(mujoco, model, data, off, scene: Scene, joints: list[tuple[int, dict
             probe = JointLimit(tuple(where["links"]), -1, -np.pi, np.pi)
         initial = float(limit_values(scene.replace(limits=(probe,)), scene.nodes[None])[0, 0])
         value = float(data.qpos[model.jnt_qposadr[joint]])
-        ends = sorted(initial + sense * (float(bound) - value) for bound in model.jnt_range[joint])
+        # MuJoCo's limit acts from `margin` inside its range on: the scene's range ends there.
+        margin = float(model.jnt_margin[joint])
+        low, high = float(model.jnt_range[joint][0]) + margin, float(model.jnt_range[joint][1]) - margin
+        ends = sorted(initial + sense * (bound - value) for bound in (low, high))
         entries.append({**where, "range": ends})
     return entries
 
