@@ -80,15 +80,3 @@ def _own_dataset_cache(tmp_path_factory, monkeypatch):
 def _release_compiled_programs():
     yield
     release_compiled_programs()
-
-
-# `-n auto` on a small machine: one worker more than cores. The suite's workers wait on
-# the processes its tests start (`lgnn` commands, Ray, interrupts at random moments):
-# with one worker per core the 2-core CI machine's cores stood idle an eighth of the run
-# (175 % of 200 % CPU over 1509 s). On more cores, one per core.
-SMALL_MACHINE_CORES = 4
-
-
-def pytest_xdist_auto_num_workers(config):
-    cores = os.cpu_count() or 1
-    return cores + 1 if cores <= SMALL_MACHINE_CORES else cores
