@@ -508,7 +508,9 @@ def test_constraint_rows_independent_everywhere_only_without_cycles():
                            "double-pinned": False, "pinned-triangle": False, "free-triangle": False, "T1": False, "net4x4-3d": False}
 
 
-@pytest.mark.parametrize("scene_name", ["chain4", "chain4-3d", "T1"])
+# The tangent-space solve (a chain) and the KKT solve (a cycle); both are written for any
+# dimension, and a 3D case doubled this test's compile time.
+@pytest.mark.parametrize("scene_name", ["chain4", "T1"])
 def test_parametrised_accelerations_differentiate_as_the_ordinary_route(scene_name):
     """`physics.parametrised_acceleration_fn` takes the derivative by the parameters
     from the adjoint of the constrained equations: the same accelerations and the same
@@ -820,7 +822,9 @@ def test_banded_chain_kkt_solve_is_the_dense_solve(dim):
     from lgnn.physics import solvers
 
     cases = [(1, 4, False, True), (2, 1, True, True), (3, 7, False, True), (3, 7, True, True), (3, 7, False, False)]
-    for reach, n, cyclic, regularised in cases:
+    # The solves are written for any block size D: the planar run keeps one case of each
+    # elimination (compiles are most of this test's time).
+    for reach, n, cyclic, regularised in cases if dim == 3 else cases[:2]:
         system, expected = _banded_chain_system(n, dim, reach, seed=10 * n + reach)
         got = jax.jit(functools.partial(solvers.banded_chain_kkt_solve, regularised=regularised, cyclic=cyclic))(*system)
         np.testing.assert_allclose(got, expected, atol=1e-11 * np.abs(expected).max(), err_msg=f"{reach=} {n=} {cyclic=}")
@@ -837,8 +841,8 @@ def test_banded_chain_kkt_solve_with_a_low_rank_term_is_the_dense_solve(dim):
     both eliminations, against the dense solve; with one group and with several."""
     from lgnn.physics import solvers
 
-    for reach, n, rank, cyclic, regularised in [(3, 7, 4, False, False), (3, 7, 4, False, True), (3, 7, 4, True, True), (2, 1, 3, False, True),
-                                                (1, 9, 2, True, True)]:
+    cases = [(3, 7, 4, False, False), (3, 7, 4, False, True), (3, 7, 4, True, True), (2, 1, 3, False, True), (1, 9, 2, True, True)]
+    for reach, n, rank, cyclic, regularised in cases if dim == 3 else cases[1:3]:  # (as above)
         (*system, low_rank), expected = _banded_chain_system(n, dim, reach, seed=10 * n + reach + rank, rank=rank)
         solve = functools.partial(solvers.banded_chain_kkt_solve, regularised=regularised, cyclic=cyclic, low_rank=low_rank)
         got = jax.jit(solve)(*system)
