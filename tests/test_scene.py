@@ -379,6 +379,15 @@ def test_dampers_load_and_round_trip_and_change_the_content_key():
     assert undamped.content_key != scene.content_key and undamped != scene
 
 
+def _refused_in_one_line(data: dict, words: list[str]) -> None:
+    """`scene_from_dict(data)` raises `SceneError` in one line holding every one of `words`."""
+    with pytest.raises(SceneError) as info:
+        scene_from_dict(data)
+    assert "\n" not in str(info.value)
+    for word in words:
+        assert word in str(info.value), str(info.value)
+
+
 @pytest.mark.parametrize(
     ("dampers", "words"),
     [
@@ -395,11 +404,7 @@ def test_dampers_load_and_round_trip_and_change_the_content_key():
     ],
 )
 def test_every_bad_damper_is_one_clear_line(dampers, words):
-    with pytest.raises(SceneError) as info:
-        scene_from_dict({**valid(), "dampers": dampers})
-    assert "\n" not in str(info.value)
-    for word in words:
-        assert word in str(info.value), str(info.value)
+    _refused_in_one_line({**valid(), "dampers": dampers}, words)
 
 
 def test_dampers_are_refused_in_3d():
@@ -454,11 +459,7 @@ def test_point_masses_and_rails_load_round_trip_and_fix_coordinates():
     ],
 )
 def test_every_bad_point_mass_and_rail_is_one_clear_line(changes, words):
-    with pytest.raises(SceneError) as info:
-        scene_from_dict({**carted(), **changes})
-    assert "\n" not in str(info.value)
-    for word in words:
-        assert word in str(info.value), str(info.value)
+    _refused_in_one_line({**carted(), **changes}, words)
 
 
 def test_a_node_with_only_a_point_mass_is_a_body():
@@ -493,16 +494,12 @@ def test_limits_load_round_trip_and_are_checked():
         ([{"node": 2, "range": [0.0, 1.0]}], ["limits[0].node", "the node of a rail ([0])"]),
         ([{"links": [3], "range": [0.0, 1.0]}], ["limits[0].links", "link indices 0..1"]),
         ([{"links": [1], "range": [0.0, 1.0]}], ["limits[0].links", "link 1 has no pinned end and no end on a rail"]),
-        ([{"links": [0, 0], "range": [0.0, 1.0]}], ["limits[0].links", "do not meet at a node"]),
+        ([{"links": [0, 0], "range": [0.0, 1.0]}], ["limits[0].links", "link 0 twice"]),
         ([{"links": [0], "range": [0.0, 1.0]}, {"links": [0], "range": [0.0, 2.0]}], ["limits[1]", "a second limit"]),
     ],
 )
 def test_every_bad_limit_is_one_clear_line(limits, words):
-    with pytest.raises(SceneError) as info:
-        scene_from_dict({**carted(), "limits": limits})
-    assert "\n" not in str(info.value)
-    for word in words:
-        assert word in str(info.value), str(info.value)
+    _refused_in_one_line({**carted(), "limits": limits}, words)
 
 
 def test_gravity_as_a_vector_loads_and_round_trips():

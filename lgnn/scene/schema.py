@@ -210,6 +210,12 @@ class Scene:
         return tuple(k for k in range(self.n_nodes) if k not in pinned)
 
     @property
+    def grounded_nodes(self) -> tuple[int, ...]:
+        """The nodes the world holds, pinned or on a rail: they do not move off their place
+        or line, so a link with an end at one turns about the world (its angle is a joint's)."""
+        return tuple(self.pinned) + tuple(node for node, _, _ in self.rails)
+
+    @property
     def fixed_mask(self) -> np.ndarray:
         """(N, D) bool: the coordinates held at their initial values, every coordinate of
         a pinned node and those of a rail's node off its axis."""
@@ -462,14 +468,16 @@ def scene_from_dict(data: Any) -> Scene:
         inertias=np.asarray(inertias, np.float64),
         gravity=np.asarray(gravity, np.float64),
         source=_source(data["source"], n_nodes, nodes.shape[1]) if "source" in data else None,
-        # A link hinged to a pin or to a rail's node (which does not turn) has a
-        # damper of its own.
-        dampers=_dampers(data["dampers"], edges, pinned + tuple(node for node, _, _ in rails), nodes.shape[1]) if "dampers" in data else (),
         point_masses=_point_masses(data["point_masses"], n_nodes) if "point_masses" in data else (),
         rails=rails,
         lateral_gravity=lateral_gravity,
-        limits=_limits(data["limits"], edges, pinned + tuple(node for node, _, _ in rails), rails, nodes.shape[1]) if "limits" in data else (),
     )
+    # Joints are read against the scene's grounded nodes: a link with an end at a pin or
+    # on a rail has a joint (a damper, a limit) of its own.
+    if "dampers" in data:
+        scene = scene.replace(dampers=_dampers(data["dampers"], edges, scene.grounded_nodes, scene.dim))
+    if "limits" in data:
+        scene = scene.replace(limits=_limits(data["limits"], edges, scene.grounded_nodes, rails, scene.dim))
     check_scene(scene)
     return scene
 
@@ -533,8 +541,8 @@ def _gravity(value, dim: int | None) -> tuple[float, tuple[float, ...]]:
 
 
 def _limits(value, edges: list, fixed_ends: tuple, rails: tuple, dim: int) -> tuple[JointLimit, ...]:
-    """The validated limits (module docstring): an angle between links sharing a node
-    or of a link with an end in `fixed_ends` (planar), or a rail node's coordinate."""
+    """The validated limits (module docstring): a joint's angle (`_joint_links`;
+    planar), or a rail node's coordinate."""
     if not isinstance(value, list):
         raise _fail("limits", f"expected a list of limits, got {_short(value)}")
     limits, seen = [], set()
@@ -557,14 +565,7 @@ def _limits(value, edges: list, fixed_ends: tuple, rails: tuple, dim: int) -> tu
         else:
             if dim != 2:
                 raise _fail(where, "joint angle limits are for planar scenes only")
-            links = entry["links"]
-            if not isinstance(links, list) or len(links) not in (1, 2) or any(
-                    isinstance(e, bool) or not isinstance(e, int) or not 0 <= e < len(edges) for e in links):
-                raise _fail(f"{where}.links", f"expected [e, p] or [e] of link indices 0..{len(edges) - 1}, got {_short(links)}")
-            if len(links) == 2 and (links[0] == links[1] or not set(edges[links[0]]) & set(edges[links[1]])):
-                raise _fail(f"{where}.links", f"links {links} do not meet at a node (a joint joins two links)")
-            if len(links) == 1 and not set(edges[links[0]]) & set(fixed_ends):
-                raise _fail(f"{where}.links", f"link {links[0]} has no pinned end and no end on a rail")
+            links = _joint_links(entry["links"], f"{where}.links", edges, fixed_ends)
             key, limit = ("links", *links), JointLimit(tuple(links), -1, low, high)
         if key in seen:
             raise _fail(where, "a second limit of the same joint")
@@ -573,9 +574,8 @@ def _limits(value, edges: list, fixed_ends: tuple, rails: tuple, dim: int) -> tu
     return tuple(limits)
 
 
-def _dampers(value, edges: list, pinned: tuple, dim: int) -> tuple[tuple[int, int, float], ...]:
-    """The validated dampers (module docstring): each on a link and a link sharing a
-    node with it, or on a link with an end in `pinned` (pins and rails' nodes)."""
+def _dampers(value, edges: list, fixed_ends: tuple, dim: int) -> tuple[tuple[int, int, float], ...]:
+    """The validated dampers (module docstring): each on a joint (`_joint_links`)."""
     if not isinstance(value, list):
         raise _fail("dampers", f"expected a list of dampers, got {_short(value)}")
     if value and dim != 2:
@@ -585,18 +585,7 @@ def _dampers(value, edges: list, pinned: tuple, dim: int) -> tuple[tuple[int, in
         where = f"dampers[{k}]"
         if not isinstance(damper, dict) or set(damper) != {"links", "damping"}:
             raise _fail(where, f'expected {{"links": [e, p] or [e], "damping": number}}, got {_short(damper)}')
-        links = damper["links"]
-        if not isinstance(links, list) or len(links) not in (1, 2):
-            raise _fail(f"{where}.links", f"expected [e, p] or [e], got {_short(links)}")
-        for e in links:
-            if isinstance(e, bool) or not isinstance(e, int) or not 0 <= e < len(edges):
-                raise _fail(f"{where}.links", f"expected link indices 0..{len(edges) - 1}, got {_short(links)}")
-        if len(links) == 2 and links[0] == links[1]:
-            raise _fail(f"{where}.links", f"link {links[0]} twice (a joint joins two links)")
-        if len(links) == 2 and not set(edges[links[0]]) & set(edges[links[1]]):
-            raise _fail(f"{where}.links", f"links {links[0]} and {links[1]} share no node (a joint joins links at a node)")
-        if len(links) == 1 and not set(edges[links[0]]) & set(pinned):
-            raise _fail(f"{where}.links", f"link {links[0]} has no pinned end (a damper with one link turns it about a pin or a rail's node)")
+        links = _joint_links(damper["links"], f"{where}.links", edges, fixed_ends)
         key = frozenset(links)
         if key in seen:
             raise _fail(f"{where}.links", f"links {links} already have a damper")
@@ -606,6 +595,23 @@ def _dampers(value, edges: list, pinned: tuple, dim: int) -> tuple[tuple[int, in
             raise _fail(f"{where}.damping", f"must be >= 0, got {damping}")
         dampers.append((links[0], links[1] if len(links) == 2 else -1, damping))
     return tuple(dampers)
+
+
+def _joint_links(links, where: str, edges: list, fixed_ends: tuple) -> list[int]:
+    """The link list of a joint named at `where` (a damper's or a limit's), validated: two
+    links meeting at a node, or one link with an end in `fixed_ends` (the nodes that do
+    not move off their place: pins and rails' nodes), whose angle is then its own."""
+    if not isinstance(links, list) or len(links) not in (1, 2):
+        raise _fail(where, f"expected [e, p] or [e], got {_short(links)}")
+    if any(isinstance(e, bool) or not isinstance(e, int) or not 0 <= e < len(edges) for e in links):
+        raise _fail(where, f"expected link indices 0..{len(edges) - 1}, got {_short(links)}")
+    if len(links) == 2 and links[0] == links[1]:
+        raise _fail(where, f"link {links[0]} twice (a joint joins two links)")
+    if len(links) == 2 and not set(edges[links[0]]) & set(edges[links[1]]):
+        raise _fail(where, f"links {links[0]} and {links[1]} share no node (a joint joins links at a node)")
+    if len(links) == 1 and not set(edges[links[0]]) & set(fixed_ends):
+        raise _fail(where, f"link {links[0]} has no pinned end and no end on a rail (a joint of one link turns it about a pin or a rail's node)")
+    return links
 
 
 _SOURCE_KEYS = {"mjcf", "axes", "nodes"}
