@@ -138,14 +138,15 @@ def divergence_frames(scene: Scene, t: np.ndarray, q: np.ndarray, qd: np.ndarray
     return first
 
 
-def limit_values(scene: Scene, q: np.ndarray) -> np.ndarray:
+def limit_values(scene: Scene, q: np.ndarray, after: np.ndarray | None = None) -> np.ndarray:
     """(F, L) each of the scene's joint limits' quantity (`Scene.limits`: an angle in
     radians or a rail node's coordinate) at frames `q` (F, N, D) of one trajectory,
-    angles unwrapped along the frames and taken, at frame 0, on the turn nearest the
-    middle of their range."""
+    angles unwrapped along the frames. `after` (L,) holds the values at the frame just
+    before `q[0]`, so that a trajectory read in parts unwraps as it does whole; without
+    it, frame 0 takes the turn nearest the middle of each range."""
     q = np.asarray(q, np.float64)
     values = []
-    for limit in scene.limits:
+    for which, limit in enumerate(scene.limits):
         if not limit.links:
             axis = next(a for node, a, _ in scene.rails if node == limit.node)
             values.append(q[:, limit.node, axis])
@@ -156,10 +157,14 @@ def limit_values(scene: Scene, q: np.ndarray) -> np.ndarray:
             (node,) = set(scene.edges[e]) & set(scene.edges[p])
             into = q[:, node] - q[:, _other_end(scene, p, node)]
         else:
-            node = next(n for n in scene.edges[e] if n in scene.pinned or any(n == r for r, _, _ in scene.rails))
+            node = next(n for n in scene.edges[e] if n in scene.grounded_nodes)
             into = np.broadcast_to(np.array([1.0, 0.0]), q[:, node].shape)
         out = q[:, _other_end(scene, e, node)] - q[:, node]
-        angle = np.unwrap(np.arctan2(into[:, 0] * out[:, 1] - into[:, 1] * out[:, 0], np.sum(into * out, -1)))
+        angle = np.arctan2(into[:, 0] * out[:, 1] - into[:, 1] * out[:, 0], np.sum(into * out, -1))
+        if after is not None:
+            values.append(np.unwrap(np.concatenate([[after[which]], angle]))[1:])
+            continue
+        angle = np.unwrap(angle)
         middle = 0.5 * (limit.low + limit.high)
         values.append(angle + 2 * np.pi * np.round((middle - angle[0]) / (2 * np.pi)))
     return np.stack(values, -1) if values else np.zeros((len(q), 0))
@@ -176,7 +181,11 @@ def limit_violation(scene: Scene, t: np.ndarray, q: np.ndarray) -> tuple[int, st
     stops there, as at divergence), or None."""
     if not scene.limits:
         return None
-    values = limit_values(scene, q)
+    return first_outside_limits(scene, t, limit_values(scene, q))
+
+
+def first_outside_limits(scene: Scene, t: np.ndarray, values: np.ndarray) -> tuple[int, str] | None:
+    """`limit_violation` of the limits' values (F, L) (`limit_values`) at times `t` (F,)."""
     low, high = (np.array([getattr(limit, name) for limit in scene.limits]) for name in ("low", "high"))
     outside = (values < low) | (values > high)
     if not outside.any():

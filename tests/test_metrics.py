@@ -182,3 +182,24 @@ def test_the_seed_bootstrap_draws_what_one_call_per_resampled_seed_draws(seeds, 
     boots = np.array([np.mean([logs[k][rng.integers(0, len(logs[k]), len(logs[k]))].mean() for k in pick]) for pick in picks])
     low, high = np.exp(np.percentile(boots, [2.5, 97.5]))
     assert summarise_seeds(logs)[1:] == (low, high)
+
+
+def test_a_limits_angles_read_in_parts_unwrap_as_they_do_whole():
+    """The engines check joint limits chunk by chunk, carrying the last frame's values
+    (`limit_values(..., after=)`): over a link turning three and a half times, the parts' angles
+    are the whole trajectory's, so a limit far past one turn is still seen."""
+    scene = scene_from_dict({"name": "spinner", "nodes": [[0.0, 0.0], [1.0, 0.0]], "pinned": [0],
+                             "links": [{"nodes": [0, 1], "mass": 1.0, "inertia": 0.1}],
+                             "limits": [{"links": [0], "range": [-20.0, 20.0]}]})
+    turned = np.linspace(0.0, 7 * np.pi, 301)
+    q = np.stack([np.zeros((301, 2)), np.stack([np.cos(turned), np.sin(turned)], -1)], 1)
+    whole = metrics.limit_values(scene, q)
+    np.testing.assert_allclose(whole[:, 0], turned, atol=1e-12)
+    parts, at = [], whole[0]
+    for frames in (slice(1, 40), slice(40, 41), slice(41, 301)):
+        parts.append(metrics.limit_values(scene, q[frames], after=at))
+        at = parts[-1][-1]
+    np.testing.assert_allclose(np.concatenate(parts), whole[1:], atol=1e-12)
+    t = np.arange(301) * 0.01
+    k, reason = metrics.first_outside_limits(scene, t, whole)
+    assert turned[k] > 20.0 >= turned[k - 1] and "links [0]" in reason

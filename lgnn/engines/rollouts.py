@@ -57,7 +57,7 @@ from lgnn import physics, sharding
 from lgnn.engines.base import Integration, SimulationConfig, Trajectory
 from lgnn.errors import SimulationError
 from lgnn.integrate import advance
-from lgnn.metrics import ExplosionBounds, limit_violation
+from lgnn.metrics import ExplosionBounds, first_outside_limits, limit_values
 from lgnn.physics import solvers
 from lgnn.runtime import precision
 from lgnn.scene import Scene, State, scene_to_dict
@@ -299,6 +299,9 @@ def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, st
                 energy_all[batch + (0,)] = np.asarray(energy0)[(*ics, slice(0, taken))]
             bounds = [ExplosionBounds.of(scene, State(states.q[c], states.qd[c]), float(energy_all[(c, 0)]))
                       for c in range(first, first + taken)] if stop else None
+            # Each initial condition's joint-limit values at the last frame read, so
+            # that each chunk's angles unwrap on from the last (`limit_values`).
+            limits_at = [limit_values(scene, states.q[c][None])[0] for c in range(first, first + taken)] if stop else None
             done = 0
             while done < n_frames:
                 began = time.perf_counter()
@@ -311,28 +314,35 @@ def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, st
                 if energy_all is not None:
                     energy_all[batch + (frames,)] = np.asarray(energy)[part]
                 if bounds is not None:
-                    _stop_at_divergence(scene, config, programs.integration, bounds, first, q_all, qd_all, energy_all, done, kept, label, hint)
+                    limits_at = _stop_at_divergence(scene, config, programs.integration, bounds, limits_at, first, q_all, qd_all,
+                                                    energy_all, done, kept, label, hint)
                 done += kept
                 bar.update(taken * kept)
     return (q_all, qd_all, energy_all), run_s
 
 
-def _stop_at_divergence(scene: Scene, config: SimulationConfig, integration: Integration, bounds: list[ExplosionBounds], first: int,
-                        q: np.ndarray, qd: np.ndarray, energy: np.ndarray, done: int, kept: int, label: str, hint: str) -> None:
-    """Raise `SimulationError` at the first non-finite or exploding frame among frames
-    `done + 1 ... done + kept` of initial conditions `first, first + 1, ...`."""
+def _stop_at_divergence(scene: Scene, config: SimulationConfig, integration: Integration, bounds: list[ExplosionBounds],
+                        limits_at: list[np.ndarray], first: int, q: np.ndarray, qd: np.ndarray, energy: np.ndarray, done: int, kept: int,
+                        label: str, hint: str) -> list[np.ndarray]:
+    """Raise `SimulationError` at the first non-finite or exploding frame, or the first
+    frame outside a joint limit, among frames `done + 1 ... done + kept` of initial
+    conditions `first, first + 1, ...`; else return their joint-limit values at frame
+    `done + kept` (`limits_at` holds them at frame `done`)."""
     frames = slice(done + 1, done + 1 + kept)
     t = (done + 1 + np.arange(kept)) * config.frame_dt
     found = [(violation[0], c, violation[1]) for c, member in enumerate(bounds, first)
              if (violation := member.first_violation(t, q[c, frames], qd[c, frames], energy[c, frames])) is not None]
-    # A joint limit (which the engines do not model) stops a run as divergence does;
-    # its angles are unwrapped from frame 0.
-    limits = [(violation[0] - (done + 1), c, violation[1]) for c in range(first, first + len(bounds))
-              if (violation := limit_violation(scene, np.arange(done + 1 + kept) * config.frame_dt, q[c, :done + 1 + kept])) is not None]
+    # A joint limit (which the engines do not model) stops a run as divergence does.
+    values = [limit_values(scene, q[c, frames], after=at) for c, at in enumerate(limits_at, first)]
+    checked, limit_t = values, t
+    if done == 0:  # an initial state outside a limit stops the run at that frame alone (k = -1)
+        checked, limit_t = [np.concatenate([at[None], part]) for at, part in zip(limits_at, values)], np.concatenate([[0.0], t])
+    limits = [(violation[0] - (done == 0), c, violation[1]) for c, part in enumerate(checked, first)
+              if (violation := first_outside_limits(scene, limit_t, part)) is not None]
     if not found and not limits:
-        return
+        return [part[-1] for part in values]
     k, c, reason = min(found + limits)
-    end = max(done + 1 + k, 1)  # an initial state outside a limit: that frame alone
+    end = max(done + 1 + k, 1)
     partial = Trajectory(np.arange(end) * config.frame_dt, q[c, :end].copy(), qd[c, :end].copy(), energy[c, :end].copy(),
                          run_metadata(scene, config, integration))
     member = f", initial condition {c}" if len(q) > 1 else ""
