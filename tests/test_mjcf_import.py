@@ -293,11 +293,31 @@ def _spun(scene, rate: float = 1.3):
     return scene.replace(velocities=rate * np.stack([-arm[:, 1], arm[:, 0]], -1))
 
 
+def _branching_tree():
+    """A pinned tree whose breadth-first link order (0-1, 1-2, 1-3, 2-4) is not MuJoCo's
+    depth-first one (0-1, 1-2, 2-4, 1-3), each link turning at its own rate."""
+    return scene_from_dict({"name": "tree", "nodes": [[0, 0], [1, 0], [2, 0.5], [2, -0.5], [3, 0.5]], "pinned": [0],
+                            "velocities": [[0, 0], [0, 1], [-1, 3], [-0.5, 0], [-1, 6]],
+                            "links": [{"nodes": pair, "mass": 1.0, "inertia": 0.1} for pair in ([0, 1], [1, 2], [1, 3], [2, 4])]})
+
+
 def test_a_rendered_keyframe_holds_the_velocities_mujocos_engine_starts_from():
+    """The keyframe's `qvel` is in MuJoCo's joint order (the file's, depth first) and
+    is what the engines' state map gives; on a branching tree MuJoCo's own kinematics
+    then move every node at the scene's velocity."""
     from lgnn.engines import mujoco as mujoco_engine
     from lgnn.scene import free_triangle
 
-    for scene in (CATALOGUE["chain4-3d"].build(), CATALOGUE["chain8-3d"].build(), _spun(CATALOGUE["chain4-varied"].build()), free_triangle()):
+    tree = _branching_tree()
+    model = mujoco.MjModel.from_xml_string(mjcf.render(tree))
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, mjcf.INITIAL_KEY))
+    mujoco.mj_forward(model, data)
+    velocity = np.zeros(6)
+    for k in range(tree.n_nodes):
+        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_SITE, model.site(f"node{k}").id, velocity, 0)
+        np.testing.assert_allclose(velocity[3:5], tree.velocities[k], rtol=0, atol=1e-12)
+    for scene in (CATALOGUE["chain4-3d"].build(), CATALOGUE["chain8-3d"].build(), _spun(CATALOGUE["chain4-varied"].build()), free_triangle(), tree):
         assert np.any(scene.velocities)
         for form in mjcf.FORMS:
             compiled = mujoco_engine.compile_scene(scene, form=form)

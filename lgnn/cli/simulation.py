@@ -160,7 +160,7 @@ def _add_mujoco_commands(commands) -> None:
     mjcf.add_argument("--dt", type=positive_float, default=1e-4, help="SCENE: time step written into the model (default 1e-4)")
     mjcf.add_argument("--out", help="SCENE: output .xml file (default: standard output)")
     mjcf.add_argument("--dir", default="mjcf", help="output directory (default: mjcf)")
-    mjcf.add_argument("--check", action="store_true", help="fail if a file differs from the rendered text")
+    mjcf.add_argument("--check", action="store_true", help="fail if a file differs from the rendered text (numbers beyond 1e-12 relative: machines round the last bit differently)")
     mjcf.set_defaults(run=_cmd_mjcf)
     check = commands.add_parser("crosscheck", help="run every engine on the same scenes and compare them")
     check.add_argument("scenes", nargs="*", help=f"built-in names or scene files (default: {' '.join(SCENES)})")

@@ -59,6 +59,7 @@ import collections
 import dataclasses
 import math
 import os
+import re
 from pathlib import Path
 from typing import Literal, get_args
 from xml.sax.saxutils import escape, quoteattr
@@ -492,7 +493,7 @@ def initial_qvel(scene: Scene, layout: Layout) -> np.ndarray:
     frame's origin (world) and its angular velocity (the body's frame, here the world's)."""
     nodes, velocities = np.asarray(scene.nodes, np.float64), np.asarray(scene.velocities, np.float64)
     spatial = scene.dim == 3
-    omegas, qvel = [], []
+    omegas, per_body = [], []
     for body in layout.bodies:
         d = nodes[body.tip] - nodes[body.base]
         dd = velocities[body.tip] - velocities[body.base]
@@ -500,10 +501,26 @@ def initial_qvel(scene: Scene, layout: Layout) -> np.ndarray:
         omegas.append(omega)
         if body.free_root:
             w = layout.origin_weight
-            qvel += [*(velocities[body.base] + w * dd), *omega]
+            per_body.append([*(velocities[body.base] + w * dd), *omega])
         else:
-            qvel += list(omega - (omegas[body.parent] if body.parent >= 0 else 0))
-    return np.asarray(qvel, np.float64)
+            per_body.append(list(omega - (omegas[body.parent] if body.parent >= 0 else 0)))
+    # MuJoCo numbers the joints in the file's order, depth first (`xml_order`).
+    return np.asarray([v for k in xml_order(layout) for v in per_body[k]], np.float64)
+
+
+def xml_order(layout: Layout) -> list[int]:
+    """The indices of `layout.bodies` in the order `render` writes them (depth first,
+    each body's children in tree order): MuJoCo's order of bodies, joints and dofs.
+    `layout.bodies` is breadth first, which differs on a branching tree."""
+    children = collections.defaultdict(list)
+    for k, body in enumerate(layout.bodies):
+        children[body.parent].append(k)
+    order, stack = [], list(reversed(children[-1]))
+    while stack:
+        k = stack.pop()
+        order.append(k)
+        stack += reversed(children[k])
+    return order
 
 
 # The nested renderer's earlier name (other modules and branches call it).
@@ -546,9 +563,23 @@ def write_builtin_files(directory: str | os.PathLike, forms: tuple[str, ...] = F
     for name, text in files.items():
         path = Path(directory) / name
         if check:
-            if not path.exists() or path.read_text() != text:
+            if not path.exists() or not same_up_to_rounding(path.read_text(), text):
                 stale.append(str(path))
         else:
             path.parent.mkdir(exist_ok=True)
             write_text_atomic(path, text)
     return len(files), stale
+
+
+_NUMBER = re.compile(r"-?\d+\.?\d*(?:e[-+]?\d+)?")
+
+
+def same_up_to_rounding(committed: str, rendered: str) -> bool:
+    """The same MJCF text with the same numbers to 1e-12 relative: the numbers are
+    computed (a catalogue scene's velocities go through XLA), and a machine with other
+    vector instructions may round their last bit differently."""
+    if _NUMBER.split(committed) != _NUMBER.split(rendered):
+        return False
+    a = np.array([float(x) for x in _NUMBER.findall(committed)])
+    b = np.array([float(x) for x in _NUMBER.findall(rendered)])
+    return a.shape == b.shape and np.allclose(a, b, rtol=1e-12, atol=1e-14)
