@@ -4,6 +4,8 @@ at a refined step; every built-in scene's rendered MJCF imports back as the same
 every feature lgnn does not model is refused in one line."""
 
 import json
+import tempfile
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -211,14 +213,79 @@ def test_a_cart_becomes_a_point_mass_on_a_rail(tmp_path):
     assert scene.source.nodes[0].body == "cart"
     np.testing.assert_allclose(scene.velocities[0], [0.5, 0.0])
     assert result.notes == ("left out: actuator 'slide' (no force at zero control; a scene is the passive system)",)
-    # The learned models' graphs and the MJCF renderer know no rails: each says so.
+    # The learned models' graphs know no rails, and the maximal MJCF form has no joints
+    # to put a cart on: each says so.
     from lgnn.errors import ConfigError
     from lgnn.learn import models
 
     with pytest.raises(ConfigError, match="has rails"):
         models.check_compatible(models.ModelConfig.for_scene("lgnn", scene), scene)
-    with pytest.raises(SceneError, match="are not rendered to MJCF"):
-        mjcf.render(scene)
+    with pytest.raises(SceneError, match="nested form only"):
+        mjcf.render(scene, form="maximal")
+
+
+def _carts():
+    """(scene, what it has) of the imported carts, each with a point mass added at its
+    last node, which the renderer welds to that node's link as a body of its own."""
+    limited = TILTED_CART_DOUBLE_POLE.replace('damping="5e-2"', 'damping="5e-2" range="-0.3 0.45"')
+    limited = limited.replace('<joint name="hinge_2"/>', '<joint name="hinge_2" range="-60 45"/>')
+    for text, key, what in ((limited, "falling", "planar, damped, tilted gravity, a rail's and a hinge's range"),
+                            (CART_BALL_POLE, "swing", "3D, a ball-jointed pole")):
+        with tempfile.TemporaryDirectory() as folder:
+            scene = lgnn.import_mjcf(_write(Path(folder), text), key)
+        yield scene.replace(point_masses=scene.point_masses + ((scene.n_nodes - 1, 0.3),)), what
+
+
+@pytest.mark.parametrize("engine", ["mujoco", "mjx"])
+def test_a_rendered_cart_runs_in_the_mujoco_engines_as_in_the_lagrangian_engine(engine):
+    """Rails (a body on a slide, with the slide's damping), point masses (the cart's own
+    mass; elsewhere a body welded at the node) and joint ranges (kept in the file, run
+    free of, and stopped at as the Lagrangian engine stops) rendered to MJCF: MuJoCo C
+    and MJX (float64) move every node as the Lagrangian engine does and stop at the
+    same frame."""
+    from lgnn.errors import SimulationError
+
+    def run(name, scene, config):
+        try:
+            return get_engine(name).rollout(scene, config, batch_of_one(scene.initial_state)).member(0), ""
+        except SimulationError as err:
+            return err.trajectory, str(err)
+
+    stops = []
+    for scene, what in _carts():
+        config = SimulationConfig(duration=0.7)
+        (ours, stopped), (theirs, their_stop) = run("lagrangian", scene, config), run(engine, scene, config)
+        assert len(theirs.t) == len(ours.t), what
+        assert stopped.partition(": state ")[2] == their_stop.partition(f": {engine} state ")[2], (what, stopped, their_stop)
+        assert np.abs(theirs.q - ours.q).max() < 1e-9 and np.abs(theirs.qd - ours.qd).max() < 1e-8, what
+        stops.append(stopped)
+    assert "left the range of the joint of links [1, 0]" in stops[0] and not stops[1]
+
+
+def test_a_rendered_cart_imports_back_as_itself(tmp_path):
+    """A cart's rail, damping, mass and range, and the hinges' dampers and ranges, go out
+    to MJCF and come back the same (the limits as the same quantity and range, though a
+    limit may come back as the same joint's links in the other order)."""
+    from lgnn.metrics import limit_values
+
+    scene, _ = next(_carts())
+    scene = scene.replace(point_masses=scene.point_masses[:1])  # a welded point mass imports as part of its link
+    back = lgnn.import_mjcf(_write(tmp_path, mjcf.render(scene)), key=mjcf.INITIAL_KEY)
+    np.testing.assert_allclose(back.nodes, scene.nodes, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(back.velocities, scene.velocities, rtol=0, atol=1e-12)
+    assert (back.edges, back.pinned, back.rails, back.lateral_gravity) == (scene.edges, scene.pinned, scene.rails, scene.lateral_gravity)
+    assert back.point_masses[0][0] == 0 and back.point_masses[0][1] == pytest.approx(scene.point_masses[0][1], rel=1e-12)
+    assert [(e, p) for e, p, _ in back.dampers] == [(e, p) for e, p, _ in scene.dampers]
+    np.testing.assert_allclose([b for *_, b in back.dampers], [b for *_, b in scene.dampers], rtol=1e-12)
+    assert len(back.limits) == len(scene.limits) == 2
+    free = scene.replace(limits=())
+    moved = get_engine("lagrangian").rollout(free, SimulationConfig(duration=1.0), batch_of_one(free.initial_state)).member(0).q
+    for ours, theirs in zip(scene.limits, back.limits):
+        sign = 1.0 if theirs.links == ours.links else -1.0
+        assert theirs.links in (ours.links, ours.links[::-1])
+        np.testing.assert_allclose(sorted(sign * np.array([theirs.low, theirs.high])), [ours.low, ours.high], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(sign * limit_values(back.replace(limits=(theirs,)), moved), limit_values(scene.replace(limits=(ours,)), moved),
+                                   rtol=0, atol=1e-9)
 
 
 def test_gravity_along_a_rail_is_kept_as_a_vector(tmp_path):

@@ -20,6 +20,14 @@ and mjcf/maximal/: `write_builtin_files`).
   still becomes a body (it has mass) and closes its loop with a two-site `connect`
   equality from its tip to that node. Links between two pinned nodes never move and
   get no body.
+- Carts (nested form only, `nested_only`): a rail's node is a body `cart{k}` under the
+  world on a slide along the rail's axis (its damping and, as a range, its limit),
+  carrying the node's point mass; the tree also grows from it, as from a pin, and the
+  links hinged there sit in it. Any other point mass is a body `mass{k}` welded at its
+  node, so a link body's centre of mass (where drag acts) stays its rod's centre. A
+  hinge's limit is its `range`, in MuJoCo's coordinates of the rendered model (zero at
+  the scene's initial pose: `joint_ranges`); the MuJoCo engines run with limits off and
+  stop where the Lagrangian engine does.
 - Spatial (3D) scenes: the same layouts, with a ball joint for each hinge and a
   <freejoint/> for each free root; a rod's inertia is the scene's about every axis
   normal to it and `AXIAL_INERTIA_FRACTION` of that about its own axis (`rod_inertia`).
@@ -127,6 +135,9 @@ MODELLED_DURATION = 1.0
 # The tolerance the maximal form's step is chosen to meet (`maximal_substeps`), as the
 # ground truth's max node error over 1 s (issue 29).
 MAXIMAL_TOLERANCE = 1e-6
+# A cart's mass where its rail's node has no point mass, as a fraction of the scene's
+# mass: MuJoCo refuses a moving body without mass; the motion changes by about this.
+CART_MASS_FLOOR = 1e-12
 # The custom numeric holding a rendered scene's drag, which MuJoCo has no element for.
 DRAG_NUMERIC = "lgnn_drag"
 # The keyframe holding a rendered scene's initial velocities (`initial_qvel`).
@@ -149,9 +160,11 @@ FORMS: tuple[str, ...] = get_args(Form)
 class LinkBody:
     """One MuJoCo body: scene link `link` hinged at node `base`, far end at node `tip`.
 
-    `parent` indexes `Layout.bodies` (-1: world). `free_root` bodies carry a planar
-    free joint; `closes_loop` bodies end at a node owned by another body (or a pin)
-    and are tied to it by a `connect` equality.
+    `parent` indexes `Layout.bodies` (-1: world, or a cart, which never turns).
+    `free_root` bodies carry a planar free joint; `closes_loop` bodies end at a node
+    owned by another body (or a pin, or a cart) and are tied to it by a `connect`
+    equality; `cart` indexes `Layout.carts` for a body hinged at a rail's node, which
+    sits in that cart's body (-1: none).
     """
 
     link: int
@@ -160,18 +173,22 @@ class LinkBody:
     parent: int
     free_root: bool = False
     closes_loop: bool = False
+    cart: int = -1
 
 
 @dataclasses.dataclass(frozen=True)
 class Layout:
     """Spanning tree of a scene. `bodies` are in tree order (parents first);
-    `node_body[k]` is the body carrying node k's site (-1: world, for pins);
-    `static_links` join two pins and have no body."""
+    `node_body[k]` is the body carrying node k's site (-1: world, for pins, and a
+    cart, for a rail's node); `static_links` join two pins and have no body; `carts`
+    are the scene's rails, `(node, axis)`, each a body of its own on a slide joint
+    under the world (nested form only)."""
 
     bodies: tuple[LinkBody, ...]
     node_body: tuple[int, ...]
     static_links: tuple[int, ...]
     form: Form = "nested"
+    carts: tuple[tuple[int, int], ...] = ()
 
     @property
     def origin_weight(self) -> float:
@@ -202,13 +219,14 @@ class Layout:
 
 def scene_layout(scene: Scene, form: Form = "nested") -> Layout:
     """The bodies of `form`: nested, the breadth-first spanning tree rooted at the
-    pinned nodes; maximal, one free body per moving link (module docstring).
-    `SceneError` for point masses and rails, which are not rendered yet (an imported
-    scene is checked against its own MJCF file instead)."""
+    pinned nodes and the rails' nodes (carts); maximal, one free body per moving link
+    (module docstring). `SceneError` for rails, point masses and joint limits in the
+    maximal form (rendered in the nested form only)."""
     check_form(form)
-    if scene.point_masses or scene.rails or scene.limits:
-        raise SceneError(f"{scene.name}: point masses, rails and joint limits are not rendered to MJCF yet (the MuJoCo engines cannot run this scene)")
     if form == "maximal":
+        if nested_only(scene):
+            raise SceneError(f"{scene.name}: joint damping, rails, point masses and joint limits are rendered in the nested form only "
+                             "(the maximal form's joints are connect equalities)")
         return _maximal_layout(scene)
     adjacency = [[] for _ in range(scene.n_nodes)]
     for e, (i, j) in enumerate(scene.edges):
@@ -220,6 +238,8 @@ def scene_layout(scene: Scene, form: Form = "nested") -> Layout:
     node_body: list[int | None] = [None] * scene.n_nodes
     bodies: list[LinkBody] = []
 
+    cart_of = {node: c for c, (node, _, _) in enumerate(scene.rails)}
+
     def grow(queue: collections.deque) -> None:
         while queue:
             a = queue.popleft()
@@ -228,14 +248,15 @@ def scene_layout(scene: Scene, form: Form = "nested") -> Layout:
                     continue
                 used.add(e)
                 closes = node_body[b] is not None
-                bodies.append(LinkBody(e, a, b, node_body[a], closes_loop=closes))
+                bodies.append(LinkBody(e, a, b, node_body[a], closes_loop=closes, cart=cart_of.get(a, -1)))
                 if not closes:
                     node_body[b] = len(bodies) - 1
                     queue.append(b)
 
-    for p in scene.pinned:
+    # Pins and carts hold their nodes: the tree grows from both (`Scene.grounded_nodes`).
+    for p in scene.grounded_nodes:
         node_body[p] = -1
-    grow(collections.deque(scene.pinned))
+    grow(collections.deque(scene.grounded_nodes))
     for root in range(scene.n_nodes):
         if node_body[root] is not None:
             continue
@@ -246,7 +267,13 @@ def scene_layout(scene: Scene, form: Form = "nested") -> Layout:
         bodies.append(LinkBody(e, root, b, -1, free_root=True))
         node_body[root] = node_body[b] = len(bodies) - 1
         grow(collections.deque([root, b]))
-    return Layout(tuple(bodies), tuple(node_body), static)
+    return Layout(tuple(bodies), tuple(node_body), static, carts=tuple((node, axis) for node, axis, _ in scene.rails))
+
+
+def nested_only(scene: Scene) -> bool:
+    """Whether only the nested form renders `scene`: it has joint damping, rails, point
+    masses or joint limits, which sit on the nested form's joints and bodies."""
+    return bool(scene.dampers or scene.rails or scene.point_masses or scene.limits)
 
 
 def _maximal_layout(scene: Scene) -> Layout:
@@ -336,6 +363,7 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
     """The MJCF text of `scene` in `form` for time step `dt` (module docstring)."""
     layout = scene_layout(scene, form)
     damping = joint_damping(scene, layout)
+    hinge_range, slide_range = joint_ranges(scene, layout)
     if layout.depth > MAX_BODY_DEPTH:
         raise SceneError(
             f"{scene.name}: spanning tree of depth {layout.depth} is too deep to render as nested MJCF bodies "
@@ -344,16 +372,30 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
     maximal = form == "maximal"
     nodes = np.asarray(scene.nodes, np.float64)
     scale = float(np.median(scene.lengths))
-    children = collections.defaultdict(list)
+    children, on_cart = collections.defaultdict(list), collections.defaultdict(list)
     for k, body in enumerate(layout.bodies):
-        children[body.parent].append(k)
-    sites = collections.defaultdict(list)
+        (on_cart[body.cart] if body.cart >= 0 else children[body.parent]).append(k)
+    cart_of = {node: c for c, (node, _) in enumerate(layout.carts)}
+    sites, cart_sites = collections.defaultdict(list), {}
     for k, owner in enumerate(layout.node_body):
-        sites[owner].append(k)
+        if k in cart_of:
+            cart_sites[cart_of[k]] = k
+        else:
+            sites[owner].append(k)
+    # A point mass sits on the body carrying its node's site, as a body welded there
+    # (so a link body's own centre of mass, where drag acts, stays its rod's centre);
+    # a cart's is the cart's own mass, and a pin's never moves.
+    pinned = set(scene.pinned)
+    welded = collections.defaultdict(list)
+    for node, mass in scene.point_masses:
+        if node not in cart_of and node not in pinned:
+            welded[layout.node_body[node]].append((node, mass))
+    point_mass = dict(scene.point_masses)
     ties = collections.defaultdict(list)
     for k, node in layout.ties:
         ties[k].append(node)
     site_size = f"{SITE_RADIUS * scale:.3g}"
+    total_mass = float(np.sum(scene.masses)) + sum(mass for _, mass in scene.point_masses)
 
     spatial = scene.dim == 3
 
@@ -367,6 +409,9 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         body = layout.bodies[index]
         return nodes[body.base] + layout.origin_weight * (nodes[body.tip] - nodes[body.base])
 
+    def parent_origin(body: LinkBody) -> np.ndarray:
+        return nodes[layout.carts[body.cart][0]] if body.cart >= 0 else origin(body.parent)
+
     def node_sites(index: int, indent: str) -> list[str]:
         o = origin(index)
         return [
@@ -377,7 +422,7 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         body = layout.bodies[index]
         e = body.link
         o = origin(index)
-        pos = o - origin(body.parent)
+        pos = o - parent_origin(body)
         base, tip = nodes[body.base] - o, nodes[body.tip] - o
         mass, inertia = float(scene.masses[e]), float(scene.inertias[e])
         # A zero inertia (a point-mass rod) is raised to a negligible floor because
@@ -396,7 +441,8 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
                 lines.append(f'{inner}<joint name="link{e}_x" type="slide" axis="1 0 0"/>')
                 lines.append(f'{inner}<joint name="link{e}_y" type="slide" axis="0 1 0"/>')
             damped = f' damping="{_num(damping[index])}"' if damping[index] else ""
-            lines.append(f'{inner}<joint name="link{e}_hinge" type="hinge" axis="0 0 1"{damped}/>')
+            ranged = f' range="{_vec(*hinge_range[index])}"' if hinge_range[index] else ""
+            lines.append(f'{inner}<joint name="link{e}_hinge" type="hinge" axis="0 0 1"{damped}{ranged}/>')
             # Only Izz acts on a planar hinge; Ixx = Iyy = Izz satisfies MuJoCo's
             # triangle inequality.
             lines.append(f'{inner}<inertial pos="{centre}" mass="{_num(mass)}" diaginertia="{_vec(inertia, inertia, inertia)}"/>')
@@ -407,10 +453,36 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         for node in ties[index]:
             lines.append(f'{inner}<site name="{_tie_site(body, node)}" pos="{pos3(nodes[node] - o)}" size="{site_size}" rgba="1 0 0 1"/>')
         lines += node_sites(index, inner)
+        for node, point in welded[index]:
+            # A point has no moment of inertia of its own (MuJoCo allows that on a
+            # body without joints).
+            lines.append(f'{inner}<body name="mass{node}" pos="{pos3(nodes[node] - o)}"><inertial pos="0 0 0" mass="{_num(point)}" '
+                         'diaginertia="0 0 0"/></body>')
         for child in children[index]:
             lines += body_xml(child, inner)
         lines.append(f"{indent}</body>")
         return lines
+
+    def cart_xml(c: int, indent: str) -> list[str]:
+        # A rail's node: a body on a slide joint along its scene axis, carrying the
+        # node's point mass (MuJoCo refuses a moving body without mass: one without
+        # gets `CART_MASS_FLOOR` of the scene's), the slide's damping and its range.
+        node, axis = layout.carts[c]
+        inner = indent + "  "
+        damped = next((f' damping="{_num(b)}"' for k, _, b in scene.rails if k == node and b), "")
+        ranged = f' range="{_vec(*slide_range[c])}"' if slide_range[c] else ""
+        mass = point_mass.get(node, CART_MASS_FLOOR * total_mass)
+        floor = _num(CART_MASS_FLOOR * mass * scale**2)  # it never turns: any inertia will do
+        return [
+            f'{indent}<body name="cart{node}" pos="{pos3(nodes[node])}">',
+            f'{inner}<joint name="cart{node}_slide" type="slide" axis="{pos3(np.eye(scene.dim)[axis])}"{damped}{ranged}/>',
+            f'{inner}<inertial pos="0 0 0" mass="{_num(mass)}" diaginertia="{floor} {floor} {floor}"/>',
+            f'{inner}<geom name="cart{node}" type="box" size="{2 * GEOM_RADIUS * scale:.3g} {GEOM_RADIUS * scale:.3g} {GEOM_RADIUS * scale:.3g}" '
+            'rgba="0.3 0.3 0.3 1"/>',
+            f'{inner}<site name="node{node}" pos="0 0 0" size="{site_size}"/>',
+            *(line for child in on_cart[c] for line in body_xml(child, inner)),
+            f"{indent}</body>",
+        ]
 
     # In front of the scene along +z (the viewer's default assumes z up).
     camera = np.concatenate([nodes.mean(0)[:2], [(nodes[:, 2].max() if spatial else 0.0) + 2 * max(np.ptp(nodes, 0).max(), scale)]])
@@ -442,6 +514,8 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         f'    <camera name="front" pos="{" ".join(f"{x:.3g}" for x in camera)}" xyaxes="1 0 0 0 1 0"/>',
     ]
     lines += node_sites(-1, "    ")
+    for c in range(len(layout.carts)):
+        lines += cart_xml(c, "    ")
     for child in children[-1]:
         lines += body_xml(child, "    ")
     lines.append("  </worldbody>")
@@ -465,14 +539,12 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
 
 def joint_damping(scene: Scene, layout: Layout) -> list[float]:
     """Each body's hinge damping: the scene's damper between its link and its parent's
-    (a pin's: the world); `SceneError` for a damper no hinge of `layout` carries (the
-    maximal form has none, and a damper between two links of which neither is the
-    other's parent in the spanning tree)."""
+    (a pin's or a cart's: the world); `SceneError` for a damper no hinge of `layout`
+    carries (one between two links of which neither is the other's parent in the
+    spanning tree)."""
     damping = [0.0] * len(layout.bodies)
     if not scene.dampers:
         return damping
-    if layout.form == "maximal":
-        raise SceneError(f"{scene.name}: joint damping is rendered in the nested form only (the maximal form's joints are connect equalities)")
     body_of = {body.link: k for k, body in enumerate(layout.bodies)}
     for e, p, value in scene.dampers:
         for child, parent in ((e, p), (p, e)):
@@ -483,6 +555,43 @@ def joint_damping(scene: Scene, layout: Layout) -> list[float]:
         else:
             raise SceneError(f"{scene.name}: the damper between links {e} and {p} is on no joint of the nested MJCF's spanning tree")
     return damping
+
+
+def joint_ranges(scene: Scene, layout: Layout) -> tuple[list, list]:
+    """`(hinge, slide)`: each body's hinge range and each cart's slide range (None where
+    the scene has no limit there), in MuJoCo's coordinates of the rendered model, which
+    are zero at the scene's initial pose: the scene's limit (`Scene.limits`, its angle
+    or coordinate) less its initial value, in the hinge's sense. `SceneError` for a
+    limit no hinge of `layout` carries (as `joint_damping`)."""
+    hinge, slide = [None] * len(layout.bodies), [None] * len(layout.carts)
+    if not scene.limits:
+        return hinge, slide
+    from lgnn.metrics import limit_values
+
+    initial = limit_values(scene, np.asarray(scene.nodes, np.float64)[None])[0]
+    cart_of = {node: c for c, (node, _) in enumerate(layout.carts)}
+    body_of = {body.link: k for k, body in enumerate(layout.bodies)}
+
+    def parent_link(k: int) -> int:
+        parent = layout.bodies[k].parent
+        return layout.bodies[parent].link if parent >= 0 else -1
+
+    for limit, value in zip(scene.limits, initial):
+        low, high = limit.low - value, limit.high - value
+        if not limit.links:
+            slide[cart_of[limit.node]] = (low, high)
+            continue
+        e, p = limit.links if len(limit.links) == 2 else (limit.links[0], -1)
+        # The scene's angle turns link e from link p (a hinge's sense, +z); the other
+        # way round where p is the child.
+        for child, parent, sense in ((e, p, 1.0), (p, e, -1.0)):
+            k = body_of.get(child)
+            if k is not None and not layout.bodies[k].free_root and parent_link(k) == parent:
+                hinge[k] = (low, high) if sense > 0 else (-high, -low)
+                break
+        else:
+            raise SceneError(f"{scene.name}: the limit of links {list(limit.links)} is on no joint of the nested MJCF's spanning tree")
+    return hinge, slide
 
 
 def initial_qvel(scene: Scene, layout: Layout) -> np.ndarray:
@@ -504,22 +613,33 @@ def initial_qvel(scene: Scene, layout: Layout) -> np.ndarray:
             per_body.append([*(velocities[body.base] + w * dd), *omega])
         else:
             per_body.append(list(omega - (omegas[body.parent] if body.parent >= 0 else 0)))
+    per_cart = [[velocities[node, axis]] for node, axis in layout.carts]
     # MuJoCo numbers the joints in the file's order, depth first (`xml_order`).
-    return np.asarray([v for k in xml_order(layout) for v in per_body[k]], np.float64)
+    return np.asarray([v for kind, k in xml_order(layout) for v in (per_cart[k] if kind == "cart" else per_body[k])], np.float64)
 
 
-def xml_order(layout: Layout) -> list[int]:
-    """The indices of `layout.bodies` in the order `render` writes them (depth first,
-    each body's children in tree order): MuJoCo's order of bodies, joints and dofs.
-    `layout.bodies` is breadth first, which differs on a branching tree."""
-    children = collections.defaultdict(list)
+def xml_order(layout: Layout) -> list[tuple[str, int]]:
+    """`("cart", c)` and `("body", k)` (indices of `layout.carts` and `layout.bodies`) in
+    the order `render` writes them: each cart with the bodies on it, then the world's
+    bodies, each depth first with its children in tree order. This is MuJoCo's order
+    of bodies, joints and dofs; `layout.bodies` is breadth first, which differs on a
+    branching tree."""
+    children, on_cart = collections.defaultdict(list), collections.defaultdict(list)
     for k, body in enumerate(layout.bodies):
-        children[body.parent].append(k)
-    order, stack = [], list(reversed(children[-1]))
-    while stack:
-        k = stack.pop()
-        order.append(k)
-        stack += reversed(children[k])
+        (on_cart[body.cart] if body.cart >= 0 else children[body.parent]).append(k)
+    order = []
+
+    def depth_first(k: int) -> None:
+        order.append(("body", k))
+        for child in children[k]:
+            depth_first(child)
+
+    for c in range(len(layout.carts)):
+        order.append(("cart", c))
+        for k in on_cart[c]:
+            depth_first(k)
+    for k in children[-1]:
+        depth_first(k)
     return order
 
 

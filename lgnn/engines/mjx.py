@@ -47,7 +47,7 @@ import mujoco
 import numpy as np
 
 from lgnn.engines.base import DTYPES, Engine, SimulationConfig, Trajectory
-from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form, form_error, scene_layout
+from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form, form_error, nested_only, scene_layout
 from lgnn.engines.mujoco import (checked_trajectory, compile_scene, engine_metadata, qpos_rate, quat_mul, resolve_form,
                                  state_to_qpos_qvel, stepped_config)
 from lgnn.engines.timing import compile_timed, time_compiled, time_runs
@@ -336,8 +336,8 @@ def rollout(scene: Scene, config: SimulationConfig, states: State, dtype: str = 
 def best_form(scene: Scene) -> Form:
     """MJX's form of `scene`: nested (exact joints) up to `NESTED_MAX_DEPTH`, else
     maximal (compile time nearly flat in the number of links); always nested with
-    joint damping, which only the nested form's hinges carry."""
-    return "nested" if scene.dampers or scene_layout(scene).depth <= NESTED_MAX_DEPTH else "maximal"
+    joint damping, rails, point masses or limits (`mjcf.nested_only`)."""
+    return "nested" if nested_only(scene) or scene_layout(scene).depth <= NESTED_MAX_DEPTH else "maximal"
 
 
 @dataclasses.dataclass(frozen=True)

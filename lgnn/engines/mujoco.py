@@ -42,7 +42,7 @@ from lgnn.engines.base import Engine, SimulationConfig, Trajectory
 from lgnn.engines.mjcf import (MAX_BODY_DEPTH, MAXIMAL_SOLREF_STEPS, SOLIMP, SOLREF_STEPS, Form, Layout, check_form, form_error,
                                maximal_substeps, render, scene_layout)
 from lgnn.errors import SceneError, SimulationError
-from lgnn.metrics import ExplosionBounds, true_energies
+from lgnn.metrics import ExplosionBounds, limit_violation, true_energies
 from lgnn.runtime import precision
 from lgnn.scene import Scene, State, scene_to_dict
 
@@ -64,7 +64,8 @@ class Compiled:
     rendered pose; `root_body` (R,) free roots, their frame at `layout.origin_weight`
     along the link, `root_x`, `root_v` (R,) the first qpos / qvel address of their
     position (planar: x slide, y follows; spatial: a free joint's 3); `node_site` (N,)
-    site ids; `body_id` (B,) body ids.
+    site ids; `body_id` (B,) body ids; `cart_node`, `cart_axis` (C,) each cart's rail
+    node and scene axis, `cart_qpos`, `cart_dof` (C,) its slide's qpos and qvel address.
     """
 
     scene: Scene
@@ -81,6 +82,10 @@ class Compiled:
     root_v: np.ndarray
     node_site: np.ndarray
     body_id: np.ndarray
+    cart_node: np.ndarray
+    cart_axis: np.ndarray
+    cart_qpos: np.ndarray
+    cart_dof: np.ndarray
 
 
 def best_form(scene: Scene) -> Form:
@@ -111,6 +116,10 @@ def compile_scene(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> Comp
         model = mujoco.MjModel.from_xml_string(text)
     except ValueError as err:
         raise SimulationError(f"{scene.name}: MuJoCo rejected the rendered model: {str(err).splitlines()[0]}") from None
+    # lgnn does not model joint limits: the file keeps their ranges, and the engines run
+    # free of them and stop a rollout that leaves one (`checked_trajectory`), as the
+    # Lagrangian engine does.
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
     bodies = layout.bodies
     roots = [k for k, b in enumerate(bodies) if b.free_root]
     if scene.dim == 2:
@@ -132,9 +141,12 @@ def compile_scene(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> Comp
     tip = np.array([b.tip for b in bodies], np.int64)
     node_site = np.array([model.site(f"node{k}").id for k in range(scene.n_nodes)], np.int64)
     body_id = np.array([model.body(f"link{b.link}").id for b in bodies], np.int64)
+    slides = [model.joint(f"cart{node}_slide") for node, _ in layout.carts]
     return Compiled(
         scene, layout, model, rotation_qpos, rotation_dof, parent, base, tip, scene.nodes[tip] - scene.nodes[base],
         np.array(roots, np.int64), root_x, root_v, node_site, body_id,
+        np.array([node for node, _ in layout.carts], np.int64), np.array([axis for _, axis in layout.carts], np.int64),
+        np.array([j.qposadr[0] for j in slides], np.int64), np.array([j.dofadr[0] for j in slides], np.int64),
     )
 
 
@@ -171,6 +183,11 @@ def state_to_qpos_qvel(compiled: Compiled, q, qd):
         at_v = c.root_v[:, None] + np.arange(c.scene.dim)
         qpos = qpos.at[at_x].set(position)
         qvel = qvel.at[at_v].set(frame(qd))
+    if len(c.cart_node):
+        # A cart's slide holds its node's displacement along the rail from the rendered pose.
+        rest = jnp.asarray(c.scene.nodes[c.cart_node, c.cart_axis], q.dtype)
+        qpos = qpos.at[c.cart_qpos].set(q[c.cart_node, c.cart_axis] - rest)
+        qvel = qvel.at[c.cart_dof].set(qd[c.cart_node, c.cart_axis])
     return qpos, qvel
 
 
@@ -247,7 +264,7 @@ def qpos_rate(compiled: Compiled, qpos, qvel):
     at_x, at_v = c.root_x[:, None] + np.arange(3), c.root_v[:, None] + np.arange(3)
     at_quat, at_omega = c.rotation_qpos[:, None] + np.arange(4), c.rotation_dof[:, None] + np.arange(3)
     omega = jnp.concatenate([jnp.zeros((len(at_omega), 1), qvel.dtype), qvel[at_omega]], -1)
-    rate = jnp.zeros(c.model.nq, qvel.dtype).at[at_x].set(qvel[at_v])
+    rate = jnp.zeros(c.model.nq, qvel.dtype).at[at_x].set(qvel[at_v]).at[c.cart_qpos].set(qvel[c.cart_dof])
     return rate.at[at_quat].set(0.5 * quat_mul(qpos[at_quat], omega))
 
 
@@ -491,14 +508,22 @@ def checked_trajectory(scene: Scene, config: SimulationConfig, states: State, me
     """The `Trajectory` of node trajectories `states` (B, F+1, N, dim), with lgnn's exact
     energies (B, F+1). Raises, like the Lagrangian engine, `SimulationError` at the
     first non-finite or exploding frame (`lgnn.metrics.ExplosionBounds`) of any initial
-    state, carrying that state's frames before it (unbatched)."""
+    state, or its first frame outside a joint limit (`lgnn.metrics.limit_violation`),
+    carrying that state's frames before it (unbatched)."""
     q, qd = states
     with precision("float64"):
         energy = true_energies(scene, q, qd)
     t = np.arange(config.n_frames + 1) * config.frame_dt
+    member = ", initial condition {}" if len(q) > 1 else ""
     for b in range(len(q)):
         bounds = ExplosionBounds.of(scene, State(q[b, 0], qd[b, 0]), float(energy[b, 0]))
         violation = bounds.first_violation(t, q[b], qd[b], energy[b])
+        outside = limit_violation(scene, t, q[b])
+        if outside is not None and (violation is None or outside[0] < violation[0]):
+            k, reason = outside
+            end = max(k, 1)  # an initial state outside a limit: that frame alone
+            raise SimulationError(f"{scene.name}: {engine} state {reason}{member.format(b)}", time=float(t[k]),
+                                  trajectory=Trajectory(t[:end], q[b, :end], qd[b, :end], energy[b, :end], metadata))
         if violation is not None:
             k, reason = violation
             raise SimulationError(
