@@ -450,6 +450,9 @@ def test_error_models_hold_only_where_fitted():
     for name in ("tree", "loop6", "chain4-drag", "chain8-mixed", "T1"):
         assert mjcf.form_error(scene(name), "maximal", 1e-4, 1.0) is None
         assert mjcf.maximal_substeps(scene(name), 1e-4) == 1
+    chain4 = scene("chain4")
+    for changed in (chain4.replace(dampers=((0, -1, 0.1),)), chain4.replace(point_masses=((3, 0.5),))):
+        assert mjcf.form_error(changed, "nested", 1e-4, 1.0) is None
     for s in (chain(40), get_scene("chain16-3d")):
         maximal, nested = (mjcf.form_error(s, form, 1e-4, 1.0) for form in ("maximal", "nested"))
         assert mjcf.form_error(s, "maximal", 5e-5, 1.0) == pytest.approx(maximal / 4)

@@ -306,7 +306,10 @@ def rod_inertia(inertia: float, direction: np.ndarray) -> tuple[float, ...]:
 def error_model_holds(scene: Scene) -> bool:
     """Whether the error models (`form_error`) were fitted on scenes like `scene`: an open
     chain or tree (no loop, also none through the world between two pins), no drag,
-    gravity, and every link alike (length, mass, inertia)."""
+    gravity, every link alike (length, mass, inertia), and none of the nested form's
+    own parts (joint damping, carts, point masses, limits: `nested_only`)."""
+    if nested_only(scene):
+        return False
     layout = scene_layout(scene)
     alike = all(np.ptp(values) <= 1e-12 * np.max(np.abs(values)) for values in (scene.lengths, scene.masses, scene.inertias))
     loops = layout.static_links or any(body.closes_loop for body in layout.bodies)
