@@ -276,6 +276,7 @@ CASES = [
     Case("checkpoint-epoch-string", ["checkpoint", "{tmp}/k.npz"], 2, "epoch", {"k.npz": checkpoint(set_key("epoch", "x"))}),
     Case("checkpoint-best-epoch-string", ["checkpoint", "{tmp}/k.npz"], 2, "best_epoch", {"k.npz": checkpoint(set_key("best_epoch", "x"))}),
     Case("checkpoint-best-val-string", ["checkpoint", "{tmp}/k.npz"], 2, "best_val", {"k.npz": checkpoint(set_key("best_val", "x"))}),
+    Case("checkpoint-no-best-val", ["checkpoint", "{tmp}/k.npz"], 2, "'best_val' is missing", {"k.npz": checkpoint(drop_key("best_val"))}),
     Case("checkpoint-epoch-negative", ["checkpoint", "{tmp}/k.npz"], 2, "epoch", {"k.npz": checkpoint(set_key("epoch", -1))}),
     Case("checkpoint-model-dim", ["checkpoint", "{tmp}/k.npz"], 2, "dim", {"k.npz": checkpoint(set_key("model.dim", "2"))}),
     Case("checkpoint-model-hidden", ["checkpoint", "{tmp}/k.npz"], 2, "hidden", {"k.npz": checkpoint(set_key("model.hidden", "10"))}),

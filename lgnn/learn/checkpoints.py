@@ -131,7 +131,9 @@ def meta_problem(meta: dict, arrays: dict) -> str | None:
         return f"'best_epoch' must be a whole number >= -1, got {meta.get('best_epoch')!r}"
     if meta["best_epoch"] > meta["epoch"]:
         return f"'best_epoch' {meta['best_epoch']} is after 'epoch' {meta['epoch']}"
-    if meta.get("best_val") is not None and not (number(meta["best_val"]) and meta["best_val"] >= 0):
+    if "best_val" not in meta:
+        return "'best_val' is missing (a number >= 0, or null before any validated epoch)"
+    if meta["best_val"] is not None and not (number(meta["best_val"]) and meta["best_val"] >= 0):
         return f"'best_val' must be a number >= 0 or null, got {meta['best_val']!r}"
     if not number(meta.get("elapsed_s", 0.0)) or meta.get("elapsed_s", 0.0) < 0:
         return f"'elapsed_s' must be a number >= 0, got {meta['elapsed_s']!r}"

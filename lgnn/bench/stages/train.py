@@ -51,7 +51,8 @@ def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
     except CheckpointError as err:
         log(f"warning: {err}; retraining {job.name}")
         return False
-    same = meta["model"] == model.to_dict() and meta["train"] == protocol.training_key(train_config) and meta["data"] == data_config.to_dict()
+    # (A checkpoint missing a setting was trained to other settings.)
+    same = meta["model"] == model.to_dict() and meta.get("train") == protocol.training_key(train_config) and meta.get("data") == data_config.to_dict()
     if same and not protocol.finished(state, train_config) and state.params is None:
         log(f"train {job.name}: its unfinished checkpoint is kept without its optimiser state; retraining")
         return False
