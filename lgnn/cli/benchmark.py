@@ -5,7 +5,7 @@
 
 from __future__ import annotations
 
-from lgnn.cli.options import add_profile_options, positive_int, profile_source
+from lgnn.cli.options import add_profile_options, positive_float, positive_int, profile_source
 from lgnn.errors import ConfigError
 
 
@@ -130,6 +130,49 @@ def _add_dataset_parser(commands) -> None:
     export.set_defaults(run=_cmd_dataset_export)
 
 
-# `lgnn benchmark`, `leaderboard` and `dataset export`: their parsers' builders, in
-# `lgnn --help`'s order.
-PARSERS = (_add_benchmark_parser, _add_leaderboard_parser, _add_dataset_parser)
+def _cmd_handoff_pack(args) -> None:
+    from pathlib import Path
+
+    from lgnn.bench import handoff
+    from lgnn.bench.api import benchmark_profile
+
+    profile = benchmark_profile(profile_source(args), settings=args.set or (), add_models=args.add_model or ())
+    limits = handoff.Limits(args.files, int(args.file_mib * handoff.MIB), int(args.total_mib * handoff.MIB))
+    manifest = handoff.pack(profile, Path(args.out_dir), Path(args.to), limits)
+    roles = {}
+    for member in manifest["members"]:
+        roles[member["role"]] = roles.get(member["role"], 0) + 1
+    print(f"handed back {len(manifest['members'])} files ({', '.join(f'{n} {role}' for role, n in roles.items())}) in "
+          f"{len(manifest['parts'])} parts, {manifest['bytes'] / handoff.MIB:.1f} MiB, and {handoff.MANIFEST}; wrote {args.to}/")
+
+
+def _cmd_handoff_unpack(args) -> None:
+    from pathlib import Path
+
+    from lgnn.bench import handoff
+
+    manifest = handoff.unpack(Path(args.source), Path(args.out_dir))
+    print(f"unpacked {len(manifest['members'])} files into {args.out_dir}/; lgnn benchmark --out-dir {args.out_dir} resumes the run")
+
+
+def _add_handoff_parser(commands) -> None:
+    parser = commands.add_parser("handoff", help="hand an unfinished benchmark run to the next job in a few files, and take it back")
+    sub = parser.add_subparsers(dest="handoff_command", required=True, metavar="SUBCOMMAND")
+    pack = sub.add_parser("pack", help="write what a fresh machine needs to resume a benchmark run (docs/benchmark.md, 'Resuming across jobs')")
+    pack.add_argument("out_dir", metavar="OUT", help="the run's output folder (lgnn benchmark --out-dir)")
+    pack.add_argument("--to", required=True, metavar="DIR", help="where to write the parts and handoff.json")
+    add_profile_options(pack, "the full profile's run", "override a config value, as given to lgnn benchmark (repeatable)")
+    pack.add_argument("--add-model", action="append", metavar="FILE.py:ATTR", help="a model added to the run, as given to lgnn benchmark")
+    pack.add_argument("--files", type=positive_int, default=8, help="at most this many files, handoff.json among them (default 8)")
+    pack.add_argument("--file-mib", type=positive_float, default=16.0, help="each at most this many MiB (default 16)")
+    pack.add_argument("--total-mib", type=positive_float, default=64.0, help="at most this many MiB in all (default 64)")
+    pack.set_defaults(run=_cmd_handoff_pack)
+    unpack = sub.add_parser("unpack", help="put a hand-back into an output folder, to resume the run there")
+    unpack.add_argument("source", metavar="DIR", help="the folder holding handoff.json and its parts")
+    unpack.add_argument("--out-dir", required=True, help="the output folder to resume in (without a run yet)")
+    unpack.set_defaults(run=_cmd_handoff_unpack)
+
+
+# `lgnn benchmark`, `leaderboard`, `handoff` and `dataset export`: their parsers'
+# builders, in `lgnn --help`'s order.
+PARSERS = (_add_benchmark_parser, _add_leaderboard_parser, _add_handoff_parser, _add_dataset_parser)

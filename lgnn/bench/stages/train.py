@@ -40,10 +40,17 @@ def job_settings(profile: Profile, job: TrainingJob):
     return scene, model, data_config, train_config
 
 
+def made_with(meta: dict, settings) -> bool:
+    """Whether a checkpoint's meta was trained with a job's `settings` (`job_settings`),
+    budgets apart (`protocol.training_key`): a checkpoint missing a setting was not."""
+    _, model, data_config, train_config = settings
+    return meta["model"] == model.to_dict() and meta.get("train") == protocol.training_key(train_config) and meta.get("data") == data_config.to_dict()
+
+
 def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
     """None if the job's checkpoint is finished with its `settings` (`job_settings`:
     reuse it), True if it can be resumed, False if training starts afresh."""
-    _, model, data_config, train_config = settings
+    train_config = settings[3]
     if not path.exists():
         return False
     try:
@@ -51,8 +58,7 @@ def _resumable(job: TrainingJob, path: Path, settings) -> bool | None:
     except CheckpointError as err:
         log(f"warning: {err}; retraining {job.name}")
         return False
-    # (A checkpoint missing a setting was trained to other settings.)
-    same = meta["model"] == model.to_dict() and meta.get("train") == protocol.training_key(train_config) and meta.get("data") == data_config.to_dict()
+    same = made_with(meta, settings)
     if same and not protocol.finished(state, train_config) and state.params is None:
         log(f"train {job.name}: its unfinished checkpoint is kept without its optimiser state; retraining")
         return False
