@@ -48,8 +48,12 @@ def test_a_stopped_run_is_handed_back_and_resumes_on_a_fresh_machine(stopped_run
     best parameters alone; unpacked into a fresh folder with a fresh dataset cache, the
     files are the same and the benchmark resumes: the unfinished job trains on from its
     epoch, the finished one is reused, its record too."""
+    stray = stopped_run / "benchmark" / "runs" / "ground-truth" / ".chain8.npz.x1y2.tmp.npz"  # a stopped write's temporary
+    stray.write_bytes(b"half")
     manifest = handoff.pack(QUICK, stopped_run, tmp_path / "back")
+    stray.unlink()
     roles = _member_roles(manifest)
+    assert not any(".tmp" in name for name in roles)
     assert roles[f"benchmark/checkpoints/{TRAINING}.npz"] == handoff.TRAINING
     assert roles[f"benchmark/checkpoints/{FINISHED}.npz"] == handoff.INFERENCE  # chain8 is not evaluated yet
     assert {f"benchmark/runs/{FINISHED}/chain4.npz", "benchmark/runs/ground-truth/chain4.npz", "benchmark/run.json"} <= set(roles)

@@ -121,10 +121,11 @@ def pack(profile: Profile, out: Path, dest: Path, limits: Limits = Limits(), log
 
 
 def _records(out: Path) -> list[Member]:
-    # Every finished stage record and the run's record; claims are not records.
+    # Every finished stage record and the run's record; claims are not records, nor are
+    # the temporaries of writes a killed process left (`files.atomic_path`: ".name...").
     paths = [out / "benchmark" / "run.json"] if (out / "benchmark" / "run.json").is_file() else []
     runs = out / "benchmark" / "runs"
-    paths += sorted(p for p in runs.rglob("*") if p.is_file() and p.suffix in (".npz", ".json")) if runs.is_dir() else []
+    paths += sorted(p for p in runs.rglob("*") if p.is_file() and p.suffix in (".npz", ".json") and not p.name.startswith(".")) if runs.is_dir() else []
     return [Member(p.relative_to(out).as_posix(), p, p.stat().st_size, RECORD) for p in paths]
 
 
