@@ -111,6 +111,11 @@ def test_a_damaged_or_foreign_hand_back_is_refused_in_one_line(stopped_run, tmp_
     assert main(["handoff", "unpack", str(back), "--out-dir", str(stopped_run)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "already holds a run" in err
+    # A manifest that lists other files than its parts hold.
+    listed = json.loads((back / "handoff.json").read_text())
+    (back / "handoff.json").write_text(json.dumps({**listed, "members": listed["members"][1:]}))
+    assert main(["handoff", "unpack", str(back), "--out-dir", str(tmp_path / "listed")]) == 2
+    assert "other files than handoff.json lists" in capsys.readouterr().err and not (tmp_path / "listed" / "benchmark").exists()
     # One byte of a part flipped.
     part = back / "handoff.tar.000"
     data = bytearray(part.read_bytes())

@@ -36,6 +36,7 @@ import hashlib
 import io
 import json
 import os
+import shutil
 import tarfile
 import tempfile
 from pathlib import Path
@@ -196,18 +197,22 @@ def _write(members: list[Member], dropped: list[Member], profile: Profile, dest:
     there only once the new one is whole."""
     with tempfile.TemporaryDirectory(prefix=".handoff-", dir=dest) as fresh:
         parts = _PartWriter(Path(fresh), limits.file_bytes)
-        with tarfile.open(fileobj=parts, mode="w|", format=tarfile.PAX_FORMAT) as archive:
+        # USTAR: one 512-byte header a member (`Member.tar_bytes`); the benchmark's names fit it.
+        with tarfile.open(fileobj=parts, mode="w|", format=tarfile.USTAR_FORMAT) as archive:
             for member in members:
                 info = tarfile.TarInfo(member.name)
                 info.size, info.mode, info.mtime = member.size, 0o644, 0
                 with open(member.source, "rb") as handle:
                     archive.addfile(info, handle)
         parts.finish()
+        written = sum(part["bytes"] for part in parts.written)
+        if written != stream_size(members):  # the limits were checked on this size
+            raise RuntimeError(f"hand-back stream of {written} bytes, {stream_size(members)} expected")
         manifest = {
             "format": 1,
             "commit": provenance.commit(),
             "profile": profile.name,
-            "bytes": sum(part["bytes"] for part in parts.written),
+            "bytes": written,
             "parts": parts.written,
             "members": [{"name": m.name, "bytes": m.size, "role": m.role} for m in members],
             "left_out": [{"name": m.name, "bytes": m.size, "role": m.role} for m in dropped],
@@ -273,13 +278,22 @@ def unpack(source: Path, out: Path, log=store.log) -> dict:
         if not path.is_file() or path.stat().st_size != part["bytes"] or _sha256(path) != part["sha256"]:
             raise ConfigError(f"{path}: missing or damaged (its size or sha256 differs from {source / MANIFEST})")
     out.mkdir(parents=True, exist_ok=True)
+    expected = {member["name"]: member["bytes"] for member in manifest["members"]}
     with tempfile.TemporaryDirectory(prefix=".unpack-", dir=out) as staging:
+        found = {}
         with _PartReader([source / part["name"] for part in manifest["parts"]]) as stream, tarfile.open(fileobj=stream, mode="r|") as archive:
             for info in archive:
                 name = Path(info.name)
                 if not info.isfile() or name.is_absolute() or ".." in name.parts or name.parts[:1] != ("benchmark",):
                     raise ConfigError(f"{source}: member {info.name!r} is not a file under benchmark/; nothing unpacked")
-                archive.extract(info, staging, filter="data")
+                # Written by hand, not `extract`: no link, device or mode of the archive's is kept.
+                target = Path(staging) / name
+                target.parent.mkdir(parents=True, exist_ok=True)
+                with archive.extractfile(info) as data, open(target, "wb") as handle:
+                    shutil.copyfileobj(data, handle)
+                found[info.name] = info.size
+        if found != expected:
+            raise ConfigError(f"{source}: its parts hold other files than {MANIFEST} lists; nothing unpacked")
         os.replace(Path(staging) / "benchmark", out / "benchmark")
     log(f"unpacked {len(manifest['members'])} files of a hand-back (commit {manifest['commit']}) into {out}/"
         + (f"; {len(manifest['left_out'])} unfinished checkpoints were left out of it" if manifest["left_out"] else ""))
