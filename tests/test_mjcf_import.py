@@ -554,3 +554,73 @@ def test_a_joint_range_is_kept_as_a_limit_and_the_engine_stops_where_mujocos_joi
     assert abs(len(partial.t) - expected) <= 1, (len(partial.t), expected)
     theirs = _mujoco_nodes(path, scene, key, config.frame_dt, DURATION)[: len(partial.t)]
     assert np.abs(partial.q - theirs).max() < AGREEMENT_M
+
+
+# ---------------------------------------------------------------------- built-in imports
+IMPORTED_SOURCES = Path(lgnn.__file__).parent / "assets" / "mjcf"
+
+
+def _only_key(path) -> str:
+    model = mujoco.MjModel.from_xml_path(str(path))
+    assert model.nkey == 1, path
+    return model.key(0).name
+
+
+def _numbers_close(a, b, path="") -> None:
+    """Two JSON values equal, their numbers to 1e-12 relative (MuJoCo's compile on
+    another machine may round a last bit otherwise)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), path
+        for key in a:
+            _numbers_close(a[key], b[key], f"{path}.{key}")
+    elif isinstance(a, list):
+        assert isinstance(b, list) and len(a) == len(b), path
+        for k, (x, y) in enumerate(zip(a, b)):
+            _numbers_close(x, y, f"{path}[{k}]")
+    elif isinstance(a, float) or isinstance(b, float):
+        assert a == pytest.approx(b, rel=1e-12, abs=1e-15), path
+    else:
+        assert a == b, path
+
+
+@pytest.mark.parametrize("name", scene_names("imported"))
+def test_a_built_in_imported_scene_is_its_source_file_imported_and_moves_as_mujoco_moves_it(name):
+    """Each built-in imported scene (lgnn/assets/imported/) is the import of its source
+    file (lgnn/assets/mjcf/, at its one keyframe), and the Lagrangian engine moves it as
+    MuJoCo C moves that file (RK4 at 1e-4) over 2 s, every node within 1e-6 m, up to
+    where a joint leaves its range (where lgnn stops)."""
+    from lgnn.errors import SimulationError
+
+    path = IMPORTED_SOURCES / f"{name}.xml"
+    key = _only_key(path)
+    scene = CATALOGUE[name].build()
+    _numbers_close(scene_to_dict(scene), scene_to_dict(imported(path, key).scene))
+    config = SimulationConfig(duration=DURATION)
+    try:
+        ours = get_engine("lagrangian").rollout(scene, config, batch_of_one(scene.initial_state)).member(0).q
+    except SimulationError as err:
+        assert "left the range" in str(err)
+        ours = err.trajectory.q
+    theirs = _mujoco_nodes(path, scene, key, config.frame_dt, DURATION)[: len(ours)]
+    assert len(ours) > 50 and np.abs(ours[-1] - ours[0]).max() > 0.05  # it moves
+    assert np.abs(ours - theirs).max() < AGREEMENT_M
+
+
+@pytest.mark.parametrize("engine", ["mujoco", "mjx"])
+def test_the_built_in_imported_scenes_run_in_the_mujoco_engines_as_in_the_lagrangian_engine(engine):
+    """MuJoCo C on every built-in imported scene's rendered MJCF (mjcf/) and MJX on the
+    cart with three poles (the most of each part: a cart, dampers, a range) agree with
+    the Lagrangian engine to 1e-9 m over 1 s and stop where it stops."""
+    from lgnn.errors import SimulationError
+
+    def run(which, scene, config):
+        try:
+            return get_engine(which).rollout(scene, config, batch_of_one(scene.initial_state)).member(0), ""
+        except SimulationError as err:
+            return err.trajectory, str(err).split(" state ", 1)[-1]
+
+    for name in scene_names("imported") if engine == "mujoco" else ("cartpole-3",):
+        scene, config = CATALOGUE[name].build(), SimulationConfig(duration=1.0)
+        (ours, stopped), (theirs, their_stop) = run("lagrangian", scene, config), run(engine, scene, config)
+        assert (len(theirs.t), their_stop) == (len(ours.t), stopped), name
+        assert np.abs(theirs.q - ours.q).max() < 1e-9 and np.abs(theirs.qd - ours.qd).max() < 1e-8, name

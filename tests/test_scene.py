@@ -275,7 +275,7 @@ def test_every_catalogue_entry_has_its_dimension_an_origin_and_a_policy_that_fit
         scene = entry.build()
         assert scene.name == name
         assert [tag for tag in entry.tags if tag in DIMENSION_TAGS.values()] == [DIMENSION_TAGS[scene.dim]], name
-        assert len([tag for tag in entry.tags if tag in ("paper", "hard", "transfer")]) == 1, name
+        assert len([tag for tag in entry.tags if tag in ("paper", "hard", "transfer", "imported")]) == 1, name
         assert entry.initial_states != CHAIN_SAMPLER or is_pinned_chain(scene), name
 
 

@@ -663,7 +663,8 @@ def _link_color(link_type: str) -> str:
 
 def builtin_files(forms: tuple[str, ...] = FORMS) -> dict[str, str]:
     """The committed `mjcf/` files of the catalogue's scenes tagged "mjcf": relative path
-    -> text (nested: NAME.xml, maximal: maximal/NAME.xml), at the default dt."""
+    -> text (nested: NAME.xml, maximal: maximal/NAME.xml; a scene only the nested form
+    renders, `nested_only`, has no maximal file), at the default dt."""
     from lgnn.scene import CATALOGUE, scene_names
 
     files = {}
@@ -671,7 +672,9 @@ def builtin_files(forms: tuple[str, ...] = FORMS) -> dict[str, str]:
         check_form(form)
         folder = "" if form == "nested" else f"{form}/"
         for name in scene_names("mjcf"):
-            files[f"{folder}{name}.xml"] = render(CATALOGUE[name].build(), form=form)
+            scene = CATALOGUE[name].build()
+            if form == "nested" or not nested_only(scene):
+                files[f"{folder}{name}.xml"] = render(scene, form=form)
     return files
 
 

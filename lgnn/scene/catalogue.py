@@ -202,6 +202,25 @@ def _paper_structures() -> dict:
     return json.loads(text)
 
 
+# The scenes lgnn writes in MJCF from published models' parameters (dm_control's suite,
+# Gymnasium) and imports: the source files in lgnn/assets/mjcf/, each imported at its
+# one keyframe by `lgnn scene import` into lgnn/assets/imported/ (a test holds each file
+# to a fresh import), read here without MuJoCo.
+IMPORTED = {
+    "pendulum-bob": "dm_control's pendulum: a 1 kg bob on a massless 0.5 m pole, hinge damping 0.1",
+    "acrobot": "dm_control's acrobot: two 1 m arms of 1 kg, joint damping 0.05",
+    "cartpole": "dm_control's cart-pole: a 1 kg cart on a damped slider (+-1.8 m), a 1 m pole of 0.1 kg",
+    "cartpole-2": "dm_control's cart-pole with two poles",
+    "cartpole-3": "dm_control's cart-pole with three poles",
+    "inverted-double-pendulum": "Gymnasium's inverted double pendulum: a 10.5 kg cart (+-0.99 m), two 0.6 m poles, gravity tilted 1e-5",
+}
+
+
+def imported_scene(name: str) -> Scene:
+    """The built-in imported scene `name` (`IMPORTED`)."""
+    return scene_from_dict(json.loads(resources.files("lgnn").joinpath(f"assets/imported/{name}.json").read_text()))
+
+
 def paper_structure(name: str) -> Scene:
     """T1, T2 or T3 (paper figure D-F), geometry from the authors' notebooks.
 
@@ -554,6 +573,7 @@ TAGS = {
     "paper": "the paper's scenes (chains, the varied and drag chains, T1-T3)",
     "hard": "hard cases: lgnn stability, the physics tests, the stand-ins T2-slack and T3-slack, scaling",
     "transfer": "scenes made for zero-shot transfer: 3D ones from the 3D 4-link chain, longer varied chains (planar and 3D) from varied 4-link ones",
+    "imported": "written in MJCF from published models' parameters (dm_control, Gymnasium) and imported (lgnn scene import)",
     "mjcf": "its MJCF is committed in mjcf/ (lgnn mjcf --check)",
 }
 DIMENSION_TAGS = {2: "planar", 3: "3d"}
@@ -647,6 +667,8 @@ CATALOGUE: dict[str, CatalogueEntry] = {
                        ("3d", "transfer", "mjcf"), CHAIN_SAMPLER),
         CatalogueEntry("tensegrity-3d", "a loose three-rod tensegrity prism of slack rope chains hung from three pins", spatial_tensegrity,
                        ("3d", "transfer", "mjcf"), OWN_STATE),
+        *(CatalogueEntry(name, description, functools.partial(imported_scene, name), _planar("imported", "mjcf"), PROJECTED)
+          for name, description in IMPORTED.items()),
     ]
 }
 
