@@ -188,6 +188,14 @@ def test_crosscheck_of_a_scene_file_writes_beside_the_user_and_summarises(capsys
     assert {len(re.findall(r"(?<!\\)\|", line)) for line in table} == {7}  # 6 columns (scene, engine, form, metric, value, note)
 
 
+def test_crosscheck_of_a_damped_scene_says_its_energy_falls_by_its_damping(capsys, tmp_path):
+    code, out, err = run(capsys, "crosscheck", "pendulum-bob", "--engines", "lagrangian,mujoco", "--dt", "1e-3", "--frame-dt", "1e-2", "--duration", "0.05",
+                         "--out-dir", str(tmp_path))
+    assert code == 0, err
+    rows = [line for line in (tmp_path / "crosscheck.md").read_text().splitlines() if "energy_drift" in line]
+    assert len(rows) == 2 and all("with what the scene's damping takes out" in line for line in rows)
+
+
 def test_benchmark_workers_evaluate_each_models_seeds_together_scenes_interleaved(tmp_path, monkeypatch):
     """`--workers` evaluation parts (the child processes, spied on, not run): one per
     scene and (model, training scene), naming that scene and all the model's seeds;

@@ -514,3 +514,13 @@ def test_gravity_as_a_vector_loads_and_round_trips():
     for bad, words in (([1.0, 2.0, 3.0], "a vector of 2 coordinates"), ([1.0, "x"], "gravity[1]"), ([], "a vector of 2")):
         with pytest.raises(SceneError, match=re.escape(words)):
             scene_from_dict({**valid(), "gravity": bad})
+
+
+def test_a_scene_dissipates_where_drag_a_damper_or_a_damped_rail_takes_energy_out():
+    from lgnn.scene import get_scene
+
+    assert not get_scene("chain4").dissipates and get_scene("chain4-drag").dissipates
+    assert get_scene("cartpole").dissipates and get_scene("acrobot").dissipates
+    undamped = scene_from_dict({**carted(), "rails": [{"node": 0, "axis": 0}]})
+    assert not undamped.dissipates and scene_from_dict(carted()).dissipates
+    assert not scene_from_dict({**valid(), "dampers": [{"links": [0], "damping": 0.0}]}).dissipates

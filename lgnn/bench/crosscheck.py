@@ -104,7 +104,7 @@ def crosscheck(scene: Scene, config: SimulationConfig, engines=None, mjx_max_dep
         traj = trajectories[spec] = engine.rollout(scene, config, batch_of_one(scene.initial_state)).member(0)
         wall = time.perf_counter() - start
         rows += [
-            dict(scene=scene.name, engine=name, form=form, metric="energy_drift", value=metrics.energy_drift(scene, traj), note="max |E-E0| / energy scale"),
+            dict(scene=scene.name, engine=name, form=form, metric="energy_drift", value=metrics.energy_drift(scene, traj), note="max |E-E0| / energy scale" + ("; with what the scene's damping takes out" if scene.dissipates else "")),
             dict(scene=scene.name, engine=name, form=form, metric="constraint_violation", value=metrics.max_constraint_violation(scene, traj.q), note="max link-length/pin/loop error"),
             dict(scene=scene.name, engine=name, form=form, metric="wall_s", value=wall, note="incl. compile" if entry.compiled else ""),
         ]

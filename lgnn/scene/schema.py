@@ -210,6 +210,11 @@ class Scene:
         return tuple(k for k in range(self.n_nodes) if k not in pinned)
 
     @property
+    def dissipates(self) -> bool:
+        """Whether anything in the scene takes energy out: drag, joint dampers, a damped rail."""
+        return bool(self.drag or any(b for *_, b in self.dampers) or any(b for *_, b in self.rails))
+
+    @property
     def grounded_nodes(self) -> tuple[int, ...]:
         """The nodes the world holds, pinned or on a rail: they do not move off their place
         or line, so a link with an end at one turns about the world (its angle is a joint's)."""
