@@ -444,6 +444,29 @@ def test_maximal_step_rule_meets_the_tolerance_where_dt_alone_did_not(monkeypatc
     assert nested <= get_engine("mujoco").accuracy(s, config) <= mjcf.MAXIMAL_TOLERANCE
 
 
+@pytest.mark.parametrize("tolerance", [1e-6, 2e-8])
+def test_the_maximal_forms_step_is_measured_on_a_scene_of_unlike_links(tolerance):
+    """Where the error model does not hold (chain8-mixed: links of 0.1-2 m and 0.01-10 kg),
+    the maximal form's substeps are measured on the scene (`measured_maximal_substeps`):
+    MuJoCo C at the step chosen meets the tolerance against a converged Lagrangian
+    reference over 1 s, with the error it states within a factor 2 of the true one, and
+    MJX states that error. 2e-8 takes the path that predicts the substeps from the first
+    two runs and checks them."""
+    from lgnn.engines.mjx import MjxEngine
+
+    s = scene("chain8-mixed")
+    assert not mjcf.error_model_holds(s)
+    config = SimulationConfig(frame_dt=1e-2, duration=1.0)
+    substeps, estimate = lm.measured_maximal_substeps(s, config.dt, config.frame_dt, tolerance)
+    assert substeps > 1 and estimate <= tolerance
+    stepped = lm.stepped_config(s, config, "maximal", tolerance)
+    assert stepped.dt == pytest.approx(config.dt / substeps) and stepped.frame_dt == config.frame_dt
+    reference = simulate(s, SimulationConfig(dt=1e-5, frame_dt=1e-2, duration=1.0)).q
+    error = float(np.abs(lm.rollout(s, stepped, form="maximal").q[0] - reference).max())
+    assert error <= tolerance and 0.5 * error <= estimate <= 2 * error, (error, estimate)
+    assert MjxEngine(form="maximal", tolerance=tolerance).accuracy(s, config) == estimate
+
+
 def test_error_models_hold_only_where_fitted():
     """`mjcf.form_error` is fitted on open chains of alike links under gravity over 1 s;
     elsewhere it states nothing, and the maximal form steps at the caller's dt. Its errors fall as

@@ -13,9 +13,10 @@ compiling (`log`), and `runner` is cached.
 
 In the maximal form the engine steps at `dt / mjcf.maximal_substeps(...)` (the fewest
 MuJoCo steps per `dt` whose soft joints meet its `tolerance`, 1e-6 over 1 s by
-default, where the error model holds: open chains of alike links), and
+default, where the error model holds: open chains of alike links), elsewhere at the
+substeps MuJoCo C runs of the scene measure (`mujoco.measured_maximal_substeps`), and
 `MjxEngine.accuracy(scene, config)` states the expected error at the step taken
-(`mjcf.form_error`).
+(`mujoco.stated_accuracy`).
 
 Spatial scenes run the same way (ball and free joints; `qpos_rate` turns qvel into
 the quaternions' rates for the velocity `jvp`).
@@ -47,9 +48,9 @@ import mujoco
 import numpy as np
 
 from lgnn.engines.base import DTYPES, Engine, SimulationConfig, Trajectory
-from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form, form_error, nested_only, scene_layout
+from lgnn.engines.mjcf import MAXIMAL_TOLERANCE, Form, error_model_holds, nested_only, scene_layout
 from lgnn.engines.mujoco import (checked_trajectory, compile_scene, engine_metadata, qpos_rate, quat_mul, resolve_form,
-                                 state_to_qpos_qvel, stepped_config)
+                                 stated_accuracy, state_to_qpos_qvel, stepped_config)
 from lgnn.engines.timing import compile_timed, time_compiled, time_runs
 from lgnn.errors import ConfigError
 from lgnn.runtime import precision
@@ -344,8 +345,8 @@ def best_form(scene: Scene) -> Form:
 class MjxEngine(Engine):
     """MJX as an `lgnn.engines.Engine`, computing in `dtype`, on the MJCF `form`
     ("auto": `best_form`); `log` (e.g. `print`) is told before a compile starts. In
-    the maximal form MuJoCo steps at `dt / mjcf.maximal_substeps` so that the run meets
-    `tolerance` where the error model holds (`mujoco.stepped_config`)."""
+    the maximal form MuJoCo steps so that the run meets `tolerance`: by the error model
+    where it holds, else by the step measured on the scene (`mujoco.stepped_config`)."""
 
     name: ClassVar[str] = "mjx"
     dtype: str = "float64"
@@ -359,17 +360,20 @@ class MjxEngine(Engine):
 
     def accuracy(self, scene: Scene, config: SimulationConfig) -> float | None:
         """The expected max node position error (m) of a run at `config` against exact
-        motion: `mjcf.form_error` of its form at the step MuJoCo takes; None where the
-        error model does not hold, and in float32 (its round-off is not modelled)."""
+        motion (`mujoco.stated_accuracy`: the error model, or the maximal form's step
+        measured on the scene); None where neither states one, and in float32 (its
+        round-off is not modelled)."""
         if self.dtype != "float64":
             return None
-        form = self.form_of(scene)
-        return form_error(scene, form, stepped_config(scene, config, form, self.tolerance).dt, config.duration)
+        return stated_accuracy(scene, config, self.form_of(scene), self.tolerance)
 
     def _announced_form(self, scene: Scene, config: SimulationConfig) -> tuple[Form, SimulationConfig]:
         # The form and the settings MuJoCo steps at, told to `log` first when this
         # process has no runner for them yet.
         form = self.form_of(scene)
+        if self.log is not None and form == "maximal" and not error_model_holds(scene):
+            self.log(f"MJX: choosing {scene.name}'s step in the maximal form by MuJoCo C runs of it (its links are not alike: "
+                     "mujoco.measured_maximal_substeps); on a long chain this can take a minute")
         stepped = stepped_config(scene, config, form, self.tolerance)
         if self.log is not None and not _has_runner(scene, stepped, self.dtype, form):
             nv = compile_scene(scene, stepped.dt, form).model.nv
