@@ -150,7 +150,12 @@ def test_a_finished_and_fully_evaluated_job_goes_without_its_parameters(stopped_
     the mass stage's LGNN), its checkpoint goes as its meta and history alone: what the
     report reads, with the content digest its records are keyed on."""
     only_chain4 = profiles.load_profile("quick", ['scenes=["chain4"]'])
-    manifest = handoff.pack(only_chain4, stopped_run, tmp_path / "back")
+    told = []
+    manifest = handoff.pack(only_chain4, stopped_run, tmp_path / "back", log=told.append)
+    assert not any("belong to no job" in line for line in told)
+    just_gns = profiles.load_profile("quick", ['models=["gns"]'])
+    handoff.pack(just_gns, stopped_run, tmp_path / "other", log=told.append)
+    assert any(f"1 checkpoints belong to no job of the quick profile given, left out: {TRAINING}.npz" in line for line in told), told
     assert _member_roles(manifest)[f"benchmark/checkpoints/{FINISHED}.npz"] == handoff.HISTORY
     handoff.unpack(tmp_path / "back", tmp_path / "fresh")
     meta, arrays = checkpoints.read(tmp_path / "fresh" / "benchmark" / "checkpoints" / f"{FINISHED}.npz")

@@ -110,7 +110,7 @@ def pack(profile: Profile, out: Path, dest: Path, limits: Limits = Limits(), log
     if not (out / "benchmark").is_dir():
         raise ConfigError(f"{out} holds no benchmark run (no {out / 'benchmark'} folder)")
     with tempfile.TemporaryDirectory(prefix="lgnn-handoff-") as staging:
-        members = _records(out) + _checkpoints(profile, out, Path(staging))
+        members = _records(out) + _checkpoints(profile, out, Path(staging), log)
         members, dropped = _within(members, limits)
         for member in dropped:
             log(f"hand-back: left out {member.name} ({member.size / MIB:.1f} MiB, {member.role}): over the limit of "
@@ -130,9 +130,10 @@ def _records(out: Path) -> list[Member]:
     return [Member(p.relative_to(out).as_posix(), p, p.stat().st_size, RECORD) for p in paths]
 
 
-def _checkpoints(profile: Profile, out: Path, staging: Path) -> list[Member]:
+def _checkpoints(profile: Profile, out: Path, staging: Path, log) -> list[Member]:
     """The profile's training checkpoints under `out`, each as the module docstring says:
-    whole while training goes on, slimmer copies (made in `staging`) once finished."""
+    whole while training goes on, slimmer copies (made in `staging`) once finished; what
+    is left out is told to `log`."""
     from lgnn.bench.stages.evaluate import load_pair
     from lgnn.bench.stages.speed import timed_jobs
     from lgnn.bench.stages.train import job_settings, made_with
@@ -145,6 +146,11 @@ def _checkpoints(profile: Profile, out: Path, staging: Path) -> list[Member]:
     read_later = {job for scene in profile.speed.scenes for job in timed_jobs(profile, scene)} if "speed" in stages else set()
     read_later |= {lgnn_job(profile, scene) for scene in profile.mass.scenes} if "mass" in stages else set()
     members = []
+    known = {layout.checkpoint(job) for job in jobs}
+    strangers = sorted(p.name for p in (out / "benchmark" / "checkpoints").glob("*.npz") if p not in known and not p.name.startswith("."))
+    if strangers:
+        log(f"hand-back: {len(strangers)} checkpoints belong to no job of the {profile.name} profile given, left out: {', '.join(strangers[:5])}"
+            + (", ..." if len(strangers) > 5 else "") + " (pack with the run's own profile options)")
     for job in jobs:
         path = layout.checkpoint(job)
         if not path.is_file():
@@ -153,17 +159,17 @@ def _checkpoints(profile: Profile, out: Path, staging: Path) -> list[Member]:
         try:
             state, meta = train.load_checkpoint(path)
         except CheckpointError as err:
-            store.log(f"hand-back: warning: {err}; left out (that job trains again)")
+            log(f"hand-back: warning: {err}; left out (that job trains again)")
             continue
         settings = job_settings(profile, job)
         if not made_with(meta, settings):
-            store.log(f"hand-back: {name} was trained with other settings; left out (that job trains again)")
+            log(f"hand-back: {name} was trained with other settings; left out (that job trains again)")
             continue
         if not protocol.finished(state, settings[3]):
             if checkpoints.resumable(meta):
                 members.append(Member(name, path, path.stat().st_size, TRAINING))
             else:
-                store.log(f"hand-back: {name} is unfinished and cannot be resumed; left out (that job trains again)")
+                log(f"hand-back: {name} is unfinished and cannot be resumed; left out (that job trains again)")
             continue
         needed = job in read_later or any(pair.job == job and load_pair(profile, pair, out) is None for pair in pairs)
         if not checkpoints.has_parameters(meta) or needed and not checkpoints.resumable(meta):
