@@ -26,8 +26,9 @@ outside the step (`xfrc_applied`) and this engine does not.
 
 `form` is the MJCF form (`lgnn.engines.mjcf`): "nested" (joint coordinates, the
 default), "maximal", or "auto", MJX's choice (`lgnn.engines.mjx.best_form`), so that
-the two engines run a scene in the same form. In the maximal form MuJoCo Warp steps
-at `dt / mjcf.maximal_substeps`, as MJX does (`lgnn.engines.mujoco.stepped_config`).
+the two engines run a scene in the same form. In the maximal form MuJoCo Warp takes
+the substeps MJX takes (`lgnn.engines.mujoco.stepped_config`: the error model's where
+it holds, else those measured on the scene).
 """
 
 from __future__ import annotations
