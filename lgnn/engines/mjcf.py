@@ -209,6 +209,20 @@ class Layout:
         return tuple(ties)
 
     @property
+    def cart_of_node(self) -> dict[int, int]:
+        """`{rail node: index in carts}`."""
+        return {node: c for c, (node, _) in enumerate(self.carts)}
+
+    def children(self) -> tuple[dict, dict]:
+        """`(children, on_cart)`: the indices of `bodies` under each body (-1: the world),
+        and those sitting in each cart (by index in `carts`), in tree order; both
+        `defaultdict(list)`."""
+        children, on_cart = collections.defaultdict(list), collections.defaultdict(list)
+        for k, body in enumerate(self.bodies):
+            (on_cart[body.cart] if body.cart >= 0 else children[body.parent]).append(k)
+        return children, on_cart
+
+    @property
     def depth(self) -> int:
         """Longest chain of bodies from the world (what MJX compile time grows with)."""
         depth = []
@@ -375,15 +389,11 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
     maximal = form == "maximal"
     nodes = np.asarray(scene.nodes, np.float64)
     scale = float(np.median(scene.lengths))
-    children, on_cart = collections.defaultdict(list), collections.defaultdict(list)
-    for k, body in enumerate(layout.bodies):
-        (on_cart[body.cart] if body.cart >= 0 else children[body.parent]).append(k)
-    cart_of = {node: c for c, (node, _) in enumerate(layout.carts)}
-    sites, cart_sites = collections.defaultdict(list), {}
+    children, on_cart = layout.children()
+    cart_of = layout.cart_of_node
+    sites = collections.defaultdict(list)  # a cart's node's site is written in its cart's body
     for k, owner in enumerate(layout.node_body):
-        if k in cart_of:
-            cart_sites[cart_of[k]] = k
-        else:
+        if k not in cart_of:
             sites[owner].append(k)
     # A point mass sits on the body carrying its node's site, as a body welded there
     # (so a link body's own centre of mass, where drag acts, stays its rod's centre);
@@ -572,7 +582,7 @@ def joint_ranges(scene: Scene, layout: Layout) -> tuple[list, list]:
     from lgnn.metrics import limit_values
 
     initial = limit_values(scene, np.asarray(scene.nodes, np.float64)[None])[0]
-    cart_of = {node: c for c, (node, _) in enumerate(layout.carts)}
+    cart_of = layout.cart_of_node
     body_of = {body.link: k for k, body in enumerate(layout.bodies)}
 
     def parent_link(k: int) -> int:
@@ -627,9 +637,7 @@ def xml_order(layout: Layout) -> list[tuple[str, int]]:
     bodies, each depth first with its children in tree order. This is MuJoCo's order
     of bodies, joints and dofs; `layout.bodies` is breadth first, which differs on a
     branching tree."""
-    children, on_cart = collections.defaultdict(list), collections.defaultdict(list)
-    for k, body in enumerate(layout.bodies):
-        (on_cart[body.cart] if body.cart >= 0 else children[body.parent]).append(k)
+    children, on_cart = layout.children()
     order = []
 
     def depth_first(k: int) -> None:

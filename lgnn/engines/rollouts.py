@@ -299,9 +299,10 @@ def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, st
                 energy_all[batch + (0,)] = np.asarray(energy0)[(*ics, slice(0, taken))]
             bounds = [ExplosionBounds.of(scene, State(states.q[c], states.qd[c]), float(energy_all[(c, 0)]))
                       for c in range(first, first + taken)] if stop else None
-            # Each initial condition's joint-limit values at the last frame read, so
-            # that each chunk's angles unwrap on from the last (`limit_values`).
-            limits_at = [limit_values(scene, states.q[c][None])[0] for c in range(first, first + taken)] if stop else None
+            # Each initial condition's joint-limit values at the last frame read (if the
+            # scene has limits), so that each chunk's angles unwrap on from the last
+            # (`limit_values`).
+            limits_at = [limit_values(scene, states.q[c][None])[0] for c in range(first, first + taken)] if stop and scene.limits else None
             done = 0
             while done < n_frames:
                 began = time.perf_counter()
@@ -322,25 +323,29 @@ def _run(scene: Scene, config: SimulationConfig, programs: _Programs, params, st
 
 
 def _stop_at_divergence(scene: Scene, config: SimulationConfig, integration: Integration, bounds: list[ExplosionBounds],
-                        limits_at: list[np.ndarray], first: int, q: np.ndarray, qd: np.ndarray, energy: np.ndarray, done: int, kept: int,
-                        label: str, hint: str) -> list[np.ndarray]:
+                        limits_at: list[np.ndarray] | None, first: int, q: np.ndarray, qd: np.ndarray, energy: np.ndarray, done: int,
+                        kept: int, label: str, hint: str) -> list[np.ndarray] | None:
     """Raise `SimulationError` at the first non-finite or exploding frame, or the first
     frame outside a joint limit, among frames `done + 1 ... done + kept` of initial
     conditions `first, first + 1, ...`; else return their joint-limit values at frame
-    `done + kept` (`limits_at` holds them at frame `done`)."""
+    `done + kept` (`limits_at` holds them at frame `done`; None for a scene without
+    limits, which gets None back)."""
     frames = slice(done + 1, done + 1 + kept)
     t = (done + 1 + np.arange(kept)) * config.frame_dt
     found = [(violation[0], c, violation[1]) for c, member in enumerate(bounds, first)
              if (violation := member.first_violation(t, q[c, frames], qd[c, frames], energy[c, frames])) is not None]
-    # A joint limit (which the engines do not model) stops a run as divergence does.
-    values = [limit_values(scene, q[c, frames], after=at) for c, at in enumerate(limits_at, first)]
-    checked, limit_t = values, t
-    if done == 0:  # an initial state outside a limit stops the run at that frame alone (k = -1)
-        checked, limit_t = [np.concatenate([at[None], part]) for at, part in zip(limits_at, values)], np.concatenate([[0.0], t])
-    limits = [(violation[0] - (done == 0), c, violation[1]) for c, part in enumerate(checked, first)
-              if (violation := first_outside_limits(scene, limit_t, part)) is not None]
+    # A joint limit (which the engines do not model) stops a run as divergence does; a
+    # scene without limits (`limits_at` None) has none to read.
+    values, limits = [], []
+    if limits_at is not None:
+        values = [limit_values(scene, q[c, frames], after=at) for c, at in enumerate(limits_at, first)]
+        checked, limit_t = values, t
+        if done == 0:  # an initial state outside a limit stops the run at that frame alone (k = -1)
+            checked, limit_t = [np.concatenate([at[None], part]) for at, part in zip(limits_at, values)], np.concatenate([[0.0], t])
+        limits = [(violation[0] - (done == 0), c, violation[1]) for c, part in enumerate(checked, first)
+                  if (violation := first_outside_limits(scene, limit_t, part)) is not None]
     if not found and not limits:
-        return [part[-1] for part in values]
+        return None if limits_at is None else [part[-1] for part in values]
     k, c, reason = min(found + limits)
     end = max(done + 1 + k, 1)
     partial = Trajectory(np.arange(end) * config.frame_dt, q[c, :end].copy(), qd[c, :end].copy(), energy[c, :end].copy(),
