@@ -1,6 +1,7 @@
-"""The commands of the benchmark: `lgnn benchmark`, `leaderboard` and `dataset export`
-(`PARSERS`); each parses its options and calls the library (`lgnn.bench.run`,
-`lgnn.bench.grid`, `lgnn.bench.report`, `lgnn.bench.dataset`).
+"""The commands of the benchmark: `lgnn benchmark`, `leaderboard`, `handoff`, `dataset
+export` and `papers` (`PARSERS`); each parses its options and calls the library
+(`lgnn.bench.run`, `lgnn.bench.grid`, `lgnn.bench.report`, `lgnn.bench.dataset`,
+`lgnn.bench.handoff`, `lgnn.bench.papers`).
 """
 
 from __future__ import annotations
@@ -173,6 +174,36 @@ def _add_handoff_parser(commands) -> None:
     unpack.set_defaults(run=_cmd_handoff_unpack)
 
 
-# `lgnn benchmark`, `leaderboard`, `handoff` and `dataset export`: their parsers'
-# builders, in `lgnn --help`'s order.
-PARSERS = (_add_benchmark_parser, _add_leaderboard_parser, _add_handoff_parser, _add_dataset_parser)
+def _cmd_papers(args) -> None:
+    import dataclasses
+
+    from lgnn.bench import papers
+
+    protocol = papers.PROTOCOLS[args.protocol]
+    if args.seeds:
+        protocol = dataclasses.replace(protocol, seeds=tuple(args.seeds))
+    out_dir = args.out_dir or ("results/papers" if args.protocol == "finzi2020" else f"lgnn-out/papers-{args.protocol}")
+    print(f"lgnn papers ({protocol.name}): writing into {out_dir}/", flush=True)
+    readme = papers.run(protocol, out_dir, log=(lambda line: None) if args.quiet else (lambda line: print(line, flush=True)))
+    print(readme.read_text())
+    print(f"wrote {readme.parent}/")
+
+
+def _add_papers_parser(commands) -> None:
+    from lgnn.bench import papers
+
+    parser = commands.add_parser("papers", help="train the zoo's CHNN and CLNN by Finzi et al.'s own protocol and put them beside "
+                                                "the published numbers (docs/papers.md)")
+    parser.add_argument("--protocol", choices=tuple(papers.PROTOCOLS), default="finzi2020",
+                        help="finzi2020 (default: the paper's data, recipe and metric) or quick (seconds, CI's)")
+    parser.add_argument("--seeds", type=int, nargs="+", help="training seeds (default: the protocol's, 0 1 2 for finzi2020)")
+    parser.add_argument("--out-dir", default=None,
+                        help="output folder (default results/papers/ for finzi2020, lgnn-out/papers-quick/ for quick); groups "
+                             "already recorded there with the same settings are reused")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    parser.set_defaults(run=_cmd_papers)
+
+
+# `lgnn benchmark`, `leaderboard`, `handoff`, `dataset export` and `papers`: their
+# parsers' builders, in `lgnn --help`'s order.
+PARSERS = (_add_benchmark_parser, _add_leaderboard_parser, _add_handoff_parser, _add_dataset_parser, _add_papers_parser)

@@ -438,17 +438,43 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         pos = o - parent_origin(body)
         base, tip = nodes[body.base] - o, nodes[body.tip] - o
         mass, inertia = float(scene.masses[e]), float(scene.inertias[e])
-        # A zero inertia (a point-mass rod) is raised to a negligible floor because
-        # MuJoCo rejects zero principal moments.
+        centre_point = (0.5 - layout.origin_weight) * (tip - base)
+        points = welded[index]
+        if mass == 0:
+            # MuJoCo refuses a moving body without mass: a massless rod's body carries
+            # its welded point masses itself, their inertia about their centre of mass.
+            if not points:
+                raise SceneError(f"scene {scene.name!r}: link {e} is massless and no point mass moves with its MuJoCo body, "
+                                 "which MuJoCo refuses (give its tip node a point mass)")
+            if scene.drag:
+                raise SceneError(f"scene {scene.name!r}: drag on massless link {e} acts at its rod's centre, which its "
+                                 "MuJoCo body (its point masses') does not have")
+            weights = np.asarray([point for _, point in points])
+            offsets = np.asarray([nodes[node] - o for node, _ in points])
+            mass = float(weights.sum())
+            centre_point = weights @ offsets / mass
+            spread = np.pad(offsets - centre_point, ((0, 0), (0, 3 - scene.dim)))
+            # Their inertia tensor about it (a point's own is zero); planar hinges see Izz.
+            points_tensor = np.einsum("k,kij->ij", weights, np.einsum("ka,ka->k", spread, spread)[:, None, None] * np.eye(3)
+                                      - np.einsum("ki,kj->kij", spread, spread))
+            inertia = float(points_tensor[2, 2])
+            points = []
+        else:
+            points_tensor = None
+        # A zero inertia (a point-mass rod, point masses at one place) is raised to a
+        # negligible floor because MuJoCo rejects zero principal moments.
         inertia = max(inertia, 1e-12 * mass * float(scene.lengths[e]) ** 2)
         inner = indent + "  "
         lines = [f'{indent}<body name="link{e}" pos="{pos3(pos)}">']
-        centre = pos3((0.5 - layout.origin_weight) * (tip - base))
+        centre = pos3(centre_point)
         if spatial:
             # A free root: a <freejoint/> (position and orientation of the body frame);
             # every other body turns about its base node in a ball joint.
             lines.append(f'{inner}<freejoint name="link{e}_free"/>' if body.free_root else f'{inner}<joint name="link{e}_ball" type="ball"/>')
-            lines.append(f'{inner}<inertial pos="{centre}" mass="{_num(mass)}" fullinertia="{_vec(*rod_inertia(inertia, tip - base))}"/>')
+            floor = 1e-12 * mass * float(scene.lengths[e]) ** 2
+            tensor = (rod_inertia(inertia, tip - base) if points_tensor is None
+                      else [*(np.diag(points_tensor) + floor), points_tensor[0, 1], points_tensor[0, 2], points_tensor[1, 2]])
+            lines.append(f'{inner}<inertial pos="{centre}" mass="{_num(mass)}" fullinertia="{_vec(*tensor)}"/>')
         else:
             if body.free_root:
                 lines.append(f'{inner}<joint name="link{e}_x" type="slide" axis="1 0 0"/>')
@@ -466,7 +492,7 @@ def render(scene: Scene, dt: float = 1e-4, form: Form = "nested") -> str:
         for node in ties[index]:
             lines.append(f'{inner}<site name="{_tie_site(body, node)}" pos="{pos3(nodes[node] - o)}" size="{site_size}" rgba="1 0 0 1"/>')
         lines += node_sites(index, inner)
-        for node, point in welded[index]:
+        for node, point in points:
             # A point has no moment of inertia of its own (MuJoCo allows that on a
             # body without joints).
             lines.append(f'{inner}<body name="mass{node}" pos="{pos3(nodes[node] - o)}"><inertial pos="0 0 0" mass="{_num(point)}" '

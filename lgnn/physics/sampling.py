@@ -85,6 +85,18 @@ def sample_initial_conditions(
     shape = (count, *scene.nodes.shape)
     q = scene.nodes + position_scale * length * free * np.asarray(jax.random.normal(key_q, shape, jnp.float64))
     qd = scene.velocities + velocity_scale * speed * free * np.asarray(jax.random.normal(key_qd, shape, jnp.float64))
+    return projected_states(scene, q, qd, f"seed {seed}", hint="try a smaller position scale")
+
+
+def projected_states(scene: Scene, q, qd, what: str, hint: str = "draw states nearer the constraints") -> State:
+    """States `(q, qd)` (count, N, D) put on the scene's constraints: the projection
+    (`projection_fn`) repeated while it still halves the worst violation, to the
+    tolerance of their dtype (`TOLERANCE`). `SceneError` naming the state of `what` (the
+    draw they came from) that cannot be put there."""
+    q, qd = np.asarray(q), np.asarray(qd)
+    length = float(np.mean(scene.lengths)) if scene.n_links else 1.0
+    gravity = float(np.linalg.norm(scene.gravity_vector))
+    speed = float(np.sqrt(gravity * length)) if gravity > 0 else length
     singular = prepare(scene).constraints.self_stresses > 0
     tolerance = SINGULAR_TOLERANCE if singular and q.dtype == np.float64 else TOLERANCE[str(q.dtype)]
     project = _projection(scene)
@@ -98,9 +110,8 @@ def sample_initial_conditions(
     if scene.n_links and worst.max() > tolerance:
         k = int(np.argmax(worst))
         raise SceneError(
-            f"scene {scene.name!r}: initial condition {k} of seed {seed} could not be put on the constraints "
-            f"(relative violation {float(worst[k]):.1e} > {tolerance:g}, no longer halving per projection round); "
-            "try a smaller position scale"
+            f"scene {scene.name!r}: initial condition {k} of {what} could not be put on the constraints "
+            f"(relative violation {float(worst[k]):.1e} > {tolerance:g}, no longer halving per projection round); {hint}"
         )
     return State(np.asarray(q), np.asarray(qd))
 

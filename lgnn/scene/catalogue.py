@@ -308,6 +308,37 @@ def pendulum(angle: float = 0.3, length: float = 1.0, mass: float = 1.0, gravity
     )
 
 
+# Finzi et al. (2020)'s chain pendulums (their code's `ChainPendulum(n)`): n point
+# masses joined by massless rods, the first tethered to a pivot at the origin, gravity
+# 9.81. Their masses and lengths are 0.6 + 0.8 U(0, 1), drawn by NumPy's legacy
+# generator seeded 0 (n masses, then n lengths) and taken from the end of each list:
+# the bob nearest the pivot gets the last mass drawn, its rod the last length.
+FINZI_GRAVITY = 9.81
+FINZI_PENDULUMS = {
+    1: ((1.039050803142,), (1.172151493098,)),
+    2: ((1.172151493098, 1.039050803142), (1.035906546398, 1.082210700857)),
+    3: ((1.082210700857, 1.172151493098, 1.039050803142), (1.116715290453, 0.938923839471, 1.035906546398)),
+    5: ((0.938923839471, 1.035906546398, 1.082210700857, 1.172151493098, 1.039050803142),
+        (0.906753215061, 1.370930208401, 1.313418400626, 0.95006976901, 1.116715290453)),
+}
+
+
+def finzi_pendulum(n_bobs: int) -> Scene:
+    """Finzi et al.'s `n_bobs`-pendulum (`FINZI_PENDULUMS`): node 0 the pivot, node k
+    the k-th bob from it, hanging straight down at rest (the mean of their initial-state
+    distribution, `lgnn.bench.papers.finzi_initial_states`)."""
+    masses, lengths = FINZI_PENDULUMS[n_bobs]
+    depths = np.cumsum(lengths)
+    return scene_from_dict({
+        "name": f"finzi-pendulum{n_bobs}",
+        "gravity": FINZI_GRAVITY,
+        "nodes": [[0.0, 0.0], *([0.0, -float(depth)] for depth in depths)],
+        "pinned": [0],
+        "links": [{"nodes": [k, k + 1], "mass": 0.0, "inertia": 0.0, "length": length} for k, length in enumerate(lengths)],
+        "point_masses": [{"node": k + 1, "mass": mass} for k, mass in enumerate(masses)],
+    })
+
+
 def free_triangle():
     """An unpinned triangle with some spin: a free rigid body (no pins, no pin rows)."""
     nodes = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 0.8]])
@@ -574,6 +605,7 @@ TAGS = {
     "hard": "hard cases: lgnn stability, the physics tests, the stand-ins T2-slack and T3-slack, scaling",
     "transfer": "scenes made for zero-shot transfer: 3D ones from the 3D 4-link chain, longer varied chains (planar and 3D) from varied 4-link ones",
     "imported": "written in MJCF from published models' parameters (dm_control, Gymnasium) and imported (lgnn scene import)",
+    "papers": "other papers' systems as their authors' code defines them (Finzi et al. 2020's chain pendulums: lgnn papers)",
     "mjcf": "its MJCF is committed in mjcf/ (lgnn mjcf --check)",
 }
 DIMENSION_TAGS = {2: "planar", 3: "3d"}
@@ -669,6 +701,8 @@ CATALOGUE: dict[str, CatalogueEntry] = {
                        ("3d", "transfer", "mjcf"), OWN_STATE),
         *(CatalogueEntry(name, description, functools.partial(imported_scene, name), _planar("imported", "mjcf"), PROJECTED)
           for name, description in IMPORTED.items()),
+        *(CatalogueEntry(f"finzi-pendulum{n}", f"Finzi et al. (2020)'s {n}-pendulum: {n} point mass{'es' if n > 1 else ''} on massless rods",
+                         functools.partial(finzi_pendulum, n), _planar("papers"), PROJECTED) for n in FINZI_PENDULUMS),
     ]
 }
 

@@ -43,7 +43,9 @@ a link's angular velocity. Planar scenes only: in 3D a joint's damping also acts
 a rod's own axis, which the node description has no spin about.
 
 A point mass sits at a node (a cart, a bob): kinetic energy `1/2 m |qd_k|^2` and
-potential `m g y_k`. A rail holds a free node to the line through its initial position
+potential `m g y_k`. A link may be massless (mass and inertia 0: a rigid rod joining
+point masses, as Finzi et al.'s chain pendulums) where every free node still carries
+mass, of a link with mass or a point mass. A rail holds a free node to the line through its initial position
 along scene axis `axis` (0 = x, 1 = y, 2 = z), as MuJoCo's slide joint to the world (a
 cart): its other coordinates are fixed as a pin's are, and `damping` is the slide's
 viscous damping, a force `-damping * qd_k[axis]`.
@@ -438,11 +440,13 @@ def scene_from_dict(data: Any) -> Scene:
             raise _fail(f"{where}.nodes", f"duplicate link: nodes {i}-{j} already joined by links[{seen[key]}]")
         seen[key] = k
         mass = _number(link["mass"], f"{where}.mass")
-        if mass <= 0:
-            raise _fail(f"{where}.mass", f"must be > 0, got {mass}")
+        if mass < 0:
+            raise _fail(f"{where}.mass", f"must be >= 0, got {mass}")
         inertia = _number(link["inertia"], f"{where}.inertia")
         if inertia < 0:
             raise _fail(f"{where}.inertia", f"must be >= 0, got {inertia}")
+        if mass == 0 and inertia > 0:
+            raise _fail(f"{where}.inertia", f"a massless link has no inertia, got {inertia}")
         # math.hypot is correctly rounded on every platform; np.linalg.norm's last bit
         # depends on the CPU's FMA path, which would make a scene (and every record
         # keyed on it) differ between machines.
@@ -661,10 +665,15 @@ def check_scene(scene: Scene) -> None:
     for k, length in enumerate(lengths):
         if length < MIN_RELATIVE_LENGTH * longest:
             raise _fail(f"links[{k}].length", f"{length:g} is (nearly) zero: below {MIN_RELATIVE_LENGTH:g} of the longest link")
-    linked = {n for edge in scene.edges for n in edge} | {node for node, _ in scene.point_masses}
+    # Every free node carries mass, of a link with mass or a point mass, so the mass
+    # matrix on the constraints is positive definite (a node joined by massless links
+    # alone would move at no cost).
+    massive = {n for edge, mass in zip(scene.edges, scene.masses) if mass > 0 for n in edge} | {node for node, _ in scene.point_masses}
     for node in scene.free_nodes:
-        if node not in linked:
-            raise _fail("nodes", f"free node {node} belongs to no link and has no point mass (it would have no mass)")
+        if node not in massive:
+            joined = any(node in edge for edge in scene.edges)
+            raise _fail("nodes", f"free node {node} has no mass: it belongs to {'massless links only' if joined else 'no link'} "
+                                 "and has no point mass")
     i, j = scene.edge_index.T
     dq = scene.nodes[i] - scene.nodes[j]
     distance = np.linalg.norm(dq, axis=-1)

@@ -83,14 +83,15 @@ SOFTPLUS_ONE = float(np.log(np.e - 1.0))
 
 def statistics(config, scene: Scene, q, qd, qdd) -> dict:
     """Scales of the training states and targets (each (S, N, D)) of `scene`: the RMS
-    link length, the mean link mass and inertia, and an energy scale, the mean mass
-    times the RMS free-node acceleration times the length scale (gravity's `m g l` on
-    a chain at rest). A zero scale becomes 1."""
+    link length, the mean mass per link (the point masses' counted: a chain of bobs on
+    massless rods has its mass there) and the mean inertia, and an energy scale, that
+    mass times the RMS free-node acceleration times the length scale (gravity's `m g l`
+    on a chain at rest). A zero scale becomes 1."""
     i, j = scene.edge_index.T
     q = np.asarray(q)
     qdd_free = np.asarray(qdd)[:, list(scene.free_nodes)]
     length = np.sqrt(np.mean(np.sum((q[:, i] - q[:, j]) ** 2, -1)))
-    mass, inertia = np.mean(scene.masses), np.mean(scene.inertias)
+    mass, inertia = (np.sum(scene.masses) + np.sum(scene.node_mass_array)) / scene.n_links, np.mean(scene.inertias)
     energy = mass * np.sqrt(np.mean(qdd_free**2)) * length
 
     def scale(value):
