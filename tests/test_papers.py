@@ -120,3 +120,18 @@ def test_the_quick_protocol_trains_writes_its_table_and_resumes(tmp_path):
     papers.run(papers.QUICK, tmp_path / "papers", log=lines.append)
     assert [line for line in lines if "reusing" in line] == [f"{name} on finzi-pendulum2: reusing its record" for name in papers.QUICK.models]
     assert (tmp_path / "papers" / "README.md").read_text() == text
+
+
+def test_the_committed_table_is_its_records_rendered(tmp_path):
+    """results/papers/README.md and its CSV are what the run makes of the committed
+    group records (every group reused, nothing trained): no number edited by hand."""
+    import shutil
+    from pathlib import Path
+
+    committed = Path(__file__).resolve().parents[1] / "results" / "papers"
+    shutil.copytree(committed / "groups", tmp_path / "groups")
+    lines = []
+    papers.run(papers.Protocol(), tmp_path, log=lines.append)
+    assert all("reusing" in line for line in lines)
+    assert (tmp_path / "README.md").read_text() == (committed / "README.md").read_text()
+    assert (tmp_path / "finzi2020.csv").read_text() == (committed / "finzi2020.csv").read_text()
