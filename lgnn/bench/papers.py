@@ -34,12 +34,14 @@ here is lgnn's own:
   state, projected), which depends on the system, the distribution and the metric
   alone: it checks those against the authors' before any learning.
 
-What differs by design: the models are the zoo's (`lgnn.learn.models.chnn`: a dense
-learned node mass, a softplus potential of 2 x 128; `clnn`: the LGNN paper's CLNN, an
-MLP Lagrangian of the whole state), not the authors' (a diagonal learned mass and a tanh
-potential of 3 x 256 for both); the data's draws are lgnn's generator's, and the
-training data is the same for every seed (the seed draws the initial parameters and
-the batch order). The published cells are the authors' single run each.
+What differs by design: `chnn` and `clnn` are the zoo's (`lgnn.learn.models.chnn`: a
+dense learned node mass, a softplus potential of 2 x 128; `clnn`: the LGNN paper's
+CLNN, an MLP Lagrangian of the whole state), not the authors' (a diagonal learned mass
+and a tanh potential of 3 x 256 for both); `finzi-clnn` is the authors' CLNN
+(`lgnn.learn.models.finzi_clnn`), compared with the same published CLNN cells
+(`PUBLISHED_MODEL`). The data's draws are lgnn's generator's, and the training data is
+the same for every seed (the seed draws the initial parameters and the batch order).
+The published cells are the authors' single run each.
 
 The rule for "reproduced", fixed before the run (`reproduced`): lgnn's cell (the mean
 over its seeds) lies within the published cell's 95 % interval widened by a factor of 2
@@ -75,23 +77,25 @@ from lgnn.scene import Scene, State, finzi_pendulum
 # The published cells (Finzi et al. 2020, the 2D panel of the geometric-mean figure),
 # from the authors' notebooks/pendulum-geom-mean.csv: for each system (bobs) and model,
 # the mean over their 100 test trajectories of each one's geometric mean of the
-# relative error, with a 95 % bootstrap interval of that mean (10 000 resamples, NumPy
-# seed 0; seaborn's `ci=95` drew the figure's). "floor" is their `avg_rel_err_pert`
+# relative error, with the 95 % bootstrap interval of that mean (`bootstrap_interval`,
+# lgnn's cells' too; seaborn's `ci=95` drew the figure's). "floor" is their `avg_rel_err_pert`
 # series, the chaos floor; it is the same for every model of a system.
 PUBLISHED = {
-    (1, "chnn"): (7.463e-05, 6.293e-05, 8.833e-05),
-    (1, "clnn"): (7.401e-05, 6.158e-05, 8.796e-05),
-    (2, "chnn"): (5.258e-04, 1.346e-04, 1.135e-03),
-    (2, "clnn"): (1.800e-04, 1.309e-04, 2.502e-04),
-    (3, "chnn"): (3.335e-03, 4.411e-04, 8.817e-03),
-    (3, "clnn"): (1.981e-03, 4.647e-04, 4.796e-03),
-    (5, "chnn"): (3.612e-03, 1.601e-03, 6.766e-03),
-    (5, "clnn"): (4.304e-03, 1.422e-03, 8.890e-03),
+    (1, "chnn"): (7.463e-05, 6.299e-05, 8.877e-05),
+    (1, "clnn"): (7.401e-05, 6.164e-05, 8.790e-05),
+    (2, "chnn"): (5.258e-04, 1.348e-04, 1.141e-03),
+    (2, "clnn"): (1.800e-04, 1.309e-04, 2.501e-04),
+    (3, "chnn"): (3.335e-03, 4.339e-04, 8.782e-03),
+    (3, "clnn"): (1.981e-03, 4.609e-04, 4.788e-03),
+    (5, "chnn"): (3.612e-03, 1.599e-03, 6.661e-03),
+    (5, "clnn"): (4.304e-03, 1.430e-03, 8.868e-03),
     (1, "floor"): (4.860e-05, 4.137e-05, 5.638e-05),
-    (2, "floor"): (7.956e-05, 6.537e-05, 9.604e-05),
-    (3, "floor"): (3.533e-04, 1.280e-04, 7.681e-04),
-    (5, "floor"): (2.494e-04, 1.819e-04, 3.341e-04),
+    (2, "floor"): (7.956e-05, 6.550e-05, 9.604e-05),
+    (3, "floor"): (3.533e-04, 1.292e-04, 7.660e-04),
+    (5, "floor"): (2.494e-04, 1.814e-04, 3.331e-04),
 }
+# The published model each of lgnn's is compared with.
+PUBLISHED_MODEL = {"chnn": "chnn", "clnn": "clnn", "finzi-clnn": "clnn"}
 SOURCE = ("Finzi, Wang and Wilson (2020), NeurIPS, the geometric-mean figure's 2D panel; values: the mean of the per-trajectory "
           "geometric means in the authors' notebooks/pendulum-geom-mean.csv (github.com/mfinzi/constrained-hamiltonian-neural-networks), "
           "95 % bootstrap interval of that mean")
@@ -108,7 +112,7 @@ class Protocol:
 
     name: str = "finzi2020"
     bobs: tuple[int, ...] = (1, 2, 3, 5)
-    models: tuple[str, ...] = ("chnn", "clnn")
+    models: tuple[str, ...] = ("chnn", "clnn", "finzi-clnn")
     seeds: tuple[int, ...] = (0, 1, 2)
     train: int = 800
     validation: int = 100
@@ -365,6 +369,14 @@ def chaos_floor(scene: Scene, protocol: Protocol, data: Data) -> np.ndarray:
     return geometric_means(relative_errors(scene, moved, data.test), protocol.dt, protocol.duration)
 
 
+def bootstrap_interval(values, resamples: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """The 95 % bootstrap interval of the mean of `values` (as the published cells'):
+    `resamples` resamples with replacement, NumPy's generator seeded `seed`."""
+    values = np.asarray(values, np.float64)
+    means = values[np.random.default_rng(seed).integers(0, len(values), (resamples, len(values)))].mean(1)
+    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+
+
 def reproduced(ours: float, published: tuple[float, float, float]) -> bool:
     """The stated rule (module docstring): within the published interval widened by
     `REPRODUCED_FACTOR` at each end."""
@@ -384,19 +396,23 @@ def _floor_key(protocol: Protocol, bobs: int) -> str:
     return records.digest({"kind": "papers floor", "protocol": protocol.settings(), "bobs": bobs})
 
 
-def run(protocol: Protocol, out_dir, log=print) -> Path:
+def run(protocol: Protocol, out_dir, log=print, train: bool = True) -> Path:
     """Train and score every (model, system) of `protocol` into `out_dir` (module
-    docstring), reusing the groups already recorded there; returns the README's path."""
+    docstring), reusing the groups already recorded there; returns the README's path.
+    `train=False` writes the tables from the records alone (`ConfigError` naming a
+    group not recorded)."""
     out = files.check_out_dir(out_dir, "README.md")
     groups = out / "groups"
     groups.mkdir(parents=True, exist_ok=True)
     began = time.time()
-    rows, floors = [], {}
+    rows, floors, cells = [], {}, {}
     for bobs in protocol.bobs:
         scene = finzi_pendulum(bobs)
         data = None
         floor_path = groups / f"floor-pendulum{bobs}.json"
         floor = records.load_json(floor_path, _floor_key(protocol, bobs))
+        if floor is None and not train:
+            raise ConfigError(f"{floor_path}: the chaos floor of {scene.name} is not recorded with these settings")
         if floor is None:
             log(f"{scene.name}: data (ground truth of {protocol.train + protocol.validation + protocol.test} trajectories)")
             data = make_data(scene, protocol)
@@ -406,6 +422,8 @@ def run(protocol: Protocol, out_dir, log=print) -> Path:
         for name in protocol.models:
             path = groups / f"{name}-pendulum{bobs}.json"
             result = records.load_json(path, _group_key(protocol, name, bobs))
+            if result is None and not train:
+                raise ConfigError(f"{path}: {name} on {scene.name} is not recorded with these settings")
             if result is None:
                 data = data or make_data(scene, protocol)
                 config = models.ModelConfig.for_scene(name, scene)
@@ -420,15 +438,17 @@ def run(protocol: Protocol, out_dir, log=print) -> Path:
                 result = records.load_json(path, _group_key(protocol, name, bobs))
             else:
                 log(f"{name} on {scene.name}: reusing its record")
+            cells[name, bobs] = np.asarray(result["geometric_means"])
             for seed, means, mae in zip(result["seeds"], result["geometric_means"], result["train_mae"]):
                 rows.append({"model": name, "bobs": bobs, "seed": seed, "mean": float(np.mean(means)), "median": float(np.median(means)),
                              "train_mae": mae, "train_seconds": result["train_seconds"], **result["environment"]})
     ended = time.time()
     _write_csv(out / f"{protocol.name}.csv", rows)
-    files.write_text_atomic(out / "run.json", json.dumps({"protocol": dataclasses.asdict(protocol), **provenance.environment(),
-                                                          "wall_s": round(ended - began, 1)}, indent=1) + "\n")
+    if train:
+        files.write_text_atomic(out / "run.json", json.dumps({"protocol": dataclasses.asdict(protocol), **provenance.environment(),
+                                                              "wall_s": round(ended - began, 1)}, indent=1) + "\n")
     readme = out / "README.md"
-    files.write_text_atomic(readme, report(protocol, rows, floors))
+    files.write_text_atomic(readme, report(protocol, rows, floors, cells))
     return readme
 
 
@@ -443,8 +463,11 @@ def _cell(value) -> str:
     return f'"{text}"' if "," in text else text
 
 
-def report(protocol: Protocol, rows: list[dict], floors: dict[int, np.ndarray]) -> str:
-    """The README: the table of every published cell beside lgnn's (module docstring)."""
+def report(protocol: Protocol, rows: list[dict], floors: dict[int, np.ndarray], cells: dict[tuple[str, int], np.ndarray]) -> str:
+    """The README: the table of every published cell beside lgnn's (module docstring).
+    `floors[bobs]` (test,) and `cells[model, bobs]` (seeds, test) are the geometric
+    means per test trajectory; lgnn's interval is the bootstrap one of the mean over
+    test trajectories of their means over seeds, as the published one."""
     lines = [
         f"# Finzi et al. (2020)'s chain pendulums under their protocol ({protocol.name})",
         "",
@@ -454,36 +477,50 @@ def report(protocol: Protocol, rows: list[dict], floors: dict[int, np.ndarray]) 
         f"Reproduced (rule stated before the run): lgnn's cell, the mean over seeds {', '.join(map(str, protocol.seeds))}, within "
         f"the published 95 % interval widened by a factor of {REPRODUCED_FACTOR:g} at each end.",
         "",
-        "| system | model | published mean [95 % interval] | lgnn per seed | lgnn (mean of seeds) | reproduced |",
+        "| system | model | published mean [95 % interval] | lgnn per seed | lgnn (mean of seeds) [95 % interval] | reproduced |",
         "|---|---|---|---|---|---|",
     ]
     for bobs in protocol.bobs:
-        ours = float(np.mean(floors[bobs]))
-        lines.append(_row(bobs, "chaos floor (truth 1e-4 away)", PUBLISHED.get((bobs, "floor")), [ours], ours))
+        lines.append(_row(bobs, "chaos floor (truth 1e-4 away)", PUBLISHED.get((bobs, "floor")), floors[bobs][None]))
         for name in protocol.models:
-            seeds = [row["mean"] for row in rows if row["model"] == name and row["bobs"] == bobs]
-            lines.append(_row(bobs, name, PUBLISHED.get((bobs, name)), seeds, float(np.mean(seeds))))
-    machine = rows[0] if rows else provenance.environment()
+            published = PUBLISHED.get((bobs, PUBLISHED_MODEL.get(name, name)))
+            label = name if PUBLISHED_MODEL.get(name, name) == name else f"{name} (against {PUBLISHED_MODEL[name].upper()})"
+            lines.append(_row(bobs, label, published, cells[name, bobs]))
     lines += [
         "",
         "Each value: the mean over the test trajectories of each one's geometric mean over time of the relative error "
         f"({protocol.test} test trajectories of {protocol.duration:g} s; {protocol.train} training chunks, {protocol.epochs} epochs).",
-        f"Commit {machine['commit']}; {machine['versions']}; {machine['device']}.",
+        "",
+        *_made_with(rows),
         "",
         "What this does not show: the published cells are one training run each, so their intervals cover test trajectories, "
-        "not training runs; the models are lgnn's (module docstring: the authors' CHNN and CLNN differ in their mass and "
-        "potential networks, and lgnn's CLNN is the LGNN paper's).",
+        "not training runs; `chnn` and `clnn` are the zoo's (module docstring: the authors' CHNN and CLNN differ in their mass "
+        "and potential networks, and lgnn's CLNN is the LGNN paper's), `finzi-clnn` the authors' CLNN written in lgnn.",
         "",
     ]
     return "\n".join(lines)
 
 
-def _row(bobs: int, what: str, published, seeds: list[float], ours: float) -> str:
+def _made_with(rows: list[dict]) -> list[str]:
+    """One line per commit, versions and device the rows were made with, naming the
+    models made so (groups recorded at different commits are reused as they are)."""
+    made: dict[tuple, list[str]] = {}
+    for row in rows:
+        names = made.setdefault((row["commit"], row["versions"], row["device"]), [])
+        if row["model"] not in names:
+            names.append(row["model"])
+    return [f"- {', '.join(names)}: commit {commit}; {versions}; {device}." for (commit, versions, device), names in made.items()]
+
+
+def _row(bobs: int, what: str, published, values: np.ndarray) -> str:
+    """A table row of `values` (seeds, test trajectories)."""
+    ours = float(np.mean(values))
     if published is None:
         given, verdict = "none", "no published cell"
     else:
         given = f"{published[0]:.2e} [{published[1]:.2e}, {published[2]:.2e}]"
         verdict = "yes" if reproduced(ours, published) else "no"
-    per_seed = ", ".join(f"{v:.2e}" for v in seeds) if len(seeds) > 1 else ""
-    return f"| {bobs}-pendulum | {what} | {given} | {per_seed} | {ours:.2e} | {verdict} |"
+    per_seed = ", ".join(f"{v:.2e}" for v in values.mean(1)) if len(values) > 1 else ""
+    low, high = bootstrap_interval(values.mean(0))
+    return f"| {bobs}-pendulum | {what} | {given} | {per_seed} | {ours:.2e} [{low:.2e}, {high:.2e}] | {verdict} |"
 
