@@ -75,6 +75,9 @@ def test_the_initial_states_follow_the_authors_distribution():
     speed = np.sum(velocity * tangent, -1)
     assert abs(np.mean(angle)) < 0.05 and abs(np.std(angle) / np.sqrt(1 + (0.2 / length) ** 2) - 1) < 0.04
     assert abs(np.mean(speed)) < 0.1 and abs(np.std(speed) / (3 * np.sqrt(0.25 * length**2 + 0.16)) - 1) < 0.04
+    from lgnn.scene import get_scene
+    with pytest.raises(SceneError, match="planar chains pinned at node 0"):
+        papers.finzi_initial_states(get_scene("T1"), 2, seed=0)
 
 
 def test_the_chaos_floor_lands_on_the_published_one():

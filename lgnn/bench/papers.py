@@ -69,7 +69,7 @@ import optax
 from lgnn import files, integrate, physics, provenance, records
 from lgnn.engines import get_engine
 from lgnn.engines.base import SimulationConfig
-from lgnn.errors import ConfigError
+from lgnn.errors import ConfigError, SceneError
 from lgnn.learn import models
 from lgnn.physics.sampling import projected_states
 from lgnn.scene import Scene, State, finzi_pendulum
@@ -173,8 +173,10 @@ PROTOCOLS = {"finzi2020": Protocol(), "quick": QUICK}
 def finzi_initial_states(scene: Scene, count: int, seed: int) -> State:
     """`count` initial states (count, N, D) of a Finzi pendulum from their distribution
     (module docstring), on the constraints. Same `seed`, same states."""
-    rng = np.random.default_rng(seed)
     n = scene.n_links
+    if scene.dim != 2 or scene.pinned != (0,) or scene.edges != tuple((k, k + 1) for k in range(n)):
+        raise SceneError(f"scene {scene.name!r}: Finzi et al.'s distribution is of planar chains pinned at node 0, nodes in chain order")
+    rng = np.random.default_rng(seed)
     lengths = np.asarray(scene.lengths)
     angle, rate = rng.standard_normal((2, count, n))
     # Each rod's end relative to its start, and its velocity, summed from the pivot.
