@@ -143,3 +143,38 @@ def test_the_committed_table_is_its_records_rendered(tmp_path):
     papers.run(protocol, tmp_path, log=lambda line: None, train=False)
     assert (tmp_path / "README.md").read_text() == (committed / "README.md").read_text()
     assert (tmp_path / "finzi2020.csv").read_text() == (committed / "finzi2020.csv").read_text()
+
+
+def test_the_lgnn_paper_table_reads_the_benchmark_cells_by_its_rule(tmp_path):
+    """`lgnn2022_report`: the pooled cell of each model, scene and metric against the
+    stated ~1e-4 (half a decade either side), and the committed table is the committed
+    summary's cells rendered."""
+    import gzip
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "results"
+    assert papers.lgnn2022_report(root) == (root / "papers" / "lgnn2022.md").read_text()
+    rows = ["scene,model,seed,metric,commit,versions,device,statistic,value"]
+    for scene, value in (("T1", 2e-4), ("T2-slack", 5e-3), ("T3-slack", 1e-5)):
+        rows += [f"{scene},lgnn,{seed},rollout_error,abc,v,d,gmean,{value}" for seed in (-1, 0)]
+    (tmp_path / "benchmark").mkdir()
+    with gzip.open(tmp_path / "benchmark" / "summary.csv.gz", "wt") as handle:
+        handle.write("\n".join(rows) + "\n")
+    text = papers.lgnn2022_report(tmp_path)
+    assert "| T1 | lgnn | rollout error | ~1e-4 | 2.00e-04 | 2.00e-04 | yes |" in text
+    assert "| T2-slack | lgnn | rollout error | ~1e-4 | 5.00e-03 | 5.00e-03 | no: higher |" in text
+    assert "| T3-slack | lgnn | rollout error | ~1e-4 | 1.00e-05 | 1.00e-05 | no: lower |" in text
+    assert "| T1 | lgnn | energy violation | ~1e-4 | | not in the summary | |" in text
+    with pytest.raises(ConfigError, match="no benchmark summary"):
+        papers.lgnn2022_report(tmp_path / "nowhere")
+
+
+def test_the_papers_command_refuses_options_its_protocol_does_not_read(capsys, tmp_path):
+    from lgnn.cli import main
+
+    for argv, words in ((["--protocol", "lgnn2022", "--seeds", "1"], "trains nothing"),
+                        (["--protocol", "quick", "--results", "results"], "--results is read by --protocol lgnn2022 only")):
+        assert main(["papers", *argv, "--out-dir", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err
+    assert not (tmp_path / "x").exists()

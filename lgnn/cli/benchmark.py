@@ -176,9 +176,24 @@ def _add_handoff_parser(commands) -> None:
 
 def _cmd_papers(args) -> None:
     import dataclasses
+    from pathlib import Path
 
     from lgnn.bench import papers
 
+    from lgnn import files
+
+    if args.protocol == "lgnn2022" and args.seeds:
+        raise ConfigError("--seeds: the lgnn2022 table trains nothing (it reads --results)")
+    if args.protocol != "lgnn2022" and args.results:
+        raise ConfigError(f"--results is read by --protocol lgnn2022 only, not {args.protocol}")
+    if args.protocol == "lgnn2022":
+        out = Path(args.out_dir or "results/papers")
+        files.check_out_dir(out, "lgnn2022.md")
+        out.mkdir(parents=True, exist_ok=True)
+        files.write_text_atomic(out / "lgnn2022.md", text := papers.lgnn2022_report(args.results or "results"))
+        print(text)
+        print(f"wrote {out / 'lgnn2022.md'}")
+        return
     protocol = papers.PROTOCOLS[args.protocol]
     if args.seeds:
         protocol = dataclasses.replace(protocol, seeds=tuple(args.seeds))
@@ -194,8 +209,10 @@ def _add_papers_parser(commands) -> None:
 
     parser = commands.add_parser("papers", help="train the zoo's CHNN and CLNN by Finzi et al.'s own protocol and put them beside "
                                                 "the published numbers (docs/papers.md)")
-    parser.add_argument("--protocol", choices=tuple(papers.PROTOCOLS), default="finzi2020",
-                        help="finzi2020 (default: the paper's data, recipe and metric) or quick (seconds, CI's)")
+    parser.add_argument("--protocol", choices=(*papers.PROTOCOLS, "lgnn2022"), default="finzi2020",
+                        help="finzi2020 (default: the paper's data, recipe and metric), quick (seconds, CI's), or lgnn2022 (the "
+                             "LGNN paper's stated numbers beside the benchmark's cells in --results; trains nothing)")
+    parser.add_argument("--results", default=None, help="lgnn2022: the benchmark results folder to read (default results/)")
     parser.add_argument("--seeds", type=int, nargs="+", help="training seeds (default: the protocol's, 0 1 2 for finzi2020)")
     parser.add_argument("--out-dir", default=None,
                         help="output folder (default results/papers/ for finzi2020, lgnn-out/papers-quick/ for quick); groups "
