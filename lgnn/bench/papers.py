@@ -67,12 +67,14 @@ import numpy as np
 import optax
 
 from lgnn import files, integrate, physics, provenance, records
+from lgnn.bench import tables
 from lgnn.engines import get_engine
 from lgnn.engines.base import SimulationConfig
 from lgnn.errors import ConfigError, SceneError
 from lgnn.learn import models
 from lgnn.physics.sampling import projected_states
 from lgnn.scene import Scene, State, finzi_pendulum
+from lgnn.scene.catalogue import FINZI_PENDULUMS
 
 # The published cells (Finzi et al. 2020, the 2D panel of the geometric-mean figure),
 # from the authors' notebooks/pendulum-geom-mean.csv: for each system (bobs) and model,
@@ -160,7 +162,7 @@ class Protocol:
         return {k: v for k, v in dataclasses.asdict(self).items() if k not in ("name", "bobs", "models", "epochs_per_call")}
 
 
-FINZI_BOBS = (1, 2, 3, 5)
+FINZI_BOBS = tuple(FINZI_PENDULUMS)
 # CI's version: one system, one seed, small data, a few epochs (seconds of training).
 QUICK = Protocol(name="quick", bobs=(2,), seeds=(0,), train=40, validation=4, test=8, epochs=20, batch=20, epochs_per_call=10)
 PROTOCOLS = {"finzi2020": Protocol(), "quick": QUICK}
@@ -445,24 +447,15 @@ def run(protocol: Protocol, out_dir, log=print, train: bool = True) -> Path:
                 rows.append({"model": name, "bobs": bobs, "seed": seed, "mean": float(np.mean(means)), "median": float(np.median(means)),
                              "train_mae": mae, "train_seconds": result["train_seconds"], **result["environment"]})
     ended = time.time()
-    _write_csv(out / f"{protocol.name}.csv", rows)
+    import pandas as pd
+
+    tables.write_csv(pd.DataFrame(rows), out / f"{protocol.name}.csv")
     if train:
         files.write_text_atomic(out / "run.json", json.dumps({"protocol": dataclasses.asdict(protocol), **provenance.environment(),
                                                               "wall_s": round(ended - began, 1)}, indent=1) + "\n")
     readme = out / "README.md"
     files.write_text_atomic(readme, report(protocol, rows, floors, cells))
     return readme
-
-
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    columns = list(rows[0]) if rows else []
-    lines = [",".join(columns)] + [",".join(_cell(row[c]) for c in columns) for row in rows]
-    files.write_text_atomic(path, "\n".join(lines) + "\n")
-
-
-def _cell(value) -> str:
-    text = f"{value:.6g}" if isinstance(value, float) else str(value)
-    return f'"{text}"' if "," in text else text
 
 
 def report(protocol: Protocol, rows: list[dict], floors: dict[int, np.ndarray], cells: dict[tuple[str, int], np.ndarray]) -> str:

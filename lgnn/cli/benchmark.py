@@ -178,9 +178,8 @@ def _cmd_papers(args) -> None:
     import dataclasses
     from pathlib import Path
 
-    from lgnn.bench import papers
-
     from lgnn import files
+    from lgnn.bench import papers
 
     if args.protocol == "lgnn2022" and args.seeds:
         raise ConfigError("--seeds: the lgnn2022 table trains nothing (it reads --results)")
