@@ -25,14 +25,14 @@ with _LOADING:
 
     from lgnn.cli import benchmark, learning, simulation, studies
     from lgnn.cli.learning import train_settings
-    from lgnn.cli.options import Parser, one_line
+    from lgnn.cli.options import EXIT_CHECK_FAILED, Parser, one_line
     from lgnn.errors import LgnnError, SimulationError
 
 
 # Exit statuses (docs/cli.md, "Behaviour common to every command").
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3  # a simulation or rollout diverged; the frames before it are kept
-__all__ = ["EXIT_BAD_INPUT", "EXIT_DIVERGED", "EXIT_INTERRUPTED", "build_parser", "main", "train_settings"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_CHECK_FAILED", "EXIT_DIVERGED", "EXIT_INTERRUPTED", "build_parser", "main", "train_settings"]
 
 
 class _VersionAction(argparse.Action):
@@ -85,7 +85,8 @@ def _run(argv: list[str] | None, interrupts_after_loading) -> int:
     args = parser.parse_args(argv)
     args.argv = argv  # reports name the exact command
     try:
-        args.run(args)
+        # A command returns None, or an exit status of its own (EXIT_CHECK_FAILED).
+        code = args.run(args)
     except SimulationError as err:
         print(f"lgnn: error: {one_line(str(err))}", file=sys.stderr)
         return EXIT_DIVERGED
@@ -97,4 +98,4 @@ def _run(argv: list[str] | None, interrupts_after_loading) -> int:
         # stdout is pointed at devnull so the interpreter's final flush cannot fail again.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
-    return 0
+    return code if isinstance(code, int) else 0

@@ -6,7 +6,7 @@ export` and `papers` (`PARSERS`); each parses its options and calls the library
 
 from __future__ import annotations
 
-from lgnn.cli.options import add_profile_options, positive_float, positive_int, profile_source
+from lgnn.cli.options import EXIT_CHECK_FAILED, add_profile_options, positive_float, positive_int, profile_source
 from lgnn.errors import ConfigError
 
 
@@ -76,13 +76,20 @@ def _add_benchmark_parser(commands) -> None:
     parser.set_defaults(run=_cmd_benchmark)
 
 
-def _cmd_leaderboard(args) -> None:
+def _cmd_leaderboard(args) -> int | None:
     from pathlib import Path
 
     from lgnn.bench.api import benchmark_profile
     from lgnn.bench.report import leaderboard
     from lgnn.bench.store import default_out, layout
 
+    if args.action == "verify":
+        return _verify(args)
+    if args.folder is not None:
+        raise ConfigError(f"lgnn leaderboard: unexpected {args.folder!r} (a folder is given as --out-dir, or to lgnn leaderboard verify)")
+    for option in ("initial_conditions", "scenes", "predictions"):
+        if getattr(args, option) is not None:
+            raise ConfigError(f"--{option.replace('_', '-')} is an option of lgnn leaderboard verify")
     profile = benchmark_profile(profile_source(args), settings=args.set or (), with_results=args.with_results)
     out = Path(args.out_dir) if args.out_dir else default_out(profile)
     if not out.is_dir():
@@ -90,13 +97,57 @@ def _cmd_leaderboard(args) -> None:
     layout(profile, out)
     path = leaderboard.write_leaderboard(profile, out, "lgnn " + " ".join(args.argv))
     print(f"wrote {path}")
+    return None
+
+
+def _verify(args) -> int:
+    from pathlib import Path
+
+
+    from lgnn.bench import verify
+    from lgnn.bench.api import benchmark_profile
+    from lgnn.bench.report import leaderboard
+    from lgnn.provenance import environment
+
+    if args.folder is not None and args.out_dir is not None:
+        raise ConfigError("give the folder to verify once: as FOLDER or as --out-dir")
+    out = Path(args.folder or args.out_dir or "results")
+    if not out.is_dir():
+        raise ConfigError(f"results folder {out} does not exist")
+    # The committed results and the rows submitted beside them are the full profile's.
+    source = profile_source(args) if (args.profile or args.config) else "full"
+    profile = benchmark_profile(source, settings=args.set or (), with_results=args.with_results)
+    command = "lgnn " + " ".join(args.argv)
+    env = environment()  # before anything is written: a committed folder would read "+dirty"
+    outcome = verify.verify(profile, out, args.initial_conditions or verify.CONDITIONS, args.scenes or "smallest", args.predictions or (),
+                            progress=not args.quiet)
+    for finding in outcome.findings:
+        print(finding.line())
+    saved = verify.save(outcome, out, command, env)
+    written = leaderboard.write_leaderboard(profile, out, env=env)
+    counts = outcome.counts()
+    print(f"{counts['verified']} verified, {counts['unverified']} unverified, {counts['failed']} failed; wrote {saved} and {written}")
+    return EXIT_CHECK_FAILED if outcome.failed else 0
 
 
 def _add_leaderboard_parser(commands) -> None:
-    parser = commands.add_parser("leaderboard", help="write LEADERBOARD.md of a results folder from its records (ranks, parameters, training time)")
+    parser = commands.add_parser("leaderboard", help="write LEADERBOARD.md of a results folder from its records (ranks, parameters, training "
+                                                     "time), or verify every row (lgnn leaderboard verify FOLDER)")
+    parser.add_argument("action", nargs="?", choices=("verify",),
+                        help="verify: re-derive every row of FOLDER (default results/, the full profile's) from its checkpoints and "
+                             "records, name each disagreement in one line (exit 1 if any), keep the outcome in "
+                             "FOLDER/benchmark/verification.json and mark LEADERBOARD.md's rows (docs/benchmark.md, 'Verifying a leaderboard')")
+    parser.add_argument("folder", nargs="?", help="with verify: the results folder (default results/)")
     add_profile_options(parser, "the full profile's results (default folder: results/)", "override a config value, as lgnn benchmark's (repeatable)")
     parser.add_argument("--with-results", metavar="DIR", help="also read the records of DIR in place, as lgnn benchmark --with-results")
     parser.add_argument("--out-dir", default=None, help="the results folder, read and written into (default: as lgnn benchmark's)")
+    parser.add_argument("--initial-conditions", type=positive_int, default=None, metavar="K",
+                        help="with verify: roll each row out again from the first K evaluation initial conditions of each checked scene (default 2)")
+    parser.add_argument("--scenes", choices=("smallest", "all"), default=None,
+                        help="with verify: the scenes each row is rolled out on again: its smallest (default) or every one")
+    parser.add_argument("--predictions", action="append", metavar="FILE.npz",
+                        help="with verify: the predictions file of an external row, scored again (repeatable; without, the row is unverified)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_leaderboard)
 
 

@@ -17,6 +17,10 @@ import re
 
 from lgnn.errors import ConfigError
 
+# The exit status of a check that ran and found what it checks wrong (`lgnn leaderboard
+# verify`, docs/cli.md): the command returns it, each finding printed in one line.
+EXIT_CHECK_FAILED = 1
+
 
 class Parser(argparse.ArgumentParser):
     """argparse, but a usage error is one line `lgnn: error: ...` (exit 2) like every

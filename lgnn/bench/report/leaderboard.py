@@ -26,12 +26,13 @@ LEADERBOARD = "LEADERBOARD.md"
 RANKED_METRIC = "rollout_error"
 
 
-def write_leaderboard(profile: Profile, out: Path, command: str | None = None) -> Path:
+def write_leaderboard(profile: Profile, out: Path, command: str | None = None, env: dict | None = None) -> Path:
     """Write `LEADERBOARD.md` under `out` alone, from the records there and in the
-    profile's base (the statistics `tables` gives README.md's tables); its path."""
+    profile's base (the statistics `tables` gives README.md's tables); its path. `env`:
+    the environment its header names (default this process's, taken before writing)."""
     from lgnn.provenance import environment
 
-    env = environment()
+    env = env or environment()
     out = Path(out)
     summary, _ = tables(load_truths(profile, out), load_pairs(profile, out) + load_externals(profile, out), profile.evaluate.references)
     path = out / LEADERBOARD
@@ -105,6 +106,24 @@ NOT_EVALUATED = "not evaluated"
 FIXED_SIZE_CELL = "— (fixed size)"
 
 
+def _verification_text(kept: dict | None) -> str:
+    """The paragraph that says what the `verified` column means, and which command set it."""
+    from lgnn.bench.verify import TOLERANCE
+
+    if kept is None:
+        return ("**Verified**: not checked yet. `lgnn leaderboard verify` re-derives every row from this folder's checkpoints and "
+                "records and marks it here (docs/benchmark.md, \"Verifying a leaderboard\").")
+    env = kept.get("environment") or {}
+    scenes = "every scene it is evaluated on" if kept.get("scenes") == "all" else "its smallest evaluation scene"
+    return (f"**Verified** by `{kept.get('command') or 'lgnn leaderboard verify'}` at commit {env.get('commit', '?')} on "
+            f"{env.get('device', '?')} (`benchmark/verification.json`; docs/benchmark.md, \"Verifying a leaderboard\"): \"yes (SCENES)\": "
+            "every record of the row carries the key of its checkpoint and the profile's settings, and its seeds, rolled out again "
+            f"from the first {kept.get('conditions', '?')} evaluation initial condition(s) of {scenes} against a ground truth computed "
+            f"again, give every metric of the records within {kept.get('tolerance', TOLERANCE):g} (in log); \"no: parameters not "
+            "kept\": the checkpoints hold no parameters, so nothing here can roll them out again; \"no: records changed since\": "
+            "the row's records are not those verified; \"failed\": the command names the disagreement.")
+
+
 def _missing_cell(label: str, scene: str, board: list[Pair]) -> str:
     """A leaderboard cell with no record: a pair of the board's grid not evaluated yet, a
     fixed-size model on a scene it cannot run (the grid evaluates it on its training
@@ -120,7 +139,10 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, checkpoints: list
     and transfer track), one row per model it ranks and per external prediction, the rollout error
     cell of README.md's table on each scene of the grid with its rank there, parameters,
     training minutes, and the overall rank (module's rule, stated in the file)."""
+    from lgnn.bench import verify
+
     unrankable = unrankable_scenes(out)
+    kept, row_marks = verify.marks(profile, out)
     wide = (summary.pivot_table(index=["scene", "model", "seed", "metric"], columns="statistic", values="value", aggfunc="first").reset_index()
             if not summary.empty else None)
     trained = _trained(checkpoints)
@@ -144,6 +166,7 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, checkpoints: list
              "program share one wall time), with the device; GPU-minutes only where every seed trained on a GPU. Rows marked "
              f"`{EXTERNAL_MARK.strip()}` are predictions made outside lgnn from the same initial conditions (no checkpoint, "
              "parameters or training time here).", "",
+             _verification_text(kept), "",
              "**Add a row.** A model of your own (`docs/models.md`), trained with the full profile's recipe and ranked beside these "
              "results, read in place:", "", "```bash", "lgnn benchmark --full --add-model my_model.py:SPEC --with-results results", "```", "",
              "or predictions made in another framework from the exported initial conditions (`docs/benchmark.md`, \"Predictions made "
@@ -172,14 +195,14 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, checkpoints: list
         order = sorted(complete, key=lambda label: (mean_rank[label], log_mean[label], label))
         order += sorted(label for label in labels if label not in complete)
         lines += [f"## {heading}", "",
-                  "| rank | model | parameters | training | " + " | ".join(
+                  "| rank | model | parameters | training | verified | " + " | ".join(
                       f"{scene}{' (not rankable)' if scene in unrankable else ''}" for scene in scenes) + " | mean scene rank |",
-                  "|---" * (len(scenes) + 5) + "|"]
+                  "|---" * (len(scenes) + 6) + "|"]
         for k, label in enumerate(order):
             model = names.get(label, label)
             parameters, training = (("—", "— (external)") if label.endswith(EXTERNAL_MARK) else
                                     trained.get(label.removesuffix(" (unprojected)"), ("not recorded", "not recorded")))
-            row = [str(k + 1) if label in mean_rank else "—", model, parameters, training]
+            row = [str(k + 1) if label in mean_rank else "—", model, parameters, training, row_marks.get(label, "not checked")]
             for scene in scenes:
                 cell = cells[label][scene]
                 row.append(_missing_cell(label, scene, board) if cell is None else "not rankable" if scene in unrankable
@@ -187,6 +210,6 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, checkpoints: list
             row.append(f"{mean_rank[label]:.2f}" if label in mean_rank else f"— ({sum(label in ranks[s] for s in ranked)} of {len(ranked)} scenes)")
             lines.append("| " + " | ".join(row) + " |")
         rest = [_cell_row(wide, scene, REST) for scene in scenes]
-        lines.append("| — | rest (baseline) | — | — | " + " | ".join("" if r is None else interval_cell(r) for r in rest) + " | — |")
+        lines.append("| — | rest (baseline) | — | — | — | " + " | ".join("" if r is None else interval_cell(r) for r in rest) + " | — |")
         lines.append("")
     return "\n".join(lines)

@@ -60,7 +60,7 @@ from lgnn.errors import ConfigError, SimulationError
 from lgnn.learn import models
 from lgnn.learn.checkpoints import content_digest, load_model
 from lgnn.runtime import in_background
-from lgnn.scene import Scene, get_scene
+from lgnn.scene import Scene, State, get_scene
 
 # The reference a metric is scored against unless it names an engine: the Lagrangian
 # ground truth (`lgnn.metrics.Scored.reference`).
@@ -343,6 +343,29 @@ def _evaluate_claimed(profile: Profile, layout: Layout, claimed: list, progress:
         _evaluate_stacked(profile, group, progress, out)
 
 
+def stacked_rollouts(profile: Profile, model, parameter_sets: list, scene_name: str, projected: bool, states: State, label: str,
+                     progress: bool = True):
+    """A model configuration's rollouts on a scene from `states` (`models.ModelEngine`,
+    stacked): every parameter set of `parameter_sets` in one program, as the evaluation
+    rolls a training group's seeds out (`q`, `qd`, `energy` (S, C, F, ...), its costs)."""
+    scene = get_scene(scene_name)
+    integration = dataclasses.replace(profile.evaluate.integration, project=projected)
+    stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *parameter_sets)
+    engine = models.ModelEngine(model, stacked, progress=progress, integration=integration, stop_at_divergence=False,
+                                chunk=profile.evaluate.chunk, stacked=True)
+    return engine.rollouts(scene, profile.evaluate.simulation(scene_name), states, label=label)
+
+
+def pair_arrays(profile: Profile, scene_name: str, predicted: Trajectory, truth: GroundTruth) -> dict:
+    """A pair record's arrays of a model's rollouts from the ground truth's initial
+    conditions: `t`, every recorded metric's statistics and `diverged_at`
+    (`record_arrays`), and the scene's snapshot (`snapshot`)."""
+    scored = score_against_truth(profile, get_scene(scene_name), predicted, truth)
+    frame_dt = profile.evaluate.frame_dt
+    return {"t": curve_times(predicted.q.shape[1], frame_dt), **record_arrays("", scored, frame_dt),
+            **snapshot(profile, scene_name, "model", predicted.q)}
+
+
 def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) -> None:
     """Roll out a group of `(pair, path, key, model, params)` (one scene, one model
     configuration, one projection) from the scene's initial conditions, all parameter
@@ -350,7 +373,6 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     pair = group[0][0]
     scene = get_scene(pair.scene)
     config = profile.evaluate.simulation(pair.scene)
-    integration = dataclasses.replace(profile.evaluate.integration, project=pair.projected)
     # The models need only the initial conditions; the ground truth (chain100-3d's MuJoCo
     # C reference: 8-14 minutes on 16 cores, beside 20 GPU minutes of LGN's rollouts) is
     # computed or read meanwhile, and waited for only to score.
@@ -358,10 +380,8 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
     states = evaluation_initial_states(profile, scene)
     seeds = ", ".join(f"s{p.job.seed}" for p, *_ in group)
     log(f"evaluate {pair.label} {seeds} on {pair.scene}: {len(states.q)} initial conditions")
-    stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *(params for *_, params in group))
-    engine = models.ModelEngine(group[0][3], stacked, progress=progress, integration=integration, stop_at_divergence=False,
-                                chunk=profile.evaluate.chunk, stacked=True)
-    runs = engine.rollouts(scene, config, states, label=f"{pair.label} {seeds} on {pair.scene}")
+    runs = stacked_rollouts(profile, group[0][3], [params for *_, params in group], pair.scene, pair.projected, states,
+                            f"{pair.label} {seeds} on {pair.scene}", progress)
     compile_s, run_s = runs.compile_s, runs.run_s
     truth = truth_when_done()
     if not np.allclose(truth.states.q, states.q, rtol=1e-9, atol=1e-12):
@@ -369,16 +389,13 @@ def _evaluate_stacked(profile: Profile, group: list, progress: bool, out: Path) 
                               f"remove {truth_file(profile, pair.scene)} to recompute it")
     steps = len(group) * len(states.q) * config.n_frames * config.steps_per_frame
     for (pair, path, key, _, _), q, qd, energy in zip(group, runs.q, runs.qd, runs.energy):
-        scored = score_against_truth(profile, scene, Trajectory(truth.truth.t, q, qd, energy), truth)
-        diverged = scored[0].diverged
-        frame_dt = profile.evaluate.frame_dt
-        arrays = {"t": curve_times(q.shape[1], frame_dt), **record_arrays("", scored, frame_dt), **snapshot(profile, pair.scene, "model", q)}
+        arrays = pair_arrays(profile, pair.scene, Trajectory(truth.truth.t, q, qd, energy), truth)
         # Compile and run times are the group's (`stacked` models rolled out together).
         meta = dict(job=pair.job.name, model=pair.job.model, label=pair.label, projected=pair.projected, train_scene=pair.job.scene, seed=pair.job.seed,
                     scene=pair.scene, initial_conditions=len(q), mujoco_reference=REFERENCE_VERSION, compile_s=compile_s, run_s=run_s,
                     steps_per_s=steps / run_s, stacked=len(group), platform=runs.platform)
         store.save(path, key, arrays, meta)
-        n_div = int(np.sum(diverged >= 0))
+        n_div = int(np.sum(~np.isnan(arrays["diverged_at"])))
         log(f"evaluate {pair.label} s{pair.job.seed} on {pair.scene}: rollout error {metrics.summarise(arrays['rollout_error/per_ic_log'])[0]:.3g}"
             + (f", {n_div} diverged" if n_div else "") + f" ({run_s:.1f} s + compile {compile_s:.1f} s for {len(group)})")
 

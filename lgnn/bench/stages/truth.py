@@ -93,14 +93,15 @@ def truth_trajectories(references: tuple[str, ...]) -> tuple[str, ...]:
 class GroundTruth:
     """A scene's evaluation ground truth: the initial `states` (C, N, D), the Lagrangian
     ground truth `truth` (a trajectory batch (C, F, N, D)), the chaos floor's states
-    `floor` (q, qd (C, F, N, D); scored as a prediction is), each reference engine's
+    `floor` (q, qd (C, F, N, D); scored as a prediction is; None where it was not
+    computed: `first_ground_truth`), each reference engine's
     trajectories `references[engine]`, and what they cost: `compile_s`, `run_s` of the
     JAX rollouts, `reference_s[engine]` of each reference, and `platform`, where the
     JAX rollouts ran (None for a file kept before it was recorded)."""
 
     states: State
     truth: Trajectory
-    floor: State
+    floor: State | None
     references: dict[str, Trajectory]
     compile_s: float
     run_s: float
@@ -172,9 +173,24 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     """`ground_truth`, computed. The reference engines run in a thread beside the
     Lagrangian ground truth and chaos floor (`mujoco.rollout` releases the GIL): on a GPU
     the two overlap, which saves chain100-3d's 6 minutes of JAX rollouts."""
+    scene = get_scene(scene_name)
+    return _truth_from(profile, scene_name, evaluation_initial_states(profile, scene), progress, with_floor=True)
+
+
+def first_ground_truth(profile: Profile, scene_name: str, count: int, progress: bool = False) -> GroundTruth:
+    """The ground truth of a scene's first `count` evaluation initial conditions alone,
+    computed (never cached), as `ground_truth` computes it for all of them: the
+    Lagrangian ground truth and each reference engine's trajectories from the same
+    states, the same settings. No chaos floor (`floor` is None): its perturbations are
+    drawn for all the initial conditions at once. What re-deriving a record's first
+    initial conditions needs (`lgnn.bench.verify`)."""
+    states = evaluation_initial_states(profile, get_scene(scene_name))
+    return _truth_from(profile, scene_name, State(np.asarray(states.q)[:count], np.asarray(states.qd)[:count]), progress, with_floor=False)
+
+
+def _truth_from(profile: Profile, scene_name: str, states: State, progress: bool, with_floor: bool) -> GroundTruth:
     settings = profile.evaluate
     scene = get_scene(scene_name)
-    states = evaluation_initial_states(profile, scene)
     config = settings.simulation(scene_name)
     reference_config = SimulationConfig(settings.mujoco_dt, settings.frame_dt, settings.duration)
     log(f"ground truth {scene_name}: {len(states.q)} initial conditions, RK4 dt {config.dt:g}, {config.duration:g} s; "
@@ -186,21 +202,25 @@ def _computed_ground_truth(profile: Profile, scene_name: str, progress: bool) ->
     truth = batched_rollouts(scene, config, TRUE_DYNAMICS, states, integration=settings.integration, chunk=settings.chunk, stop_at_divergence=True,
                              label=f"truth {scene_name}", progress=progress, hint="give the scene a smaller step (EvaluateSettings.scene_dts)",
                              platform=where)
-    noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
-    perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
-    # The perturbed runs are not references: one that diverges (T2/T3's perturbed
-    # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's. With
-    # energies, as the ground truth's, so that they run its compiled program (without,
-    # another program: chain100's took 23-35 s to compile on an H200's busy host).
-    floor = batched_rollouts(scene, config, TRUE_DYNAMICS, perturbed, integration=settings.integration, chunk=settings.chunk,
-                             with_energy=True, label=f"floor {scene_name}", progress=progress, platform=where)
+    floor, floor_s = None, 0.0
+    if with_floor:
+        noise = settings.floor_perturbation * jax.random.normal(jax.random.PRNGKey(settings.ic_seed + 1000), states.q.shape)
+        perturbed = State(*map(np.asarray, jax.vmap(physics.projection_fn(scene))(jnp.asarray(states.q) + noise, jnp.asarray(states.qd))))
+        # The perturbed runs are not references: one that diverges (T2/T3's perturbed
+        # self-stressed states need dt <= 2.5e-5) is recorded as such, like a model's. With
+        # energies, as the ground truth's, so that they run its compiled program (without,
+        # another program: chain100's took 23-35 s to compile on an H200's busy host).
+        runs = batched_rollouts(scene, config, TRUE_DYNAMICS, perturbed, integration=settings.integration, chunk=settings.chunk,
+                                with_energy=True, label=f"floor {scene_name}", progress=progress, platform=where)
+        floor, floor_s = State(runs.q, runs.qd), runs.run_s + runs.compile_s
     references = references_when_done()
     # What the scene's ground truth cost, in the part's log: the reference engines
     # (MuJoCo C on chain100-3d) can be most of an evaluate stage.
-    log(f"ground truth {scene_name} cost: rollouts {truth.run_s:.1f} s + compile {truth.compile_s:.1f} s on {truth.platform}, chaos floor "
-        f"{floor.run_s + floor.compile_s:.1f} s" + "".join(f"; {engine} {seconds:.1f} s" for engine, (_, seconds) in references.items()))
+    log(f"ground truth {scene_name} cost: rollouts {truth.run_s:.1f} s + compile {truth.compile_s:.1f} s on {truth.platform}"
+        + (f", chaos floor {floor_s:.1f} s" if with_floor else "")
+        + "".join(f"; {engine} {seconds:.1f} s" for engine, (_, seconds) in references.items()))
     t = np.arange(truth.q.shape[1]) * settings.frame_dt
-    return GroundTruth(states, Trajectory(t, truth.q, truth.qd, truth.energy), State(floor.q, floor.qd),
+    return GroundTruth(states, Trajectory(t, truth.q, truth.qd, truth.energy), floor,
                        {engine: trajectory for engine, (trajectory, _) in references.items()}, truth.compile_s, truth.run_s,
                        {engine: seconds for engine, (_, seconds) in references.items()}, truth.platform)
 
