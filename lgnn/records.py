@@ -33,6 +33,7 @@ import zipfile
 import zlib
 from pathlib import Path
 
+from lgnn import archives
 from lgnn.errors import LgnnError
 from lgnn.files import atomic_path
 
@@ -111,6 +112,9 @@ def read(path: str | os.PathLike, what: str = "record") -> tuple[dict, dict]:
     path = Path(path)
     if not path.is_file():
         raise RecordError(f"{path}: no such {what} file")
+    problem = archives.npz_problem(path)
+    if problem:
+        raise RecordError(f"{path}: not a readable lgnn {what}: {problem}")
     try:
         with np.load(path, allow_pickle=False) as stored:
             arrays = {k: np.asarray(stored[k]) for k in stored.files if k not in ("meta", "checksum")}
@@ -122,6 +126,9 @@ def read(path: str | os.PathLike, what: str = "record") -> tuple[dict, dict]:
         raise RecordError(f"{path}: not a readable lgnn {what} (not an .npz archive)") from None
     if not isinstance(meta, dict):
         raise RecordError(f"{path}: not a readable lgnn {what} (meta is not an object)")
+    problem = archives.json_depth_problem(meta)
+    if problem:
+        raise RecordError(f"{path}: not a readable lgnn {what} (its meta is {problem})")
     if checksum(arrays, meta_text) != stored_checksum:
         raise RecordError(f"{path}: corrupt {what} (checksum mismatch)")
     return arrays, meta
@@ -143,8 +150,11 @@ def load_json(path: str | os.PathLike, key: str | None = None) -> dict | None:
         return None
     try:
         stored = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, RecursionError) as err:
         raise RecordError(f"{path}: not a readable JSON record ({type(err).__name__})") from None
     if not isinstance(stored, dict):
         raise RecordError(f"{path}: not a readable JSON record (not an object)")
+    problem = archives.json_depth_problem(stored)
+    if problem:
+        raise RecordError(f"{path}: not a readable JSON record ({problem})")
     return stored if key is None or stored.get("key") == key else None

@@ -18,6 +18,7 @@ import zipfile
 
 import numpy as np
 
+from lgnn import archives
 from lgnn.errors import ConfigError
 from lgnn.files import atomic_path, check_regular_input
 from lgnn.scene.schema import MAX_MAGNITUDE
@@ -55,6 +56,9 @@ class Trajectory:
         """The trajectory file at `path`, its arrays and metadata checked (`trajectory_problem`);
         `ConfigError` (one line) for anything else."""
         check_regular_input(path, "trajectory file")
+        problem = archives.npz_problem(path)
+        if problem:
+            raise ConfigError(f"{path}: not a trajectory file: {problem}")
         try:
             with np.load(path, allow_pickle=False) as data:
                 if not isinstance(data, np.lib.npyio.NpzFile):
@@ -72,7 +76,7 @@ class Trajectory:
             raise ConfigError(f"{path}: trajectory metadata is not JSON ({err.msg})") from None
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
             raise ConfigError(f"{path}: cannot read trajectory: {err}") from None
-        problem = trajectory_problem(*arrays, metadata)
+        problem = archives.json_depth_problem(metadata) or trajectory_problem(*arrays, metadata)
         if problem:
             raise ConfigError(f"{path}: not a valid trajectory: {problem}")
         return cls(*arrays, metadata=metadata)

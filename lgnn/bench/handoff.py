@@ -41,7 +41,7 @@ import tarfile
 import tempfile
 from pathlib import Path
 
-from lgnn import provenance
+from lgnn import archives, provenance
 from lgnn.bench import store
 from lgnn.bench.profiles import Profile, evaluation_pairs, lgnn_job, training_jobs
 from lgnn.errors import CheckpointError, ConfigError
@@ -312,10 +312,10 @@ def _read_manifest(source: Path) -> dict:
         manifest = json.loads(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"{source}: no hand-back there (no {MANIFEST})") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ConfigError(f"{path}: not a readable hand-back manifest ({err})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise ConfigError(f"{path}: not a readable hand-back manifest ({type(err).__name__}: {err})") from None
     parts = manifest.get("parts") if isinstance(manifest, dict) else None
-    if manifest.get("format") != 1 or not isinstance(parts, list) or not all(
+    if not isinstance(manifest, dict) or archives.json_depth_problem(manifest) or manifest.get("format") != 1 or not isinstance(parts, list) or not all(
             isinstance(p, dict) and isinstance(p.get("name"), str) and p["name"].startswith(PART_PREFIX) and "/" not in p["name"]
             and isinstance(p.get("bytes"), int) and isinstance(p.get("sha256"), str) for p in parts):
         raise ConfigError(f"{path}: not a hand-back manifest of format 1")

@@ -176,6 +176,7 @@ def _verify_row(profile: Profile, layout: store.Layout, label: str, pairs: list[
             return Finding(label, FAILED, f"{job.name}: no checkpoint at {path}, while other seeds of the row have one", mark=FAILED)
         try:
             metas[job] = checkpoints.read(path)[0]
+            checkpoints.model_config(path, metas[job])  # a model defined outside lgnn is named, never imported
         except CheckpointError as err:
             return Finding(label, FAILED, str(err), mark=FAILED)
     keys = []
@@ -198,25 +199,28 @@ def _verify_row(profile: Profile, layout: store.Layout, label: str, pairs: list[
     if slim:
         return Finding(label, UNVERIFIED, f"the checkpoints of {', '.join(slim)} are kept without their parameters: its numbers cannot be "
                                           "rolled out again from this folder", digest=digest, mark="no: parameters not kept")
-    checked = []
+    checked, largest = [], 0.0
     for scene_name in checked_scenes(recorded, scenes):
         for projected in dict.fromkeys(p.projected for p in recorded if p.scene == scene_name):
             group = [p for p in recorded if p.scene == scene_name and p.projected == projected]
-            problem = _rolled_out_again(profile, layout, group, found, conditions, truths, progress)
+            gap, problem = _rolled_out_again(profile, layout, group, found, conditions, truths, progress)
             if problem:
                 return Finding(label, FAILED, problem, digest=digest, mark=FAILED)
+            largest = max(largest, gap)
             checked += [(p.job.name, p.scene) for p in group]
     seeds = len({job for job, _ in checked})
     scenes_text = ", ".join(dict.fromkeys(scene for _, scene in checked))
     return Finding(label, VERIFIED, f"{len(recorded)} records keyed on their checkpoints; {seeds} seed(s) rolled out again on {scenes_text} "
-                                    f"from {conditions} initial condition(s), every metric within {TOLERANCE:g} of the records",
+                                    f"from {conditions} initial condition(s), every metric within {TOLERANCE:g} of the records "
+                                    f"(the largest difference {largest:.1e})",
                    tuple(checked), digest, mark=f"yes ({scenes_text})")
 
 
 def _rolled_out_again(profile: Profile, layout: store.Layout, group: list[Pair], found: dict, conditions: int, truths: dict,
-                      progress: bool) -> str | None:
-    """None if the pairs of `group` (one row's seeds on one scene, one projection) roll
-    out again to their records' numbers, else the one line that says where not."""
+                      progress: bool) -> tuple[float, str | None]:
+    """`(largest difference, None)` if the pairs of `group` (one row's seeds on one scene,
+    one projection) roll out again to their records' numbers (the largest |d ln| of any
+    metric and initial condition), else `(nan, the one line that says where not)`."""
     scene_name = group[0].scene
     scene = get_scene(scene_name)
     count = min(conditions, truth_stage.evaluation_count(profile, scene))
@@ -227,20 +231,22 @@ def _rolled_out_again(profile: Profile, layout: store.Layout, group: list[Pair],
     model = loaded[0][0]
     runs = evaluate.stacked_rollouts(profile, model, [params for _, params in loaded], scene_name, group[0].projected, truth.states,
                                      f"verify {group[0].label} on {scene_name}", progress)
+    largest = 0.0
     for pair, q, qd, energy in zip(group, runs.q, runs.qd, runs.energy):
         again = evaluate.pair_arrays(profile, scene_name, Trajectory(truth.truth.t, q, qd, energy), truth)
         arrays, _ = records.read(layout.found(layout.pair_record(pair)))
         for name in evaluate.pair_needs(profile):
             if name not in arrays:
-                return f"{pair.job.name} on {scene_name}: its record lacks {name}"
+                return math.nan, f"{pair.job.name} on {scene_name}: its record lacks {name}"
             recorded, derived = np.asarray(arrays[name])[:count], again[name]
             gap = np.abs(recorded - derived)
             if not (recorded.shape == derived.shape and np.all(gap <= TOLERANCE)):
                 k = int(np.argmax(np.where(np.isnan(gap), np.inf, gap))) if recorded.shape == derived.shape else 0
-                return (f"{pair.job.name} on {scene_name}: {name.removesuffix('/per_ic_log')} of initial condition {k} is "
-                        f"{math.exp(recorded[k]):.6g} in the record, {math.exp(derived[k]):.6g} rolled out again")
+                return math.nan, (f"{pair.job.name} on {scene_name}: {name.removesuffix('/per_ic_log')} of initial condition {k} is "
+                                  f"{math.exp(recorded[k]):.6g} in the record, {math.exp(derived[k]):.6g} rolled out again")
+            largest = max(largest, float(np.max(gap, initial=0.0)))
         log(f"verify {pair.label} s{pair.job.seed} on {scene_name}: {count} initial condition(s) agree")
-    return None
+    return largest, None
 
 
 def _verify_externals(profile: Profile, out: Path, predictions) -> list[Finding]:

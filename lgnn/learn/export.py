@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from lgnn import records
+from lgnn import archives, records
 from lgnn.errors import ConfigError
 from lgnn.files import atomic_path
 
@@ -100,9 +100,12 @@ def load_exported(path: str | os.PathLike) -> Exported:
             raise ConfigError(f"{path}: not a readable exported dataset ({err})") from None
         if records.checksum(arrays, text) != stored:
             raise ConfigError(f"{path}: checksum mismatch (damaged exported dataset)")
-        meta = json.loads(text)
+        try:
+            meta = json.loads(text)
+        except (ValueError, RecursionError) as err:
+            raise ConfigError(f"{path}: not a readable exported dataset (its meta: {type(err).__name__})") from None
     else:
         raise ConfigError(f"{path}: not an exported dataset (suffix {path.suffix or 'none'})")
-    if meta.get("format") != EXPORT_FORMAT or set(arrays) != set(ARRAYS):
+    if not isinstance(meta, dict) or archives.json_depth_problem(meta) or meta.get("format") != EXPORT_FORMAT or set(arrays) != set(ARRAYS):
         raise ConfigError(f"{path}: not an lgnn exported dataset of format {EXPORT_FORMAT}")
     return Exported(arrays, meta)

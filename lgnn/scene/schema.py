@@ -85,6 +85,7 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
+from lgnn import archives
 from lgnn.errors import SceneError
 
 # Positions must satisfy the link lengths to this relative accuracy at load, and
@@ -759,6 +760,9 @@ def load_scene_file(path: str | os.PathLike) -> Scene:
         raise SceneError(f"{path}: not valid JSON: {err.msg} at line {err.lineno} column {err.colno}") from None
     except ValueError as err:
         raise SceneError(f"{path}: {err}") from None
+    deep = archives.json_depth_problem(data)
+    if deep:
+        raise SceneError(f"{path}: not a scene: {deep}")
     try:
         return scene_from_dict(data)
     except SceneError as err:

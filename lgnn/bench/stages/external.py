@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lgnn import metrics, records
+from lgnn import archives, metrics, records
 from lgnn.bench import claims, store
 from lgnn.bench.grid import Pair, external_pair
 from lgnn.bench.profiles import Profile, evaluation_scenes
@@ -94,6 +94,9 @@ def read_predictions(profile: Profile, path: str | os.PathLike) -> Predictions:
         raise ConfigError(f"{path}: predictions are an .npz file (docs/formats.md, 'Predictions')")
     if not path.is_file():
         raise ConfigError(f"{path}: no such predictions file")
+    problem = archives.npz_problem(path)
+    if problem:
+        raise ConfigError(f"{path}: not a predictions file: {problem}")
     try:
         with np.load(path, allow_pickle=False) as handle:
             missing = [name for name in ARRAYS if name not in handle.files]
