@@ -1,7 +1,5 @@
-"""`python -m lgnn ...`: the `lgnn` command (`lgnn.cli.main`)."""
+"""`python -m lgnn ...`: the `lgnn` command (`lgnn.cli.entry`)."""
 
-import sys
+from lgnn.cli import entry
 
-from lgnn.cli import main
-
-sys.exit(main())
+entry()

@@ -30,12 +30,13 @@ DEFAULT_OUT = Path("lgnn-out")
 
 
 def out_dir(path: str | os.PathLike | None) -> Path:
-    """The output directory a command writes into: `path` as given (it must exist, like
-    any named output), or `DEFAULT_OUT`, created, when none is named."""
-    if path is not None:
-        return Path(path)
-    DEFAULT_OUT.mkdir(exist_ok=True)
-    return DEFAULT_OUT
+    """The output directory a command writes into, created with its parents if missing:
+    `path` (checked first: `check_out_dir`), or `DEFAULT_OUT` when none is named. The
+    one rule of every command (docs/cli.md): an output *folder* is created, an output
+    *file*'s folder must exist (`check_writable`)."""
+    path = DEFAULT_OUT if path is None else check_out_dir(path)
+    path.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 def user_cache_dir() -> Path:

@@ -13,6 +13,9 @@ devices) and LLVM's static state under the running compiler thread, a segmentati
 fault after "lgnn: interrupted". "lgnn: interrupted" is printed at once; a second
 Ctrl-C during the compilation leaves at once, without Python's shutdown.
 
+`leave(code)` ends the process: a Ctrl-C after the command has returned, while the
+interpreter ends, exits 130 with the one line too (the console script's `entry`).
+
 `HeldWhileLoading` is the context an entry point's own imports run in: a Ctrl-C then
 is remembered (`received`) and handed to `run_interruptibly`, not raised as a
 traceback from an import. Nothing here is done at import: only the entry point
@@ -148,6 +151,23 @@ def run_interruptibly(command: Callable[[Callable[[], ContextManager]], int], re
         _say_interrupted()
     _forget_interrupted_source_text()
     return EXIT_INTERRUPTED
+
+
+def leave(code: int):
+    """End the process with exit status `code` (`sys.exit`), a Ctrl-C from here on, while
+    the interpreter ends (atexit handlers: JAX shuts its backends down), leaving with the
+    one line and `EXIT_INTERRUPTED`: Python's own handler would raise KeyboardInterrupt
+    there, and Python then ends the process by the signal itself (a shell's -2, not 130)."""
+    if _holds_sigint():
+        signal.signal(signal.SIGINT, _leave_interrupted)
+    sys.exit(code)
+
+
+def _leave_interrupted(signum, frame) -> None:
+    _say_interrupted()
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+    os._exit(EXIT_INTERRUPTED)
 
 
 def _say_interrupted() -> bool:

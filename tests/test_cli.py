@@ -1,5 +1,6 @@
 """The command line: outputs, and one clear line for every bad input."""
 
+import argparse
 import dataclasses
 import json
 import os
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 
 from lgnn.cli import main
+from lgnn.errors import ConfigError
 from lgnn.scene import CATALOGUE
 from lgnn.engines.base import Trajectory
 
@@ -605,3 +607,64 @@ def test_version_names_lgnn_its_commit_and_the_versions_results_record(capsys):
     assert code == 0 and out.strip() == f"{provenance.versions()}; commit {provenance.commit()}"
     for package in ("lgnn", "jax", "jaxlib", "mujoco", "numpy"):
         assert f"{package} " in out
+
+
+# The one rule for missing output folders (docs/cli.md): a named output file's folder must
+# exist; a named output folder is created with its parents.
+_OUTPUT_FILES = [
+    ["simulate", "chain4", "--duration", "0.01", "--out", "{out}/x.npz"],
+    ["scene", "export", "chain4", "--out", "{out}/x.json"],
+    ["scene", "import", "lgnn/assets/mjcf/acrobot.xml", "--out", "{out}/x.json"],
+    ["mjcf", "chain4", "--out", "{out}/x.xml"],
+    ["rollout", "chain4", "--model", "results/benchmark/checkpoints/lgnn-chain4-s0.npz", "--duration", "0.01", "--out", "{out}/x.npz"],
+    ["train", "--scene", "chain4", "--model", "lgnn", "--epochs", "1", "--out", "{out}/x.npz"],
+    ["plot", "{tmp}/a.npz", "--out", "{out}/x.png"],
+    ["animate", "{tmp}/a.npz", "--out", "{out}/x.gif"],
+    ["dataset", "export", "--scene", "chain4", "--out", "{out}/x.npz"],
+    ["stability", "--out", "{out}/x.md"],
+]
+
+
+@pytest.mark.parametrize("argv", _OUTPUT_FILES, ids=lambda argv: " ".join(argv[:2]))
+def test_an_output_file_in_a_missing_folder_is_refused_before_any_work(capsys, tmp_path, monkeypatch, argv):
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    missing = tmp_path / "missing" / "deeper"
+    code, _, err = run(capsys, *[a.format(out=missing, tmp=tmp_path) for a in argv])
+    assert code == 2 and f"output directory does not exist: {missing}" in err, err
+    assert not (tmp_path / "missing").exists()
+
+
+def test_an_output_folder_is_created_with_its_parents(capsys, tmp_path):
+    from lgnn.files import out_dir
+
+    assert run(capsys, "simulate", "chain4", "--duration", "0.01", "--out", str(tmp_path / "a.npz"))[0] == 0
+    folder = tmp_path / "new" / "deeper"
+    assert run(capsys, "compare", str(tmp_path / "a.npz"), str(tmp_path / "a.npz"), "--out-dir", str(folder))[0] == 0
+    assert (folder / "compare_summary.md").is_file()
+    # crosscheck's, convergence's and gpu-truth's folders go through the same function.
+    assert out_dir(tmp_path / "other" / "deeper").is_dir()
+    (tmp_path / "file").write_text("")
+    with pytest.raises(ConfigError, match="is not a directory"):
+        out_dir(tmp_path / "file" / "x")
+
+
+def test_every_output_option_follows_the_rule():
+    """Each command's --out and --out-dir is one this file tests, so a new command's
+    output is classified (a file whose folder must exist, or a folder created)."""
+    from lgnn.cli import build_parser
+
+    tested_files = {tuple(argv[:2]) if argv[0] in ("scene", "dataset") else (argv[0],) for argv in _OUTPUT_FILES}
+    folders = {("benchmark",), ("leaderboard",), ("evaluate",), ("compare",), ("crosscheck",), ("convergence",), ("gpu-truth",),
+               ("mjcf",), ("papers",), ("handoff", "pack"), ("handoff", "unpack")}
+    found = set()
+
+    def walk(parser, path):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    walk(sub, (*path, name))
+            elif {"--out", "--out-dir", "--to"} & set(action.option_strings):
+                found.add(path)
+
+    walk(build_parser(), ())
+    assert found <= tested_files | folders, found - tested_files - folders

@@ -13,7 +13,7 @@ they share.
 
 from __future__ import annotations
 
-from lgnn.interrupts import EXIT_INTERRUPTED, HeldWhileLoading, run_interruptibly
+from lgnn.interrupts import EXIT_INTERRUPTED, HeldWhileLoading, leave, run_interruptibly
 
 # A Ctrl-C while this package loads, before `main` takes SIGINT, is remembered here and
 # answered by `main` (one line, exit 130), not raised as a traceback from an import.
@@ -32,7 +32,7 @@ with _LOADING:
 # Exit statuses (docs/cli.md, "Behaviour common to every command").
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3  # a simulation or rollout diverged; the frames before it are kept
-__all__ = ["EXIT_BAD_INPUT", "EXIT_CHECK_FAILED", "EXIT_DIVERGED", "EXIT_INTERRUPTED", "build_parser", "main", "train_settings"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_CHECK_FAILED", "EXIT_DIVERGED", "EXIT_INTERRUPTED", "build_parser", "entry", "main", "train_settings"]
 
 
 class _VersionAction(argparse.Action):
@@ -68,6 +68,19 @@ def main(argv: list[str] | None = None) -> int:
     until that compilation ends; a second one leaves at once).
     """
     return run_interruptibly(lambda interrupts_after_loading: _run(argv, interrupts_after_loading), _LOADING.take())
+
+
+def entry() -> None:
+    """The `lgnn` console script and `python -m lgnn`: the process ends with `main()`'s
+    exit status; a Ctrl-C at any moment after the interpreter has started and lgnn's
+    entry point has loaded, the interpreter's own ending included, with the one line and
+    130 (`lgnn.interrupts.leave`)."""
+    try:
+        code = main()
+        leave(code)
+    except KeyboardInterrupt:  # between main's own handling and `leave`'s
+        print("lgnn: interrupted", file=sys.stderr, flush=True)
+        leave(EXIT_INTERRUPTED)
 
 
 def _run(argv: list[str] | None, interrupts_after_loading) -> int:

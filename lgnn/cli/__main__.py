@@ -1,8 +1,6 @@
-"""`python -m lgnn.cli ...`: the `lgnn` command (`lgnn.cli.main`)."""
+"""`python -m lgnn.cli ...`: the `lgnn` command (`lgnn.cli.entry`)."""
 
-import sys
-
-from lgnn.cli import main
+from lgnn.cli import entry
 
 if __name__ == "__main__":  # not on import (the architecture tests import every module)
-    sys.exit(main())
+    entry()

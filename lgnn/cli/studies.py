@@ -95,14 +95,18 @@ def _add_stability_parser(commands) -> None:
 
 
 def _cmd_gpu_truth(args) -> None:
+    from pathlib import Path
+
     from lgnn.bench import gpu_truth
-    from lgnn.files import check_writable
+    from lgnn.files import check_out_dir, check_writable
     from lgnn.scene import get_scene
 
+    check_out_dir(args.out)
     settings = gpu_truth.GpuTruthSettings(tuple(args.scenes), tuple(args.batches), tuple(args.engines), args.steps, args.dt,
                                           args.repeats, args.form, args.seed)
-    check_writable(f"{args.out}/gpu_truth_{settings.scenes[0]}{args.suffix}.md")
     scenes = [get_scene(name) for name in settings.scenes]  # every name checked before any run
+    Path(args.out).mkdir(parents=True, exist_ok=True)  # an output folder is created (docs/cli.md)
+    check_writable(f"{args.out}/gpu_truth_{settings.scenes[0]}{args.suffix}.md")
     log = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     for scene in scenes:
         if not args.fresh and gpu_truth.measured_before(args.out, scene.name + args.suffix, settings):
