@@ -68,7 +68,26 @@ def _driver(out: Path, address: str, cache: Path) -> subprocess.Popen:
                             env={**os.environ, "LGNN_CACHE": str(cache)})
 
 
-def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_executor_does(cluster, tmp_path, capsys):
+@pytest.fixture(scope="module")
+def local(tmp_path_factory):
+    """The undisturbed run of the local executor, the reference of every Ray run here."""
+    out = tmp_path_factory.mktemp("local") / "out"
+    assert main(["benchmark", *PROFILE_ARGV, *STAGES, "--out-dir", str(out), "--quiet"]) == 0
+    return out
+
+
+def _same_summary(ours: Path, theirs: Path) -> None:
+    """Two runs' `summary.csv.gz`: every column but the values equal, the values to round-off."""
+    summaries = [pd.read_csv(out / "benchmark" / report_summary.SUMMARY, keep_default_na=False) for out in (ours, theirs)]
+    assert list(summaries[0].columns) == list(summaries[1].columns) and len(summaries[0]) == len(summaries[1])
+    for column in summaries[0].columns:
+        if column != "value":
+            assert summaries[0][column].tolist() == summaries[1][column].tolist(), column
+    values = [pd.to_numeric(summary["value"], errors="coerce").to_numpy() for summary in summaries]
+    np.testing.assert_allclose(values[0], values[1], rtol=SUMMARY_RTOL, atol=RECORD_ATOL, equal_nan=True)
+
+
+def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_executor_does(cluster, local, tmp_path, capsys):
     """Two drivers started at once on one output folder: each training job, model
     evaluation and ground truth is computed by one of them (the other's task waits for
     its claim, then reads the record), the ground truth by a truth task queued behind
@@ -76,8 +95,7 @@ def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_execu
     the local executor's to round-off, their settings, counts and the truth's key
     exactly (timings apart; locally the evaluate stage computed the ground truth); the
     tasks use the drivers' dataset cache; no claim is left."""
-    local, shared, cache = tmp_path / "local", tmp_path / "ray", tmp_path / "drivers-cache"
-    assert main(["benchmark", *PROFILE_ARGV, *STAGES, "--out-dir", str(local), "--quiet"]) == 0, capsys.readouterr().err
+    shared, cache = tmp_path / "ray", tmp_path / "drivers-cache"
     # The drivers' own cache: they compute the ground truth again, rather than read the local run's.
     drivers = [_driver(shared, cluster, cache) for _ in range(2)]
     for driver in drivers:
@@ -94,13 +112,7 @@ def test_two_ray_drivers_on_one_folder_compute_each_part_once_as_the_local_execu
     assert len(list((cache / "datasets" / "ground-truth").glob("chain4-*.npz"))) == 1
     assert not list(shared.rglob("*.claim*")) and not list(cache.rglob("*.claim*"))
 
-    summaries = [pd.read_csv(out / "benchmark" / report_summary.SUMMARY, keep_default_na=False) for out in (shared, local)]
-    assert list(summaries[0].columns) == list(summaries[1].columns) and len(summaries[0]) == len(summaries[1])
-    for column in summaries[0].columns:
-        if column != "value":
-            assert summaries[0][column].tolist() == summaries[1][column].tolist(), column
-    values = [pd.to_numeric(summary["value"], errors="coerce").to_numpy() for summary in summaries]
-    np.testing.assert_allclose(values[0], values[1], rtol=SUMMARY_RTOL, atol=RECORD_ATOL, equal_nan=True)
+    _same_summary(shared, local)
     profile = _profile()
     # Each folder's records load under the key of its own checkpoint (`load_pairs`); the
     # keys hash the parameters, which two processes need not train bit for bit.
@@ -144,10 +156,11 @@ def _assert_close_meta(ours, theirs, rtol, path="meta"):
         assert ours == theirs, path
 
 
-def test_a_training_task_whose_worker_is_killed_is_retried_and_its_checkpoint_is_whole(cluster, tmp_path, capsys):
+def test_a_training_task_whose_worker_is_killed_is_retried_and_its_checkpoint_is_whole(cluster, local, tmp_path, capsys):
     """The Ray worker running the training task is killed (SIGKILL) once the child has
     claimed its job: the child stops with it (its claim released), Ray runs the task
-    again, the run completes with one whole, finished checkpoint and no claim left."""
+    again, the run completes with one whole, finished checkpoint and no claim left, and
+    its summary is the undisturbed local run's."""
     out = tmp_path / "out"
     checkpoint = out / "benchmark" / "checkpoints" / "gns-chain4-s0.npz"
     killed = []
@@ -166,7 +179,7 @@ def test_a_training_task_whose_worker_is_killed_is_retried_and_its_checkpoint_is
     killer = threading.Thread(target=kill_the_worker)
     killer.start()
     try:
-        code = main(["benchmark", *PROFILE_ARGV, "--stage", "train", "--executor", "ray", "--out-dir", str(out), "--quiet"])
+        code = main(["benchmark", *PROFILE_ARGV, *STAGES, "--executor", "ray", "--out-dir", str(out), "--quiet"])
     finally:
         killer.join()
     assert code == 0, capsys.readouterr().err
@@ -176,3 +189,4 @@ def test_a_training_task_whose_worker_is_killed_is_retried_and_its_checkpoint_is
     state, _ = train.load_checkpoint(checkpoint)
     assert state.epoch == 1
     assert not list(out.rglob("*.claim*")) and not list(out.rglob("*.tmp*"))
+    _same_summary(out, local)
