@@ -61,10 +61,11 @@ from lgnn.scene import get_scene
 
 # How far a re-derived per-initial-condition value may be from the record's, as |d ln
 # error| (a relative difference): the records were made on GPUs in float64, and rolled
-# out again on a CPU the committed rows agree to 1e-9 and better (the difference is
-# round-off in another order, grown by the dynamics over 1 s); an edited number or
-# another model differs by orders more.
-TOLERANCE = 1e-6
+# out again on a 2-core CPU the committed rows agree to 1e-7 and better (round-off in
+# another order, grown by the dynamics over 1 s; the largest, 9.9e-8, is CHNN's energy
+# error on chain4, whose first frames sit near round-off). 100 times that; an edited
+# number or another model differs by orders more.
+TOLERANCE = 1e-5
 # How far the committed summary's numbers may be from the statistics computed again
 # (relative): the CSV keeps 6 significant digits (`tables.write_csv`), so a number is
 # within half a unit of its 6th digit, 5e-6 of it; the bootstrap draws its resamples
