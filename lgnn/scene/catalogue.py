@@ -214,10 +214,14 @@ IMPORTED = {
     "cartpole-3": "dm_control's cart-pole with three poles",
     "inverted-double-pendulum": "Gymnasium's inverted double pendulum: a 10.5 kg cart (+-0.99 m), two 0.6 m poles, gravity tilted 1e-5",
 }
+# The 3D ones (ball joints).
+IMPORTED_3D = {
+    "rope-capsules-3d": "a rope of ten ball-jointed capsules (0.1 m, 35 g) pinned at its top, released bent and twisted",
+}
 
 
 def imported_scene(name: str) -> Scene:
-    """The built-in imported scene `name` (`IMPORTED`)."""
+    """The built-in imported scene `name` (`IMPORTED`, `IMPORTED_3D`)."""
     return scene_from_dict(json.loads(resources.files("lgnn").joinpath(f"assets/imported/{name}.json").read_text()))
 
 
@@ -604,7 +608,7 @@ TAGS = {
     "paper": "the paper's scenes (chains, the varied and drag chains, T1-T3)",
     "hard": "hard cases: lgnn stability, the physics tests, the stand-ins T2-slack and T3-slack, scaling",
     "transfer": "scenes made for zero-shot transfer: 3D ones from the 3D 4-link chain, longer varied chains (planar and 3D) from varied 4-link ones",
-    "imported": "written in MJCF from published models' parameters (dm_control, Gymnasium) and imported (lgnn scene import)",
+    "imported": "written in MJCF (from published models' parameters: dm_control, Gymnasium; a rope of capsules of lgnn's own) and imported (lgnn scene import)",
     "papers": "other papers' systems as their authors' code defines them (Finzi et al. 2020's chain pendulums: lgnn papers)",
     "mjcf": "its MJCF is committed in mjcf/ (lgnn mjcf --check)",
 }
@@ -701,6 +705,8 @@ CATALOGUE: dict[str, CatalogueEntry] = {
                        ("3d", "transfer", "mjcf"), OWN_STATE),
         *(CatalogueEntry(name, description, functools.partial(imported_scene, name), _planar("imported", "mjcf"), PROJECTED)
           for name, description in IMPORTED.items()),
+        *(CatalogueEntry(name, description, functools.partial(imported_scene, name), ("3d", "imported", "mjcf"), PROJECTED)
+          for name, description in IMPORTED_3D.items()),
         *(CatalogueEntry(f"finzi-pendulum{n}", f"Finzi et al. (2020)'s {n}-pendulum: {n} point mass{'es' if n > 1 else ''} on massless rods",
                          functools.partial(finzi_pendulum, n), _planar("papers"), PROJECTED) for n in FINZI_PENDULUMS),
     ]
