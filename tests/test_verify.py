@@ -19,7 +19,7 @@ from lgnn import records
 from lgnn.bench import verify
 from lgnn.bench.api import benchmark_profile
 from lgnn.bench.report.summary import tables
-from lgnn.bench.stages import evaluate, external
+from lgnn.bench.stages import evaluate
 from lgnn.bench.tables import write_csv
 from lgnn.cli import EXIT_CHECK_FAILED, main
 
@@ -170,14 +170,13 @@ def test_verify_refuses_what_it_cannot_read(tmp_path, capsys):
     assert "--initial-conditions is an option of lgnn leaderboard verify" in capsys.readouterr().err
 
 
-@pytest.mark.slow
-@pytest.mark.xla_optimised  # 32 rows of 1000-frame rollouts: optimised programs save more than they cost
-def test_every_committed_row_verifies():
-    """The acceptance: every row of the committed results re-derived (its smallest scene,
-    one initial condition), none failed; the rows whose checkpoints were kept without
-    their parameters are unverified, and only those."""
-    outcome = verify.verify(benchmark_profile("full"), RESULTS, conditions=1)
-    assert not outcome.failed, [f.line() for f in outcome.failed]
-    unverified = [f.row for f in outcome.findings if f.status == verify.UNVERIFIED]
-    assert unverified and all(row.startswith(("gns-10-128", "cgnode")) for row in unverified), unverified
-    assert external.load_externals(benchmark_profile("full"), RESULTS) == []
+def test_the_committed_verification_is_of_the_committed_records():
+    """The committed `verification.json` names every row of the committed grid and its
+    records as they are: changing a record without verifying again fails here (the
+    leaderboard would mark the row "no: records changed since")."""
+    profile = benchmark_profile("full")
+    kept, marks = verify.marks(profile, RESULTS)
+    assert kept is not None and set(marks) == set(verify.rows_of(profile)), set(verify.rows_of(profile)) ^ set(marks)
+    assert all(mark.startswith("yes") or mark == "no: parameters not kept" for mark in marks.values()), marks
+    board = (RESULTS / "LEADERBOARD.md").read_text()
+    assert "| yes (" in board and "| no: records changed since |" not in board and "| not checked |" not in board
