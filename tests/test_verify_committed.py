@@ -2,12 +2,15 @@
 tests/test_verify.py so that its minutes run beside that file's tests (pytest -n auto
 --dist loadfile gives each file to one worker)."""
 
+from pathlib import Path
+
 import pytest
 
 from lgnn.bench import verify
 from lgnn.bench.api import benchmark_profile
 from lgnn.bench.stages import external
-from tests.test_verify import RESULTS
+
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 
 @pytest.mark.slow
