@@ -106,6 +106,21 @@ def test_exported_initial_conditions_rolled_out_elsewhere_are_scored_against_the
     assert main(["leaderboard", "--config", config, "--out-dir", out]) == 0
     assert (out / "LEADERBOARD.md").read_text().split("\n", 3)[3] == board.split("\n", 3)[3]
     assert "Written by `lgnn leaderboard --config" in (out / "LEADERBOARD.md").read_text()
+    # Verified: the model's row rolled out again, each external row scored again from its
+    # file where given, unverified without it, failed for a file that is not the one scored.
+    verify = ["leaderboard", "verify", out, "--config", config, "--quiet"]
+    assert main(verify) == 0
+    printed = capsys.readouterr().out
+    assert "cheat-external: verified: " in printed and "exact-sim (external): unverified: on chain4: no predictions file given" in printed
+    assert main([*verify, "--predictions", files[0], "--predictions", files[1]]) == 0
+    printed = capsys.readouterr().out
+    assert f"exact-sim (external): verified: on chain4: {files[0]} scored again to the record" in printed, printed
+    assert "heavier-sim (external): verified: " in printed and "| yes (scored again) |" in (out / "LEADERBOARD.md").read_text()
+    edited = q.copy()
+    edited[:, 1:] *= 1.001  # every frame after the initial conditions moved
+    _save(files[1], edited, qd, evaluation, "heavier-sim")
+    assert main([*verify, "--predictions", files[1]]) == 1
+    assert "heavier-sim (external): failed: on chain4: " in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("change, words", [

@@ -174,7 +174,8 @@ def leaderboard_markdown(profile: Profile, out: Path, summary, checkpoints: list
              "Then open a pull request adding what the command wrote under its output folder: the checkpoint "
              "(`benchmark/checkpoints/JOB.npz`) and records (`benchmark/runs/JOB/`) of a model, with its file and an `[[add]]` "
              "entry of the full profile, or the records `benchmark/runs/external/MODEL/` of predictions. This file is then "
-             f"regenerated from the records: `{shown}`.", ""]
+             f"regenerated from the records: `{shown}`, and every row re-derived before it is marked verified: `lgnn leaderboard "
+             "verify results` (with `--predictions FILE.npz` for predictions, which are scored again).", ""]
     if wide is None:
         return "\n".join([*lines, "(no results)", ""])
     for heading, dim, board in leaderboards(evaluation_pairs(profile)):
