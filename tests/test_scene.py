@@ -326,7 +326,8 @@ def test_scene_names_select_by_tag_and_a_bad_tag_is_one_line():
 
     assert scene_names("paper") == ("chain4", "chain8", "chain16", "chain100", "chain4-varied", "chain4-drag", "T1", "T2", "T3")
     assert "T2-slack" in scene_names("planar", "hard") and "T2-slack" not in scene_names("mjcf")
-    assert set(scene_names("transfer")) == set(scene_names("3d")) | {"chain8-varied", "chain16-varied", "chain100-varied"}
+    assert set(scene_names("transfer")) == set(scene_names("3d")) - set(scene_names("imported")) | {"chain8-varied", "chain16-varied", "chain100-varied"}
+    assert scene_names("3d", "imported") == ("rope-capsules-3d",)
     assert {"chain4-3d-varied", "chain100-3d-varied"} <= set(scene_names("3d", "transfer")) - set(scene_names("mjcf"))
     with pytest.raises(SceneError, match="unknown scene tag 'spatial'"):
         scene_names("spatial")

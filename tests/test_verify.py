@@ -8,6 +8,7 @@ a parameter of a checkpoint with its checksum recomputed, a number of the summar
 """
 
 import gzip
+import json
 import shutil
 from pathlib import Path
 
@@ -148,6 +149,15 @@ def test_a_forged_summary_is_named_and_a_changed_row_loses_its_mark(tmp_path, ca
     code, out = _verify(folder, capsys)
     assert code == EXIT_CHECK_FAILED
     assert f"(the folder): failed: {path}: scene chain4, model lgnn, seed -1, metric rollout_error, statistic gmean is" in out
+
+
+def test_verifying_one_row_keeps_the_others_findings(tmp_path, capsys):
+    folder = _row_copy(tmp_path)
+    kept = {"format": verify.FORMAT, "rows": [{"row": "other", "status": "verified", "detail": "", "digest": "d", "mark": "yes (x)"}]}
+    (folder / "benchmark" / verify.VERIFICATION).write_text(json.dumps(kept))
+    code, out = _verify(folder, capsys, "--row", "lgnn")
+    assert code == 0 and out.startswith("lgnn: verified: ")
+    assert [row["row"] for row in verify.load(folder)["rows"]] == ["other", "lgnn"]
 
 
 def test_a_row_kept_without_parameters_is_unverified(tmp_path, capsys):

@@ -107,6 +107,8 @@ class Verification:
     conditions: int
     scenes: str
     tolerance: float = TOLERANCE
+    # Only some rows were checked (`verify(rows=...)`): `save` keeps the others' findings.
+    partial: bool = False
 
     @property
     def failed(self) -> list[Finding]:
@@ -149,9 +151,14 @@ def _record_key(layout: store.Layout, pair: Pair) -> str | None:
 
 
 def verify(profile: Profile, out: Path, conditions: int = CONDITIONS, scenes: str = "smallest", predictions=(),
-           progress: bool = False) -> Verification:
+           progress: bool = False, rows: tuple[str, ...] | None = None) -> Verification:
     """Check every row of the profile's grid under `out` (module docstring); `predictions`:
-    predictions files of external rows, re-scored."""
+    predictions files of external rows, re-scored; `rows`: only these rows of the grid
+    (labels), without the external rows and the summary (the folder's checks)."""
+    grid = rows_of(profile)
+    unknown = [row for row in rows or () if row not in grid]
+    if unknown:
+        raise ConfigError(f"no row {unknown[0]!r} in the {profile.name} profile's grid (rows: {', '.join(grid)})")
     if scenes not in SCENE_CHOICES:
         raise ConfigError(f"scenes must be one of {', '.join(SCENE_CHOICES)}, got {scenes!r}")
     if not (isinstance(conditions, int) and conditions >= 1):
@@ -159,10 +166,12 @@ def verify(profile: Profile, out: Path, conditions: int = CONDITIONS, scenes: st
     out = Path(out)
     layout = store.layout(profile, out)
     truths = {}  # each checked scene's ground truth of its first initial conditions, shared by its rows
-    findings = [_verify_row(profile, layout, label, pairs, conditions, scenes, truths, progress) for label, pairs in rows_of(profile).items()]
-    findings += _verify_externals(profile, out, predictions)
-    findings.append(_verify_summary(profile, out))
-    return Verification(tuple(f for f in findings if f is not None), conditions, scenes)
+    findings = [_verify_row(profile, layout, label, pairs, conditions, scenes, truths, progress) for label, pairs in grid.items()
+                if rows is None or label in rows]
+    if rows is None:
+        findings += _verify_externals(profile, out, predictions)
+        findings.append(_verify_summary(profile, out))
+    return Verification(tuple(f for f in findings if f is not None), conditions, scenes, partial=rows is not None)
 
 
 def _verify_row(profile: Profile, layout: store.Layout, label: str, pairs: list[Pair], conditions: int, scenes: str, truths: dict,
@@ -322,13 +331,19 @@ def _where(index: list[str], values: tuple) -> str:
 def save(verification: Verification, out: Path, command: str | None = None, env: dict | None = None) -> Path:
     """Keep a verification as `<out>/benchmark/verification.json` (written whole), with
     the environment that made it (`env`, default this process's: take it before writing
-    into a committed folder, or it names the commit dirty)."""
+    into a committed folder, or it names the commit dirty); one of some rows alone
+    (`partial`) keeps the kept file's other rows. The command, environment and settings
+    are the latest verification's."""
     from lgnn.provenance import environment
 
     path = Path(out) / "benchmark" / VERIFICATION
+    rows = [dataclasses.asdict(f) for f in verification.findings]
+    kept = load(out) if verification.partial else None
+    if kept is not None:  # the rows not checked now keep their findings (their digests say whether they still hold)
+        checked = {f.row for f in verification.findings}
+        rows = [row for row in kept["rows"] if isinstance(row, dict) and row.get("row") not in checked] + rows
     text = json.dumps({"format": FORMAT, "command": command, "environment": env or environment(), "conditions": verification.conditions,
-                       "scenes": verification.scenes, "tolerance": verification.tolerance,
-                       "rows": [dataclasses.asdict(f) for f in verification.findings]}, indent=1, default=list)
+                       "scenes": verification.scenes, "tolerance": verification.tolerance, "rows": rows}, indent=1, default=list)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, text + "\n")
     return path

@@ -87,7 +87,7 @@ def _cmd_leaderboard(args) -> int | None:
         return _verify(args)
     if args.folder is not None:
         raise ConfigError(f"lgnn leaderboard: unexpected {args.folder!r} (a folder is given as --out-dir, or to lgnn leaderboard verify)")
-    for option in ("initial_conditions", "scenes", "predictions"):
+    for option in ("initial_conditions", "scenes", "predictions", "row"):
         if getattr(args, option) is not None:
             raise ConfigError(f"--{option.replace('_', '-')} is an option of lgnn leaderboard verify")
     profile = benchmark_profile(profile_source(args), settings=args.set or (), with_results=args.with_results)
@@ -119,8 +119,10 @@ def _verify(args) -> int:
     profile = benchmark_profile(source, settings=args.set or (), with_results=args.with_results)
     command = "lgnn " + " ".join(args.argv)
     env = environment()  # before anything is written: a committed folder would read "+dirty"
+    if args.row and args.predictions:
+        raise ConfigError("--row checks rows of the grid alone: give --predictions without it")
     outcome = verify.verify(profile, out, args.initial_conditions or verify.CONDITIONS, args.scenes or "smallest", args.predictions or (),
-                            progress=not args.quiet)
+                            progress=not args.quiet, rows=tuple(args.row) if args.row else None)
     for finding in outcome.findings:
         print(finding.line())
     saved = verify.save(outcome, out, command, env)
@@ -152,6 +154,9 @@ def _add_leaderboard_parser(commands) -> None:
                         help="with verify: the scenes each row is rolled out on again: its smallest (default) or every one")
     parser.add_argument("--predictions", action="append", metavar="FILE.npz",
                         help="with verify: the predictions file of an external row, scored again (repeatable; without, the row is unverified)")
+    parser.add_argument("--row", action="append", metavar="LABEL",
+                        help="with verify: only this row of the grid, as the tables label it, e.g. 'lgnn' or 'gns (chain4-3d)' "
+                             "(repeatable; without the external rows and the summary)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=_cmd_leaderboard)
 
